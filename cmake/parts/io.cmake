@@ -1,0 +1,2 @@
+# io/: Dataset and CSV.
+piezo_unit_test(test_io_csv test/unit/test_io_csv.cpp)

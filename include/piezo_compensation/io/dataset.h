@@ -1,0 +1,83 @@
+// Dataset: the one in-memory form of recorded or simulated data that every tool reads and writes.
+#pragma once
+
+#include <cstddef>
+#include <stdexcept>
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace piezo::io {
+
+// A malformed data file or an inconsistent data set. what() is one line naming file, row and column
+// where they are known, e.g. "data.csv: row 17, column c_voltage_v: not a number: 'abc'".
+class DataError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+// One piezo axis. voltage_v and position_nm always have Dataset::size() entries; true_position_nm is
+// either empty (measured data) or full (simulated data: the noise-free position, for evaluation only).
+struct AxisSeries {
+  std::string name;                    // "a", "b" or "c"
+  std::vector<double> voltage_v;       // applied voltage [V]
+  std::vector<double> position_nm;     // encoder reading [nm]
+  std::vector<double> true_position_nm;  // ground truth [nm] (simulator only), else empty
+  bool has_truth() const { return !true_position_nm.empty(); }
+};
+
+// A named numeric column that is neither time, an axis' voltage/position, nor a reserved marker:
+// an auxiliary signal such as a temperature, a candidate explanatory variable for the residual tool.
+struct AuxSignal {
+  std::string name;
+  std::vector<double> values;
+};
+
+// Reserved column names (see docs/data_formats.md):
+//   time_s                      sample time [s], strictly increasing, constant rate
+//   <axis>_voltage_v            applied voltage [V]
+//   <axis>_position_nm          measured position [nm]
+//   <axis>_true_position_nm     simulator ground truth [nm] (never an explanatory signal)
+//   segment                     protocol segment / scenario index (integer; metadata, not a signal)
+//   phase                       protocol phase code (integer; see protocols/protocol.h; metadata)
+struct Dataset {
+  std::string source;                // file it came from, for error messages ("" if built in memory)
+  std::vector<double> time_s;
+  std::vector<AxisSeries> axes;      // in the order a, b, c among those present
+  std::vector<AuxSignal> aux;        // auxiliary signals, in file order
+  std::vector<int> segment;          // empty or size(): protocol segment index per sample
+  std::vector<int> phase;            // empty or size(): protocol phase code per sample
+
+  std::size_t size() const { return time_s.size(); }
+  bool empty() const { return time_s.empty(); }
+  bool has_axis(const std::string& name) const;
+  const AxisSeries& axis(const std::string& name) const;  // throws DataError naming the missing column
+  AxisSeries& axis(const std::string& name);
+  AxisSeries& add_axis(const std::string& name);          // creates (sized to size()) or returns existing
+  const AuxSignal* find_aux(const std::string& name) const;
+
+  // Sample period from the time column; throws DataError if the rate is not constant (±1 % jitter allowed).
+  double sample_period_s() const;
+  double sample_rate_hz() const { return 1.0 / sample_period_s(); }
+
+  // Rows [begin, end) as a new data set (all columns).
+  Dataset slice(std::size_t begin, std::size_t end) const;
+  // Appends other's rows (same columns required, time must continue increasing).
+  void append(const Dataset& other);
+
+  // Checks internal consistency (sizes, finite values, increasing time); throws DataError naming what.
+  void validate() const;
+};
+
+// Column name helpers.
+std::string voltage_column(const std::string& axis);        // "<axis>_voltage_v"
+std::string position_column(const std::string& axis);       // "<axis>_position_nm"
+std::string true_position_column(const std::string& axis);  // "<axis>_true_position_nm"
+
+// CSV I/O. read_csv throws DataError with file, row (1-based, header = row 1) and column on:
+// missing time_s, an axis with voltage but no position (or vice versa), no axis at all, a non-numeric
+// or empty cell, NaN/Inf, a short or long row, non-increasing time, a non-constant sample rate.
+Dataset read_csv(const std::string& path);
+void write_csv(const std::string& path, const Dataset& data);
+
+}  // namespace piezo::io

@@ -1,0 +1,73 @@
+// The one streaming model interface used offline (fit, eval, residual) and live (predictor, inverse, forecast).
+#pragma once
+
+#include <yaml-cpp/yaml.h>
+
+#include <map>
+#include <memory>
+#include <string>
+#include <vector>
+
+namespace piezo::models {
+
+// What is known at one sample when the position is predicted. Causal by construction: the position of the
+// sample being predicted is never an input; positions enter only through Model::commit() of earlier samples.
+struct ModelInput {
+  double voltage_v = 0.0;        // voltage applied at this sample [V]
+  const double* aux = nullptr;   // values of Model::aux_inputs() at this sample, in that order (null if none)
+};
+
+// Facts about a fitted model, stored in the model file beside the weights.
+struct ModelMeta {
+  std::string axis = "c";
+  double sample_rate_hz = 11.0;
+  std::string training_fingerprint;            // hash of the training data (see io::fingerprint)
+  std::string training_source;                 // file(s) it was fitted on
+  std::map<std::string, double> validation;    // e.g. {"one_step_mae_nm": 17.1, "free_run_mae_nm": 6.2}
+  std::string created_utc;
+};
+
+class Model {
+ public:
+  virtual ~Model() = default;
+
+  // Short kind name used in model files and on the command line: "linear", "dense", "lstm", "kan", "pi",
+  // "pi_creep_log", "pi_creep_lti", "pi_creep_fractional", ...
+  virtual std::string kind() const = 0;
+
+  // Forget the history: the piezo has rested long at `voltage_v`, at `position_nm`.
+  virtual void reset(double voltage_v, double position_nm) = 0;
+
+  // Position [nm] at the current sample if `in` is applied now, given the committed history. Const: the
+  // inverse and the drift forecast call it many times per sample with candidate voltages.
+  virtual double predict(const ModelInput& in) const = 0;
+
+  // Appends the current sample to the history: the input actually applied and the position to remember
+  // for lagged-position features — the measurement in one-step mode, the model's own prediction in free-run.
+  virtual void commit(const ModelInput& in, double position_nm) = 0;
+
+  // Deep copy including the state (for look-ahead: drift forecast, inverse search, free-run branches).
+  virtual std::unique_ptr<Model> clone() const = 0;
+
+  // True when predict() reads remembered positions (so one-step and free-run differ).
+  virtual bool uses_position_history() const = 0;
+
+  // True when, for the current state, predict() is affine in voltage_v: then the inverse is closed form,
+  // v = v0 + (target - predict(v0)) / slope, with slope from two predictions.
+  virtual bool is_affine_in_voltage() const { return false; }
+
+  // Names of the auxiliary input signals (data columns) the model reads through ModelInput::aux.
+  virtual std::vector<std::string> aux_inputs() const { return {}; }
+
+  // Kind-specific parameters and weights, written under the file's `model:` key (see model_file.h).
+  virtual YAML::Node to_yaml() const = 0;
+
+  // Number of trainable parameters (for reports).
+  virtual std::size_t num_parameters() const = 0;
+
+  ModelMeta meta;
+};
+
+using ModelPtr = std::unique_ptr<Model>;
+
+}  // namespace piezo::models

@@ -1,0 +1,30 @@
+// Reading and writing data files in either shared format: rosbag (the driver's topics) or CSV.
+// Lives on the ROS side because bags need rosbag; the core library only knows CSV.
+#pragma once
+
+#include <string>
+
+#include "piezo_compensation/io/dataset.h"
+
+namespace piezo::ros_io {
+
+// Bag layout (docs/data_formats.md), under an optional manipulator namespace `ns` ("" or e.g. "/mm1"):
+//   <ns>/<axis>/voltage        piezo_compensation/AxisVoltage      applied voltage [V]
+//   <ns>/<axis>/encoder        piezo_compensation/EncoderPosition  measured position [m]
+//   <ns>/<axis>/true_position  piezo_compensation/EncoderPosition  simulator ground truth [m] (optional)
+//   <ns>/aux                   piezo_compensation/AuxSignal        auxiliary signals (optional)
+//   <ns>/protocol_phase        piezo_compensation/ProtocolPhase    segment/phase markers (optional)
+// One data row per encoder message of the first axis; the other topics are matched by sequence number
+// (falling back to the latest message at or before the encoder stamp).
+struct BagOptions {
+  std::string ns;  // manipulator namespace; "" = auto-detect the single one in the bag
+};
+
+io::Dataset read_bag(const std::string& path, const BagOptions& options = {});
+void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options = {});
+
+// Dispatch on the extension: ".bag" → bag, anything else → CSV. Throws io::DataError with one clear line.
+io::Dataset read_data(const std::string& path);
+void write_data(const std::string& path, const io::Dataset& data);
+
+}  // namespace piezo::ros_io

@@ -1,0 +1,152 @@
+#include "piezo_compensation/io/dataset.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+namespace piezo::io {
+
+std::string voltage_column(const std::string& axis) { return axis + "_voltage_v"; }
+std::string position_column(const std::string& axis) { return axis + "_position_nm"; }
+std::string true_position_column(const std::string& axis) { return axis + "_true_position_nm"; }
+
+namespace {
+std::string where(const Dataset& d) { return d.source.empty() ? std::string("data set") : d.source; }
+}  // namespace
+
+bool Dataset::has_axis(const std::string& name) const {
+  return std::any_of(axes.begin(), axes.end(), [&](const AxisSeries& a) { return a.name == name; });
+}
+
+const AxisSeries& Dataset::axis(const std::string& name) const {
+  for (const auto& a : axes)
+    if (a.name == name) return a;
+  throw DataError(where(*this) + ": missing column " + voltage_column(name) + " / " + position_column(name) +
+                  " (axis '" + name + "' not in the data)");
+}
+
+AxisSeries& Dataset::axis(const std::string& name) {
+  return const_cast<AxisSeries&>(static_cast<const Dataset&>(*this).axis(name));
+}
+
+AxisSeries& Dataset::add_axis(const std::string& name) {
+  for (auto& a : axes)
+    if (a.name == name) return a;
+  AxisSeries s;
+  s.name = name;
+  s.voltage_v.assign(size(), 0.0);
+  s.position_nm.assign(size(), 0.0);
+  axes.push_back(std::move(s));
+  // keep a, b, c order so files are written in a predictable column order
+  std::stable_sort(axes.begin(), axes.end(), [](const AxisSeries& x, const AxisSeries& y) { return x.name < y.name; });
+  for (auto& a : axes)
+    if (a.name == name) return a;
+  return axes.back();  // unreachable
+}
+
+const AuxSignal* Dataset::find_aux(const std::string& name) const {
+  for (const auto& s : aux)
+    if (s.name == name) return &s;
+  return nullptr;
+}
+
+double Dataset::sample_period_s() const {
+  if (time_s.size() < 2) throw DataError(where(*this) + ": need at least 2 samples to know the sample rate");
+  const double dt = (time_s.back() - time_s.front()) / static_cast<double>(time_s.size() - 1);
+  if (!(dt > 0.0)) throw DataError(where(*this) + ": column time_s: time does not increase");
+  for (std::size_t i = 1; i < time_s.size(); ++i) {
+    const double d = time_s[i] - time_s[i - 1];
+    if (std::fabs(d - dt) > 0.01 * dt + 1e-9) {
+      std::ostringstream os;
+      os << where(*this) << ": row " << i + 2 << ", column time_s: sample rate is not constant (step " << d
+         << " s, mean step " << dt << " s)";
+      throw DataError(os.str());
+    }
+  }
+  return dt;
+}
+
+Dataset Dataset::slice(std::size_t begin, std::size_t end) const {
+  end = std::min(end, size());
+  begin = std::min(begin, end);
+  auto cut = [&](const std::vector<double>& v) {
+    return v.empty() ? v : std::vector<double>(v.begin() + begin, v.begin() + end);
+  };
+  Dataset out;
+  out.source = source;
+  out.time_s = cut(time_s);
+  for (const auto& a : axes) {
+    AxisSeries s;
+    s.name = a.name;
+    s.voltage_v = cut(a.voltage_v);
+    s.position_nm = cut(a.position_nm);
+    s.true_position_nm = cut(a.true_position_nm);
+    out.axes.push_back(std::move(s));
+  }
+  for (const auto& x : aux) out.aux.push_back({x.name, cut(x.values)});
+  if (!segment.empty()) out.segment.assign(segment.begin() + begin, segment.begin() + end);
+  if (!phase.empty()) out.phase.assign(phase.begin() + begin, phase.begin() + end);
+  return out;
+}
+
+void Dataset::append(const Dataset& other) {
+  if (other.empty()) return;
+  if (empty() && axes.empty()) {
+    const std::string src = source;
+    *this = other;
+    if (!src.empty()) source = src;
+    return;
+  }
+  if (!time_s.empty() && !(other.time_s.front() > time_s.back()))
+    throw DataError(where(other) + ": column time_s: appended data does not continue after t=" +
+                    std::to_string(time_s.back()) + " s");
+  if (other.axes.size() != axes.size() || other.aux.size() != aux.size())
+    throw DataError(where(other) + ": cannot append: different columns");
+  for (std::size_t k = 0; k < axes.size(); ++k) {
+    if (other.axes[k].name != axes[k].name || other.axes[k].has_truth() != axes[k].has_truth())
+      throw DataError(where(other) + ": cannot append: different axis columns");
+    auto& a = axes[k];
+    const auto& b = other.axes[k];
+    a.voltage_v.insert(a.voltage_v.end(), b.voltage_v.begin(), b.voltage_v.end());
+    a.position_nm.insert(a.position_nm.end(), b.position_nm.begin(), b.position_nm.end());
+    a.true_position_nm.insert(a.true_position_nm.end(), b.true_position_nm.begin(), b.true_position_nm.end());
+  }
+  for (std::size_t k = 0; k < aux.size(); ++k) {
+    if (other.aux[k].name != aux[k].name) throw DataError(where(other) + ": cannot append: different aux columns");
+    aux[k].values.insert(aux[k].values.end(), other.aux[k].values.begin(), other.aux[k].values.end());
+  }
+  if (segment.empty() != other.segment.empty() || phase.empty() != other.phase.empty())
+    throw DataError(where(other) + ": cannot append: segment/phase columns differ");
+  segment.insert(segment.end(), other.segment.begin(), other.segment.end());
+  phase.insert(phase.end(), other.phase.begin(), other.phase.end());
+  time_s.insert(time_s.end(), other.time_s.begin(), other.time_s.end());
+}
+
+void Dataset::validate() const {
+  const std::size_t n = size();
+  auto check = [&](const std::vector<double>& v, const std::string& col, bool optional) {
+    if (optional && v.empty()) return;
+    if (v.size() != n)
+      throw DataError(where(*this) + ": column " + col + " has " + std::to_string(v.size()) + " values, time_s has " +
+                      std::to_string(n));
+    for (std::size_t i = 0; i < n; ++i)
+      if (!std::isfinite(v[i]))
+        throw DataError(where(*this) + ": row " + std::to_string(i + 2) + ", column " + col + ": not a finite number");
+  };
+  check(time_s, "time_s", false);
+  for (std::size_t i = 1; i < n; ++i)
+    if (!(time_s[i] > time_s[i - 1]))
+      throw DataError(where(*this) + ": row " + std::to_string(i + 2) + ", column time_s: time does not increase (" +
+                      std::to_string(time_s[i - 1]) + " then " + std::to_string(time_s[i]) + ")");
+  if (axes.empty()) throw DataError(where(*this) + ": no axis columns (<axis>_voltage_v and <axis>_position_nm)");
+  for (const auto& a : axes) {
+    check(a.voltage_v, voltage_column(a.name), false);
+    check(a.position_nm, position_column(a.name), false);
+    check(a.true_position_nm, true_position_column(a.name), true);
+  }
+  for (const auto& x : aux) check(x.values, x.name, false);
+  if (!segment.empty() && segment.size() != n) throw DataError(where(*this) + ": column segment has the wrong length");
+  if (!phase.empty() && phase.size() != n) throw DataError(where(*this) + ": column phase has the wrong length");
+}
+
+}  // namespace piezo::io

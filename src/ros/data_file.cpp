@@ -1,0 +1,22 @@
+#include "piezo_compensation/ros/data_file.h"
+
+namespace piezo::ros_io {
+
+namespace {
+bool is_bag(const std::string& path) { return path.size() >= 4 && path.compare(path.size() - 4, 4, ".bag") == 0; }
+}  // namespace
+
+io::Dataset read_data(const std::string& path) {
+  io::Dataset d = is_bag(path) ? read_bag(path) : io::read_csv(path);
+  d.validate();
+  return d;
+}
+
+void write_data(const std::string& path, const io::Dataset& data) {
+  if (is_bag(path))
+    write_bag(path, data);
+  else
+    io::write_csv(path, data);
+}
+
+}  // namespace piezo::ros_io
