@@ -1,0 +1,94 @@
+// One axis of the feedforward compensator, ROS-free: advances the model at the encoder rate (free run), turns
+// the operator's intent into a target on the ideal line, inverts the model for the corrected voltage, and falls
+// back to the uncorrected command with a bounded step when the model fails. The predictor node, the bag-replay
+// measurement and the tests all drive this same class.
+#pragma once
+
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/compensation/ideal_line.h"
+#include "piezo_compensation/compensation/inverse.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::compensation {
+
+struct AxisCompensatorConfig {
+  double voltage_min_v = -80.0;
+  double voltage_max_v = 80.0;
+  double fallback_max_step_v = 1.0;      // largest change of the sent voltage per command while falling back
+  double inverse_tolerance_nm = 0.01;
+  double position_margin_nm = 0.0;       // predictions outside the ideal stroke ± this margin count as failures
+                                         // (0 = half the ideal stroke)
+  bool position_feedback = false;        // false: free run (model remembers its own predictions);
+                                         // true: one-step (model remembers the encoder readings)
+};
+
+// Result of one encoder sample.
+struct SampleUpdate {
+  double predicted_nm = 0.0;   // model position for the applied voltage, history up to the previous sample
+  bool ok = true;              // false: the prediction failed (the model was reset at the measurement)
+  std::string status;          // why, when !ok
+};
+
+// Command for the next sample.
+struct CommandUpdate {
+  double intended_nm = 0.0;         // target on the ideal line
+  double commanded_v = 0.0;         // uncorrected: the intent as a voltage on the ideal line
+  double corrected_v = 0.0;         // model inverse (NaN when it failed)
+  double send_v = 0.0;              // what goes to the driver
+  bool compensation_active = false; // send_v is the corrected voltage
+  bool fallback = false;            // compensation was wanted but the model failed
+  std::string status;               // why, when fallback
+  double predicted_at_send_nm = 0.0;  // model position for send_v (NaN when it failed)
+};
+
+class AxisCompensator {
+ public:
+  AxisCompensator(models::ModelPtr model, const IdealLine& line, const AxisCompensatorConfig& config);
+
+  // Intent: a voltage on the ideal piezo, or a target position directly.
+  void set_intended_voltage(double voltage_v);
+  void set_intended_position_nm(double position_nm);
+  bool has_intent() const { return has_intent_; }
+
+  // One encoder sample: the voltage applied over the step and the encoder reading (NaN/invalid → not used).
+  // The first sample starts the model at rest at (applied_v, measured) or (applied_v, ideal) without a reading.
+  SampleUpdate on_sample(double applied_v, double measured_nm, bool measured_valid);
+
+  // Voltage to send for the next sample. compensate=false gives the uncorrected command (no model use).
+  // Without an intent the hold target is the last applied voltage's ideal position.
+  CommandUpdate command(bool compensate);
+
+  // Replace the model (reload); the new model starts at rest at the last applied voltage and predicted position.
+  void replace_model(models::ModelPtr model, const IdealLine& line);
+
+  const models::Model& model() const { return *model_; }
+  const IdealLine& ideal_line() const { return line_; }
+  bool started() const { return started_; }
+  double last_applied_v() const { return last_applied_v_; }
+  double last_predicted_nm() const { return last_predicted_nm_; }
+  double last_sent_v() const { return last_sent_v_; }
+  std::size_t samples() const { return samples_; }
+  std::size_t prediction_failures() const { return prediction_failures_; }
+  std::size_t command_fallbacks() const { return command_fallbacks_; }
+
+ private:
+  static void check_model(const models::Model& model);  // throws for models the compensator cannot feed
+  bool in_range(double position_nm) const;
+
+  models::ModelPtr model_;
+  IdealLine line_;
+  AxisCompensatorConfig config_;
+  bool started_ = false;
+  bool has_intent_ = false;
+  double intended_nm_ = 0.0;
+  double last_applied_v_ = 0.0;
+  double last_predicted_nm_ = 0.0;
+  double last_sent_v_ = 0.0;
+  bool has_sent_ = false;
+  std::size_t samples_ = 0, prediction_failures_ = 0, command_fallbacks_ = 0;
+};
+
+}  // namespace piezo::compensation

@@ -1,0 +1,27 @@
+// Drift forecast: how far the tip will still move if the voltage is held, by running a copy of the model ahead
+// in free run (its own predictions become its remembered positions; no sensor in the loop).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::compensation {
+
+struct DriftForecast {
+  bool ok = false;
+  std::vector<double> horizons_s;    // as requested
+  std::vector<double> drift_nm;      // position at (next sample + horizon) minus position at the next sample
+  std::vector<double> position_nm;   // absolute predicted position at each horizon
+  double start_position_nm = 0.0;    // predicted position at the next sample with the held voltage
+  std::size_t steps = 0;             // model steps run
+  std::string error;                 // one line when !ok (non-finite prediction, bad horizon)
+};
+
+// Does not change `model`: the state is cloned. Horizons are rounded to whole samples at `sample_rate_hz`.
+// `aux` (values of Model::aux_inputs(), or null) is held constant over the forecast like the voltage.
+DriftForecast forecast_drift(const models::Model& model, double hold_voltage_v, const std::vector<double>& horizons_s,
+                             double sample_rate_hz, const double* aux = nullptr);
+
+}  // namespace piezo::compensation

@@ -1,0 +1,138 @@
+#include "piezo_compensation/compensation/axis_compensator.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+
+namespace piezo::compensation {
+
+AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, const AxisCompensatorConfig& config)
+    : model_(std::move(model)), line_(line), config_(config) {
+  if (!model_) throw std::invalid_argument("AxisCompensator: no model");
+  if (!(config_.voltage_max_v > config_.voltage_min_v)) throw std::invalid_argument("AxisCompensator: empty voltage limits");
+  if (!(config_.fallback_max_step_v > 0.0)) throw std::invalid_argument("AxisCompensator: fallback_max_step_v must be > 0");
+  check_model(*model_);
+}
+
+void AxisCompensator::check_model(const models::Model& model) {
+  if (!model.aux_inputs().empty())
+    throw std::invalid_argument("model '" + model.kind() + "' reads auxiliary input '" + model.aux_inputs().front() +
+                                "', which the compensator does not receive");
+}
+
+void AxisCompensator::set_intended_voltage(double voltage_v) {
+  if (!std::isfinite(voltage_v)) throw std::invalid_argument("intended voltage is not finite");
+  intended_nm_ = line_.position_nm(voltage_v);
+  has_intent_ = true;
+}
+
+void AxisCompensator::set_intended_position_nm(double position_nm) {
+  if (!std::isfinite(position_nm)) throw std::invalid_argument("intended position is not finite");
+  intended_nm_ = position_nm;
+  has_intent_ = true;
+}
+
+bool AxisCompensator::in_range(double position_nm) const {
+  const double a = line_.position_nm(config_.voltage_min_v), b = line_.position_nm(config_.voltage_max_v);
+  const double margin = config_.position_margin_nm > 0.0 ? config_.position_margin_nm : 0.5 * std::abs(b - a);
+  return position_nm >= std::min(a, b) - margin && position_nm <= std::max(a, b) + margin;
+}
+
+SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bool measured_valid) {
+  SampleUpdate u;
+  measured_valid = measured_valid && std::isfinite(measured_nm);
+  if (!std::isfinite(applied_v)) {
+    // Nothing sensible to feed the model; keep the state and say so.
+    u.ok = false;
+    u.predicted_nm = last_predicted_nm_;
+    u.status = "applied voltage is not finite; sample skipped";
+    ++prediction_failures_;
+    return u;
+  }
+  ++samples_;
+  if (!started_) {
+    const double x0 = measured_valid ? measured_nm : line_.position_nm(applied_v);
+    model_->reset(applied_v, x0);
+    started_ = true;
+    last_applied_v_ = applied_v;
+    last_predicted_nm_ = x0;
+    u.predicted_nm = x0;
+    return u;
+  }
+  const models::ModelInput in{applied_v, nullptr};
+  const double p = model_->predict(in);
+  last_applied_v_ = applied_v;
+  if (!std::isfinite(p) || !in_range(p)) {
+    std::ostringstream s;
+    s << "model prediction " << (std::isfinite(p) ? "out of range" : "not finite") << " (" << p
+      << " nm); model restarted at rest at the " << (measured_valid ? "measured" : "last predicted") << " position";
+    u.ok = false;
+    u.status = s.str();
+    ++prediction_failures_;
+    const double x0 = measured_valid ? measured_nm : last_predicted_nm_;
+    model_->reset(applied_v, x0);
+    last_predicted_nm_ = x0;
+    u.predicted_nm = x0;
+    return u;
+  }
+  model_->commit(in, config_.position_feedback && measured_valid ? measured_nm : p);
+  last_predicted_nm_ = p;
+  u.predicted_nm = p;
+  return u;
+}
+
+CommandUpdate AxisCompensator::command(bool compensate) {
+  CommandUpdate c;
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  c.intended_nm = has_intent_ ? intended_nm_ : line_.position_nm(last_applied_v_);
+  c.commanded_v = std::clamp(line_.voltage_v(c.intended_nm), config_.voltage_min_v, config_.voltage_max_v);
+  c.corrected_v = nan;
+  c.predicted_at_send_nm = nan;
+  if (!compensate) {
+    c.send_v = c.commanded_v;
+  } else if (!started_) {
+    c.fallback = true;
+    c.status = "no encoder sample yet: model not started";
+  } else {
+    InverseOptions o;
+    o.voltage_min_v = config_.voltage_min_v;
+    o.voltage_max_v = config_.voltage_max_v;
+    o.tolerance_nm = config_.inverse_tolerance_nm;
+    const InverseResult inv = invert(*model_, c.intended_nm, o);
+    if (inv.ok) {
+      c.corrected_v = c.send_v = inv.voltage_v;
+      c.compensation_active = true;
+      c.predicted_at_send_nm = inv.predicted_nm;
+    } else {
+      c.fallback = true;
+      c.status = inv.error;
+      c.corrected_v = inv.voltage_v;
+    }
+  }
+  if (c.fallback) {
+    ++command_fallbacks_;
+    // Bounded step from the voltage the axis holds now, so a failing model never makes the tip jump.
+    const double base = has_sent_ ? last_sent_v_ : last_applied_v_;
+    const double step = std::clamp(c.commanded_v - base, -config_.fallback_max_step_v, config_.fallback_max_step_v);
+    c.send_v = std::clamp(base + step, config_.voltage_min_v, config_.voltage_max_v);
+  }
+  if (started_ && !c.compensation_active) {
+    const double p = model_->predict(models::ModelInput{c.send_v, nullptr});
+    c.predicted_at_send_nm = std::isfinite(p) ? p : nan;
+  }
+  last_sent_v_ = c.send_v;
+  has_sent_ = true;
+  return c;
+}
+
+void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& line) {
+  if (!model) throw std::invalid_argument("AxisCompensator: no model");
+  check_model(*model);
+  model_ = std::move(model);
+  line_ = line;
+  if (started_) model_->reset(last_applied_v_, last_predicted_nm_);
+}
+
+}  // namespace piezo::compensation
