@@ -1,0 +1,154 @@
+// The piezo_predictor node: per axis, free-runs a model at the encoder rate, publishes the prediction, the drift
+// forecast and the feedforward-corrected voltage, and (compensation on) commands the driver. Parameters, topics
+// and the ideal-line definition: docs/predictor.md, config/predictor.yaml.
+#pragma once
+
+#include <ros/ros.h>
+
+#include <chrono>
+#include <cmath>
+#include <condition_variable>
+#include <deque>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "piezo_compensation/AxisVoltage.h"
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/IntendedMotion.h"
+#include "piezo_compensation/Prediction.h"
+#include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/compensation/axis_compensator.h"
+#include "piezo_compensation/compensation/drift_forecast.h"
+
+namespace diagnostic_updater {
+class Updater;
+class DiagnosticStatusWrapper;
+}  // namespace diagnostic_updater
+namespace tf2_ros {
+class TransformBroadcaster;
+}
+
+namespace piezo::predictor {
+
+using piezo_compensation::AxisVoltage;
+using piezo_compensation::EncoderPosition;
+using piezo_compensation::IntendedMotion;
+using piezo_compensation::Prediction;
+using piezo_compensation::VoltageCommand;
+
+// Loads a model file (models/model_file.h) and checks it can be driven by the compensator.
+// Throws std::runtime_error with one line naming the file.
+models::ModelPtr load_model_file(const std::string& path);
+
+struct PredictorSettings {
+  std::vector<std::string> axes{"a", "b", "c"};
+  std::map<std::string, std::string> model_files;   // per axis
+  bool compensation = true;
+  bool forward_when_off = true;      // compensation off: still pass the intent on to the driver, uncorrected
+  std::string frame_prefix;          // frames <prefix>base, <prefix>tip_measured, ...
+  std::vector<double> drift_horizons_s{1.0, 60.0, 1800.0};
+  double drift_update_period_s = 1.0;  // ROS time between forecasts per axis (0 = every sample)
+  bool drift_async = true;           // forecast in a worker thread (keeps per-message processing short)
+  double sample_rate_hz = 0.0;       // 0 = the model file's rate
+  double ideal_line_hold_s = 1800.0;
+  double tf_period_s = 0.05;         // ROS time between tf/marker updates
+  double marker_scale = 1e4;         // markers drawn this many times larger than life (1 µm → 1 cm)
+  std::string hardware_id = "piezo_predictor";
+  compensation::AxisCompensatorConfig axis;
+};
+
+// Reads and validates the private parameters; throws std::invalid_argument naming the parameter.
+PredictorSettings read_settings(const ros::NodeHandle& pnh);
+
+// One axis at message level, without a NodeHandle: the node, the replay measurement and the tests drive it.
+class PredictorAxis {
+ public:
+  PredictorAxis(std::string axis, std::string model_name, models::ModelPtr model, const PredictorSettings& s);
+
+  void on_voltage(const AxisVoltage& msg);
+  // Returns false (with `error`) when the intent is malformed; it is then ignored.
+  bool on_intended(const IntendedMotion& msg, std::string& error);
+
+  struct Output {
+    Prediction prediction;
+    bool send = false;        // a command for the driver
+    VoltageCommand command;
+    bool forecast_due = false;  // caller should start a drift forecast (async mode)
+  };
+  // One encoder sample: advance the model, compute the command. `compensate` is the node's switch.
+  Output on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now);
+  // Command right now from the current state (used when a new intent arrives between samples).
+  bool command_now(bool compensate, VoltageCommand& out, const ros::Time& now);
+
+  void set_forecast(const compensation::DriftForecast& f);
+  void reload(const std::string& model_name, models::ModelPtr model);
+
+  const std::string& axis() const { return axis_; }
+  const compensation::AxisCompensator& compensator() const { return *comp_; }
+  double hold_voltage_v() const { return hold_v_; }
+  double measured_nm() const { return measured_nm_; }
+  double predicted_nm() const { return predicted_nm_; }
+  double intended_nm() const { return intended_nm_; }
+  double drift_longest_nm() const;
+  bool has_measurement() const { return have_measured_; }
+  const std::string& model_name() const { return model_name_; }
+  const std::string& last_status() const { return last_status_; }
+  std::size_t encoder_messages() const { return encoder_messages_; }
+  std::size_t rejected_messages() const { return rejected_; }
+  bool fallback_now() const { return fallback_now_; }
+
+ private:
+  std::string axis_, model_name_;
+  std::unique_ptr<compensation::AxisCompensator> comp_;
+  const PredictorSettings& s_;
+  double applied_v_ = 0.0;
+  bool have_voltage_ = false, have_measured_ = false;
+  double measured_nm_ = std::nan(""), predicted_nm_ = std::nan(""), intended_nm_ = std::nan("");
+  double hold_v_ = 0.0;
+  compensation::DriftForecast forecast_;
+  ros::Time last_forecast_;
+  bool fallback_now_ = false;
+  std::string last_status_;
+  std::size_t encoder_messages_ = 0, rejected_ = 0;
+};
+
+class PredictorNode {
+ public:
+  PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh);  // throws std::invalid_argument / runtime_error
+  ~PredictorNode();
+
+ private:
+  struct Axis;
+  void on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg);
+  void on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg);
+  void on_intended(Axis& a, const IntendedMotion::ConstPtr& msg);
+  void start_forecast(Axis& a);
+  void forecast_worker();
+  void publish_tf_and_markers(const ros::Time& stamp);
+  void diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrapper& stat);
+
+  ros::NodeHandle nh_, pnh_;
+  PredictorSettings s_;
+  bool compensation_ = true;
+  std::vector<std::unique_ptr<Axis>> axes_;
+  ros::ServiceServer srv_compensation_, srv_reload_;
+  ros::Publisher markers_pub_;
+  std::unique_ptr<tf2_ros::TransformBroadcaster> tf_;
+  std::unique_ptr<diagnostic_updater::Updater> diag_;
+  ros::Timer diag_timer_;
+  ros::Time last_tf_;
+
+  // Drift forecasts run here so a 30-min look-ahead never delays a message.
+  std::mutex mutex_;
+  std::condition_variable cv_;
+  std::map<std::string, std::pair<models::ModelPtr, double>> jobs_;   // axis → (model clone, hold voltage)
+  std::map<std::string, compensation::DriftForecast> results_;
+  bool stop_ = false;
+  std::thread worker_;
+};
+
+}  // namespace piezo::predictor

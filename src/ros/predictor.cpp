@@ -1,0 +1,506 @@
+#include "piezo_compensation/ros/predictor.h"
+
+#include <diagnostic_updater/diagnostic_updater.h>
+#include <geometry_msgs/TransformStamped.h>
+#include <std_srvs/SetBool.h>
+#include <std_srvs/Trigger.h>
+#include <tf2_ros/transform_broadcaster.h>
+#include <visualization_msgs/MarkerArray.h>
+
+#include <algorithm>
+#include <fstream>
+#include <iomanip>
+#include <sstream>
+#include <stdexcept>
+
+#include "piezo_compensation/compensation/ideal_line.h"
+#if __has_include("piezo_compensation/models/model_file.h")
+#include "piezo_compensation/models/model_file.h"
+#define PIEZO_HAVE_MODEL_FILE 1
+#endif
+
+namespace piezo::predictor {
+namespace {
+
+constexpr double kNmPerM = 1e9;
+
+std::string axis_name_ok(const std::string& a) {
+  if (a != "a" && a != "b" && a != "c") throw std::invalid_argument("~axes: unknown axis '" + a + "' (use a, b, c)");
+  return a;
+}
+
+template <typename T>
+T param(const ros::NodeHandle& pnh, const std::string& name, const T& def) {
+  T v = def;
+  if (pnh.hasParam(name) && !pnh.getParam(name, v))
+    throw std::invalid_argument("~" + name + ": wrong type (see config/predictor.yaml)");
+  return v;
+}
+
+double positive(const ros::NodeHandle& pnh, const std::string& name, double def, bool allow_zero = false) {
+  const double v = param<double>(pnh, name, def);
+  if (!std::isfinite(v) || v < 0.0 || (!allow_zero && v == 0.0))
+    throw std::invalid_argument("~" + name + ": must be " + (allow_zero ? "≥ 0" : "> 0") + ", got " + std::to_string(v));
+  return v;
+}
+
+compensation::IdealLine line_for(const models::Model& m, const PredictorSettings& s) {
+  compensation::IdealLineOptions o;
+  o.voltage_min_v = s.axis.voltage_min_v;
+  o.voltage_max_v = s.axis.voltage_max_v;
+  o.hold_s = s.ideal_line_hold_s;
+  o.sample_rate_hz = s.sample_rate_hz > 0 ? s.sample_rate_hz : m.meta.sample_rate_hz;
+  return compensation::ideal_line_from_model(m, o);
+}
+
+}  // namespace
+
+models::ModelPtr load_model_file(const std::string& path) {
+  if (path.empty()) throw std::runtime_error("no model file given");
+  if (!std::ifstream(path)) throw std::runtime_error(path + ": cannot open model file");
+#ifdef PIEZO_HAVE_MODEL_FILE
+  models::ModelPtr m;
+  try {
+    m = models::load_model(path);
+  } catch (const std::exception& e) {
+    const std::string what = e.what();
+    throw std::runtime_error(what.find(path) == std::string::npos ? path + ": " + what : what);
+  }
+  if (!m) throw std::runtime_error(path + ": model file gave no model");
+  if (!m->aux_inputs().empty())
+    throw std::runtime_error(path + ": model reads auxiliary input '" + m->aux_inputs().front() +
+                             "', which the predictor does not receive");
+  if (!(m->meta.sample_rate_hz > 0.0)) throw std::runtime_error(path + ": model has no positive sample_rate_hz");
+  return m;
+#else
+  throw std::runtime_error(path + ": model files are not supported by this build (models/model_file.h missing)");
+#endif
+}
+
+PredictorSettings read_settings(const ros::NodeHandle& pnh) {
+  PredictorSettings s;
+  s.axes = param<std::vector<std::string>>(pnh, "axes", s.axes);
+  if (s.axes.empty()) throw std::invalid_argument("~axes: empty");
+  for (const auto& a : s.axes) axis_name_ok(a);
+  XmlRpc::XmlRpcValue mf;
+  if (!pnh.getParam("model_file", mf)) throw std::invalid_argument("~model_file: required (a path, or {a: path, ...})");
+  if (mf.getType() == XmlRpc::XmlRpcValue::TypeString) {
+    for (const auto& a : s.axes) s.model_files[a] = static_cast<std::string>(mf);
+  } else if (mf.getType() == XmlRpc::XmlRpcValue::TypeStruct) {
+    for (const auto& a : s.axes) {
+      if (!mf.hasMember(a) || mf[a].getType() != XmlRpc::XmlRpcValue::TypeString)
+        throw std::invalid_argument("~model_file/" + a + ": required for axis " + a + " (a path)");
+      s.model_files[a] = static_cast<std::string>(mf[a]);
+    }
+  } else {
+    throw std::invalid_argument("~model_file: must be a path or a map {a: path, b: path, c: path}");
+  }
+  s.compensation = param<bool>(pnh, "compensation", s.compensation);
+  s.forward_when_off = param<bool>(pnh, "forward_when_off", s.forward_when_off);
+  s.frame_prefix = param<std::string>(pnh, "frame_prefix", s.frame_prefix);
+  s.drift_horizons_s = param<std::vector<double>>(pnh, "drift_horizons_s", s.drift_horizons_s);
+  for (double h : s.drift_horizons_s)
+    if (!std::isfinite(h) || h < 0.0) throw std::invalid_argument("~drift_horizons_s: horizons must be ≥ 0 s");
+  s.drift_update_period_s = positive(pnh, "drift_update_period_s", s.drift_update_period_s, true);
+  s.drift_async = param<bool>(pnh, "drift_async", s.drift_async);
+  s.sample_rate_hz = positive(pnh, "sample_rate_hz", s.sample_rate_hz, true);
+  s.ideal_line_hold_s = positive(pnh, "ideal_line_hold_s", s.ideal_line_hold_s, true);
+  s.tf_period_s = positive(pnh, "tf_period_s", s.tf_period_s, true);
+  s.marker_scale = positive(pnh, "marker_scale", s.marker_scale);
+  s.hardware_id = param<std::string>(pnh, "hardware_id", s.hardware_id);
+  s.axis.voltage_min_v = param<double>(pnh, "voltage_min_v", s.axis.voltage_min_v);
+  s.axis.voltage_max_v = param<double>(pnh, "voltage_max_v", s.axis.voltage_max_v);
+  if (!std::isfinite(s.axis.voltage_min_v) || !std::isfinite(s.axis.voltage_max_v) ||
+      !(s.axis.voltage_max_v > s.axis.voltage_min_v))
+    throw std::invalid_argument("~voltage_min_v/~voltage_max_v: need finite limits with min < max");
+  s.axis.fallback_max_step_v = positive(pnh, "fallback_max_step_v", s.axis.fallback_max_step_v);
+  s.axis.inverse_tolerance_nm = positive(pnh, "inverse_tolerance_nm", s.axis.inverse_tolerance_nm);
+  s.axis.position_margin_nm = positive(pnh, "position_margin_nm", s.axis.position_margin_nm, true);
+  s.axis.position_feedback = param<bool>(pnh, "position_feedback", s.axis.position_feedback);
+  return s;
+}
+
+// ---- PredictorAxis ----------------------------------------------------------------------------------------
+
+PredictorAxis::PredictorAxis(std::string axis, std::string model_name, models::ModelPtr model,
+                             const PredictorSettings& s)
+    : axis_(std::move(axis)), model_name_(std::move(model_name)), s_(s) {
+  const compensation::IdealLine line = line_for(*model, s_);
+  comp_ = std::make_unique<compensation::AxisCompensator>(std::move(model), line, s_.axis);
+}
+
+void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model) {
+  const compensation::IdealLine line = line_for(*model, s_);
+  comp_->replace_model(std::move(model), line);
+  model_name_ = model_name;
+}
+
+void PredictorAxis::on_voltage(const AxisVoltage& msg) {
+  if (!std::isfinite(msg.voltage)) {
+    ++rejected_;
+    last_status_ = "non-finite applied voltage ignored";
+    return;
+  }
+  applied_v_ = msg.voltage;
+  have_voltage_ = true;
+}
+
+bool PredictorAxis::on_intended(const IntendedMotion& msg, std::string& error) {
+  try {
+    if (msg.mode == IntendedMotion::VOLTAGE) {
+      comp_->set_intended_voltage(msg.voltage);
+    } else if (msg.mode == IntendedMotion::POSITION) {
+      comp_->set_intended_position_nm(msg.target_position * kNmPerM);
+    } else {
+      throw std::invalid_argument("unknown mode " + std::to_string(msg.mode));
+    }
+  } catch (const std::exception& e) {
+    ++rejected_;
+    error = std::string("intended motion rejected: ") + e.what();
+    return false;
+  }
+  return true;
+}
+
+bool PredictorAxis::command_now(bool compensate, VoltageCommand& out, const ros::Time& now) {
+  if (!comp_->has_intent() || !comp_->started() || (!compensate && !s_.forward_when_off)) return false;
+  const compensation::CommandUpdate c = comp_->command(compensate);
+  out.header.stamp = now;
+  out.voltage = c.send_v;
+  hold_v_ = c.send_v;
+  return true;
+}
+
+PredictorAxis::Output PredictorAxis::on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now) {
+  Output out;
+  ++encoder_messages_;
+  const bool valid = msg.valid && std::isfinite(msg.position);
+  if (valid) {
+    measured_nm_ = msg.position * kNmPerM;
+    have_measured_ = true;
+  }
+  // Before any voltage report the axis is taken to rest at 0 V.
+  const double applied = have_voltage_ ? applied_v_ : 0.0;
+  const compensation::SampleUpdate u = comp_->on_sample(applied, valid ? msg.position * kNmPerM : std::nan(""), valid);
+  predicted_nm_ = u.predicted_nm;
+  hold_v_ = applied;
+
+  Prediction& p = out.prediction;
+  p.header.stamp = msg.header.stamp.isZero() ? now : msg.header.stamp;
+  p.header.frame_id = s_.frame_prefix + "base";
+  p.axis = axis_;
+  p.model = model_name_;
+  p.measured_position = valid ? msg.position : std::nan("");
+  p.predicted_position = u.predicted_nm / kNmPerM;
+  p.drift_horizons = s_.drift_horizons_s;
+
+  const bool sending = comp_->has_intent() && (compensate || s_.forward_when_off);
+  compensation::CommandUpdate c;
+  if (comp_->has_intent()) {
+    c = comp_->command(compensate);
+    if (sending) {
+      out.send = true;
+      out.command.header.stamp = now;
+      out.command.voltage = c.send_v;
+      hold_v_ = c.send_v;
+    }
+    intended_nm_ = c.intended_nm;
+  } else {
+    c.commanded_v = applied;
+    c.corrected_v = std::nan("");
+    intended_nm_ = comp_->ideal_line().position_nm(applied);
+  }
+  p.intended_position = intended_nm_ / kNmPerM;
+  p.commanded_voltage = c.commanded_v;
+  p.corrected_voltage = c.corrected_v;
+  p.compensation_active = sending && c.compensation_active;
+  fallback_now_ = !u.ok || c.fallback;
+  p.fallback = fallback_now_;
+  p.status = !u.ok ? u.status : c.status;
+  if (fallback_now_) last_status_ = p.status;
+
+  // Drift over the horizons for the voltage that will be held next.
+  if (s_.drift_update_period_s <= 0.0 || last_forecast_.isZero() ||
+      (now - last_forecast_).toSec() >= s_.drift_update_period_s || now < last_forecast_) {
+    last_forecast_ = now;
+    if (s_.drift_async) {
+      out.forecast_due = true;
+    } else {
+      forecast_ = compensation::forecast_drift(comp_->model(), hold_v_, s_.drift_horizons_s,
+                                               s_.sample_rate_hz > 0 ? s_.sample_rate_hz : comp_->model().meta.sample_rate_hz);
+    }
+  }
+  p.drift.resize(s_.drift_horizons_s.size());
+  for (std::size_t i = 0; i < p.drift.size(); ++i)
+    p.drift[i] = forecast_.ok && i < forecast_.drift_nm.size() ? forecast_.drift_nm[i] / kNmPerM : std::nan("");
+  return out;
+}
+
+void PredictorAxis::set_forecast(const compensation::DriftForecast& f) { forecast_ = f; }
+
+double PredictorAxis::drift_longest_nm() const {
+  if (!forecast_.ok || forecast_.drift_nm.empty()) return std::nan("");
+  const auto it = std::max_element(forecast_.horizons_s.begin(), forecast_.horizons_s.end());
+  return forecast_.drift_nm[static_cast<std::size_t>(it - forecast_.horizons_s.begin())];
+}
+
+// ---- PredictorNode ----------------------------------------------------------------------------------------
+
+struct PredictorNode::Axis {
+  std::unique_ptr<PredictorAxis> logic;
+  ros::Subscriber sub_voltage, sub_encoder, sub_intended;
+  ros::Publisher pub_prediction, pub_command;
+  std::deque<double> processing_us;  // recent per-message processing times
+};
+
+PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
+    : nh_(nh), pnh_(pnh), s_(read_settings(pnh)) {
+  compensation_ = s_.compensation;
+  for (const auto& name : s_.axes) {
+    auto a = std::make_unique<Axis>();
+    const std::string& path = s_.model_files.at(name);
+    models::ModelPtr m;
+    try {
+      m = load_model_file(path);
+    } catch (const std::exception& e) {
+      throw std::runtime_error("~model_file" + (s_.model_files.size() > 1 ? "/" + name : std::string()) + ": " + e.what());
+    }
+    if (m->meta.axis != name)
+      ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
+    a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_);
+    const auto& line = a->logic->compensator().ideal_line();
+    ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
+             a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
+    Axis* ap = a.get();
+    a->pub_prediction = nh_.advertise<Prediction>(name + "/prediction", 20);
+    a->pub_command = nh_.advertise<VoltageCommand>(name + "/command", 1);
+    a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", 20, [this, ap](const AxisVoltage::ConstPtr& m) {
+      on_voltage(*ap, m);
+    }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
+    a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", 20, [this, ap](const EncoderPosition::ConstPtr& m) {
+      on_encoder(*ap, m);
+    }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
+    a->sub_intended = nh_.subscribe<IntendedMotion>(name + "/intended", 10, [this, ap](const IntendedMotion::ConstPtr& m) {
+      on_intended(*ap, m);
+    });
+    axes_.push_back(std::move(a));
+  }
+  markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 2);
+  tf_ = std::make_unique<tf2_ros::TransformBroadcaster>();
+
+  srv_compensation_ = pnh_.advertiseService<std_srvs::SetBool::Request, std_srvs::SetBool::Response>(
+      "set_compensation", [this](std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+        compensation_ = req.data;
+        res.success = true;
+        res.message = std::string("compensation ") + (compensation_ ? "on" : "off");
+        ROS_INFO("%s", res.message.c_str());
+        return true;
+      });
+  srv_reload_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
+      "reload_model", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+        // All or nothing: a broken file leaves every axis on its current model.
+        std::vector<models::ModelPtr> fresh;
+        try {
+          for (const auto& a : axes_) fresh.push_back(load_model_file(s_.model_files.at(a->logic->axis())));
+          for (std::size_t i = 0; i < axes_.size(); ++i)
+            axes_[i]->logic->reload(s_.model_files.at(axes_[i]->logic->axis()), std::move(fresh[i]));
+        } catch (const std::exception& e) {
+          res.success = false;
+          res.message = std::string("reload failed, models unchanged: ") + e.what();
+          ROS_ERROR("%s", res.message.c_str());
+          return true;
+        }
+        res.success = true;
+        res.message = "models reloaded";
+        return true;
+      });
+
+  diag_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
+  diag_->setHardwareID(s_.hardware_id);
+  for (auto& a : axes_) {
+    Axis* ap = a.get();
+    diag_->add("axis " + a->logic->axis(), [this, ap](diagnostic_updater::DiagnosticStatusWrapper& st) { diagnose(*ap, st); });
+  }
+  diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { diag_->update(); });
+  if (s_.drift_async) worker_ = std::thread([this] { forecast_worker(); });
+}
+
+PredictorNode::~PredictorNode() {
+  {
+    std::lock_guard<std::mutex> lk(mutex_);
+    stop_ = true;
+  }
+  cv_.notify_all();
+  if (worker_.joinable()) worker_.join();
+}
+
+void PredictorNode::on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg) { a.logic->on_voltage(*msg); }
+
+void PredictorNode::on_intended(Axis& a, const IntendedMotion::ConstPtr& msg) {
+  std::string error;
+  if (!a.logic->on_intended(*msg, error)) {
+    ROS_ERROR_THROTTLE(1.0, "axis %s: %s", a.logic->axis().c_str(), error.c_str());
+    return;
+  }
+  VoltageCommand cmd;
+  if (a.logic->command_now(compensation_, cmd, ros::Time::now())) a.pub_command.publish(cmd);
+}
+
+void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const ros::Time now = ros::Time::now();
+  if (s_.drift_async) {
+    std::lock_guard<std::mutex> lk(mutex_);
+    auto it = results_.find(a.logic->axis());
+    if (it != results_.end()) {
+      a.logic->set_forecast(it->second);
+      results_.erase(it);
+    }
+  }
+  PredictorAxis::Output out = a.logic->on_encoder(*msg, compensation_, now);
+  if (out.send) a.pub_command.publish(out.command);
+  a.pub_prediction.publish(out.prediction);
+  if (out.forecast_due) start_forecast(a);
+  if (out.prediction.fallback)
+    ROS_WARN_THROTTLE(2.0, "axis %s: fallback: %s", a.logic->axis().c_str(), out.prediction.status.c_str());
+  if (last_tf_.isZero() || (now - last_tf_).toSec() >= s_.tf_period_s || now < last_tf_) {
+    last_tf_ = now;
+    publish_tf_and_markers(out.prediction.header.stamp);
+  }
+  const double us = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
+  a.processing_us.push_back(us);
+  if (a.processing_us.size() > 2000) a.processing_us.pop_front();
+}
+
+void PredictorNode::start_forecast(Axis& a) {
+  auto clone = a.logic->compensator().model().clone();
+  {
+    std::lock_guard<std::mutex> lk(mutex_);
+    jobs_[a.logic->axis()] = {std::move(clone), a.logic->hold_voltage_v()};
+  }
+  cv_.notify_one();
+}
+
+void PredictorNode::forecast_worker() {
+  std::unique_lock<std::mutex> lk(mutex_);
+  for (;;) {
+    cv_.wait(lk, [this] { return stop_ || !jobs_.empty(); });
+    if (stop_) return;
+    auto node = jobs_.extract(jobs_.begin());
+    lk.unlock();
+    const double rate = s_.sample_rate_hz > 0 ? s_.sample_rate_hz : node.mapped().first->meta.sample_rate_hz;
+    compensation::DriftForecast f =
+        compensation::forecast_drift(*node.mapped().first, node.mapped().second, s_.drift_horizons_s, rate);
+    lk.lock();
+    results_[node.key()] = std::move(f);
+  }
+}
+
+void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
+  // Axis a → x, b → y, c → z of <prefix>base.
+  double measured[3] = {0, 0, 0}, predicted[3] = {0, 0, 0}, intended[3] = {0, 0, 0}, drift[3] = {0, 0, 0};
+  std::ostringstream text;
+  text << std::fixed << std::setprecision(0);
+  for (const auto& a : axes_) {
+    const PredictorAxis& l = *a->logic;
+    const int i = l.axis()[0] - 'a';
+    if (!l.compensator().started()) continue;
+    measured[i] = l.has_measurement() ? l.measured_nm() : std::nan("");
+    predicted[i] = l.predicted_nm();
+    intended[i] = l.intended_nm();
+    const double d = l.drift_longest_nm();
+    drift[i] = std::isfinite(d) ? d : 0.0;
+    text << l.axis() << ": err " << (predicted[i] - intended[i]) << " nm, meas-pred "
+         << (l.has_measurement() ? measured[i] - predicted[i] : 0.0) << " nm, drift " << drift[i] << " nm"
+         << (l.fallback_now() ? " FALLBACK" : "") << "\n";
+  }
+  const std::string base = s_.frame_prefix + "base";
+  auto tfm = [&](const std::string& child, const double* x) {
+    geometry_msgs::TransformStamped t;
+    t.header.stamp = stamp;
+    t.header.frame_id = base;
+    t.child_frame_id = s_.frame_prefix + child;
+    t.transform.translation.x = std::isfinite(x[0]) ? x[0] / kNmPerM : 0.0;
+    t.transform.translation.y = std::isfinite(x[1]) ? x[1] / kNmPerM : 0.0;
+    t.transform.translation.z = std::isfinite(x[2]) ? x[2] / kNmPerM : 0.0;
+    t.transform.rotation.w = 1.0;
+    return t;
+  };
+  tf_->sendTransform(std::vector<geometry_msgs::TransformStamped>{
+      tfm("tip_measured", measured), tfm("tip_predicted", predicted), tfm("tip_intended", intended)});
+
+  // Markers at marker_scale: nanometre motion is invisible at rviz's smallest view distance.
+  const double k = s_.marker_scale / kNmPerM;
+  visualization_msgs::MarkerArray arr;
+  auto marker = [&](int id, int type, const char* ns) {
+    visualization_msgs::Marker m;
+    m.header.stamp = stamp;
+    m.header.frame_id = base;
+    m.ns = ns;
+    m.id = id;
+    m.type = type;
+    m.action = visualization_msgs::Marker::ADD;
+    m.pose.orientation.w = 1.0;
+    m.color.a = 1.0;
+    return m;
+  };
+  auto point = [&](const double* x) {
+    geometry_msgs::Point p;
+    p.x = std::isfinite(x[0]) ? x[0] * k : 0.0;
+    p.y = std::isfinite(x[1]) ? x[1] * k : 0.0;
+    p.z = std::isfinite(x[2]) ? x[2] * k : 0.0;
+    return p;
+  };
+  const double r = 150.0 * k;  // spheres of 150 nm (scaled)
+  struct Tip { const char* ns; const double* x; float rgb[3]; };
+  const Tip tips[] = {{"tip_measured", measured, {0.2f, 0.4f, 1.0f}},
+                      {"tip_predicted", predicted, {1.0f, 0.5f, 0.0f}},
+                      {"tip_intended", intended, {0.1f, 0.8f, 0.1f}}};
+  int id = 0;
+  for (const auto& t : tips) {
+    auto m = marker(id++, visualization_msgs::Marker::SPHERE, t.ns);
+    m.pose.position = point(t.x);
+    m.scale.x = m.scale.y = m.scale.z = r;
+    m.color.r = t.rgb[0], m.color.g = t.rgb[1], m.color.b = t.rgb[2];
+    arr.markers.push_back(m);
+  }
+  auto arrow = marker(id++, visualization_msgs::Marker::ARROW, "drift");
+  const double end[3] = {predicted[0] + drift[0], predicted[1] + drift[1], predicted[2] + drift[2]};
+  arrow.points = {point(predicted), point(end)};
+  arrow.scale.x = r * 0.25, arrow.scale.y = r * 0.5, arrow.scale.z = r * 0.5;
+  arrow.color.r = 1.0, arrow.color.g = 0.1, arrow.color.b = 0.1;
+  arr.markers.push_back(arrow);
+  auto label = marker(id++, visualization_msgs::Marker::TEXT_VIEW_FACING, "error_text");
+  label.pose.position = point(predicted);
+  label.pose.position.z += 2.5 * r;
+  label.scale.z = r * 0.6;
+  label.color.r = label.color.g = label.color.b = 1.0;
+  label.text = text.str();
+  arr.markers.push_back(label);
+  markers_pub_.publish(arr);
+}
+
+void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrapper& st) {
+  const PredictorAxis& l = *a.logic;
+  std::vector<double> t(a.processing_us.begin(), a.processing_us.end());
+  std::sort(t.begin(), t.end());
+  const double p99 = t.empty() ? 0.0 : t[std::min(t.size() - 1, static_cast<std::size_t>(0.99 * t.size()))];
+  if (!l.compensator().started())
+    st.summary(diagnostic_msgs::DiagnosticStatus::WARN, "no encoder sample yet");
+  else if (l.fallback_now())
+    st.summary(diagnostic_msgs::DiagnosticStatus::WARN, "fallback to uncorrected command: " + l.last_status());
+  else
+    st.summary(diagnostic_msgs::DiagnosticStatus::OK, compensation_ ? "compensating" : "predicting (compensation off)");
+  st.add("model", l.model_name());
+  st.add("model kind", l.compensator().model().kind());
+  st.add("compensation", compensation_ ? "on" : "off");
+  st.add("encoder messages", l.encoder_messages());
+  st.add("rejected messages", l.rejected_messages());
+  st.add("prediction failures", l.compensator().prediction_failures());
+  st.add("command fallbacks", l.compensator().command_fallbacks());
+  st.add("last fallback reason", l.last_status());
+  st.add("ideal gain [nm/V]", l.compensator().ideal_line().gain_nm_per_v);
+  st.add("processing p99 [us]", p99);
+}
+
+}  // namespace piezo::predictor
