@@ -1,0 +1,62 @@
+// The controller side of the protocol, for the simulated device (mm3e_sim): takes command frames, holds the
+// set points, steps a plant (the simulator) once per encoder period and produces the report frames a real
+// MM3E would send. ROS-free and clock-free: the caller decides when a period has passed.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <functional>
+#include <vector>
+
+#include "piezo_compensation/can/codec.h"
+#include "piezo_compensation/sim/manipulator_simulator.h"
+
+namespace piezo::can {
+
+struct DeviceConfig {
+  ProtocolConfig protocol;
+  double min_voltage_v = -80.0;  // the amplifier's own limits: set points beyond them are clamped
+  double max_voltage_v = 80.0;
+  std::array<double, kAxisCount> initial_voltage_v{0.0, 0.0, 0.0};
+};
+
+// Holds `voltages_v` for dt_s and returns one sample (sim::ManipulatorSimulator::step has this shape).
+using Plant = std::function<sim::StepResult(const std::array<double, kAxisCount>& voltages_v, double dt_s)>;
+
+class DeviceCore {
+ public:
+  DeviceCore(const DeviceConfig& config, Plant plant);
+
+  // A frame from the bus. Returns true when it was a valid command for this device.
+  bool handle(const can_frame& frame);
+
+  struct Output {
+    std::vector<can_frame> frames;  // per axis a voltage report and an encoder reading, plus a heartbeat when due
+    sim::StepResult sample;
+  };
+  // One encoder period (1 / encoder_rate_hz of simulated time).
+  Output step();
+
+  void set_state(DeviceState state) { state_ = state; }
+  void set_encoder_valid(int axis, bool valid) { encoder_valid_.at(axis) = valid; }
+
+  const std::array<double, kAxisCount>& voltages_v() const { return voltages_v_; }
+  std::uint64_t commands_received() const { return commands_; }
+  std::uint64_t frames_rejected() const { return rejected_; }
+  double period_s() const { return 1.0 / codec_.config().encoder_rate_hz; }
+  const Codec& codec() const { return codec_; }
+
+ private:
+  DeviceConfig config_;
+  Codec codec_;
+  Plant plant_;
+  std::array<double, kAxisCount> voltages_v_{};
+  std::array<bool, kAxisCount> encoder_valid_{true, true, true};
+  std::uint32_t sequence_ = 0;
+  std::uint16_t heartbeat_counter_ = 0;
+  double time_s_ = 0.0, next_heartbeat_s_ = 0.0;
+  DeviceState state_ = DeviceState::kOperational;
+  std::uint64_t commands_ = 0, rejected_ = 0;
+};
+
+}  // namespace piezo::can
