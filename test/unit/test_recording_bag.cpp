@@ -1,0 +1,134 @@
+// The recorder's crash-safe chunked bag: closed chunks survive a crash, resume finds the next sample, the merge
+// yields one valid bag with every sample once. No roscore needed.
+#include <gtest/gtest.h>
+#include <rosbag/view.h>
+
+#include <filesystem>
+#include <fstream>
+
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/ProtocolPhase.h"
+#include "piezo_compensation/ros/recorder_bag.h"
+
+namespace fs = std::filesystem;
+using piezo::ros_io::ChunkedBag;
+using piezo::ros_io::RecorderBagError;
+using piezo::ros_io::scan_recording;
+
+namespace {
+
+const std::string kEnc = "/mm1/a/encoder";
+const std::string kPhase = "/mm1/protocol_phase";
+
+std::string fresh_path(const std::string& name) {
+  const std::string dir = ::testing::TempDir() + "recbag_" + std::to_string(::getpid());
+  fs::create_directories(dir);
+  const std::string p = dir + "/" + name;
+  fs::remove_all(p);
+  fs::remove_all(p + ".parts");
+  return p;
+}
+
+void write_sample(ChunkedBag& bag, std::uint32_t i) {
+  piezo_compensation::EncoderPosition e;
+  e.header.stamp = ros::Time(100.0 + i / 11.0);
+  e.axis = "a";
+  e.sequence = i;
+  e.position = 1e-9 * i;
+  e.valid = true;
+  bag.write(kEnc, e.header.stamp, e);
+}
+
+void write_marker(ChunkedBag& bag, std::uint32_t i, const std::string& yaml) {
+  piezo_compensation::ProtocolPhase m;
+  m.header.stamp = ros::Time(100.0 + i / 11.0);
+  m.protocol = "noise";
+  m.phase = "settle";
+  m.sample_index = i;
+  m.parameters_yaml = yaml;
+  bag.write(kPhase, m.header.stamp, m);
+}
+
+std::vector<std::uint32_t> sequences_in(const std::string& path) {
+  rosbag::Bag b(path, rosbag::bagmode::Read);
+  rosbag::View v(b, rosbag::TopicQuery(kEnc));
+  std::vector<std::uint32_t> out;
+  for (const auto& m : v) out.push_back(m.instantiate<piezo_compensation::EncoderPosition>()->sequence);
+  return out;
+}
+
+}  // namespace
+
+TEST(RecordingBag, CrashKeepsClosedChunksAndResumeContinues) {
+  const std::string out = fresh_path("crash.bag");
+  {
+    ChunkedBag bag(out, 1e-9, 0.0);  // every between_samples() closes the chunk
+    write_marker(bag, 0, "protocol: noise");
+    for (std::uint32_t i = 0; i < 30; ++i) {
+      write_sample(bag, i);
+      if (i % 10 == 9) bag.between_samples();  // chunks of 10 samples
+    }
+    bag.abandon();  // samples 30..34 never get past here: a kill -9 with a chunk open
+  }
+  {
+    ChunkedBag bag(out, 1e9, 0.0);
+    for (std::uint32_t i = 30; i < 35; ++i) write_sample(bag, i);
+    bag.abandon();
+  }
+  auto found = scan_recording(out, kEnc, kPhase);
+  ASSERT_TRUE(found.found);
+  EXPECT_EQ(found.files.size(), 3u);
+  EXPECT_EQ(found.set_aside.size(), 1u);  // the open chunk, renamed *.unindexed
+  EXPECT_EQ(found.samples, 30u);
+  EXPECT_EQ(found.next_sample, 30u);
+  EXPECT_EQ(found.parameters_yaml, "protocol: noise");
+
+  {
+    ChunkedBag bag(out, 1e9, 0.0);
+    for (std::uint32_t i = 30; i < 50; ++i) write_sample(bag, i);
+    EXPECT_EQ(bag.finish(), 51u);  // 50 samples + 1 marker
+  }
+  EXPECT_FALSE(fs::exists(piezo::ros_io::parts_dir_of(out) + "/chunk_000001.bag"));
+  const auto seq = sequences_in(out);
+  ASSERT_EQ(seq.size(), 50u);
+  for (std::uint32_t i = 0; i < 50; ++i) EXPECT_EQ(seq[i], i);
+
+  // a second session appends to the merged bag
+  {
+    ChunkedBag bag(out, 1e9, 0.0);
+    for (std::uint32_t i = 50; i < 60; ++i) write_sample(bag, i);
+    bag.finish();
+  }
+  found = scan_recording(out, kEnc, kPhase);
+  EXPECT_EQ(found.files.size(), 1u);
+  EXPECT_EQ(found.next_sample, 60u);
+  EXPECT_EQ(sequences_in(out).size(), 60u);
+}
+
+TEST(RecordingBag, NothingToResume) {
+  const auto found = scan_recording(fresh_path("none.bag"), kEnc, kPhase);
+  EXPECT_FALSE(found.found);
+  EXPECT_EQ(found.next_sample, 0u);
+}
+
+TEST(RecordingBag, BrokenBagIsNamed) {
+  const std::string out = fresh_path("broken.bag");
+  std::ofstream(out) << "not a bag at all";
+  try {
+    scan_recording(out, kEnc, kPhase);
+    FAIL() << "no error";
+  } catch (const RecorderBagError& e) {
+    EXPECT_NE(std::string(e.what()).find("broken.bag: not a readable"), std::string::npos) << e.what();
+  }
+}
+
+TEST(RecordingBag, FullDiskStopsWithOneClearMessage) {
+  const std::string out = fresh_path("full.bag");
+  try {
+    ChunkedBag bag(out, 60.0, 1e12);  // asks for more free space than any disk has
+    FAIL() << "no error";
+  } catch (const RecorderBagError& e) {
+    EXPECT_NE(std::string(e.what()).find("disk nearly full"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("min_free_space_mb"), std::string::npos) << e.what();
+  }
+}
