@@ -135,14 +135,38 @@ void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model
   model_name_ = model_name;
 }
 
-void PredictorAxis::on_voltage(const AxisVoltage& msg) {
+std::vector<PredictorAxis::Output> PredictorAxis::on_voltage(const AxisVoltage& msg, bool compensate,
+                                                            const ros::Time& now) {
+  std::vector<Output> outs;
   if (!std::isfinite(msg.voltage)) {
     ++rejected_;
     last_status_ = "non-finite applied voltage ignored";
-    return;
+    return outs;
   }
   applied_v_ = msg.voltage;
+  voltage_seq_ = msg.sequence;
   have_voltage_ = true;
+  if (pending_ && pending_->sequence == msg.sequence) {
+    outs.push_back(process(*pending_, applied_v_, compensate, now));
+    pending_.reset();
+  }
+  return outs;
+}
+
+std::vector<PredictorAxis::Output> PredictorAxis::on_encoder(const EncoderPosition& msg, bool compensate,
+                                                            const ros::Time& now) {
+  std::vector<Output> outs;
+  // Before any voltage report the axis is taken to rest at 0 V.
+  if (pending_) {
+    outs.push_back(process(*pending_, have_voltage_ ? applied_v_ : 0.0, compensate, now));
+    pending_.reset();
+  }
+  // Serial-number arithmetic: the voltage is for this sample or a later one → use it now.
+  if (have_voltage_ && static_cast<std::int32_t>(voltage_seq_ - msg.sequence) >= 0)
+    outs.push_back(process(msg, applied_v_, compensate, now));
+  else
+    pending_ = msg;
+  return outs;
 }
 
 bool PredictorAxis::on_intended(const IntendedMotion& msg, std::string& error) {
@@ -171,7 +195,8 @@ bool PredictorAxis::command_now(bool compensate, VoltageCommand& out, const ros:
   return true;
 }
 
-PredictorAxis::Output PredictorAxis::on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now) {
+PredictorAxis::Output PredictorAxis::process(const EncoderPosition& msg, double applied, bool compensate,
+                                             const ros::Time& now) {
   Output out;
   ++encoder_messages_;
   const bool valid = msg.valid && std::isfinite(msg.position);
@@ -179,8 +204,6 @@ PredictorAxis::Output PredictorAxis::on_encoder(const EncoderPosition& msg, bool
     measured_nm_ = msg.position * kNmPerM;
     have_measured_ = true;
   }
-  // Before any voltage report the axis is taken to rest at 0 V.
-  const double applied = have_voltage_ ? applied_v_ : 0.0;
   const compensation::SampleUpdate u = comp_->on_sample(applied, valid ? msg.position * kNmPerM : std::nan(""), valid);
   predicted_nm_ = u.predicted_nm;
   hold_v_ = applied;
@@ -334,7 +357,15 @@ PredictorNode::~PredictorNode() {
   if (worker_.joinable()) worker_.join();
 }
 
-void PredictorNode::on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg) { a.logic->on_voltage(*msg); }
+void PredictorNode::on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg) {
+  const auto t0 = std::chrono::steady_clock::now();
+  const ros::Time now = ros::Time::now();
+  auto outs = a.logic->on_voltage(*msg, compensation_, now);
+  if (!outs.empty()) emit(a, outs, now);
+  const double us = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
+  if (!outs.empty()) a.processing_us.push_back(us);
+  if (a.processing_us.size() > 2000) a.processing_us.pop_front();
+}
 
 void PredictorNode::on_intended(Axis& a, const IntendedMotion::ConstPtr& msg) {
   std::string error;
@@ -357,19 +388,25 @@ void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
       results_.erase(it);
     }
   }
-  PredictorAxis::Output out = a.logic->on_encoder(*msg, compensation_, now);
-  if (out.send) a.pub_command.publish(out.command);
-  a.pub_prediction.publish(out.prediction);
-  if (out.forecast_due) start_forecast(a);
-  if (out.prediction.fallback)
-    ROS_WARN_THROTTLE(2.0, "axis %s: fallback: %s", a.logic->axis().c_str(), out.prediction.status.c_str());
+  auto outs = a.logic->on_encoder(*msg, compensation_, now);
+  if (!outs.empty()) emit(a, outs, now);
+  const double us = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
+  if (!outs.empty()) a.processing_us.push_back(us);
+  if (a.processing_us.size() > 2000) a.processing_us.pop_front();
+}
+
+void PredictorNode::emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now) {
+  for (auto& out : outs) {
+    if (out.send) a.pub_command.publish(out.command);
+    a.pub_prediction.publish(out.prediction);
+    if (out.forecast_due) start_forecast(a);
+    if (out.prediction.fallback)
+      ROS_WARN_THROTTLE(2.0, "axis %s: fallback: %s", a.logic->axis().c_str(), out.prediction.status.c_str());
+  }
   if (last_tf_.isZero() || (now - last_tf_).toSec() >= s_.tf_period_s || now < last_tf_) {
     last_tf_ = now;
-    publish_tf_and_markers(out.prediction.header.stamp);
+    publish_tf_and_markers(outs.back().prediction.header.stamp);
   }
-  const double us = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
-  a.processing_us.push_back(us);
-  if (a.processing_us.size() > 2000) a.processing_us.pop_front();
 }
 
 void PredictorNode::start_forecast(Axis& a) {

@@ -12,6 +12,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -69,7 +70,12 @@ class PredictorAxis {
  public:
   PredictorAxis(std::string axis, std::string model_name, models::ModelPtr model, const PredictorSettings& s);
 
-  void on_voltage(const AxisVoltage& msg);
+  struct Output;
+  // Voltage and encoder of one sample carry the same sequence number; a sample is processed when both are
+  // in, whatever order they arrive in (a voltage that never comes is replaced by the latest one at the next
+  // encoder message). Each call returns the samples it completed (0, 1 or 2).
+  std::vector<Output> on_voltage(const AxisVoltage& msg, bool compensate, const ros::Time& now);
+  std::vector<Output> on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now);
   // Returns false (with `error`) when the intent is malformed; it is then ignored.
   bool on_intended(const IntendedMotion& msg, std::string& error);
 
@@ -79,8 +85,6 @@ class PredictorAxis {
     VoltageCommand command;
     bool forecast_due = false;  // caller should start a drift forecast (async mode)
   };
-  // One encoder sample: advance the model, compute the command. `compensate` is the node's switch.
-  Output on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now);
   // Command right now from the current state (used when a new intent arrives between samples).
   bool command_now(bool compensate, VoltageCommand& out, const ros::Time& now);
 
@@ -102,11 +106,16 @@ class PredictorAxis {
   bool fallback_now() const { return fallback_now_; }
 
  private:
+  // One complete sample: advance the model, compute the command. `compensate` is the node's switch.
+  Output process(const EncoderPosition& msg, double applied_v, bool compensate, const ros::Time& now);
+
   std::string axis_, model_name_;
   std::unique_ptr<compensation::AxisCompensator> comp_;
   const PredictorSettings& s_;
   double applied_v_ = 0.0;
+  std::uint32_t voltage_seq_ = 0;
   bool have_voltage_ = false, have_measured_ = false;
+  std::optional<EncoderPosition> pending_;
   double measured_nm_ = std::nan(""), predicted_nm_ = std::nan(""), intended_nm_ = std::nan("");
   double hold_v_ = 0.0;
   compensation::DriftForecast forecast_;
@@ -125,6 +134,7 @@ class PredictorNode {
   struct Axis;
   void on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg);
   void on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg);
+  void emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now);
   void on_intended(Axis& a, const IntendedMotion::ConstPtr& msg);
   void start_forecast(Axis& a);
   void forecast_worker();

@@ -1,0 +1,116 @@
+// Compensation speed: the 30-min drift forecast (19,800 steps at 11 Hz, target ≤ 20 ms) and one inverse,
+// on the package's fitted `linear` kind (fitted here on data from the test PI + creep plant) and on the
+// small test models.
+#include <benchmark/benchmark.h>
+
+#include <cmath>
+
+#include "../test/unit/test_compensation_models.h"
+#include "piezo_compensation/compensation/drift_forecast.h"
+#include "piezo_compensation/compensation/inverse.h"
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/registry.h"
+
+using namespace piezo;
+
+namespace {
+
+// A random-walk excitation of the PI + creep test plant, as training data for the linear kind.
+io::Dataset plant_data(std::size_t n) {
+  auto plant = test::make_pi_creep(11.0);
+  plant->reset(0.0, 0.0);
+  io::Dataset d;
+  auto& ax = d.add_axis("c");
+  std::uint64_t s = 12345;
+  double v = 0.0;
+  for (std::size_t i = 0; i < n; ++i) {
+    s = s * 6364136223846793005ull + 1442695040888963407ull;
+    v = std::clamp(v + ((s >> 33) % 2001 / 1000.0 - 1.0) * 4.0, -80.0, 80.0);
+    const models::ModelInput in{v, nullptr};
+    const double x = plant->predict(in);
+    plant->commit(in, x);
+    d.time_s.push_back(static_cast<double>(i) / 11.0);
+    ax.voltage_v.push_back(v);
+    ax.position_nm.push_back(x);
+  }
+  return d;
+}
+
+models::ModelPtr fitted_linear() {
+  static const io::Dataset train = plant_data(6000), val = plant_data(2000);
+  for (const auto& k : models::model_kind_names())
+    if (k == "linear" && models::model_kind("linear").fit) {
+      models::FitRequest req;
+      req.train = &train;
+      req.validation = &val;
+      req.axis = "c";
+      models::ModelPtr m = models::model_kind("linear").fit(req);
+      m->reset(0.0, 0.0);
+      return m;
+    }
+  return nullptr;
+}
+
+void forecast(benchmark::State& state, models::Model& m) {
+  for (auto _ : state) {
+    auto f = compensation::forecast_drift(m, 20.0, {1.0, 60.0, 1800.0}, 11.0);
+    if (!f.ok) state.SkipWithError(f.error.c_str());
+    benchmark::DoNotOptimize(f.drift_nm.data());
+  }
+  state.counters["steps"] = 19800;
+}
+
+void BM_DriftForecast30min_Linear(benchmark::State& state) {
+  auto m = fitted_linear();
+  if (!m) {
+    state.SkipWithError("model kind 'linear' is not available in this build");
+    return;
+  }
+  forecast(state, *m);
+}
+BENCHMARK(BM_DriftForecast30min_Linear)->Unit(benchmark::kMillisecond);
+
+void BM_DriftForecast30min_TestLinearCreep(benchmark::State& state) {
+  test::LinearCreepModel m(12.0, 2.0, 300.0, 11.0);
+  m.reset(0.0, 0.0);
+  forecast(state, m);
+}
+BENCHMARK(BM_DriftForecast30min_TestLinearCreep)->Unit(benchmark::kMillisecond);
+
+void BM_DriftForecast30min_TestPiCreep(benchmark::State& state) {
+  auto m = test::make_pi_creep();
+  m->reset(0.0, 0.0);
+  forecast(state, *m);
+}
+BENCHMARK(BM_DriftForecast30min_TestPiCreep)->Unit(benchmark::kMillisecond);
+
+void BM_Inverse_Linear(benchmark::State& state) {
+  auto m = fitted_linear();
+  if (!m) {
+    state.SkipWithError("model kind 'linear' is not available in this build");
+    return;
+  }
+  double t = 0.0;
+  for (auto _ : state) {
+    auto r = compensation::invert(*m, t, {});
+    benchmark::DoNotOptimize(r.voltage_v);
+    t = t > 400.0 ? -400.0 : t + 7.0;
+  }
+}
+BENCHMARK(BM_Inverse_Linear)->Unit(benchmark::kMicrosecond);
+
+void BM_Inverse_TestPiCreep(benchmark::State& state) {
+  auto m = test::make_pi_creep();
+  m->reset(0.0, 0.0);
+  double t = 0.0;
+  for (auto _ : state) {
+    auto r = compensation::invert(*m, t, {});
+    benchmark::DoNotOptimize(r.voltage_v);
+    t = t > 400.0 ? -400.0 : t + 7.0;
+  }
+}
+BENCHMARK(BM_Inverse_TestPiCreep)->Unit(benchmark::kMicrosecond);
+
+}  // namespace
+
+BENCHMARK_MAIN();
