@@ -1,0 +1,128 @@
+// Residual tracing: find what a fitted model misses, add it as effect terms (models/augmented_model.h), refit,
+// repeat until nothing significant is left, and report the error before and after.
+// Generic: it knows nothing of the simulator; ground-truth (*_true_position_nm) and measured positions are never
+// explanatory signals, segment/phase are metadata. Extra numeric columns are candidate signals.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/augmented_model.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::analysis {
+
+// The effect families, in report order.
+const std::vector<std::string>& residual_family_names();
+
+enum class PredictionMode { kFreeRun, kOneStep };
+PredictionMode parse_prediction_mode(const std::string& s);  // "free-run"/"free_run" or "one-step"/"one_step"
+
+struct ErrorStats {
+  double mae_nm = 0.0, rms_nm = 0.0, max_nm = 0.0;
+  std::size_t n = 0;
+};
+ErrorStats error_stats(const std::vector<double>& reference, const std::vector<double>& predicted);
+
+// Names a model reads through ModelInput::aux, resolved against a data set: auxiliary columns, "time_s", and
+// other axes' voltage columns "<axis>_voltage_v". Positions and truth are refused. Throws io::DataError naming
+// the first missing or forbidden column.
+std::vector<const std::vector<double>*> resolve_inputs(const std::vector<std::string>& names, const io::Dataset& data);
+
+// Streams `model` over the data set's `axis`: reset at row 0 with the first voltage and measured position, then
+// per row predict, then commit the measurement (one-step) or the model's own prediction (free-run).
+std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode);
+
+// One candidate: a family, the terms that express it (unweighted), what the parameters mean.
+struct Candidate {
+  std::string family;
+  std::vector<models::EffectTerm> terms;
+  std::map<std::string, double> parameters;          // numeric parameters (lag_s, period_nm, frequency_hz …)
+  std::map<std::string, std::string> labels;         // text parameters (signal …)
+};
+
+// A family's score against the current residual.
+struct FamilyScore {
+  std::string family;
+  bool available = true;        // false when the data holds nothing for it (e.g. no aux columns)
+  std::string note;             // why unavailable, or how it was tested
+  Candidate best;               // best variant (parameters chosen on training data)
+  double explained_variance = 0.0;  // cross-validated (contiguous time blocks) fraction of residual variance
+  double p_value = 1.0;         // against the noise floor (see docs/closing-the-loop.md)
+  bool significant = false;
+  double validation_gain = 0.0; // relative validation-MAE improvement when added (0 if not tried)
+  std::size_t variants = 0;     // how many parameter variants were searched
+};
+
+// One accepted effect with its fitted parameters.
+struct FoundEffect {
+  std::string family;
+  std::map<std::string, double> parameters;   // incl. fitted amplitudes / gains
+  std::map<std::string, std::string> labels;
+  double explained_variance = 0.0;
+  double p_value = 1.0;
+  double validation_gain = 0.0;
+  ErrorStats test_after;                      // TEST error after adding this effect (and the ones before)
+  ErrorStats test_after_truth;                // against the true position when the data has it (n = 0 otherwise)
+  std::vector<FamilyScore> ranking;           // all families at this step, best first
+};
+
+struct ResidualOptions {
+  std::string axis = "c";
+  PredictionMode mode = PredictionMode::kFreeRun;
+  double validation_fraction = 0.25;   // last part of TRAIN used to check that an effect generalises in time
+  int cv_folds = 5;
+  int permutations = 40;               // circular-shift null draws per family
+  double alpha = 0.01;                 // significance level
+  double min_explained_variance = 0.01;
+  double min_validation_gain = 0.03;   // an effect must cut the validation MAE by this fraction to be added
+  int max_effects = 5;
+  std::size_t max_score_samples = 24000;  // statistics on a decimated grid (the residual is strongly autocorrelated)
+  std::vector<std::string> families;   // empty = all
+  std::uint64_t seed = 1;
+  std::function<void(const std::string&)> log;  // progress lines (may be empty)
+};
+
+struct ResidualResult {
+  ErrorStats before_test, after_test;
+  ErrorStats before_test_truth, after_test_truth;  // n = 0 without truth
+  ErrorStats before_validation, after_validation;
+  std::vector<FoundEffect> effects;        // in the order added
+  std::vector<FamilyScore> final_ranking;  // the last round (nothing significant or limit reached)
+  std::vector<double> test_pred_before, test_pred_after;
+  models::ModelPtr model;                  // the augmented model (base + terms), fitted on TRAIN
+};
+
+// `base` must already be fitted (on TRAIN's first part); it is cloned, not changed.
+ResidualResult trace_residual(const models::Model& base, const io::Dataset& train, const io::Dataset& test,
+                              const ResidualOptions& options);
+
+// ---- building blocks (exposed for tests) ----
+
+// Cross-validated explained variance of r by the columns of Z (row-major, n × k) plus an intercept, over
+// `folds` contiguous blocks; also with r circularly shifted by each of `shifts` samples (null draws).
+struct CvScore {
+  double explained_variance = 0.0;
+  std::vector<double> null_explained_variance;
+};
+CvScore cv_explained_variance(const std::vector<double>& r, const std::vector<double>& Z, std::size_t k, int folds,
+                              const std::vector<std::size_t>& shifts);
+
+// Strongest periodic component of r against a variable u (time or position): searches frequencies (cycles per
+// unit of u) in [f_min, f_max], refines the peak and tests it against the local spectral background
+// (periodogram ordinates ≈ exponential; Bonferroni over the frequencies searched).
+struct PeriodicPeak {
+  double frequency = 0.0;   // cycles per unit of u
+  double amplitude = 0.0;   // of r's sinusoid at that frequency [unit of r]
+  double power_ratio = 0.0; // peak power / local background mean
+  double p_value = 1.0;
+  std::size_t searched = 0;
+};
+PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
+                                double oversample = 4.0);
+
+}  // namespace piezo::analysis

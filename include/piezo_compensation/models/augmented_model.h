@@ -1,0 +1,115 @@
+// A base model plus extra effect terms found by the residual tool (analysis/residual.h), kind "augmented".
+//   prediction = base prediction + offset_nm + Σ_terms w · z_term(inputs, base prediction)
+// Each term is a small causal regressor generator (lag, low-pass, play, sin/cos, powers) on one signal: the own
+// voltage, the base model's predicted position, the data time, or a named data column (another axis' voltage,
+// an auxiliary signal such as a temperature). Columns and time enter through ModelInput::aux (see aux_inputs()).
+// The base model is committed with (position − correction), so it keeps seeing the part of the signal it was
+// fitted to: in free-run that is exactly its own free-run, so the terms can be fitted on the base residual.
+#pragma once
+
+#include <yaml-cpp/yaml.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::models {
+
+// Signal names a term can read besides data columns.
+inline constexpr const char* kSignalVoltage = "voltage";    // this axis' applied voltage [V]
+inline constexpr const char* kSignalPosition = "position";  // the base model's predicted position [nm]
+inline constexpr const char* kSignalTime = "time_s";        // the data's time column [s] (read as an input)
+
+struct EffectTerm {
+  // "linear"          [y]                                   y = lowpass_τ(lag_L(s))
+  // "play"            [lowpass_τ(play_r(lag_L(s)))]          hysteretic memory of a signal
+  // "sincos"          [sin(2π y/period), cos(2π y/period)]   y = lag_L(s); period in the signal's unit
+  // "rate"            [d, |d|, sign(d)·d²], each low-passed τ d = s_t − s_{t−1}
+  // "powers"          [u², u³], u = (s − pre_center)/pre_scale
+  std::string type = "linear";
+  std::string signal = kSignalVoltage;
+  std::string family;              // effect family it was added for (report only)
+  double lag_s = 0.0;
+  double time_constant_s = 0.0;    // 0 = no low-pass
+  double threshold = 0.0;          // play threshold, in the signal's unit
+  double period = 0.0;             // sincos period, in the signal's unit (s for time, nm for position)
+  double pre_center = 0.0, pre_scale = 1.0;  // powers only
+  // Standardisation of each raw regressor (fitted on training data) and its weight [nm per standardised unit].
+  std::vector<double> center, scale, weight;
+
+  std::size_t num_regressors() const;
+  std::string name() const;  // e.g. "sincos(position, P=150 nm)"
+  YAML::Node to_yaml() const;
+  static EffectTerm from_yaml(const YAML::Node& node);  // throws std::runtime_error naming the bad key
+};
+
+// Streaming state of a list of terms at one sample rate: the one path used by fitting, search and prediction.
+// Terms on "position" read the corrected position x_base + offset + (weighted non-position terms), so a
+// position-periodic error is looked up at the drift-corrected position, not at the base model's.
+class EffectTermStream {
+ public:
+  EffectTermStream(std::vector<EffectTerm> terms, double sample_rate_hz, double offset_nm = 0.0);
+  ~EffectTermStream();
+  EffectTermStream(const EffectTermStream&);
+  EffectTermStream& operator=(const EffectTermStream&);
+
+  // Column signals (data columns, incl. "time_s") the terms read, in the order `columns` must supply them.
+  const std::vector<std::string>& column_signals() const;
+  std::size_t num_regressors() const;
+  const std::vector<EffectTerm>& terms() const;
+  std::vector<EffectTerm>& mutable_terms();
+  double offset_nm() const;
+  void set_offset_nm(double offset_nm);
+
+  void reset();
+  // Raw (unstandardised) regressors of the current sample; state unchanged.
+  void raw(double voltage_v, double base_position_nm, const double* columns, double* out) const;
+  // Standardised regressors (using each term's center/scale).
+  void standardised(double voltage_v, double base_position_nm, const double* columns, double* out) const;
+  // offset + Σ w · standardised regressors.
+  double correction(double voltage_v, double base_position_nm, const double* columns) const;
+  void commit(double voltage_v, double base_position_nm, const double* columns);
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+class AugmentedModel : public Model {
+ public:
+  AugmentedModel(ModelPtr base, std::vector<EffectTerm> terms, double offset_nm, double sample_rate_hz);
+  AugmentedModel(const AugmentedModel& other);
+
+  std::string kind() const override { return "augmented"; }
+  void reset(double voltage_v, double position_nm) override;
+  double predict(const ModelInput& in) const override;
+  void commit(const ModelInput& in, double position_nm) override;
+  std::unique_ptr<Model> clone() const override;
+  bool uses_position_history() const override;
+  bool is_affine_in_voltage() const override;
+  std::vector<std::string> aux_inputs() const override;  // base model's first, then the terms' columns
+  YAML::Node to_yaml() const override;
+  std::size_t num_parameters() const override;
+
+  const Model& base() const { return *base_; }
+  const std::vector<EffectTerm>& terms() const { return stream_.terms(); }
+  double offset_nm() const { return stream_.offset_nm(); }
+  // Base prediction and correction for the current sample (for reports and tests).
+  double base_prediction(const ModelInput& in) const;
+
+  static ModelPtr from_yaml(const YAML::Node& model_node);
+
+ private:
+  void split(const ModelInput& in, std::vector<double>& base_aux, std::vector<double>& cols) const;
+
+  ModelPtr base_;
+  EffectTermStream stream_;
+  double sample_rate_hz_ = 11.0;
+  std::size_t n_base_aux_ = 0;
+  std::vector<std::string> aux_names_;
+  std::vector<int> col_index_;  // term column j → index into ModelInput::aux
+};
+
+}  // namespace piezo::models

@@ -1,0 +1,567 @@
+// The residual loop: score every effect family on the current residual, add the best significant one, refit.
+#include "piezo_compensation/analysis/residual.h"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <numeric>
+#include <random>
+#include <set>
+#include <sstream>
+#include <stdexcept>
+
+namespace piezo::analysis {
+
+using models::EffectTerm;
+using models::EffectTermStream;
+
+const std::vector<std::string>& residual_family_names() {
+  static const std::vector<std::string> names = {"time_drift",     "cross_axis",           "position_periodic",
+                                                 "rate_dependent", "aux_signal",           "periodic_disturbance",
+                                                 "missing_memory", "voltage_nonlinearity"};
+  return names;
+}
+
+PredictionMode parse_prediction_mode(const std::string& s) {
+  if (s == "free-run" || s == "free_run") return PredictionMode::kFreeRun;
+  if (s == "one-step" || s == "one_step") return PredictionMode::kOneStep;
+  throw std::invalid_argument("unknown prediction mode '" + s + "' (free-run or one-step)");
+}
+
+ErrorStats error_stats(const std::vector<double>& ref, const std::vector<double>& pred) {
+  if (ref.size() != pred.size()) throw std::invalid_argument("error_stats: size mismatch");
+  ErrorStats e;
+  e.n = ref.size();
+  if (e.n == 0) return e;
+  double sa = 0, s2 = 0;
+  for (std::size_t i = 0; i < ref.size(); ++i) {
+    const double d = std::fabs(ref[i] - pred[i]);
+    sa += d;
+    s2 += d * d;
+    e.max_nm = std::max(e.max_nm, d);
+  }
+  e.mae_nm = sa / static_cast<double>(e.n);
+  e.rms_nm = std::sqrt(s2 / static_cast<double>(e.n));
+  return e;
+}
+
+std::vector<const std::vector<double>*> resolve_inputs(const std::vector<std::string>& names, const io::Dataset& data) {
+  std::vector<const std::vector<double>*> cols;
+  for (const auto& name : names) {
+    const std::string where = data.source.empty() ? std::string("data") : data.source;
+    if (name == models::kSignalTime) {
+      cols.push_back(&data.time_s);
+      continue;
+    }
+    if (const io::AuxSignal* a = data.find_aux(name)) {
+      cols.push_back(&a->values);
+      continue;
+    }
+    const io::AxisSeries* found = nullptr;
+    for (const auto& ax : data.axes) {
+      if (name == io::true_position_column(ax.name) || name == io::position_column(ax.name))
+        throw io::DataError(where + ": column " + name + " is a position and cannot be a model input");
+      if (name == io::voltage_column(ax.name)) found = &ax;
+    }
+    if (!found) throw io::DataError(where + ": the model needs column " + name + ", which the data does not have");
+    cols.push_back(&found->voltage_v);
+  }
+  return cols;
+}
+
+std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode) {
+  const io::AxisSeries& ax = data.axis(axis);
+  const auto cols = resolve_inputs(model.aux_inputs(), data);
+  std::vector<double> pred(data.size());
+  if (data.empty()) return pred;
+  std::vector<double> aux(cols.size());
+  model.reset(ax.voltage_v[0], ax.position_nm[0]);
+  for (std::size_t i = 0; i < data.size(); ++i) {
+    for (std::size_t j = 0; j < cols.size(); ++j) aux[j] = (*cols[j])[i];
+    const models::ModelInput in{ax.voltage_v[i], aux.empty() ? nullptr : aux.data()};
+    pred[i] = model.predict(in);
+    if (!std::isfinite(pred[i]))
+      throw std::runtime_error("model '" + model.kind() + "' predicted a non-finite position at row " + std::to_string(i + 1));
+    model.commit(in, mode == PredictionMode::kOneStep ? ax.position_nm[i] : pred[i]);
+  }
+  return pred;
+}
+
+namespace {
+
+double mean_of(const std::vector<double>& v, std::size_t a, std::size_t b) {
+  double s = 0;
+  for (std::size_t i = a; i < b; ++i) s += v[i];
+  return b > a ? s / static_cast<double>(b - a) : 0.0;
+}
+
+double mae_of(const std::vector<double>& r, std::size_t a, std::size_t b) {
+  double s = 0;
+  for (std::size_t i = a; i < b; ++i) s += std::fabs(r[i]);
+  return b > a ? s / static_cast<double>(b - a) : 0.0;
+}
+
+bool reads_position(const std::vector<EffectTerm>& terms) {
+  for (const auto& t : terms)
+    if (t.signal == models::kSignalPosition) return true;
+  return false;
+}
+
+// Everything the loop needs about TRAIN, computed once.
+struct Context {
+  const io::Dataset* data = nullptr;
+  std::string axis;
+  double fs = 11.0;
+  std::vector<double> voltage, measured, x_base;  // x_base: base model prediction per row
+  std::vector<std::string> other_axes;            // other axes' voltage column names
+  std::vector<std::string> aux_names;             // auxiliary columns
+};
+
+// Raw regressors of `terms` over all rows (streamed from row 0). `fixed` terms (already weighted) run in the
+// same stream so that position terms see the corrected position; only `terms`' columns are returned.
+std::vector<double> regressors(const Context& c, const std::vector<EffectTerm>& fixed, double offset,
+                               const std::vector<EffectTerm>& terms, std::size_t& k_out) {
+  std::vector<EffectTerm> all = reads_position(terms) ? fixed : std::vector<EffectTerm>{};
+  const std::size_t skip = std::accumulate(all.begin(), all.end(), std::size_t{0},
+                                           [](std::size_t s, const EffectTerm& t) { return s + t.num_regressors(); });
+  for (const auto& t : terms) all.push_back(t);
+  EffectTermStream stream(all, c.fs, reads_position(terms) ? offset : 0.0);
+  const auto cols = resolve_inputs(stream.column_signals(), *c.data);
+  const std::size_t k_all = stream.num_regressors(), k = k_all - skip;
+  k_out = k;
+  const std::size_t n = c.x_base.size();
+  std::vector<double> Z(n * k), buf(k_all), colv(cols.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+    stream.raw(c.voltage[i], c.x_base[i], colv.data(), buf.data());
+    std::copy(buf.begin() + static_cast<long>(skip), buf.end(), Z.begin() + static_cast<long>(i * k));
+    stream.commit(c.voltage[i], c.x_base[i], colv.data());
+  }
+  return Z;
+}
+
+// Fits centre/scale and weights of `terms` (jointly, with an offset) to the base residual on rows [a, b).
+// Position terms depend on the other weights, so the fit is repeated until it settles.
+void fit_terms(const Context& c, std::vector<EffectTerm>& terms, double& offset, std::size_t a, std::size_t b) {
+  const std::size_t n = c.x_base.size();
+  const int passes = reads_position(terms) ? 3 : 1;
+  offset = 0.0;
+  for (auto& t : terms) {
+    const std::size_t k = t.num_regressors();
+    if (t.weight.size() != k) t.weight.assign(k, 0.0);
+  }
+  for (int pass = 0; pass < passes; ++pass) {
+    EffectTermStream stream(terms, c.fs, offset);
+    const auto cols = resolve_inputs(stream.column_signals(), *c.data);
+    const std::size_t k = stream.num_regressors();
+    std::vector<double> Z(n * k), colv(cols.size());
+    for (std::size_t i = 0; i < n; ++i) {
+      for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+      stream.raw(c.voltage[i], c.x_base[i], colv.data(), Z.data() + i * k);
+      stream.commit(c.voltage[i], c.x_base[i], colv.data());
+    }
+    std::vector<double> mu(k, 0.0), sd(k, 0.0);
+    for (std::size_t j = 0; j < k; ++j) {
+      for (std::size_t i = a; i < b; ++i) mu[j] += Z[i * k + j];
+      mu[j] /= static_cast<double>(b - a);
+      for (std::size_t i = a; i < b; ++i) sd[j] += (Z[i * k + j] - mu[j]) * (Z[i * k + j] - mu[j]);
+      sd[j] = std::sqrt(sd[j] / static_cast<double>(b - a));
+      if (!(sd[j] > 1e-12)) sd[j] = 1.0;  // constant on the fit rows: weight will be ~0
+    }
+    Eigen::MatrixXd G = Eigen::MatrixXd::Zero(k + 1, k + 1);
+    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(k + 1);
+    Eigen::VectorXd x(k + 1);
+    for (std::size_t i = a; i < b; ++i) {
+      x[0] = 1.0;
+      for (std::size_t j = 0; j < k; ++j) x[j + 1] = (Z[i * k + j] - mu[j]) / sd[j];
+      G.selfadjointView<Eigen::Lower>().rankUpdate(x);
+      rhs += x * (c.measured[i] - c.x_base[i]);
+    }
+    G = G.selfadjointView<Eigen::Lower>();
+    for (std::size_t j = 1; j <= k; ++j) G(j, j) += 1e-6 * static_cast<double>(b - a);
+    const Eigen::VectorXd beta = G.ldlt().solve(rhs);
+    offset = beta[0];
+    std::size_t j = 0;
+    for (auto& t : terms)
+      for (std::size_t q = 0; q < t.num_regressors(); ++q, ++j) {
+        if (t.center.size() != t.num_regressors()) t.center.assign(t.num_regressors(), 0.0);
+        if (t.scale.size() != t.num_regressors()) t.scale.assign(t.num_regressors(), 1.0);
+        t.center[q] = mu[j];
+        t.scale[q] = sd[j];
+        t.weight[q] = beta[j + 1];
+      }
+  }
+}
+
+// Model prediction on TRAIN rows from x_base plus the terms (exact in free-run, where the base never sees the
+// correction; in one-step the base is committed with measurement − correction, a second-order difference).
+std::vector<double> corrected(const Context& c, const std::vector<EffectTerm>& terms, double offset) {
+  EffectTermStream stream(terms, c.fs, offset);
+  const auto cols = resolve_inputs(stream.column_signals(), *c.data);
+  std::vector<double> out(c.x_base.size()), colv(cols.size());
+  for (std::size_t i = 0; i < out.size(); ++i) {
+    for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+    out[i] = c.x_base[i] + stream.correction(c.voltage[i], c.x_base[i], colv.data());
+    stream.commit(c.voltage[i], c.x_base[i], colv.data());
+  }
+  return out;
+}
+
+EffectTerm term(const std::string& family, const std::string& type, const std::string& signal, double lag_s = 0.0,
+                double tau_s = 0.0) {
+  EffectTerm t;
+  t.family = family;
+  t.type = type;
+  t.signal = signal;
+  t.lag_s = lag_s;
+  t.time_constant_s = tau_s;
+  return t;
+}
+
+double span_of(const std::vector<double>& v) {
+  const auto [lo, hi] = std::minmax_element(v.begin(), v.end());
+  return *hi - *lo;
+}
+
+struct FamilyCandidates {
+  std::vector<Candidate> variants;
+  bool spectral = false;      // p-value from the periodogram test, not from shifts
+  PeriodicPeak peak;
+  std::string note;
+};
+
+FamilyCandidates candidates(const std::string& family, const Context& c, const std::vector<double>& residual,
+                            const std::vector<double>& position, std::size_t stride) {
+  FamilyCandidates fc;
+  const double dt = 1.0 / c.fs;
+  const double duration = dt * static_cast<double>(c.x_base.size());
+  auto add = [&](std::vector<EffectTerm> terms, std::map<std::string, double> p, std::map<std::string, std::string> l = {}) {
+    fc.variants.push_back(Candidate{family, std::move(terms), std::move(p), std::move(l)});
+  };
+  if (family == "time_drift") {
+    // A constant drift rate: the one time basis that extrapolates sanely past the training data.
+    add({term(family, "linear", models::kSignalTime)}, {});
+  } else if (family == "cross_axis") {
+    if (c.other_axes.empty()) fc.note = "no other axis in the data";
+    for (const auto& col : c.other_axes) {
+      for (double lag : {0.0, 0.5, 1.0, 2.0, 5.0, 10.0})
+        for (double tau : {0.0, 2.0, 10.0, 60.0})
+          add({term(family, "linear", col, lag, tau)}, {{"lag_s", lag}, {"time_constant_s", tau}}, {{"signal", col}});
+      EffectTerm play = term(family, "play", col);
+      play.threshold = 10.0;
+      add({term(family, "linear", col), play}, {{"lag_s", 0.0}, {"play_threshold_v", 10.0}}, {{"signal", col}});
+    }
+  } else if (family == "aux_signal") {
+    if (c.aux_names.empty()) fc.note = "no auxiliary column in the data";
+    for (const auto& col : c.aux_names)
+      for (double lag : {0.0, 10.0, 60.0})
+        for (double tau : {0.0, 30.0, 300.0})
+          add({term(family, "linear", col, lag, tau)}, {{"lag_s", lag}, {"time_constant_s", tau}}, {{"signal", col}});
+  } else if (family == "rate_dependent") {
+    for (double tau : {0.0, 1.0, 5.0, 20.0, 60.0})
+      add({term(family, "rate", models::kSignalVoltage, 0.0, tau)}, {{"time_constant_s", tau}});
+  } else if (family == "missing_memory") {
+    for (double tau : {10.0, 30.0, 100.0, 300.0, 1000.0, 3000.0})
+      add({term(family, "linear", models::kSignalVoltage, 0.0, tau)}, {{"time_constant_s", tau}});
+    for (double r : {5.0, 20.0})
+      for (double tau : {30.0, 300.0, 1000.0}) {
+        EffectTerm t = term(family, "play", models::kSignalVoltage, 0.0, tau);
+        t.threshold = r;
+        add({t}, {{"time_constant_s", tau}, {"play_threshold_v", r}});
+      }
+  } else if (family == "voltage_nonlinearity") {
+    auto powers = [&](const std::string& sig, const std::vector<double>& v) {
+      EffectTerm t = term(family, "powers", sig);
+      t.pre_center = mean_of(v, 0, v.size());
+      t.pre_scale = std::max(1e-9, span_of(v) / 2.0);
+      return t;
+    };
+    add({powers(models::kSignalVoltage, c.voltage)}, {}, {{"signal", models::kSignalVoltage}});
+    add({powers(models::kSignalPosition, position)}, {}, {{"signal", models::kSignalPosition}});
+  } else if (family == "periodic_disturbance" || family == "position_periodic") {
+    fc.spectral = true;
+    const bool in_time = family == "periodic_disturbance";
+    std::vector<double> u, r;
+    if (in_time) {
+      u = c.data->time_s;
+      r = residual;
+    } else {
+      for (std::size_t i = 0; i < residual.size(); i += stride) {
+        u.push_back(position[i]);
+        r.push_back(residual[i]);
+      }
+    }
+    const double range = span_of(u);
+    // Time: at least 4 cycles in TRAIN up to 0.98·Nyquist. Position: 3 cycles over the range down to 30 nm.
+    const double f_min = in_time ? 4.0 / duration : 3.0 / std::max(range, 1e-9);
+    const double f_max = in_time ? 0.49 * c.fs : 1.0 / 30.0;
+    if (f_max <= f_min) {
+      fc.note = in_time ? "data too short" : "position range too small";
+      return fc;
+    }
+    fc.peak = find_periodic_peak(u, r, f_min, f_max, 4.0);
+    if (fc.peak.frequency <= 0) {
+      fc.note = "no spectrum";
+      return fc;
+    }
+    const double period = 1.0 / fc.peak.frequency;
+    EffectTerm t = term(family, "sincos", in_time ? models::kSignalTime : models::kSignalPosition);
+    t.period = period;
+    if (in_time)
+      add({t}, {{"period_s", period}, {"frequency_hz", fc.peak.frequency}, {"power_ratio", fc.peak.power_ratio}});
+    else
+      add({t}, {{"period_nm", period}, {"power_ratio", fc.peak.power_ratio}});
+    std::ostringstream os;
+    os << "peak " << fc.peak.power_ratio << "× the local spectral background, " << fc.peak.searched << " frequencies searched";
+    fc.note = os.str();
+  } else {
+    throw std::invalid_argument("unknown effect family '" + family + "'");
+  }
+  return fc;
+}
+
+double normal_tail(double z) { return 0.5 * std::erfc(z / std::sqrt(2.0)); }
+
+FamilyScore score_family(const std::string& family, const Context& c, const std::vector<EffectTerm>& fixed, double offset,
+                         const std::vector<double>& residual, const std::vector<double>& position,
+                         const ResidualOptions& o, std::mt19937_64& rng) {
+  FamilyScore fs;
+  fs.family = family;
+  const std::size_t n = residual.size();
+  const std::size_t stride = std::max<std::size_t>(1, (n + o.max_score_samples - 1) / o.max_score_samples);
+  FamilyCandidates fc = candidates(family, c, residual, position, stride);
+  fs.variants = fc.variants.size();
+  fs.note = fc.note;
+  if (fc.variants.empty()) {
+    fs.available = false;
+    return fs;
+  }
+  std::vector<double> rd;
+  for (std::size_t i = 0; i < n; i += stride) rd.push_back(residual[i]);
+  const std::size_t nd = rd.size();
+  std::vector<std::size_t> shifts;
+  if (!fc.spectral) {
+    std::uniform_int_distribution<std::size_t> pick(nd / 10, nd - nd / 10);
+    for (int s = 0; s < o.permutations; ++s) shifts.push_back(pick(rng));
+  }
+  std::vector<double> null_max(shifts.size(), -1e300);
+  double best = -1e300;
+  for (const auto& cand : fc.variants) {
+    std::size_t k = 0;
+    const std::vector<double> Z = regressors(c, fixed, offset, cand.terms, k);
+    std::vector<double> Zd;
+    Zd.reserve(nd * k);
+    for (std::size_t i = 0; i < n; i += stride) Zd.insert(Zd.end(), Z.begin() + static_cast<long>(i * k), Z.begin() + static_cast<long>((i + 1) * k));
+    const CvScore s = cv_explained_variance(rd, Zd, k, o.cv_folds, shifts);
+    if (s.explained_variance > best) {
+      best = s.explained_variance;
+      fs.best = cand;
+    }
+    for (std::size_t q = 0; q < shifts.size(); ++q) null_max[q] = std::max(null_max[q], s.null_explained_variance[q]);
+  }
+  fs.explained_variance = best;
+  if (fc.spectral) {
+    fs.p_value = fc.peak.p_value;
+  } else {
+    // The observed best against the best of each circularly shifted draw (same search, alignment destroyed):
+    // a Gaussian tail beyond the draws, the empirical rank within them.
+    double m = 0, v = 0, above = 0;
+    for (double x : null_max) m += x;
+    m /= static_cast<double>(null_max.size());
+    for (double x : null_max) {
+      v += (x - m) * (x - m);
+      if (x >= best) above += 1;
+    }
+    const double sd = std::sqrt(v / std::max<std::size_t>(1, null_max.size() - 1));
+    const double p_emp = (1.0 + above) / (1.0 + static_cast<double>(null_max.size()));
+    const double p_gauss = sd > 0 ? normal_tail((best - m) / sd) : (best > m ? 0.0 : 1.0);
+    fs.p_value = above > 0 ? p_emp : std::min(p_emp, p_gauss);
+    std::ostringstream os;
+    os << "circular-shift null: mean " << m << ", sd " << sd << " over " << null_max.size() << " draws";
+    fs.note = os.str();
+  }
+  fs.significant = fs.p_value < o.alpha && fs.explained_variance >= o.min_explained_variance;
+  return fs;
+}
+
+// Fitted parameters of one effect from the weights of its terms.
+void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size_t count, FoundEffect& e) {
+  for (std::size_t i = first; i < first + count; ++i) {
+    const EffectTerm& t = terms[i];
+    auto w = [&](std::size_t q) { return t.weight[q] / t.scale[q]; };  // per raw unit
+    const std::string pre = count > 1 ? "term" + std::to_string(i - first) + "_" : "";
+    if (t.type == "sincos") {
+      e.parameters[pre + "amplitude_nm"] = std::hypot(w(0), w(1));
+      e.parameters[pre + "phase_rad"] = std::atan2(w(1), w(0));
+    } else if (t.type == "linear" || t.type == "play") {
+      if (t.signal == models::kSignalTime) {
+        e.parameters["drift_nm_per_h"] = w(0) * 3600.0;
+      } else {
+        const std::string unit = t.signal == models::kSignalVoltage || t.signal.find("_voltage_v") != std::string::npos
+                                     ? "nm_per_v"
+                                     : "nm_per_unit";
+        e.parameters[pre + (t.type == "play" ? "play_gain_" : "gain_") + unit] = w(0);
+      }
+    } else if (t.type == "rate") {
+      e.parameters["gain_nm_per_v_step"] = w(0);
+      e.parameters["gain_nm_per_abs_v_step"] = w(1);
+      e.parameters["gain_nm_per_signed_v2_step"] = w(2);
+    } else if (t.type == "powers") {
+      e.parameters["quadratic_nm"] = w(0);
+      e.parameters["cubic_nm"] = w(1);
+    }
+  }
+}
+
+std::vector<double> truth_or_empty(const io::Dataset& d, const std::string& axis) {
+  const auto& ax = d.axis(axis);
+  return ax.has_truth() ? ax.true_position_nm : std::vector<double>{};
+}
+
+}  // namespace
+
+ResidualResult trace_residual(const models::Model& base, const io::Dataset& train, const io::Dataset& test,
+                              const ResidualOptions& o) {
+  auto log = [&](const std::string& s) {
+    if (o.log) o.log(s);
+  };
+  train.validate();
+  test.validate();
+  if (train.size() < 200) throw io::DataError((train.source.empty() ? "TRAIN" : train.source) + ": too few rows for the residual tool (need ≥ 200)");
+  if (test.empty()) throw io::DataError((test.source.empty() ? "TEST" : test.source) + ": no rows");
+  const double fs = train.sample_rate_hz();
+  if (std::fabs(test.sample_rate_hz() / fs - 1.0) > 0.02)
+    throw io::DataError("TRAIN and TEST have different sample rates (" + std::to_string(fs) + " vs " +
+                        std::to_string(test.sample_rate_hz()) + " Hz)");
+  if (!(o.validation_fraction > 0.05 && o.validation_fraction < 0.8))
+    throw std::invalid_argument("validation fraction must be in (0.05, 0.8)");
+  for (const auto& f : o.families)
+    if (std::find(residual_family_names().begin(), residual_family_names().end(), f) == residual_family_names().end())
+      throw std::invalid_argument("unknown effect family '" + f + "'");
+
+  Context c;
+  c.data = &train;
+  c.axis = o.axis;
+  c.fs = fs;
+  const auto& ax = train.axis(o.axis);
+  c.voltage = ax.voltage_v;
+  c.measured = ax.position_nm;
+  {
+    models::ModelPtr b = base.clone();
+    c.x_base = run_model(*b, train, o.axis, o.mode);
+  }
+  for (const auto& other : train.axes)
+    if (other.name != o.axis && test.has_axis(other.name)) c.other_axes.push_back(io::voltage_column(other.name));
+  for (const auto& a : train.aux)
+    if (test.find_aux(a.name)) c.aux_names.push_back(a.name);
+
+  const std::size_t n = train.size();
+  const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(n) * (1.0 - o.validation_fraction)));
+  const std::vector<double> truth_test = truth_or_empty(test, o.axis);
+  const std::vector<double>& meas_test = test.axis(o.axis).position_nm;
+
+  ResidualResult res;
+  {
+    models::ModelPtr b = base.clone();
+    res.test_pred_before = run_model(*b, test, o.axis, o.mode);
+  }
+  res.before_test = error_stats(meas_test, res.test_pred_before);
+  if (!truth_test.empty()) res.before_test_truth = error_stats(truth_test, res.test_pred_before);
+
+  std::vector<EffectTerm> terms;           // accepted, fitted on all of TRAIN
+  std::vector<std::size_t> effect_first;   // first term index of each effect
+  double offset = 0.0;
+  std::mt19937_64 rng(o.seed);
+  const auto& fams = o.families.empty() ? residual_family_names() : o.families;
+
+  auto val_mae = [&](std::vector<EffectTerm> t) {
+    double off = 0.0;
+    fit_terms(c, t, off, 0, n_fit);
+    const std::vector<double> pred = corrected(c, t, off);
+    std::vector<double> r(n);
+    for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - pred[i];
+    return mae_of(r, n_fit, n);
+  };
+  {
+    std::vector<double> r(n);
+    for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - c.x_base[i];
+    res.before_validation.mae_nm = mae_of(r, n_fit, n);
+  }
+
+  for (int step = 0; step < o.max_effects; ++step) {
+    const std::vector<double> pred = corrected(c, terms, offset);
+    std::vector<double> r(n);
+    for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - pred[i];
+    std::vector<FamilyScore> ranking;
+    for (const auto& f : fams) {
+      ranking.push_back(score_family(f, c, terms, offset, r, pred, o, rng));
+      const auto& s = ranking.back();
+      std::ostringstream os;
+      os << "step " << step + 1 << ": " << f;
+      if (!s.available) os << " (" << s.note << ")";
+      else os << ": explained variance " << s.explained_variance << ", p " << s.p_value << (s.significant ? " *" : "");
+      log(os.str());
+    }
+    std::stable_sort(ranking.begin(), ranking.end(), [](const FamilyScore& a, const FamilyScore& b) {
+      if (a.available != b.available) return a.available;
+      return a.explained_variance > b.explained_variance;
+    });
+    const double mae_now = val_mae(terms);
+    FamilyScore* winner = nullptr;
+    for (auto& s : ranking) {
+      if (!s.available || !s.significant) continue;
+      std::vector<EffectTerm> trial = terms;
+      for (const auto& t : s.best.terms) trial.push_back(t);
+      s.validation_gain = 1.0 - val_mae(trial) / mae_now;
+      log("  validation MAE gain of " + s.family + ": " + std::to_string(100.0 * s.validation_gain) + " %");
+      if (s.validation_gain >= o.min_validation_gain) {
+        winner = &s;
+        break;
+      }
+    }
+    if (!winner) {
+      res.final_ranking = ranking;
+      break;
+    }
+    effect_first.push_back(terms.size());
+    for (const auto& t : winner->best.terms) terms.push_back(t);
+    fit_terms(c, terms, offset, 0, n);
+
+    FoundEffect e;
+    e.family = winner->family;
+    e.parameters = winner->best.parameters;
+    e.labels = winner->best.labels;
+    e.explained_variance = winner->explained_variance;
+    e.p_value = winner->p_value;
+    e.validation_gain = winner->validation_gain;
+    e.ranking = ranking;
+    models::AugmentedModel m(base.clone(), terms, offset, fs);
+    const std::vector<double> pt = run_model(m, test, o.axis, o.mode);
+    e.test_after = error_stats(meas_test, pt);
+    if (!truth_test.empty()) e.test_after_truth = error_stats(truth_test, pt);
+    log("added " + e.family + ": TEST MAE " + std::to_string(e.test_after.mae_nm) + " nm");
+    res.effects.push_back(std::move(e));
+    if (step + 1 == o.max_effects) res.final_ranking = ranking;
+  }
+
+  // Parameters from the final joint fit.
+  for (std::size_t q = 0; q < res.effects.size(); ++q) {
+    const std::size_t first = effect_first[q];
+    const std::size_t last = q + 1 < effect_first.size() ? effect_first[q + 1] : terms.size();
+    describe(terms, first, last - first, res.effects[q]);
+  }
+  auto model = std::make_unique<models::AugmentedModel>(base.clone(), terms, offset, fs);
+  res.test_pred_after = run_model(*model, test, o.axis, o.mode);
+  res.after_test = error_stats(meas_test, res.test_pred_after);
+  if (!truth_test.empty()) res.after_test_truth = error_stats(truth_test, res.test_pred_after);
+  {
+    const std::vector<double> p = corrected(c, terms, offset);
+    std::vector<double> r(n);
+    for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - p[i];
+    res.after_validation.mae_nm = mae_of(r, n_fit, n);
+  }
+  res.model = std::move(model);
+  return res;
+}
+
+}  // namespace piezo::analysis

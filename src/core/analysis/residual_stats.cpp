@@ -1,0 +1,219 @@
+// Statistics of the residual tool: blocked cross-validation with circular-shift null draws, periodograms.
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <complex>
+#include <numeric>
+#include <stdexcept>
+
+#include "piezo_compensation/analysis/residual.h"
+
+namespace piezo::analysis {
+
+namespace {
+constexpr double kTwoPi = 6.283185307179586;
+
+struct FoldSums {
+  Eigen::MatrixXd G;  // X_f^T X_f, X = [1, Z]
+  Eigen::VectorXd b;  // X_f^T r_f
+  double rr = 0, s = 0;
+  double n = 0;
+};
+
+double cv_ev(const std::vector<FoldSums>& f, std::size_t k1) {
+  Eigen::MatrixXd G = Eigen::MatrixXd::Zero(k1, k1);
+  Eigen::VectorXd b = Eigen::VectorXd::Zero(k1);
+  double S = 0, N = 0;
+  for (const auto& x : f) {
+    G += x.G;
+    b += x.b;
+    S += x.s;
+    N += x.n;
+  }
+  double sse = 0, sse0 = 0;
+  for (const auto& x : f) {
+    Eigen::MatrixXd Gt = G - x.G;
+    const Eigen::VectorXd bt = b - x.b;
+    // A tiny ridge on the standardised regressors keeps collinear variants solvable; the intercept is free.
+    for (std::size_t j = 1; j < k1; ++j) Gt(j, j) += 1e-6 * Gt(0, 0) + 1e-9;
+    const Eigen::VectorXd beta = Gt.ldlt().solve(bt);
+    sse += x.rr - 2.0 * beta.dot(x.b) + beta.dot(x.G * beta);
+    const double m = (S - x.s) / std::max(1.0, N - x.n);
+    sse0 += x.rr - 2.0 * m * x.s + x.n * m * m;
+  }
+  if (!(sse0 > 0)) return 0.0;
+  return 1.0 - sse / sse0;
+}
+
+void fft(std::vector<std::complex<double>>& a) {
+  const std::size_t n = a.size();
+  for (std::size_t i = 1, j = 0; i < n; ++i) {
+    std::size_t bit = n >> 1;
+    for (; j & bit; bit >>= 1) j ^= bit;
+    j ^= bit;
+    if (i < j) std::swap(a[i], a[j]);
+  }
+  for (std::size_t len = 2; len <= n; len <<= 1) {
+    const double ang = -kTwoPi / static_cast<double>(len);
+    const std::complex<double> wl(std::cos(ang), std::sin(ang));
+    for (std::size_t i = 0; i < n; i += len) {
+      std::complex<double> w(1.0, 0.0);
+      for (std::size_t j = 0; j < len / 2; ++j) {
+        const auto u = a[i + j], v = a[i + j + len / 2] * w;
+        a[i + j] = u + v;
+        a[i + j + len / 2] = u - v;
+        w *= wl;
+      }
+    }
+  }
+}
+
+// |Σ r e^{-2πi f u}|² / n for demeaned r.
+double power_at(const std::vector<double>& u, const std::vector<double>& r, double f) {
+  double c = 0, s = 0;
+  for (std::size_t i = 0; i < u.size(); ++i) {
+    const double ph = kTwoPi * f * u[i];
+    c += r[i] * std::cos(ph);
+    s += r[i] * std::sin(ph);
+  }
+  return (c * c + s * s) / static_cast<double>(u.size());
+}
+
+bool is_uniform(const std::vector<double>& u) {
+  if (u.size() < 3) return false;
+  const double d = (u.back() - u.front()) / static_cast<double>(u.size() - 1);
+  if (!(d > 0)) return false;
+  for (std::size_t i = 1; i < u.size(); ++i)
+    if (std::fabs(u[i] - u[i - 1] - d) > 0.01 * d) return false;
+  return true;
+}
+}  // namespace
+
+CvScore cv_explained_variance(const std::vector<double>& r, const std::vector<double>& Z, std::size_t k, int folds,
+                              const std::vector<std::size_t>& shifts) {
+  const std::size_t n = r.size();
+  if (k == 0 || Z.size() != n * k) throw std::invalid_argument("cv_explained_variance: Z must be n × k");
+  if (folds < 2 || n < static_cast<std::size_t>(folds) * 4) throw std::invalid_argument("cv_explained_variance: too few samples for the folds");
+  // Standardise the regressors once (a constant column becomes zero: it explains nothing beyond the intercept).
+  const std::size_t k1 = k + 1;
+  std::vector<double> X(n * k1);
+  for (std::size_t j = 0; j < k; ++j) {
+    double m = 0, ss = 0;
+    for (std::size_t i = 0; i < n; ++i) m += Z[i * k + j];
+    m /= static_cast<double>(n);
+    for (std::size_t i = 0; i < n; ++i) ss += (Z[i * k + j] - m) * (Z[i * k + j] - m);
+    const double sd = std::sqrt(ss / static_cast<double>(n));
+    for (std::size_t i = 0; i < n; ++i) X[i * k1 + j + 1] = sd > 0 ? (Z[i * k + j] - m) / sd : 0.0;
+  }
+  for (std::size_t i = 0; i < n; ++i) X[i * k1] = 1.0;
+
+  std::vector<std::size_t> edge(folds + 1);
+  for (int f = 0; f <= folds; ++f) edge[f] = n * f / folds;
+  std::vector<FoldSums> base(folds);
+  for (int f = 0; f < folds; ++f) {
+    Eigen::Map<const Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>> Xf(
+        X.data() + edge[f] * k1, edge[f + 1] - edge[f], k1);
+    base[f].G = Xf.transpose() * Xf;
+    base[f].n = static_cast<double>(edge[f + 1] - edge[f]);
+  }
+  auto score = [&](std::size_t shift) {
+    std::vector<FoldSums> fs = base;
+    for (int f = 0; f < folds; ++f) {
+      Eigen::VectorXd b = Eigen::VectorXd::Zero(k1);
+      double rr = 0, s = 0;
+      for (std::size_t i = edge[f]; i < edge[f + 1]; ++i) {
+        std::size_t src = i + shift;
+        if (src >= n) src -= n;
+        const double y = r[src];
+        const double* x = X.data() + i * k1;
+        for (std::size_t j = 0; j < k1; ++j) b[j] += x[j] * y;
+        rr += y * y;
+        s += y;
+      }
+      fs[f].b = b;
+      fs[f].rr = rr;
+      fs[f].s = s;
+    }
+    return cv_ev(fs, k1);
+  };
+  CvScore out;
+  out.explained_variance = score(0);
+  for (std::size_t s : shifts) out.null_explained_variance.push_back(score(s % n));
+  return out;
+}
+
+PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r_in, double f_min, double f_max,
+                                double oversample) {
+  PeriodicPeak out;
+  const std::size_t n = r_in.size();
+  if (u.size() != n || n < 16 || !(f_max > f_min) || !(f_min >= 0) || !(oversample >= 1)) return out;
+  const double mean = std::accumulate(r_in.begin(), r_in.end(), 0.0) / static_cast<double>(n);
+  std::vector<double> r(n);
+  for (std::size_t i = 0; i < n; ++i) r[i] = r_in[i] - mean;
+  const auto [umin, umax] = std::minmax_element(u.begin(), u.end());
+  const double range = *umax - *umin;
+  if (!(range > 0)) return out;
+
+  // Coarse periodogram on a grid oversampled `oversample` times relative to the resolution 1/range.
+  std::vector<double> freq, pow;
+  if (is_uniform(u)) {
+    const double du = (u.back() - u.front()) / static_cast<double>(n - 1);
+    std::size_t N = 1;
+    while (N < static_cast<std::size_t>(oversample * static_cast<double>(n))) N <<= 1;
+    std::vector<std::complex<double>> a(N);
+    for (std::size_t i = 0; i < n; ++i) a[i] = r[i];
+    fft(a);
+    for (std::size_t j = 1; j < N / 2; ++j) {
+      const double f = static_cast<double>(j) / (static_cast<double>(N) * du);
+      if (f < f_min || f > f_max) continue;
+      freq.push_back(f);
+      pow.push_back(std::norm(a[j]) / static_cast<double>(n));
+    }
+  } else {
+    const double df = 1.0 / (oversample * range);
+    const std::size_t m = static_cast<std::size_t>((f_max - f_min) / df) + 1;
+    if (m > 200000) throw std::invalid_argument("find_periodic_peak: frequency grid too large");
+    for (std::size_t j = 0; j < m; ++j) {
+      const double f = f_min + df * static_cast<double>(j);
+      freq.push_back(f);
+      pow.push_back(power_at(u, r, f));
+    }
+  }
+  if (freq.size() < 8) return out;
+  const std::size_t ipk = static_cast<std::size_t>(std::max_element(pow.begin(), pow.end()) - pow.begin());
+  // Local background: median of the neighbours outside the peak's own lobe, median of Exp(1) is ln 2.
+  const std::size_t lobe = static_cast<std::size_t>(std::ceil(2 * oversample));
+  const std::size_t reach = static_cast<std::size_t>(std::ceil(40 * oversample));
+  std::vector<double> bg;
+  for (std::size_t j = (ipk > reach ? ipk - reach : 0); j < std::min(pow.size(), ipk + reach + 1); ++j)
+    if ((j > ipk ? j - ipk : ipk - j) > lobe) bg.push_back(pow[j]);
+  if (bg.size() < 8) return out;
+  std::nth_element(bg.begin(), bg.begin() + bg.size() / 2, bg.end());
+  const double bg_mean = bg[bg.size() / 2] / std::log(2.0);
+  // Refine the frequency inside the peak's bin by a fine local search.
+  const double step = freq.size() > 1 ? (freq[1] - freq[0]) : 0.0;
+  double best_f = freq[ipk], best_p = pow[ipk];
+  for (int it = 0; it < 2; ++it) {
+    const double width = (it == 0 ? 1.0 : 0.1) * step;
+    const double centre = best_f;
+    for (int q = -10; q <= 10; ++q) {
+      const double f = centre + width * q / 10.0;
+      if (f <= 0) continue;
+      const double p = power_at(u, r, f);
+      if (p > best_p) {
+        best_p = p;
+        best_f = f;
+      }
+    }
+  }
+  out.frequency = best_f;
+  out.amplitude = 2.0 * std::sqrt(best_p / static_cast<double>(n));
+  out.power_ratio = pow[ipk] / bg_mean;
+  out.searched = static_cast<std::size_t>(std::max(1.0, static_cast<double>(freq.size()) / oversample));
+  const double p1 = std::exp(-out.power_ratio);
+  // 1 − (1 − p1)^M without cancellation.
+  out.p_value = -std::expm1(static_cast<double>(out.searched) * std::log1p(-std::min(p1, 1.0 - 1e-16)));
+  return out;
+}
+
+}  // namespace piezo::analysis

@@ -1,0 +1,417 @@
+#include "piezo_compensation/models/augmented_model.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+
+#include "piezo_compensation/models/registry.h"
+
+namespace piezo::models {
+
+namespace {
+constexpr double kTwoPi = 6.283185307179586;
+
+bool is_builtin_signal(const std::string& s) { return s == kSignalVoltage || s == kSignalPosition; }
+
+std::string fmt(double v) {
+  std::ostringstream os;
+  os.precision(4);
+  os << v;
+  return os.str();
+}
+
+double yaml_num(const YAML::Node& n, const char* key, double def) {
+  if (!n[key]) return def;
+  try {
+    const double v = n[key].as<double>();
+    if (!std::isfinite(v)) throw std::runtime_error("");
+    return v;
+  } catch (const std::exception&) {
+    throw std::runtime_error(std::string("augmented model term: key '") + key + "' is not a finite number");
+  }
+}
+
+std::vector<double> yaml_vec(const YAML::Node& n, const char* key) {
+  std::vector<double> v;
+  if (!n[key]) return v;
+  if (!n[key].IsSequence()) throw std::runtime_error(std::string("augmented model term: key '") + key + "' is not a list");
+  for (const auto& x : n[key]) {
+    const double d = x.as<double>();
+    if (!std::isfinite(d)) throw std::runtime_error(std::string("augmented model term: '") + key + "' holds a non-finite value");
+    v.push_back(d);
+  }
+  return v;
+}
+}  // namespace
+
+std::size_t EffectTerm::num_regressors() const {
+  if (type == "linear" || type == "play") return 1;
+  if (type == "sincos" || type == "powers") return 2;
+  if (type == "rate") return 3;
+  throw std::runtime_error("augmented model term: unknown type '" + type + "' (linear, play, sincos, rate, powers)");
+}
+
+std::string EffectTerm::name() const {
+  std::ostringstream os;
+  os << type << "(" << signal;
+  if (lag_s > 0) os << ", lag " << fmt(lag_s) << " s";
+  if (type == "play") os << ", r=" << fmt(threshold);
+  if (type == "sincos") os << ", period " << fmt(period) << (signal == kSignalTime ? " s" : signal == kSignalPosition ? " nm" : "");
+  if (time_constant_s > 0) os << ", low-pass " << fmt(time_constant_s) << " s";
+  os << ")";
+  return os.str();
+}
+
+YAML::Node EffectTerm::to_yaml() const {
+  YAML::Node n;
+  n["type"] = type;
+  n["signal"] = signal;
+  n["family"] = family;
+  n["lag_s"] = lag_s;
+  n["time_constant_s"] = time_constant_s;
+  n["threshold"] = threshold;
+  n["period"] = period;
+  n["pre_center"] = pre_center;
+  n["pre_scale"] = pre_scale;
+  for (double c : center) n["center"].push_back(c);
+  for (double s : scale) n["scale"].push_back(s);
+  for (double w : weight) n["weight"].push_back(w);
+  return n;
+}
+
+EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
+  if (!n.IsMap()) throw std::runtime_error("augmented model: a term is not a map");
+  for (const auto& kv : n) {
+    static const char* known[] = {"type", "signal", "family", "lag_s", "time_constant_s", "threshold", "period",
+                                  "pre_center", "pre_scale", "center", "scale", "weight"};
+    const std::string k = kv.first.as<std::string>();
+    if (std::find_if(std::begin(known), std::end(known), [&](const char* s) { return k == s; }) == std::end(known))
+      throw std::runtime_error("augmented model term: unknown key '" + k + "'");
+  }
+  EffectTerm t;
+  if (!n["type"] || !n["signal"]) throw std::runtime_error("augmented model term: needs 'type' and 'signal'");
+  t.type = n["type"].as<std::string>();
+  t.signal = n["signal"].as<std::string>();
+  if (n["family"]) t.family = n["family"].as<std::string>();
+  t.lag_s = yaml_num(n, "lag_s", 0.0);
+  t.time_constant_s = yaml_num(n, "time_constant_s", 0.0);
+  t.threshold = yaml_num(n, "threshold", 0.0);
+  t.period = yaml_num(n, "period", 0.0);
+  t.pre_center = yaml_num(n, "pre_center", 0.0);
+  t.pre_scale = yaml_num(n, "pre_scale", 1.0);
+  t.center = yaml_vec(n, "center");
+  t.scale = yaml_vec(n, "scale");
+  t.weight = yaml_vec(n, "weight");
+  const std::size_t k = t.num_regressors();  // validates type
+  if (t.center.size() != k || t.scale.size() != k || t.weight.size() != k)
+    throw std::runtime_error("augmented model term " + t.name() + ": center/scale/weight need " + std::to_string(k) + " entries each");
+  if (t.lag_s < 0 || t.time_constant_s < 0 || t.threshold < 0)
+    throw std::runtime_error("augmented model term " + t.name() + ": lag_s, time_constant_s and threshold must be >= 0");
+  if (t.type == "sincos" && !(t.period > 0)) throw std::runtime_error("augmented model term " + t.name() + ": period must be > 0");
+  if (t.pre_scale == 0.0) throw std::runtime_error("augmented model term " + t.name() + ": pre_scale must be non-zero");
+  for (double s : t.scale)
+    if (s == 0.0) throw std::runtime_error("augmented model term " + t.name() + ": scale must be non-zero");
+  return t;
+}
+
+// ---- streaming terms -------------------------------------------------------------------------------
+namespace {
+struct TermState {
+  bool fresh = true;
+  std::vector<double> ring;  // last L values of the signal, ring[pos] is the oldest
+  std::size_t pos = 0;
+  double lp[3] = {0, 0, 0};
+  double play = 0.0;
+  double prev = 0.0;
+};
+
+struct TermConst {
+  std::size_t lag = 0;   // samples
+  double alpha = 0.0;    // low-pass pole (0 = none)
+  int column = -1;       // index into the column array, -1 = builtin
+};
+
+// Evaluates one term for the current signal value s; writes the raw regressors and, if next != null, the
+// state after committing s.
+void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, double s, double* out, TermState* next) {
+  double lagged = s;
+  if (c.lag > 0 && !st.fresh) lagged = st.ring[st.pos];
+  auto lowpass = [&](int i, double x) {
+    if (c.alpha <= 0.0) return x;
+    const double prev = st.fresh ? x : st.lp[i];
+    return c.alpha * prev + (1.0 - c.alpha) * x;
+  };
+  double lp_new[3] = {0, 0, 0};
+  double play_new = st.play;
+  if (t.type == "linear") {
+    out[0] = lp_new[0] = lowpass(0, lagged);
+  } else if (t.type == "play") {
+    const double prev = st.fresh ? lagged : st.play;
+    play_new = std::max(lagged - t.threshold, std::min(lagged + t.threshold, prev));
+    out[0] = lp_new[0] = lowpass(0, play_new);
+  } else if (t.type == "sincos") {
+    const double ph = kTwoPi * lagged / t.period;
+    out[0] = std::sin(ph);
+    out[1] = std::cos(ph);
+  } else if (t.type == "rate") {
+    const double d = st.fresh ? 0.0 : s - st.prev;
+    const double raw[3] = {d, std::fabs(d), d * std::fabs(d)};
+    for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = lowpass(i, raw[i]);
+  } else {  // powers
+    const double u = (s - t.pre_center) / t.pre_scale;
+    out[0] = u * u;
+    out[1] = u * u * u;
+  }
+  if (next) {  // only the scalars; the caller advances the ring buffer
+    for (int i = 0; i < 3; ++i) next->lp[i] = lp_new[i];
+    next->play = play_new;
+    next->prev = s;
+  }
+}
+}  // namespace
+
+struct EffectTermStream::Impl {
+  std::vector<EffectTerm> terms;
+  std::vector<TermConst> consts;
+  std::vector<TermState> states;
+  std::vector<std::string> columns;
+  std::vector<std::size_t> first;  // first regressor index of each term
+  std::size_t k = 0;
+  double offset_nm = 0.0;
+
+  // One pass over all terms: raw regressors into out (may be null), returns the correction; commits if asked.
+  // Non-position terms first, then position terms at the corrected position.
+  double run(double v, double x_base, const double* cols, double* out, std::vector<TermState>* commit) const {
+    double local[3];
+    double corr = offset_nm;
+    for (int pass = 0; pass < 2; ++pass) {
+      const double x_eff = x_base + corr;
+      for (std::size_t i = 0; i < terms.size(); ++i) {
+        const EffectTerm& t = terms[i];
+        const bool pos = t.signal == kSignalPosition;
+        if (pos != (pass == 1)) continue;
+        const int c = consts[i].column;
+        const double s = c >= 0 ? cols[c] : (pos ? x_eff : v);
+        double* o = out ? out + first[i] : local;
+        TermState next;
+        eval_term(t, consts[i], states[i], s, o, commit ? &next : nullptr);
+        if (commit) {
+          TermState& st = (*commit)[i];
+          const std::size_t lag = consts[i].lag;
+          if (lag > 0) {
+            if (st.fresh) std::fill(st.ring.begin(), st.ring.end(), s);
+            st.ring[st.pos] = s;
+            st.pos = (st.pos + 1) % lag;
+          }
+          for (int q = 0; q < 3; ++q) st.lp[q] = next.lp[q];
+          st.play = next.play;
+          st.prev = next.prev;
+          st.fresh = false;
+        }
+        for (std::size_t r = 0; r < t.num_regressors(); ++r) {
+          const double z = (o[r] - (r < t.center.size() ? t.center[r] : 0.0)) / (r < t.scale.size() ? t.scale[r] : 1.0);
+          corr += (r < t.weight.size() ? t.weight[r] : 0.0) * z;
+        }
+      }
+    }
+    return corr;
+  }
+};
+
+EffectTermStream::EffectTermStream(std::vector<EffectTerm> terms, double sample_rate_hz, double offset_nm) : impl_(new Impl) {
+  if (!(sample_rate_hz > 0) || !std::isfinite(sample_rate_hz))
+    throw std::invalid_argument("effect terms: sample rate must be > 0 Hz");
+  impl_->terms = std::move(terms);
+  impl_->offset_nm = offset_nm;
+  for (const auto& t : impl_->terms) {
+    TermConst c;
+    c.lag = static_cast<std::size_t>(std::lround(t.lag_s * sample_rate_hz));
+    c.alpha = t.time_constant_s > 0 ? std::exp(-1.0 / (t.time_constant_s * sample_rate_hz)) : 0.0;
+    if (!is_builtin_signal(t.signal)) {
+      auto it = std::find(impl_->columns.begin(), impl_->columns.end(), t.signal);
+      if (it == impl_->columns.end()) {
+        impl_->columns.push_back(t.signal);
+        it = impl_->columns.end() - 1;
+      }
+      c.column = static_cast<int>(it - impl_->columns.begin());
+    }
+    impl_->consts.push_back(c);
+    TermState st;
+    st.ring.assign(c.lag, 0.0);
+    impl_->states.push_back(st);
+    impl_->first.push_back(impl_->k);
+    impl_->k += t.num_regressors();
+  }
+}
+EffectTermStream::~EffectTermStream() = default;
+EffectTermStream::EffectTermStream(const EffectTermStream& o) : impl_(new Impl(*o.impl_)) {}
+EffectTermStream& EffectTermStream::operator=(const EffectTermStream& o) {
+  if (this != &o) impl_.reset(new Impl(*o.impl_));
+  return *this;
+}
+
+const std::vector<std::string>& EffectTermStream::column_signals() const { return impl_->columns; }
+std::size_t EffectTermStream::num_regressors() const { return impl_->k; }
+const std::vector<EffectTerm>& EffectTermStream::terms() const { return impl_->terms; }
+std::vector<EffectTerm>& EffectTermStream::mutable_terms() { return impl_->terms; }
+double EffectTermStream::offset_nm() const { return impl_->offset_nm; }
+void EffectTermStream::set_offset_nm(double offset_nm) { impl_->offset_nm = offset_nm; }
+
+void EffectTermStream::reset() {
+  for (std::size_t i = 0; i < impl_->states.size(); ++i) {
+    TermState st;
+    st.ring.assign(impl_->consts[i].lag, 0.0);
+    impl_->states[i] = st;
+  }
+}
+
+void EffectTermStream::raw(double v, double x, const double* cols, double* out) const {
+  impl_->run(v, x, cols, out, nullptr);
+}
+
+void EffectTermStream::standardised(double v, double x, const double* cols, double* out) const {
+  raw(v, x, cols, out);
+  std::size_t j = 0;
+  for (const auto& t : impl_->terms) {
+    const std::size_t k = t.num_regressors();
+    for (std::size_t r = 0; r < k; ++r, ++j) {
+      const double c = r < t.center.size() ? t.center[r] : 0.0;
+      const double s = r < t.scale.size() ? t.scale[r] : 1.0;
+      out[j] = (out[j] - c) / s;
+    }
+  }
+}
+
+double EffectTermStream::correction(double v, double x, const double* cols) const {
+  return impl_->run(v, x, cols, nullptr, nullptr);
+}
+
+void EffectTermStream::commit(double v, double x, const double* cols) {
+  // Each term reads only its own state before writing it, so the update can be in place.
+  impl_->run(v, x, cols, nullptr, &impl_->states);
+}
+
+// ---- the model ---------------------------------------------------------------------------------------
+AugmentedModel::AugmentedModel(ModelPtr base, std::vector<EffectTerm> terms, double offset_nm, double sample_rate_hz)
+    : base_(std::move(base)), stream_(std::move(terms), sample_rate_hz, offset_nm), sample_rate_hz_(sample_rate_hz) {
+  if (!base_) throw std::invalid_argument("augmented model: no base model");
+  if (!std::isfinite(offset_nm)) throw std::invalid_argument("augmented model: offset_nm is not finite");
+  meta = base_->meta;
+  aux_names_ = base_->aux_inputs();
+  n_base_aux_ = aux_names_.size();
+  for (const auto& c : stream_.column_signals()) {
+    auto it = std::find(aux_names_.begin(), aux_names_.end(), c);
+    if (it == aux_names_.end()) {
+      aux_names_.push_back(c);
+      it = aux_names_.end() - 1;
+    }
+    col_index_.push_back(static_cast<int>(it - aux_names_.begin()));
+  }
+}
+
+AugmentedModel::AugmentedModel(const AugmentedModel& o)
+    : Model(o),
+      base_(o.base_->clone()),
+      stream_(o.stream_),
+      sample_rate_hz_(o.sample_rate_hz_),
+      n_base_aux_(o.n_base_aux_),
+      aux_names_(o.aux_names_),
+      col_index_(o.col_index_) {}
+
+void AugmentedModel::split(const ModelInput& in, std::vector<double>& base_aux, std::vector<double>& cols) const {
+  base_aux.assign(n_base_aux_, 0.0);
+  cols.assign(col_index_.size(), 0.0);
+  if (!in.aux) {
+    if (!aux_names_.empty()) throw std::invalid_argument("augmented model: inputs " + std::to_string(aux_names_.size()) + " aux values, none given");
+    return;
+  }
+  for (std::size_t i = 0; i < n_base_aux_; ++i) base_aux[i] = in.aux[i];
+  for (std::size_t j = 0; j < col_index_.size(); ++j) cols[j] = in.aux[col_index_[j]];
+}
+
+void AugmentedModel::reset(double voltage_v, double position_nm) {
+  base_->reset(voltage_v, position_nm);
+  stream_.reset();
+}
+
+double AugmentedModel::base_prediction(const ModelInput& in) const {
+  std::vector<double> ba, cols;
+  split(in, ba, cols);
+  ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
+  return base_->predict(bi);
+}
+
+double AugmentedModel::predict(const ModelInput& in) const {
+  std::vector<double> ba, cols;
+  split(in, ba, cols);
+  ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
+  const double x = base_->predict(bi);
+  return x + stream_.correction(in.voltage_v, x, cols.data());
+}
+
+void AugmentedModel::commit(const ModelInput& in, double position_nm) {
+  std::vector<double> ba, cols;
+  split(in, ba, cols);
+  ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
+  const double x = base_->predict(bi);
+  const double corr = stream_.correction(in.voltage_v, x, cols.data());
+  base_->commit(bi, position_nm - corr);
+  stream_.commit(in.voltage_v, x, cols.data());
+}
+
+std::unique_ptr<Model> AugmentedModel::clone() const { return std::make_unique<AugmentedModel>(*this); }
+bool AugmentedModel::uses_position_history() const { return base_->uses_position_history(); }
+
+bool AugmentedModel::is_affine_in_voltage() const {
+  if (!base_->is_affine_in_voltage()) return false;
+  for (const auto& t : stream_.terms()) {
+    // Terms on the voltage or on the (voltage-dependent) base prediction are affine only if linear in it.
+    const bool reads_v = t.signal == kSignalVoltage || t.signal == kSignalPosition;
+    if (reads_v && t.type != "linear") return false;
+  }
+  return true;
+}
+
+std::vector<std::string> AugmentedModel::aux_inputs() const { return aux_names_; }
+
+YAML::Node AugmentedModel::to_yaml() const {
+  YAML::Node n;
+  n["base_kind"] = base_->kind();
+  n["base"] = base_->to_yaml();
+  n["sample_rate_hz"] = sample_rate_hz_;
+  n["offset_nm"] = stream_.offset_nm();
+  n["terms"] = YAML::Node(YAML::NodeType::Sequence);
+  for (const auto& t : stream_.terms()) n["terms"].push_back(t.to_yaml());
+  return n;
+}
+
+std::size_t AugmentedModel::num_parameters() const { return base_->num_parameters() + stream_.num_regressors() + 1; }
+
+ModelPtr AugmentedModel::from_yaml(const YAML::Node& n) {
+  if (!n || !n.IsMap()) throw std::runtime_error("augmented model: the model node is not a map");
+  for (const char* k : {"base_kind", "base", "sample_rate_hz", "offset_nm", "terms"})
+    if (!n[k]) throw std::runtime_error(std::string("augmented model: missing key '") + k + "'");
+  for (const auto& kv : n) {
+    const std::string k = kv.first.as<std::string>();
+    if (k != "base_kind" && k != "base" && k != "sample_rate_hz" && k != "offset_nm" && k != "terms")
+      throw std::runtime_error("augmented model: unknown key '" + k + "'");
+  }
+  const std::string base_kind = n["base_kind"].as<std::string>();
+  if (base_kind == "augmented") throw std::runtime_error("augmented model: the base may not itself be augmented");
+  ModelPtr base = model_kind(base_kind).load(n["base"]);
+  std::vector<EffectTerm> terms;
+  if (!n["terms"].IsSequence()) throw std::runtime_error("augmented model: 'terms' is not a list");
+  for (const auto& t : n["terms"]) terms.push_back(EffectTerm::from_yaml(t));
+  const double fs = yaml_num(n, "sample_rate_hz", 0.0);
+  const double off = yaml_num(n, "offset_nm", 0.0);
+  if (!(fs > 0)) throw std::runtime_error("augmented model: sample_rate_hz must be > 0");
+  return std::make_unique<AugmentedModel>(std::move(base), std::move(terms), off, fs);
+}
+
+PIEZO_REGISTER_MODEL_KIND(ModelKind{"augmented",
+                                    "a base model plus effect terms found by `piezo residual` (load only; fit with `piezo residual`)",
+                                    [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); },
+                                    nullptr, nullptr});
+
+}  // namespace piezo::models

@@ -1,0 +1,154 @@
+// The "augmented" model kind: streaming terms are causal, the model round-trips through YAML, clones keep state,
+// and a broken model node gives one clear error.
+#include <gtest/gtest.h>
+
+#include <cmath>
+
+#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/models/augmented_model.h"
+#include "test_residual_common.h"
+
+namespace pm = piezo::models;
+namespace pa = piezo::analysis;
+
+namespace {
+pm::EffectTerm make(const std::string& type, const std::string& signal, std::size_t k, double lag_s = 0, double tau_s = 0) {
+  pm::EffectTerm t;
+  t.type = type;
+  t.signal = signal;
+  t.lag_s = lag_s;
+  t.time_constant_s = tau_s;
+  t.center.assign(k, 0.0);
+  t.scale.assign(k, 1.0);
+  t.weight.assign(k, 1.0);
+  return t;
+}
+}  // namespace
+
+TEST(ResidualAugmented, LaggedTermReadsOnlyThePast) {
+  // lag 2 samples at 1 Hz: the regressor at sample t is the signal at t-2 (the first value until then).
+  pm::EffectTermStream s({make("linear", "temperature_c", 1, 2.0)}, 1.0);
+  ASSERT_EQ(s.column_signals().size(), 1u);
+  const double values[] = {10, 11, 12, 13, 14};
+  const double expect[] = {10, 10, 10, 11, 12};
+  for (int i = 0; i < 5; ++i) {
+    double z = 0;
+    s.raw(0.0, 0.0, &values[i], &z);
+    EXPECT_DOUBLE_EQ(z, expect[i]) << "sample " << i;
+    s.commit(0.0, 0.0, &values[i]);
+  }
+}
+
+TEST(ResidualAugmented, RateAndPlayAndSinCos) {
+  pm::EffectTermStream s({make("rate", "voltage", 3), make("sincos", "position", 2)}, 1.0);
+  auto& terms = s.mutable_terms();
+  terms[1].period = 100.0;
+  pm::EffectTermStream s2(terms, 1.0);
+  double z[5];
+  s2.raw(1.0, 25.0, nullptr, z);  // first sample: no step yet
+  EXPECT_DOUBLE_EQ(z[0], 0.0);
+  s2.commit(1.0, 25.0, nullptr);
+  s2.raw(-2.0, 25.0, nullptr, z);
+  EXPECT_DOUBLE_EQ(z[0], -3.0);
+  EXPECT_DOUBLE_EQ(z[1], 3.0);
+  EXPECT_DOUBLE_EQ(z[2], -9.0);
+  // position terms read the corrected position: x + offset + non-position corrections (-3 + 3 - 9 = -9)
+  EXPECT_NEAR(z[3], std::sin(6.283185307179586 * (25.0 - 9.0) / 100.0), 1e-12);
+  EXPECT_NEAR(z[4], std::cos(6.283185307179586 * (25.0 - 9.0) / 100.0), 1e-12);
+
+  pm::EffectTerm p = make("play", "voltage", 1);
+  p.threshold = 2.0;
+  pm::EffectTermStream sp({p}, 1.0);
+  const double v[] = {0, 1, 3, 5, 4, 2, 1};
+  const double expect[] = {0, 0, 1, 3, 3, 3, 3};
+  for (int i = 0; i < 7; ++i) {
+    double y;
+    sp.raw(v[i], 0.0, nullptr, &y);
+    EXPECT_DOUBLE_EQ(y, expect[i]) << "sample " << i;
+    sp.commit(v[i], 0.0, nullptr);
+  }
+}
+
+TEST(ResidualAugmented, RoundTripCloneAndStreamingEqualsFreshRun) {
+  piezo::test::register_test_kind();
+  const piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kAuxTemperature, 0.2, 11);
+  auto base = piezo::test::LowpassLinearModel::fit(d, "c", d.size());
+  pm::EffectTerm t1 = make("linear", "temperature_c", 1, 1.0, 30.0);
+  t1.weight = {40.0};
+  t1.center = {22.0};
+  pm::EffectTerm t2 = make("sincos", "position", 2);
+  t2.period = 333.0;
+  t2.weight = {5.0, -3.0};
+  pm::EffectTerm t3 = make("linear", "time_s", 1);
+  t3.weight = {0.01};
+  pm::EffectTerm t4 = make("linear", "a_voltage_v", 1, 0.5);
+  t4.weight = {2.0};
+  pm::AugmentedModel m(base->clone(), {t1, t2, t3, t4}, 7.0, 11.0);
+  EXPECT_EQ(m.aux_inputs(), (std::vector<std::string>{"temperature_c", "time_s", "a_voltage_v"}));
+
+  const std::vector<double> p1 = pa::run_model(m, d, "c", pa::PredictionMode::kFreeRun);
+  const YAML::Node node = YAML::Load(YAML::Dump(m.to_yaml()));
+  pm::ModelPtr loaded = pm::model_kind("augmented").load(node);
+  const std::vector<double> p2 = pa::run_model(*loaded, d, "c", pa::PredictionMode::kFreeRun);
+  ASSERT_EQ(p1.size(), p2.size());
+  double worst = 0;
+  for (std::size_t i = 0; i < p1.size(); ++i) worst = std::max(worst, std::fabs(p1[i] - p2[i]));
+  EXPECT_LT(worst, 1e-6);
+  // The correction really contributes (the model is not the base).
+  auto b2 = base->clone();
+  const std::vector<double> pb = pa::run_model(*b2, d, "c", pa::PredictionMode::kFreeRun);
+  EXPECT_GT(std::fabs(p1[100] - pb[100]), 1.0);
+
+  // A clone taken half-way continues exactly like the original.
+  const auto cols = pa::resolve_inputs(m.aux_inputs(), d);
+  m.reset(d.axis("c").voltage_v[0], d.axis("c").position_nm[0]);
+  std::unique_ptr<pm::Model> half;
+  std::vector<double> aux(cols.size());
+  for (std::size_t i = 0; i < 2000; ++i) {
+    for (std::size_t j = 0; j < cols.size(); ++j) aux[j] = (*cols[j])[i];
+    const pm::ModelInput in{d.axis("c").voltage_v[i], aux.data()};
+    if (i == 1000) half = m.clone();
+    if (i >= 1000) {
+      EXPECT_DOUBLE_EQ(half->predict(in), m.predict(in));
+    }
+    if (half && i >= 1000) half->commit(in, m.predict(in));
+    m.commit(in, m.predict(in));
+  }
+}
+
+TEST(ResidualAugmented, BrokenNodesGiveOneClearError) {
+  piezo::test::register_test_kind();
+  auto load = [](const std::string& yaml) { return pm::model_kind("augmented").load(YAML::Load(yaml)); };
+  const std::string base = "base_kind: residual_test_lowpass_linear\nbase: {w0: 0, w1: 1, w2: 0, fs: 11}\n"
+                           "sample_rate_hz: 11\noffset_nm: 0\n";
+  EXPECT_NO_THROW(load(base + "terms: []"));
+  auto msg = [&](const std::string& yaml) {
+    try {
+      load(yaml);
+    } catch (const std::exception& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(msg(base + "terms: [{type: linear, signal: voltage, center: [0], scale: [1]}]").find("weight"), std::string::npos);
+  EXPECT_NE(msg(base + "terms: [{type: cubic, signal: voltage, center: [0], scale: [1], weight: [1]}]").find("unknown type"),
+            std::string::npos);
+  EXPECT_NE(msg(base + "terms: [{type: linear, signal: voltage, colour: red, center: [0], scale: [1], weight: [1]}]")
+                .find("unknown key 'colour'"),
+            std::string::npos);
+  EXPECT_NE(msg(base + "terms: [{type: sincos, signal: position, center: [0, 0], scale: [1, 1], weight: [1, 1]}]").find("period"),
+            std::string::npos);
+  EXPECT_NE(msg("base_kind: nosuchkind\nbase: {}\nsample_rate_hz: 11\noffset_nm: 0\nterms: []").find("nosuchkind"),
+            std::string::npos);
+  EXPECT_NE(msg(base).find("missing key 'terms'"), std::string::npos);
+  EXPECT_NE(msg(base + "terms: [{type: linear, signal: voltage, center: [.nan], scale: [1], weight: [1]}]").find("non-finite"),
+            std::string::npos);
+}
+
+TEST(ResidualAugmented, PositionsAndTruthAreNeverInputs) {
+  const piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kNone, 0.05, 2);
+  EXPECT_THROW(pa::resolve_inputs({"c_true_position_nm"}, d), piezo::io::DataError);
+  EXPECT_THROW(pa::resolve_inputs({"a_position_nm"}, d), piezo::io::DataError);
+  EXPECT_THROW(pa::resolve_inputs({"pressure_pa"}, d), piezo::io::DataError);
+  EXPECT_EQ(pa::resolve_inputs({"a_voltage_v", "time_s", "temperature_c"}, d).size(), 3u);
+}
