@@ -1,0 +1,2 @@
+# Neural models (dense, LSTM, KAN), optimisers, trainer and hyperparameter search (issue 5, second half).
+piezo_unit_test(test_models_dense test/unit/test_models_dense.cpp)

@@ -1,0 +1,94 @@
+// Dense (fully connected) network with leaky ReLU hidden layers and a linear output, predicting the
+// standardised position from the standardised feature vector of a FeatureStream. Kind "dense".
+#pragma once
+
+#include <Eigen/Dense>
+
+#include <cstdint>
+
+#include "piezo_compensation/features/feature_stream.h"
+#include "piezo_compensation/models/model.h"
+#include "piezo_compensation/training/trainer.h"
+
+namespace piezo::models {
+
+struct DenseShape {
+  int inputs = 1;
+  int depth = 1;             // hidden layers
+  int width = 10;            // neurons per hidden layer
+  double leaky_slope = 0.01;
+};
+
+// The network alone, on a flat parameter vector: per layer W (out × in, column-major) then b.
+class DenseNet {
+ public:
+  static constexpr int kMaxWidth = 256;
+  DenseNet() = default;
+  explicit DenseNet(const DenseShape& shape);  // throws on a shape out of range
+  const DenseShape& shape() const { return shape_; }
+  std::size_t num_params() const { return num_params_; }
+  // He-initialised parameters, deterministic for the seed.
+  Eigen::VectorXd initial_params(std::uint64_t seed) const;
+  // One sample, no allocation.
+  double forward(const double* params, const double* x) const;
+  // Outputs for the columns of x.
+  Eigen::VectorXd forward_batch(const Eigen::VectorXd& params, const Eigen::MatrixXd& x) const;
+  // Σ (out - y)² over the columns of x; adds its gradient to *grad when non-null.
+  double loss_grad(const Eigen::VectorXd& params, const Eigen::MatrixXd& x, const Eigen::VectorXd& y,
+                   Eigen::VectorXd* grad) const;
+
+ private:
+  DenseShape shape_;
+  std::size_t num_params_ = 0;
+  std::vector<int> sizes_;  // inputs, width × depth, 1
+};
+
+// Objective over the columns of a feature matrix (units = samples).
+class DenseObjective : public training::Objective {
+ public:
+  DenseObjective(const DenseNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
+  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
+  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
+                  Eigen::VectorXd* grad) const override;
+
+ private:
+  const DenseNet& net_;
+  const Eigen::MatrixXd& x_;
+  const Eigen::VectorXd& y_;
+};
+
+class DenseModel : public Model {
+ public:
+  DenseModel(const features::FeatureSpec& spec, double sample_rate_hz, const DenseShape& shape,
+             Eigen::VectorXd params, training::TargetScale target);
+  std::string kind() const override { return "dense"; }
+  void reset(double voltage_v, double position_nm) override { stream_.reset(voltage_v, position_nm); }
+  double predict(const ModelInput& in) const override;
+  void commit(const ModelInput& in, double position_nm) override { stream_.commit(in, position_nm); }
+  std::unique_ptr<Model> clone() const override { return std::make_unique<DenseModel>(*this); }
+  bool uses_position_history() const override { return stream_.spec().uses_positions(); }
+  std::vector<std::string> aux_inputs() const override { return stream_.spec().aux_signals(); }
+  YAML::Node to_yaml() const override;
+  std::size_t num_parameters() const override { return net_.num_params(); }
+
+  static std::unique_ptr<DenseModel> from_yaml(const YAML::Node& node);
+  // Standalone C99 source: the network on the standardised feature vector (see export in dense_model.cpp).
+  std::string export_c99(const std::string& prefix) const;
+
+  const DenseNet& net() const { return net_; }
+  const Eigen::VectorXd& params() const { return params_; }
+  const training::TargetScale& target() const { return target_; }
+  YAML::Node training_info;  // optimiser, epochs, losses: written to the file for the record
+
+ private:
+  features::FeatureStream stream_;
+  double sample_rate_hz_;
+  DenseNet net_;
+  Eigen::VectorXd params_;
+  training::TargetScale target_;
+};
+
+// Trains a dense model (with a hyperparameter search when request.tune_trials > 0).
+std::unique_ptr<DenseModel> fit_dense(const FitRequest& request);
+
+}  // namespace piezo::models

@@ -1,0 +1,125 @@
+// Mini-batch training of the neural models: a differentiable objective over independent units (samples for
+// the dense network and the KAN, truncated sequences for the LSTM), shuffled per epoch, each mini-batch split
+// into `threads` contiguous shards whose gradients are summed in a fixed order (deterministic for a seed and a
+// thread count), early stopping on a validation objective with the best parameters restored.
+// Also the data preparation the three networks share: one-step feature matrices through the FeatureStream,
+// the study's default feature selection and standardisation of features and target.
+#pragma once
+
+#include <Eigen/Dense>
+#include <yaml-cpp/yaml.h>
+
+#include <cstdint>
+#include <functional>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/features/feature_stream.h"
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fit_common.h"
+#include "piezo_compensation/training/optimizer.h"
+
+namespace piezo::training {
+
+// A loss that is a sum over units. Implementations are const and thread-safe: shards run concurrently.
+class Objective {
+ public:
+  virtual ~Objective() = default;
+  virtual std::size_t num_units() const = 0;
+  // Number of scored samples in one unit (1 for samples, the scored length for sequences).
+  virtual std::size_t samples_per_unit() const { return 1; }
+  // Sum over units[0..n) of the squared errors; when grad is non-null, adds the gradient of that sum w.r.t.
+  // params into *grad (sized to params).
+  virtual double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
+                          Eigen::VectorXd* grad) const = 0;
+};
+
+struct TrainerConfig {
+  OptimizerConfig optimizer;
+  int epochs = 50;
+  int batch_size = 256;          // units per mini-batch
+  int patience = 5;              // epochs without validation improvement before stopping (0 = never stop early)
+  double min_rel_improvement = 1e-4;  // a validation loss counts as better below best * (1 - this)
+  std::uint64_t seed = 1;
+  int threads = 2;
+  double time_budget_s = 0.0;    // >0: stop after the epoch that exceeds it
+  double grad_clip_norm = 0.0;   // >0: scale the mini-batch gradient down to this norm
+  models::ProgressFn progress;   // called per epoch: (epoch, epochs, "epoch")
+  // Called after each epoch; may change params (KAN grid update). Return true when it did: the optimiser
+  // moments and the best-so-far record are then reset, since they refer to the old parameterisation.
+  std::function<bool(Eigen::VectorXd& params, int epoch)> on_epoch_end;
+};
+
+struct TrainResult {
+  Eigen::VectorXd params;         // best by validation (or the last when there is no validation)
+  double best_validation_mse = std::numeric_limits<double>::infinity();  // standardised units
+  double final_train_mse = std::numeric_limits<double>::infinity();
+  int epochs_run = 0;
+  int best_epoch = 0;
+  bool stopped_early = false;
+  bool hit_time_budget = false;
+  double seconds = 0.0;
+  std::vector<double> train_mse, validation_mse;  // per epoch
+};
+
+// Mean squared error of the objective over all its units (parallel over shards, deterministic).
+double mean_loss(const Objective& objective, const Eigen::VectorXd& params, int threads);
+
+// Trains from `initial`. validation may be null (then no early stopping; the last parameters are kept).
+TrainResult train(const Objective& objective, const Objective* validation, const Eigen::VectorXd& initial,
+                  const TrainerConfig& config);
+
+// ---- data preparation shared by the neural kinds ----------------------------------------------------------
+
+// Raw (unstandardised) or standardised one-step features of one axis: column t is the feature vector of sample
+// t with measured positions up to t-1 (column-major, size() × n).
+Eigen::MatrixXd feature_matrix(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis);
+
+struct TargetScale {
+  double mean_nm = 0.0;
+  double scale_nm = 1.0;
+  double to_nm(double z) const { return mean_nm + scale_nm * z; }
+  double to_z(double nm) const { return (nm - mean_nm) / scale_nm; }
+};
+TargetScale fit_target_scale(const std::vector<double>& position_nm);
+
+// Training and validation parts of a FitRequest: its validation set, or the last `fraction` of train by time.
+struct SplitData {
+  io::Dataset train, validation;
+};
+SplitData split_for_validation(const models::FitRequest& request, double fraction = 0.1);
+
+// ---- small YAML helpers for the kinds' loaders ------------------------------------------------------------
+
+// Throws naming `what` and the offending key when node has a key outside `allowed`.
+void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what);
+// Required finite scalar / vector under key.
+double yaml_double(const YAML::Node& node, const std::string& key, const std::string& what);
+std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
+                                 std::size_t expected_size);
+YAML::Node flow_sequence(const Eigen::VectorXd& values);
+
+}  // namespace piezo::training
+
+namespace piezo::training {
+
+// Everything the neural kinds' fit functions need: the standardised feature spec (the request's `features`
+// option resolved by fit_common.h's resolve_features, default the study's selection), one-step feature matrices and standardised targets of both parts.
+struct PreparedData {
+  features::FeatureSpec spec;
+  double sample_rate_hz = 11.0;
+  TargetScale target;
+  Eigen::MatrixXd x_train, x_validation;   // features × samples
+  Eigen::VectorXd y_train, y_validation;   // standardised positions
+};
+PreparedData prepare_data(const models::FitRequest& request);
+
+// Trainer settings from the request and its options (optimizer, learning_rate, epochs, batch_size, patience).
+TrainerConfig trainer_config(const models::FitRequest& request, int default_epochs, int default_batch_size);
+
+// Option keys every neural kind accepts (besides its own architecture keys).
+std::vector<std::string> common_neural_option_keys();
+
+}  // namespace piezo::training

@@ -1,0 +1,321 @@
+#include "piezo_compensation/models/dense_model.h"
+
+#include <cmath>
+#include <iomanip>
+#include <random>
+#include <sstream>
+#include <stdexcept>
+
+#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/hyperparameter_search.h"
+
+namespace piezo::models {
+
+namespace {
+
+double leaky(double z, double a) { return z > 0.0 ? z : a * z; }
+
+}  // namespace
+
+DenseNet::DenseNet(const DenseShape& shape) : shape_(shape) {
+  if (shape.inputs < 1 || shape.inputs > kMaxWidth) throw std::runtime_error("dense: inputs must be in 1..256");
+  if (shape.depth < 0 || shape.depth > 16) throw std::runtime_error("dense: depth must be in 0..16");
+  if (shape.width < 1 || shape.width > kMaxWidth) throw std::runtime_error("dense: width must be in 1..256");
+  if (!(shape.leaky_slope >= 0.0 && shape.leaky_slope < 1.0))
+    throw std::runtime_error("dense: leaky_slope must be in [0, 1)");
+  sizes_.push_back(shape.inputs);
+  for (int l = 0; l < shape.depth; ++l) sizes_.push_back(shape.width);
+  sizes_.push_back(1);
+  for (std::size_t l = 1; l < sizes_.size(); ++l)
+    num_params_ += static_cast<std::size_t>(sizes_[l] * sizes_[l - 1] + sizes_[l]);
+}
+
+Eigen::VectorXd DenseNet::initial_params(std::uint64_t seed) const {
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> normal(0.0, 1.0);
+  Eigen::VectorXd p = Eigen::VectorXd::Zero(static_cast<Eigen::Index>(num_params_));
+  Eigen::Index o = 0;
+  for (std::size_t l = 1; l < sizes_.size(); ++l) {
+    const double sd = std::sqrt(2.0 / static_cast<double>(sizes_[l - 1]));
+    for (int i = 0; i < sizes_[l] * sizes_[l - 1]; ++i) p[o++] = sd * normal(rng);
+    o += sizes_[l];  // biases start at zero
+  }
+  return p;
+}
+
+double DenseNet::forward(const double* params, const double* x) const {
+  double buf_a[kMaxWidth], buf_b[kMaxWidth];
+  const double* in = x;
+  double* out = buf_a;
+  const double* w = params;
+  const std::size_t layers = sizes_.size() - 1;
+  for (std::size_t l = 0; l < layers; ++l) {
+    const int n_in = sizes_[l], n_out = sizes_[l + 1];
+    const double* b = w + n_in * n_out;
+    for (int j = 0; j < n_out; ++j) out[j] = b[j];
+    for (int i = 0; i < n_in; ++i) {
+      const double xi = in[i];
+      const double* col = w + i * n_out;
+      for (int j = 0; j < n_out; ++j) out[j] += col[j] * xi;
+    }
+    if (l + 1 < layers)
+      for (int j = 0; j < n_out; ++j) out[j] = leaky(out[j], shape_.leaky_slope);
+    w = b + n_out;
+    in = out;
+    out = (out == buf_a) ? buf_b : buf_a;
+  }
+  return in[0];
+}
+
+Eigen::VectorXd DenseNet::forward_batch(const Eigen::VectorXd& params, const Eigen::MatrixXd& x) const {
+  Eigen::MatrixXd a = x;
+  Eigen::Index o = 0;
+  const std::size_t layers = sizes_.size() - 1;
+  for (std::size_t l = 0; l < layers; ++l) {
+    const int n_in = sizes_[l], n_out = sizes_[l + 1];
+    Eigen::Map<const Eigen::MatrixXd> w(params.data() + o, n_out, n_in);
+    Eigen::Map<const Eigen::VectorXd> b(params.data() + o + n_in * n_out, n_out);
+    o += n_in * n_out + n_out;
+    Eigen::MatrixXd z = w * a;
+    z.colwise() += b;
+    if (l + 1 < layers) z = z.unaryExpr([s = shape_.leaky_slope](double v) { return leaky(v, s); });
+    a = std::move(z);
+  }
+  return a.row(0).transpose();
+}
+
+double DenseNet::loss_grad(const Eigen::VectorXd& params, const Eigen::MatrixXd& x, const Eigen::VectorXd& y,
+                           Eigen::VectorXd* grad) const {
+  const std::size_t layers = sizes_.size() - 1;
+  std::vector<Eigen::MatrixXd> acts(layers + 1), pre(layers);
+  std::vector<Eigen::Index> offs(layers);
+  acts[0] = x;
+  Eigen::Index o = 0;
+  for (std::size_t l = 0; l < layers; ++l) {
+    const int n_in = sizes_[l], n_out = sizes_[l + 1];
+    offs[l] = o;
+    Eigen::Map<const Eigen::MatrixXd> w(params.data() + o, n_out, n_in);
+    Eigen::Map<const Eigen::VectorXd> b(params.data() + o + n_in * n_out, n_out);
+    o += n_in * n_out + n_out;
+    pre[l].noalias() = w * acts[l];
+    pre[l].colwise() += b;
+    if (l + 1 < layers)
+      acts[l + 1] = pre[l].unaryExpr([s = shape_.leaky_slope](double v) { return leaky(v, s); });
+    else
+      acts[l + 1] = pre[l];
+  }
+  const Eigen::RowVectorXd err = acts[layers].row(0) - y.transpose();
+  const double loss = err.squaredNorm();
+  if (!grad) return loss;
+  Eigen::MatrixXd delta = 2.0 * err;  // d loss / d pre of the output layer (1 × n)
+  for (std::size_t l = layers; l-- > 0;) {
+    const int n_in = sizes_[l], n_out = sizes_[l + 1];
+    Eigen::Map<Eigen::MatrixXd> gw(grad->data() + offs[l], n_out, n_in);
+    Eigen::Map<Eigen::VectorXd> gb(grad->data() + offs[l] + n_in * n_out, n_out);
+    gw.noalias() += delta * acts[l].transpose();
+    gb += delta.rowwise().sum();
+    if (l > 0) {
+      Eigen::Map<const Eigen::MatrixXd> w(params.data() + offs[l], n_out, n_in);
+      Eigen::MatrixXd up = w.transpose() * delta;
+      const double s = shape_.leaky_slope;
+      delta = up.array() * pre[l - 1].unaryExpr([s](double v) { return v > 0.0 ? 1.0 : s; }).array();
+    }
+  }
+  return loss;
+}
+
+double DenseObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
+                                Eigen::VectorXd* grad) const {
+  Eigen::MatrixXd xb(x_.rows(), static_cast<Eigen::Index>(n));
+  Eigen::VectorXd yb(static_cast<Eigen::Index>(n));
+  for (std::size_t i = 0; i < n; ++i) {
+    xb.col(static_cast<Eigen::Index>(i)) = x_.col(static_cast<Eigen::Index>(units[i]));
+    yb[static_cast<Eigen::Index>(i)] = y_[static_cast<Eigen::Index>(units[i])];
+  }
+  return net_.loss_grad(params, xb, yb, grad);
+}
+
+// ---- model --------------------------------------------------------------------------------------------------
+
+DenseModel::DenseModel(const features::FeatureSpec& spec, double sample_rate_hz, const DenseShape& shape,
+                       Eigen::VectorXd params, training::TargetScale target)
+    : stream_(spec, sample_rate_hz), sample_rate_hz_(sample_rate_hz), net_(shape), params_(std::move(params)),
+      target_(target) {
+  if (static_cast<int>(spec.size()) != shape.inputs)
+    throw std::runtime_error("dense: the feature spec has " + std::to_string(spec.size()) +
+                             " features but the network expects " + std::to_string(shape.inputs));
+  if (static_cast<std::size_t>(params_.size()) != net_.num_params())
+    throw std::runtime_error("dense: weight count does not match the architecture");
+  meta.sample_rate_hz = sample_rate_hz;
+}
+
+double DenseModel::predict(const ModelInput& in) const {
+  double x[DenseNet::kMaxWidth];
+  stream_.compute(in, x);
+  return target_.to_nm(net_.forward(params_.data(), x));
+}
+
+YAML::Node DenseModel::to_yaml() const {
+  YAML::Node n;
+  n["sample_rate_hz"] = sample_rate_hz_;
+  n["features"] = stream_.spec().to_yaml();
+  n["target"]["mean_nm"] = target_.mean_nm;
+  n["target"]["scale_nm"] = target_.scale_nm;
+  n["hyperparameters"]["depth"] = net_.shape().depth;
+  n["hyperparameters"]["width"] = net_.shape().width;
+  n["hyperparameters"]["leaky_slope"] = net_.shape().leaky_slope;
+  if (training_info) n["training"] = training_info;
+  n["weights"] = training::flow_sequence(params_);
+  return n;
+}
+
+std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
+  const std::string what = "dense model";
+  training::check_keys(node, {"sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
+  const double rate = training::yaml_double(node, "sample_rate_hz", what);
+  if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
+  if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
+  const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
+  const YAML::Node t = node["target"];
+  if (!t) throw std::runtime_error(what + ": missing key 'target'");
+  training::check_keys(t, {"mean_nm", "scale_nm"}, what + " target");
+  training::TargetScale target{training::yaml_double(t, "mean_nm", what + " target"),
+                               training::yaml_double(t, "scale_nm", what + " target")};
+  const YAML::Node h = node["hyperparameters"];
+  if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
+  training::check_keys(h, {"depth", "width", "leaky_slope"}, what + " hyperparameters");
+  DenseShape shape;
+  shape.inputs = static_cast<int>(spec.size());
+  shape.depth = static_cast<int>(training::yaml_double(h, "depth", what));
+  shape.width = static_cast<int>(training::yaml_double(h, "width", what));
+  shape.leaky_slope = training::yaml_double(h, "leaky_slope", what);
+  const DenseNet net(shape);
+  const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());
+  auto m = std::make_unique<DenseModel>(spec, rate, shape, Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())), target);
+  if (node["training"]) m->training_info = node["training"];
+  return m;
+}
+
+std::string DenseModel::export_c99(const std::string& prefix) const {
+  std::ostringstream os;
+  os << std::setprecision(17);
+  const DenseShape& s = net_.shape();
+  os << "/* Dense network (" << s.depth << " x " << s.width << ", leaky ReLU " << s.leaky_slope
+     << "): position [nm] from the standardised feature vector. Generated by piezo_compensation. */\n"
+     << "#define " << prefix << "_NUM_FEATURES " << s.inputs << "\n"
+     << "static const double " << prefix << "_weights[" << net_.num_params() << "] = {";
+  for (Eigen::Index i = 0; i < params_.size(); ++i) os << (i ? "," : "") << (i % 4 == 0 ? "\n  " : " ") << params_[i];
+  os << "\n};\n"
+     << "static double " << prefix << "_network(const double* x) {\n"
+     << "  double a[" << DenseNet::kMaxWidth << "], b[" << DenseNet::kMaxWidth << "];\n"
+     << "  const double* in = x; double* out = a; const double* w = " << prefix << "_weights;\n"
+     << "  static const int sizes[] = {" << s.inputs;
+  for (int l = 0; l < s.depth; ++l) os << ", " << s.width;
+  os << ", 1};\n"
+     << "  int l, i, j;\n"
+     << "  for (l = 0; l < " << s.depth + 1 << "; ++l) {\n"
+     << "    const int n_in = sizes[l], n_out = sizes[l + 1];\n"
+     << "    const double* bias = w + n_in * n_out;\n"
+     << "    for (j = 0; j < n_out; ++j) out[j] = bias[j];\n"
+     << "    for (i = 0; i < n_in; ++i) for (j = 0; j < n_out; ++j) out[j] += w[i * n_out + j] * in[i];\n"
+     << "    if (l < " << s.depth << ") for (j = 0; j < n_out; ++j) if (out[j] < 0.0) out[j] *= " << s.leaky_slope << ";\n"
+     << "    w = bias + n_out; in = out; out = (out == a) ? b : a;\n"
+     << "  }\n"
+     << "  return " << target_.mean_nm << " + " << target_.scale_nm << " * in[0];\n"
+     << "}\n";
+  return os.str();
+}
+
+// ---- fit ----------------------------------------------------------------------------------------------------
+
+namespace {
+
+struct DenseTrial {
+  std::unique_ptr<DenseModel> model;
+  double validation_mse = std::numeric_limits<double>::infinity();
+};
+
+DenseTrial train_dense(const training::PreparedData& data, const DenseShape& shape, training::TrainerConfig cfg) {
+  const DenseNet net(shape);
+  const DenseObjective train_obj(net, data.x_train, data.y_train);
+  const DenseObjective val_obj(net, data.x_validation, data.y_validation);
+  const training::TrainResult r = training::train(train_obj, &val_obj, net.initial_params(cfg.seed), cfg);
+  DenseTrial t;
+  t.validation_mse = r.best_validation_mse;
+  t.model = std::make_unique<DenseModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target);
+  YAML::Node info;
+  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
+  info["learning_rate"] = cfg.optimizer.learning_rate;
+  info["batch_size"] = cfg.batch_size;
+  info["epochs_run"] = r.epochs_run;
+  info["best_epoch"] = r.best_epoch;
+  info["stopped_early"] = r.stopped_early;
+  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  info["train_seconds"] = r.seconds;
+  t.model->training_info = info;
+  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  return t;
+}
+
+}  // namespace
+
+std::unique_ptr<DenseModel> fit_dense(const FitRequest& request) {
+  std::vector<std::string> keys = training::common_neural_option_keys();
+  for (const char* k : {"depth", "width", "leaky_slope"}) keys.emplace_back(k);
+  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "dense options");
+  const training::PreparedData data = training::prepare_data(request);
+  DenseShape shape;
+  shape.inputs = static_cast<int>(data.spec.size());
+  shape.depth = training::option_int(request.options, "depth", 1);
+  shape.width = training::option_int(request.options, "width", 10);
+  shape.leaky_slope = training::option_num(request.options, "leaky_slope", 0.01);
+  training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
+  auto finish = [&request](std::unique_ptr<DenseModel> m) {
+    const auto validation = m->meta.validation;
+    m->meta = training::make_meta(request);
+    m->meta.validation = validation;
+    return m;
+  };
+  if (request.tune_trials <= 0) return finish(train_dense(data, shape, cfg).model);
+
+  DenseTrial best;
+  training::SearchConfig sc;
+  sc.trials = request.tune_trials;
+  sc.time_budget_s = request.time_budget_s;
+  sc.seed = request.seed;
+  sc.progress = request.progress;
+  const int tune_epochs = training::option_int(request.options, "tune_epochs", cfg.epochs);
+  const auto search = training::tpe_search(
+      training::dense_search_space(), sc, [&](const training::TrialParams& p, int trial, double left) {
+        DenseShape s = shape;
+        s.depth = static_cast<int>(p.number.at("depth"));
+        s.width = static_cast<int>(p.number.at("width"));
+        training::TrainerConfig c = cfg;
+        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
+        c.optimizer.learning_rate = p.number.at("learning_rate");
+        c.epochs = tune_epochs;
+        c.progress = nullptr;
+        c.seed = request.seed + static_cast<std::uint64_t>(trial);
+        c.time_budget_s = std::isfinite(left) ? std::max(left, 1e-3) : 0.0;
+        DenseTrial t = train_dense(data, s, c);
+        const double v = t.validation_mse;
+        if (v < best.validation_mse) best = std::move(t);
+        return v;
+      });
+  if (!best.model) throw std::runtime_error("dense: every tuning trial failed");
+  best.model->training_info["tuning"]["trials"] = static_cast<int>(search.trials.size());
+  best.model->training_info["tuning"]["best"] = search.best_trial().params.to_string();
+  return finish(std::move(best.model));
+}
+
+PIEZO_REGISTER_MODEL_KIND(ModelKind{
+    "dense", "dense network (depth × width, leaky ReLU) on the feature vector, trained with Adam/RMSprop/SGD",
+    [](const YAML::Node& node) -> ModelPtr { return DenseModel::from_yaml(node); },
+    [](const FitRequest& r) -> ModelPtr { return fit_dense(r); },
+    [](const Model& m, const std::string& prefix) {
+      const auto* d = dynamic_cast<const DenseModel*>(&m);
+      if (!d) throw std::runtime_error("export: not a dense model");
+      return d->export_c99(prefix);
+    }});
+
+}  // namespace piezo::models

@@ -1,0 +1,368 @@
+#include "piezo_compensation/models/lstm_model.h"
+
+#include <cmath>
+#include <random>
+#include <stdexcept>
+
+#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/hyperparameter_search.h"
+
+namespace piezo::models {
+
+namespace {
+double sigmoid(double z) { return 1.0 / (1.0 + std::exp(-z)); }
+}  // namespace
+
+LstmNet::LstmNet(const LstmShape& shape) : shape_(shape) {
+  if (shape.inputs < 1 || shape.inputs > 256) throw std::runtime_error("lstm: inputs must be in 1..256");
+  if (shape.layers < 1 || shape.layers > kMaxLayers) throw std::runtime_error("lstm: layers must be in 1..8");
+  if (shape.hidden < 1 || shape.hidden > kMaxHidden) throw std::runtime_error("lstm: hidden must be in 1..256");
+  Eigen::Index o = 0;
+  const Eigen::Index H = shape.hidden;
+  for (int l = 0; l < shape.layers; ++l) {
+    layer_offset_.push_back(o);
+    o += 4 * H * layer_inputs(l) + 4 * H * H + 4 * H;
+  }
+  head_offset_ = o;
+  num_params_ = static_cast<std::size_t>(o + H + 1);
+}
+
+Eigen::VectorXd LstmNet::initial_params(std::uint64_t seed) const {
+  std::mt19937_64 rng(seed);
+  const double r = 1.0 / std::sqrt(static_cast<double>(shape_.hidden));
+  std::uniform_real_distribution<double> u(-r, r);
+  Eigen::VectorXd p(static_cast<Eigen::Index>(num_params_));
+  for (Eigen::Index i = 0; i < p.size(); ++i) p[i] = u(rng);
+  const Eigen::Index H = shape_.hidden;
+  for (int l = 0; l < shape_.layers; ++l) {
+    const Eigen::Index b = layer_offset_[l] + 4 * H * layer_inputs(l) + 4 * H * H;
+    p.segment(b, 4 * H).setZero();
+    p.segment(b + H, H).setConstant(1.0);  // remember by default: forget gate open
+  }
+  p[head_offset_ + H] = 0.0;
+  return p;
+}
+
+double LstmNet::step(const double* params, const double* x, const double* h_in, const double* c_in, double* h_out,
+                     double* c_out) const {
+  const int H = shape_.hidden;
+  double gbuf[4 * kMaxHidden];
+  Eigen::Map<Eigen::VectorXd> g(gbuf, 4 * H);
+  const double* input = x;
+  for (int l = 0; l < shape_.layers; ++l) {
+    const int in = layer_inputs(l);
+    const double* p = params + layer_offset_[l];
+    Eigen::Map<const Eigen::MatrixXd> W(p, 4 * H, in);
+    Eigen::Map<const Eigen::MatrixXd> U(p + 4 * H * in, 4 * H, H);
+    Eigen::Map<const Eigen::VectorXd> b(p + 4 * H * in + 4 * H * H, 4 * H);
+    g = b;
+    g.noalias() += W * Eigen::Map<const Eigen::VectorXd>(input, in);
+    g.noalias() += U * Eigen::Map<const Eigen::VectorXd>(h_in + l * H, H);
+    for (int j = 0; j < H; ++j) {
+      const double i = sigmoid(g[j]), f = sigmoid(g[H + j]), gg = std::tanh(g[2 * H + j]), o = sigmoid(g[3 * H + j]);
+      const double c = f * c_in[l * H + j] + i * gg;
+      c_out[l * H + j] = c;
+      h_out[l * H + j] = o * std::tanh(c);
+    }
+    input = h_out + l * H;
+  }
+  const double* w = params + head_offset_;
+  double y = w[H];
+  for (int j = 0; j < H; ++j) y += w[j] * input[j];
+  return y;
+}
+
+double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vector<Eigen::MatrixXd>& xs,
+                                   const Eigen::MatrixXd& ys, int warmup, Eigen::VectorXd* grad) const {
+  using Eigen::MatrixXd;
+  const Eigen::Index H = shape_.hidden, T = ys.rows(), B = ys.cols();
+  const int L = shape_.layers;
+  if (static_cast<Eigen::Index>(xs.size()) != warmup + T) throw std::runtime_error("lstm: sequence length mismatch");
+  auto W = [&](int l) { return Eigen::Map<const MatrixXd>(params.data() + layer_offset_[l], 4 * H, layer_inputs(l)); };
+  auto U = [&](int l) {
+    return Eigen::Map<const MatrixXd>(params.data() + layer_offset_[l] + 4 * H * layer_inputs(l), 4 * H, H);
+  };
+  auto bias = [&](int l) {
+    return Eigen::Map<const Eigen::VectorXd>(params.data() + layer_offset_[l] + 4 * H * layer_inputs(l) + 4 * H * H,
+                                             4 * H);
+  };
+  Eigen::Map<const Eigen::VectorXd> wh(params.data() + head_offset_, H);
+  const double bh = params[head_offset_ + H];
+
+  std::vector<MatrixXd> h(static_cast<std::size_t>(L), MatrixXd::Zero(H, B)), c = h;
+  MatrixXd gates(4 * H, B);
+  // Gate pre-activations → activations in place; then the new c and h.
+  auto cell = [&](int l, const MatrixXd& input, MatrixXd& g, MatrixXd& c_l, MatrixXd& h_l) {
+    g.noalias() = W(l) * input;
+    g.noalias() += U(l) * h_l;
+    g.colwise() += bias(l);
+    g.topRows(2 * H) = 1.0 / (1.0 + (-g.topRows(2 * H).array()).exp());
+    g.middleRows(2 * H, H) = g.middleRows(2 * H, H).array().tanh();
+    g.bottomRows(H) = 1.0 / (1.0 + (-g.bottomRows(H).array()).exp());
+    c_l = g.middleRows(H, H).cwiseProduct(c_l) + g.topRows(H).cwiseProduct(g.middleRows(2 * H, H));
+    h_l = g.bottomRows(H).cwiseProduct(c_l.array().tanh().matrix());
+  };
+  for (int tau = 0; tau < warmup; ++tau)
+    for (int l = 0; l < L; ++l) cell(l, l == 0 ? xs[static_cast<std::size_t>(tau)] : h[static_cast<std::size_t>(l - 1)],
+                                     gates, c[static_cast<std::size_t>(l)], h[static_cast<std::size_t>(l)]);
+
+  const std::vector<MatrixXd> h0 = h, c0 = c;
+  const std::size_t steps = static_cast<std::size_t>(T * L);
+  std::vector<MatrixXd> G(grad ? steps : 0), C(grad ? steps : 0), Hs(grad ? steps : 0);
+  MatrixXd err(T, B);
+  double loss = 0.0;
+  for (Eigen::Index t = 0; t < T; ++t) {
+    for (int l = 0; l < L; ++l) {
+      const auto li = static_cast<std::size_t>(l);
+      cell(l, l == 0 ? xs[static_cast<std::size_t>(warmup + t)] : h[li - 1], gates, c[li], h[li]);
+      if (grad) {
+        const std::size_t k = static_cast<std::size_t>(t * L + l);
+        G[k] = gates;
+        C[k] = c[li];
+        Hs[k] = h[li];
+      }
+    }
+    err.row(t) = (wh.transpose() * h[static_cast<std::size_t>(L - 1)]).array() + bh - ys.row(t).array();
+  }
+  loss = err.squaredNorm();
+  if (!grad) return loss;
+
+  Eigen::Map<Eigen::VectorXd> gwh(grad->data() + head_offset_, H);
+  double& gbh = (*grad)[head_offset_ + H];
+  std::vector<MatrixXd> dh_next(static_cast<std::size_t>(L), MatrixXd::Zero(H, B)), dc_next = dh_next;
+  MatrixXd dA(4 * H, B), dh(H, B), dc(H, B), from_above(H, B);
+  for (Eigen::Index t = T - 1; t >= 0; --t) {
+    const Eigen::RowVectorXd dy = 2.0 * err.row(t);
+    gwh.noalias() += Hs[static_cast<std::size_t>(t * L + L - 1)] * dy.transpose();
+    gbh += dy.sum();
+    from_above.noalias() = wh * dy;
+    for (int l = L - 1; l >= 0; --l) {
+      const auto li = static_cast<std::size_t>(l);
+      const std::size_t k = static_cast<std::size_t>(t * L + l);
+      const MatrixXd& g = G[k];
+      const MatrixXd& c_prev = t > 0 ? C[k - static_cast<std::size_t>(L)] : c0[li];
+      const MatrixXd& h_prev = t > 0 ? Hs[k - static_cast<std::size_t>(L)] : h0[li];
+      const auto i = g.topRows(H).array(), f = g.middleRows(H, H).array(), gg = g.middleRows(2 * H, H).array(),
+                 o = g.bottomRows(H).array();
+      const Eigen::ArrayXXd tc = C[k].array().tanh();
+      dh = dh_next[li] + from_above;
+      dc = dc_next[li].array() + dh.array() * o * (1.0 - tc.square());
+      dA.topRows(H) = (dc.array() * gg * i * (1.0 - i)).matrix();
+      dA.middleRows(H, H) = (dc.array() * c_prev.array() * f * (1.0 - f)).matrix();
+      dA.middleRows(2 * H, H) = (dc.array() * i * (1.0 - gg.square())).matrix();
+      dA.bottomRows(H) = (dh.array() * tc * o * (1.0 - o)).matrix();
+      dc_next[li] = dc.cwiseProduct(g.middleRows(H, H));
+      const MatrixXd& input = l == 0 ? xs[static_cast<std::size_t>(warmup + t)] : Hs[k - 1];
+      const int in = layer_inputs(l);
+      double* gp = grad->data() + layer_offset_[l];
+      Eigen::Map<MatrixXd>(gp, 4 * H, in).noalias() += dA * input.transpose();
+      Eigen::Map<MatrixXd>(gp + 4 * H * in, 4 * H, H).noalias() += dA * h_prev.transpose();
+      Eigen::Map<Eigen::VectorXd>(gp + 4 * H * in + 4 * H * H, 4 * H) += dA.rowwise().sum();
+      dh_next[li].noalias() = U(l).transpose() * dA;
+      if (l > 0) from_above.noalias() = W(l).transpose() * dA;
+    }
+  }
+  return loss;
+}
+
+LstmObjective::LstmObjective(const LstmNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y, int seq_len,
+                             int warmup)
+    : net_(net), x_(x), y_(y), seq_len_(seq_len), warmup_(warmup) {
+  if (seq_len < 1 || warmup < 0) throw std::runtime_error("lstm: seq_len must be ≥ 1 and warmup ≥ 0");
+  const std::size_t n = static_cast<std::size_t>(x.cols());
+  for (std::size_t s = static_cast<std::size_t>(warmup); s + static_cast<std::size_t>(seq_len) <= n;
+       s += static_cast<std::size_t>(seq_len))
+    starts_.push_back(s);
+}
+
+double LstmObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
+                               Eigen::VectorXd* grad) const {
+  const Eigen::Index B = static_cast<Eigen::Index>(n);
+  std::vector<Eigen::MatrixXd> xs(static_cast<std::size_t>(warmup_ + seq_len_), Eigen::MatrixXd(x_.rows(), B));
+  Eigen::MatrixXd ys(seq_len_, B);
+  for (Eigen::Index j = 0; j < B; ++j) {
+    const std::size_t s = starts_[units[j]];
+    for (int tau = 0; tau < warmup_ + seq_len_; ++tau)
+      xs[static_cast<std::size_t>(tau)].col(j) = x_.col(static_cast<Eigen::Index>(s - static_cast<std::size_t>(warmup_) + static_cast<std::size_t>(tau)));
+    ys.col(j) = y_.segment(static_cast<Eigen::Index>(s), seq_len_);
+  }
+  return net_.sequence_loss_grad(params, xs, ys, warmup_, grad);
+}
+
+// ---- model --------------------------------------------------------------------------------------------------
+
+LstmModel::LstmModel(const features::FeatureSpec& spec, double sample_rate_hz, const LstmShape& shape,
+                     Eigen::VectorXd params, training::TargetScale target, int warmup)
+    : stream_(spec, sample_rate_hz), sample_rate_hz_(sample_rate_hz), net_(shape), params_(std::move(params)),
+      target_(target), warmup_(warmup) {
+  if (static_cast<int>(spec.size()) != shape.inputs)
+    throw std::runtime_error("lstm: the feature spec has " + std::to_string(spec.size()) +
+                             " features but the network expects " + std::to_string(shape.inputs));
+  if (static_cast<std::size_t>(params_.size()) != net_.num_params())
+    throw std::runtime_error("lstm: weight count does not match the architecture");
+  if (warmup_ < 0) throw std::runtime_error("lstm: warmup must be ≥ 0");
+  h_.assign(static_cast<std::size_t>(shape.layers * shape.hidden), 0.0);
+  c_ = h_;
+  meta.sample_rate_hz = sample_rate_hz;
+}
+
+void LstmModel::reset(double voltage_v, double position_nm) {
+  stream_.reset(voltage_v, position_nm);
+  std::fill(h_.begin(), h_.end(), 0.0);
+  std::fill(c_.begin(), c_.end(), 0.0);
+  if (!stream_.spec().aux_signals().empty()) return;  // aux values unknown at rest: start from the zero state
+  // The same gradient-free warm-up from zero that every training window had, here at rest.
+  double x[256];
+  stream_.compute(ModelInput{voltage_v, nullptr}, x);
+  for (int k = 0; k < warmup_; ++k) net_.step(params_.data(), x, h_.data(), c_.data(), h_.data(), c_.data());
+}
+
+double LstmModel::predict(const ModelInput& in) const {
+  double x[256], h[LstmNet::kMaxLayers * LstmNet::kMaxHidden], c[LstmNet::kMaxLayers * LstmNet::kMaxHidden];
+  stream_.compute(in, x);
+  return target_.to_nm(net_.step(params_.data(), x, h_.data(), c_.data(), h, c));
+}
+
+void LstmModel::commit(const ModelInput& in, double position_nm) {
+  double x[256];
+  stream_.compute(in, x);
+  net_.step(params_.data(), x, h_.data(), c_.data(), h_.data(), c_.data());
+  stream_.commit(in, position_nm);
+}
+
+YAML::Node LstmModel::to_yaml() const {
+  YAML::Node n;
+  n["sample_rate_hz"] = sample_rate_hz_;
+  n["features"] = stream_.spec().to_yaml();
+  n["target"]["mean_nm"] = target_.mean_nm;
+  n["target"]["scale_nm"] = target_.scale_nm;
+  n["hyperparameters"]["layers"] = net_.shape().layers;
+  n["hyperparameters"]["hidden"] = net_.shape().hidden;
+  n["hyperparameters"]["warmup"] = warmup_;
+  if (training_info) n["training"] = training_info;
+  n["weights"] = training::flow_sequence(params_);
+  return n;
+}
+
+std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
+  const std::string what = "lstm model";
+  training::check_keys(node, {"sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
+  const double rate = training::yaml_double(node, "sample_rate_hz", what);
+  if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
+  if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
+  const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
+  const YAML::Node t = node["target"];
+  if (!t) throw std::runtime_error(what + ": missing key 'target'");
+  training::check_keys(t, {"mean_nm", "scale_nm"}, what + " target");
+  const training::TargetScale target{training::yaml_double(t, "mean_nm", what + " target"),
+                                     training::yaml_double(t, "scale_nm", what + " target")};
+  const YAML::Node h = node["hyperparameters"];
+  if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
+  training::check_keys(h, {"layers", "hidden", "warmup"}, what + " hyperparameters");
+  LstmShape shape;
+  shape.inputs = static_cast<int>(spec.size());
+  shape.layers = static_cast<int>(training::yaml_double(h, "layers", what));
+  shape.hidden = static_cast<int>(training::yaml_double(h, "hidden", what));
+  const int warmup = static_cast<int>(training::yaml_double(h, "warmup", what));
+  const LstmNet net(shape);
+  const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());
+  auto m = std::make_unique<LstmModel>(spec, rate, shape,
+                                       Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())),
+                                       target, warmup);
+  if (node["training"]) m->training_info = node["training"];
+  return m;
+}
+
+// ---- fit ----------------------------------------------------------------------------------------------------
+
+namespace {
+
+struct LstmTrial {
+  std::unique_ptr<LstmModel> model;
+  double validation_mse = std::numeric_limits<double>::infinity();
+};
+
+LstmTrial train_lstm(const training::PreparedData& data, const LstmShape& shape, int seq_len, int warmup,
+                     training::TrainerConfig cfg) {
+  const LstmNet net(shape);
+  const LstmObjective train_obj(net, data.x_train, data.y_train, seq_len, warmup);
+  const LstmObjective val_obj(net, data.x_validation, data.y_validation, seq_len, warmup);
+  if (train_obj.num_units() == 0) throw std::runtime_error("lstm: training data shorter than warmup + seq_len");
+  const training::TrainResult r = training::train(train_obj, &val_obj, net.initial_params(cfg.seed), cfg);
+  LstmTrial t;
+  t.validation_mse = r.best_validation_mse;
+  t.model = std::make_unique<LstmModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target, warmup);
+  YAML::Node info;
+  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
+  info["learning_rate"] = cfg.optimizer.learning_rate;
+  info["batch_size_sequences"] = cfg.batch_size;
+  info["seq_len"] = seq_len;
+  info["epochs_run"] = r.epochs_run;
+  info["best_epoch"] = r.best_epoch;
+  info["stopped_early"] = r.stopped_early;
+  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  info["train_seconds"] = r.seconds;
+  t.model->training_info = info;
+  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  return t;
+}
+
+}  // namespace
+
+std::unique_ptr<LstmModel> fit_lstm(const FitRequest& request) {
+  std::vector<std::string> keys = training::common_neural_option_keys();
+  for (const char* k : {"layers", "hidden", "seq_len", "warmup"}) keys.emplace_back(k);
+  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "lstm options");
+  const training::PreparedData data = training::prepare_data(request);
+  LstmShape shape;
+  shape.inputs = static_cast<int>(data.spec.size());
+  shape.layers = training::option_int(request.options, "layers", 1);
+  shape.hidden = training::option_int(request.options, "hidden", 29);
+  const int seq_len = training::option_int(request.options, "seq_len", 32);
+  const int warmup = training::option_int(request.options, "warmup", 16);
+  training::TrainerConfig cfg = training::trainer_config(request, 45, 32);
+  if (!request.options || !request.options["grad_clip_norm"]) cfg.grad_clip_norm = 1.0;  // BPTT: avoid blow-ups
+  auto finish = [&request](std::unique_ptr<LstmModel> m) {
+    const auto validation = m->meta.validation;
+    m->meta = training::make_meta(request);
+    m->meta.validation = validation;
+    return m;
+  };
+  if (request.tune_trials <= 0) return finish(train_lstm(data, shape, seq_len, warmup, cfg).model);
+
+  LstmTrial best;
+  training::SearchConfig sc;
+  sc.trials = request.tune_trials;
+  sc.time_budget_s = request.time_budget_s;
+  sc.seed = request.seed;
+  sc.progress = request.progress;
+  const int tune_epochs = training::option_int(request.options, "tune_epochs", cfg.epochs);
+  const auto search = training::tpe_search(
+      training::lstm_search_space(), sc, [&](const training::TrialParams& p, int trial, double left) {
+        LstmShape s = shape;
+        s.layers = static_cast<int>(p.number.at("layers"));
+        s.hidden = static_cast<int>(p.number.at("hidden"));
+        training::TrainerConfig c = cfg;
+        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
+        c.optimizer.learning_rate = p.number.at("learning_rate");
+        c.epochs = tune_epochs;
+        c.progress = nullptr;
+        c.seed = request.seed + static_cast<std::uint64_t>(trial);
+        c.time_budget_s = std::isfinite(left) ? std::max(left, 1e-3) : 0.0;
+        LstmTrial t = train_lstm(data, s, seq_len, warmup, c);
+        const double v = t.validation_mse;
+        if (v < best.validation_mse) best = std::move(t);
+        return v;
+      });
+  if (!best.model) throw std::runtime_error("lstm: every tuning trial failed");
+  best.model->training_info["tuning"]["trials"] = static_cast<int>(search.trials.size());
+  best.model->training_info["tuning"]["best"] = search.best_trial().params.to_string();
+  return finish(std::move(best.model));
+}
+
+PIEZO_REGISTER_MODEL_KIND(ModelKind{
+    "lstm", "LSTM (layers × hidden, linear head) over the feature vector, truncated BPTT",
+    [](const YAML::Node& node) -> ModelPtr { return LstmModel::from_yaml(node); },
+    [](const FitRequest& r) -> ModelPtr { return fit_lstm(r); }, nullptr});
+
+}  // namespace piezo::models

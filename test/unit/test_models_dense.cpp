@@ -1,0 +1,146 @@
+// Dense network: backprop against finite differences, the single-sample path against the batch path,
+// model save/load through the registry, predict() const, determinism for a seed.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "piezo_compensation/models/dense_model.h"
+#include "piezo_compensation/models/registry.h"
+#include "test_models_dense_data.h"
+
+using namespace piezo;
+
+namespace {
+
+Eigen::VectorXd finite_difference(const std::function<double(const Eigen::VectorXd&)>& f, Eigen::VectorXd p) {
+  Eigen::VectorXd g(p.size());
+  for (Eigen::Index i = 0; i < p.size(); ++i) {
+    const double h = 1e-6 * std::max(1.0, std::abs(p[i]));
+    const double keep = p[i];
+    p[i] = keep + h;
+    const double up = f(p);
+    p[i] = keep - h;
+    const double down = f(p);
+    p[i] = keep;
+    g[i] = (up - down) / (2 * h);
+  }
+  return g;
+}
+
+}  // namespace
+
+TEST(DenseNet, GradientMatchesFiniteDifferences) {
+  for (int depth : {0, 1, 3}) {
+    models::DenseShape s;
+    s.inputs = 4;
+    s.depth = depth;
+    s.width = 5;
+    s.leaky_slope = 0.05;
+    const models::DenseNet net(s);
+    const Eigen::VectorXd p = net.initial_params(7);
+    std::mt19937_64 rng(3);
+    std::normal_distribution<double> n01;
+    Eigen::MatrixXd x(4, 9);
+    Eigen::VectorXd y(9);
+    for (Eigen::Index i = 0; i < x.size(); ++i) x.data()[i] = n01(rng);
+    for (Eigen::Index i = 0; i < y.size(); ++i) y[i] = n01(rng);
+    Eigen::VectorXd g = Eigen::VectorXd::Zero(p.size());
+    net.loss_grad(p, x, y, &g);
+    const Eigen::VectorXd fd = finite_difference([&](const Eigen::VectorXd& q) { return net.loss_grad(q, x, y, nullptr); }, p);
+    EXPECT_LT((g - fd).norm(), 1e-6 * std::max(1.0, fd.norm())) << "depth " << depth;
+    // The streaming single-sample forward equals the batch forward.
+    const Eigen::VectorXd out = net.forward_batch(p, x);
+    for (Eigen::Index c = 0; c < x.cols(); ++c) EXPECT_NEAR(net.forward(p.data(), x.col(c).data()), out[c], 1e-12);
+  }
+}
+
+TEST(DenseNet, RejectsBadShape) {
+  models::DenseShape s;
+  s.width = 0;
+  EXPECT_THROW(models::DenseNet{s}, std::runtime_error);
+}
+
+TEST(DenseModel, FitsLearnsAndRoundTripsThroughRegistry) {
+  const io::Dataset data = test_data::hysteretic_dataset(4000, 11);
+  models::FitRequest req;
+  req.train = &data;
+  req.axis = "c";
+  req.seed = 5;
+  req.threads = 2;
+  req.options["epochs"] = 15;
+  req.options["width"] = 8;
+  req.options["learning_rate"] = 3e-3;
+  const models::ModelPtr m = models::model_kind("dense").fit(req);
+  ASSERT_TRUE(m);
+  EXPECT_EQ(m->kind(), "dense");
+  EXPECT_TRUE(m->uses_position_history());
+  // One-step MAE on the data well below the position spread (the model learned something).
+  const double mae = test_data::one_step_mae(*m, data, "c");
+  const double spread = test_data::mean_abs_deviation(data.axis("c").position_nm);
+  EXPECT_LT(mae, 0.15 * spread);
+
+  // Save/load through the registry reproduces predictions exactly.
+  YAML::Emitter out;
+  out << m->to_yaml();
+  const models::ModelPtr back = models::model_kind("dense").load(YAML::Load(out.c_str()));
+  EXPECT_NEAR(test_data::one_step_mae(*back, data, "c"), mae, 1e-9);
+
+  // predict() is const in effect: repeating it gives the same value and does not move the state.
+  models::ModelPtr a = m->clone();
+  a->reset(0.0, data.axis("c").position_nm[0]);
+  const models::ModelInput in{10.0, nullptr};
+  const double p1 = a->predict(in), p2 = a->predict(models::ModelInput{-30.0, nullptr}), p3 = a->predict(in);
+  EXPECT_EQ(p1, p3);
+  EXPECT_NE(p1, p2);
+
+  // Same seed, same weights; another seed, other weights.
+  const models::ModelPtr m2 = models::model_kind("dense").fit(req);
+  EXPECT_EQ(YAML::Dump(m2->to_yaml()["weights"]), YAML::Dump(m->to_yaml()["weights"]));
+  req.seed = 6;
+  const models::ModelPtr m3 = models::model_kind("dense").fit(req);
+  EXPECT_NE(YAML::Dump(m3->to_yaml()["weights"]), YAML::Dump(m->to_yaml()["weights"]));
+}
+
+TEST(DenseModel, MalformedNodesGiveOneClearError) {
+  const io::Dataset data = test_data::hysteretic_dataset(800, 11);
+  models::FitRequest req;
+  req.train = &data;
+  req.options["epochs"] = 1;
+  const YAML::Node good = models::model_kind("dense").fit(req)->to_yaml();
+  auto expect_error = [](const YAML::Node& n, const std::string& needle) {
+    try {
+      models::model_kind("dense").load(n);
+      ADD_FAILURE() << "no error for " << needle;
+    } catch (const std::runtime_error& e) {
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  YAML::Node n = YAML::Clone(good);
+  n["weights"].push_back(1.0);
+  expect_error(n, "weights");
+  n = YAML::Clone(good);
+  n["hyperparameters"]["colour"] = 3;
+  expect_error(n, "colour");
+  n = YAML::Clone(good);
+  n["weights"][0] = "abc";
+  expect_error(n, "weights");
+  n = YAML::Clone(good);
+  n.remove("target");
+  expect_error(n, "target");
+  YAML::Node opts;
+  opts["widht"] = 3;
+  req.options = opts;
+  EXPECT_THROW(models::model_kind("dense").fit(req), std::runtime_error);
+}
+
+TEST(DenseModel, ExportsC99Source) {
+  const io::Dataset data = test_data::hysteretic_dataset(800, 11);
+  models::FitRequest req;
+  req.train = &data;
+  req.options["epochs"] = 1;
+  const models::ModelPtr m = models::model_kind("dense").fit(req);
+  const std::string c = models::model_kind("dense").export_c99(*m, "mm1_c");
+  EXPECT_NE(c.find("mm1_c_network(const double* x)"), std::string::npos);
+  EXPECT_EQ(c.find("#include <"), std::string::npos);  // dependency-free
+}
