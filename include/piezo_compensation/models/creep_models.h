@@ -1,0 +1,41 @@
+// Creep laws combined with Prandtl–Ishlinskii hysteresis (kinds pi_creep_log, pi_creep_lti, pi_creep_fractional).
+// All three act on the applied voltage, as the creep seed's transfer functions Y(s)/U(s), and are realised as
+// sums of first-order modes y_j' = (V − y_j)/τ_j (so they stream in O(modes) per sample and stay bounded):
+//   log:        Σ_j γ·(ln10/m)·LP_{τ_j}(V),  τ_j = t1·10^{j/m}, j < m·decades — step response ≈ γ·ΔV·ln(t/t1)
+//               for t1 ≪ t ≪ t1·10^decades (the seed's y = y1(1 + γ log(t/t1)) with y1 folded into γ).
+//   lti:        Σ_j g_j·LP_{τ_j}(V) — n spring–damper pairs of G_c(s) = 1/k0 + Σ 1/(c_j s + k_j):
+//               g_j = 1/k_j, τ_j = c_j/k_j; 1/k0 is the PI's initial slope.
+//   fractional: b·s^−α by its integral form s^−α = (sin πα/π)∫ τ^α/(τs+1) dlnτ over τ ∈ [τ_min, τ_max]
+//               (a multi-mode approximation with finite memory): g_j = b·(sin πα/π)·τ_j^α·Δlnτ;
+//               step response ≈ b·ΔV·t^α/Γ(1+α) for τ_min ≪ t ≪ τ_max.
+#pragma once
+
+#include <string>
+#include <vector>
+
+namespace piezo::models {
+
+enum class CreepKind { kNone, kLog, kLti, kFractional };
+std::string creep_kind_name(CreepKind k);  // "pi", "pi_creep_log", ...
+CreepKind creep_kind_from_name(const std::string& kind);  // throws for other names
+
+struct CreepParams {
+  CreepKind kind = CreepKind::kNone;
+  // log
+  double gamma_nm_per_v = 0, t1_s = 1;
+  int decades = 5, modes_per_decade = 3;
+  // fractional
+  double alpha = 0.5, b_nm_per_v = 0, tau_min_s = 1, tau_max_s = 1e5;
+  // lti (also the expanded modes of the others)
+  std::vector<double> taus_s, gains_nm_per_v;
+
+  // The modes (time constants and gains) this law streams.
+  void modes(std::vector<double>& taus_s_out, std::vector<double>& gains_out) const;
+  // Unit-gain basis for the linear coefficients: the law is Σ_k θ_k Σ_j basis[k][j]·LP_{τ_j}.
+  // log: θ = {γ}; fractional: θ = {b}; lti: θ = gains (basis = identity).
+  void basis(std::vector<double>& taus_s_out, std::vector<std::vector<double>>& basis_out) const;
+  void set_coefficients(const std::vector<double>& theta);
+  std::size_t num_coefficients() const;
+};
+
+}  // namespace piezo::models

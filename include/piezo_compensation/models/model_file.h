@@ -1,0 +1,49 @@
+// The self-describing model file (YAML):
+//   format_version: 1
+//   kind: linear                     # a registered kind (models/registry.h)
+//   axis: c
+//   sample_rate_hz: 11
+//   created_utc: 2026-11-21T06:00:00Z
+//   training: {fingerprint: "fnv1a64:…:N", source: plan.csv}
+//   validation: {one_step_mae_nm: 17.1, ...}
+//   model: {...}                     # Model::to_yaml(): feature spec with normalisation, weights, ...
+// The `model:` node handed to ModelKind::load carries `sample_rate_hz`, `axis` and `kind` copied from the top level
+// (kinds need the rate to build their FeatureStream). Errors name the file and the key.
+#pragma once
+
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include <yaml-cpp/yaml.h>
+
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::models {
+
+constexpr int kModelFormatVersion = 1;
+
+class ModelFileError : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+
+YAML::Node model_to_file_yaml(const Model& model);
+// `where` names the source in errors ("model.yaml").
+ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where);
+
+void save_model(const std::string& path, const Model& model);
+ModelPtr load_model(const std::string& path);
+
+// Throws ModelFileError naming `where` when the data's rate or axes do not fit the model.
+void check_model_matches_data(const Model& model, const io::Dataset& data, const std::string& where);
+
+// Typed access to kind nodes for loaders: errors are "model.<key>: ..." (load_model adds the file name).
+double yaml_number(const YAML::Node& node, const std::string& key);
+int yaml_int(const YAML::Node& node, const std::string& key);
+std::string yaml_string(const YAML::Node& node, const std::string& key);
+std::vector<double> yaml_numbers(const YAML::Node& node, const std::string& key, long expected_size = -1);
+YAML::Node yaml_list(const std::vector<double>& v);
+
+}  // namespace piezo::models

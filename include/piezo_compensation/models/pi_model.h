@@ -1,0 +1,81 @@
+// Kinds "pi", "pi_creep_log", "pi_creep_lti", "pi_creep_fractional": Prandtl–Ishlinskii hysteresis
+//   y = b + Σ_i w_i · play_{r_i}(V)      (r_0 = 0, w_i ≥ 0, w_0 > 0: strictly increasing, so invertible)
+// plus an optional creep law on the voltage (creep_models.h). Weights by constrained least squares (NNLS on the
+// play weights); the creep law's time constants / exponent by a 1-D or coordinate search around it.
+#pragma once
+
+#include <Eigen/Dense>
+
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/models/creep_models.h"
+#include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/registry.h"
+
+namespace piezo::models {
+
+class PiCreepModel : public Model {
+ public:
+  PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights_nm_per_v, double bias_nm,
+               CreepParams creep, double sample_rate_hz);
+
+  std::string kind() const override { return creep_kind_name(creep_.kind); }
+  void reset(double voltage_v, double position_nm) override;
+  double predict(const ModelInput& in) const override { return predict_v(in.voltage_v); }
+  void commit(const ModelInput& in, double position_nm) override;
+  std::unique_ptr<Model> clone() const override { return std::make_unique<PiCreepModel>(*this); }
+  bool uses_position_history() const override { return false; }
+  bool is_affine_in_voltage() const override { return false; }
+  YAML::Node to_yaml() const override;
+  std::size_t num_parameters() const override;
+
+  double predict_v(double voltage_v) const;
+  // Exact inverse for the current state: the voltage whose predict() is target_nm (piecewise-linear, closed
+  // form between breakpoints). Unique when the model is strictly increasing in V (w_0 > 0, creep slope ≥ 0).
+  double inverse(double target_nm) const;
+
+  const std::vector<double>& thresholds_v() const { return r_; }
+  const std::vector<double>& weights() const { return w_; }
+  double bias_nm() const { return b_; }
+  const CreepParams& creep() const { return creep_; }
+  const std::vector<double>& mode_taus_s() const { return taus_; }
+  const std::vector<double>& mode_gains() const { return gains_; }
+  const std::vector<double>& mode_poles() const { return poles_; }
+  double sample_rate_hz() const { return rate_hz_; }
+
+  static ModelPtr load(const YAML::Node& node);
+  // options: n_play (12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti start values),
+  // t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s, min_slope_fraction.
+  static ModelPtr fit(const FitRequest& req, CreepKind kind);
+
+ private:
+  std::vector<double> r_, w_;
+  double b_;
+  CreepParams creep_;
+  double rate_hz_;
+  std::vector<double> taus_, gains_, poles_;  // expanded creep modes
+  std::vector<double> p_, l_;                 // state: play outputs, mode low-passes
+};
+
+// The classical inverse PI operator (Kuhnen / Al Janaideh): V = Σ_i w'_i · play_{r'_i}(y − b) with
+// w'_0 = 1/w_0, w'_i = −w_i / (W_i W_{i−1}), r'_i = Σ_{j≤i} w_j (r_i − r_j), W_i = Σ_{j≤i} w_j.
+// Exact inverse of the hysteresis part when both start from the zero state.
+class PiInverse {
+ public:
+  PiInverse(const std::vector<double>& thresholds_v, const std::vector<double>& weights, double bias_nm);
+  void reset(double position_nm);  // rest: all play states at position − bias
+  double step(double target_nm);   // voltage for the target, advancing the state
+  const std::vector<double>& thresholds_nm() const { return r_; }
+  const std::vector<double>& weights() const { return w_; }
+
+ private:
+  std::vector<double> r_, w_, p_;
+  double b_;
+};
+
+// Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]
+// (Lawson–Hanson active set). G must be positive definite on the free set.
+Eigen::VectorXd nnls_gram(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, const std::vector<bool>& constrained);
+
+}  // namespace piezo::models

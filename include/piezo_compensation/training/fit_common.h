@@ -1,0 +1,83 @@
+// Shared pieces of every fit: running the feature stream over a data set in one-step mode, standardisation,
+// sufficient statistics (Gram sums) per contiguous time block, design matrices, and the feature choice of a
+// FitRequest. Used by the linear, physics and neural kinds alike.
+#pragma once
+
+#include <Eigen/Dense>
+
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/features/feature_stream.h"
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/registry.h"
+
+namespace piezo::training {
+
+// The aux columns a model reads, gathered per sample into ModelInput::aux order.
+class AuxRows {
+ public:
+  AuxRows(const io::Dataset& data, const std::vector<std::string>& names);  // throws DataError naming a missing column
+  const double* at(std::size_t i);  // nullptr when no aux signal is used
+ private:
+  std::vector<const std::vector<double>*> cols_;
+  std::vector<double> row_;
+};
+
+// Streams `spec` over data[begin, end) of one axis in one-step mode (positions committed are the measured
+// ones), calling fn(i, features, target_nm) per sample. The stream starts from reset(V_begin, D_begin).
+void for_each_sample(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis,
+                     const std::function<void(std::size_t, const double*, double)>& fn, std::size_t begin = 0,
+                     std::size_t end = SIZE_MAX);
+
+// Returns spec with mean/scale set from the raw features over data (scale = std, 1 for constant features).
+features::FeatureSpec fit_standardisation(features::FeatureSpec spec, const io::Dataset& data, const std::string& axis);
+
+// Sufficient statistics of y = Xβ + b over some samples.
+struct GramStats {
+  double n = 0, sy = 0, syy = 0;
+  Eigen::VectorXd sx, sxy;
+  Eigen::MatrixXd sxx;
+  explicit GramStats(std::size_t p = 0);
+  GramStats& operator+=(const GramStats& o);
+  GramStats& operator-=(const GramStats& o);
+  Eigen::VectorXd mean_x() const { return sx / n; }
+  double mean_y() const { return sy / n; }
+  Eigen::MatrixXd centered_xx() const { return sxx - sx * sx.transpose() / n; }
+  Eigen::VectorXd centered_xy() const { return sxy - sx * (sy / n); }
+  // Σ (y − b − xᵀβ)² over these samples.
+  double sse(const Eigen::VectorXd& beta, double b) const;
+};
+
+// Gram sums of the (standardised) features of `spec` over `blocks` contiguous time blocks of equal length
+// (one block = all data). Computed in chunks, never holding the N×p matrix.
+std::vector<GramStats> block_gram(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis,
+                                  int blocks, const models::ProgressFn& progress = {});
+
+// Features and measured targets as dense arrays (one-step mode), every `stride`-th sample.
+struct Design {
+  Eigen::MatrixXd X;  // rows = samples
+  Eigen::VectorXd y;  // measured position [nm]
+};
+Design build_design(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis,
+                    std::size_t stride = 1);
+
+// Solves (G + ridge·I) β = c robustly (LDLT, falls back to a pseudo-inverse for singular G).
+Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, double ridge);
+
+// The feature spec a fit uses: options["features"] may be a set name ("study", "candidates", "physics"),
+// "lasso" (lasso with time-block CV over the candidates; the λ_1se survivors), or a full spec mapping.
+// Missing = `default_set`. The result is standardised on req.train.
+features::FeatureSpec resolve_features(const models::FitRequest& req, const std::string& default_set);
+
+// Meta common to all kinds: axis, rate, fingerprint and source of the training data, creation time.
+models::ModelMeta make_meta(const models::FitRequest& req);
+std::string utc_now_iso8601();
+
+// Small typed accessors for FitRequest::options with clear errors ("option 'lambda': expected a number").
+double option_num(const YAML::Node& options, const std::string& key, double def);
+int option_int(const YAML::Node& options, const std::string& key, int def);
+std::string option_str(const YAML::Node& options, const std::string& key, const std::string& def);
+
+}  // namespace piezo::training

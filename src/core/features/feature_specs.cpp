@@ -1,0 +1,102 @@
+#include "piezo_compensation/features/feature_specs.h"
+
+#include <stdexcept>
+
+namespace piezo::features {
+
+namespace {
+constexpr double kStudyRateHz = 11.0;  // the study's sample rate: its windows in steps become seconds here
+FeatureDef def(const std::string& type) {
+  FeatureDef f;
+  f.type = type;
+  return f;
+}
+}  // namespace
+
+FeatureSpec study_features() {
+  FeatureSpec s;
+  s.features.push_back(def("voltage"));
+  s.features.push_back(def("voltage_step"));
+  FeatureDef e60 = def("exp_sum");
+  e60.window_s = 60 / kStudyRateHz;
+  e60.decay = 0.95;  // the study gives no α; 0.95 keeps weight over most of the 60 steps
+  s.features.push_back(e60);
+  FeatureDef e300 = def("exp_sum");
+  e300.window_s = 300 / kStudyRateHz;
+  e300.decay = 0.99;
+  s.features.push_back(e300);
+  FeatureDef lag = def("lagged_position");
+  lag.lag_s = 10 / kStudyRateHz;
+  s.features.push_back(lag);
+  FeatureDef mean = def("position_mean");
+  mean.window_s = 10 / kStudyRateHz;
+  s.features.push_back(mean);
+  return s;
+}
+
+FeatureSpec physics_features() {
+  FeatureSpec s;
+  s.features.push_back(def("voltage"));
+  s.features.push_back(def("voltage_step"));
+  for (double w_s : {1.0, 5.0, 30.0, 120.0, 600.0}) {
+    FeatureDef f = def("step_sum");
+    f.window_s = w_s;
+    s.features.push_back(f);
+  }
+  for (double steps : {10.0, 60.0, 300.0})
+    for (double a : {0.9, 0.95, 0.99}) {
+      FeatureDef f = def("exp_sum");
+      f.window_s = steps / kStudyRateHz;
+      f.decay = a;
+      s.features.push_back(f);
+    }
+  for (double r : {2.0, 5.0, 10.0, 20.0, 40.0}) {
+    FeatureDef f = def("play");
+    f.threshold_v = r;
+    s.features.push_back(f);
+  }
+  // Stop thresholds differ from the play ones: stop_r = V − play_r would be exactly collinear.
+  for (double r : {1.0, 3.0, 8.0}) {
+    FeatureDef f = def("stop");
+    f.threshold_v = r;
+    s.features.push_back(f);
+  }
+  // Creep: log-spaced time constants from 10 s to 3.6 h (factor 6), of V and of play outputs.
+  for (double tau : {10.0, 60.0, 360.0, 2160.0, 12960.0}) {
+    FeatureDef f = def("lowpass");
+    f.time_constant_s = tau;
+    s.features.push_back(f);
+    for (double r : {5.0, 20.0}) {
+      FeatureDef p = def("play_lowpass");
+      p.threshold_v = r;
+      p.time_constant_s = tau;
+      s.features.push_back(p);
+    }
+  }
+  return s;
+}
+
+FeatureSpec candidate_features() {
+  FeatureSpec s;
+  for (double steps : {1.0, 2.0, 5.0, 10.0, 20.0}) {
+    FeatureDef f = def("lagged_position");
+    f.lag_s = steps / kStudyRateHz;
+    s.features.push_back(f);
+  }
+  FeatureDef mean = def("position_mean");
+  mean.window_s = 10 / kStudyRateHz;
+  s.features.push_back(mean);
+  for (const auto& f : physics_features().features) s.features.push_back(f);
+  return s;
+}
+
+FeatureSpec named_features(const std::string& name) {
+  if (name == "study") return study_features();
+  if (name == "candidates") return candidate_features();
+  if (name == "physics") return physics_features();
+  throw std::runtime_error("unknown feature set '" + name + "' (known: study, candidates, physics)");
+}
+
+std::vector<std::string> feature_set_names() { return {"study", "candidates", "physics"}; }
+
+}  // namespace piezo::features

@@ -1,0 +1,96 @@
+#include "piezo_compensation/models/creep_models.h"
+
+#include <cmath>
+#include <stdexcept>
+
+namespace piezo::models {
+
+std::string creep_kind_name(CreepKind k) {
+  switch (k) {
+    case CreepKind::kNone: return "pi";
+    case CreepKind::kLog: return "pi_creep_log";
+    case CreepKind::kLti: return "pi_creep_lti";
+    case CreepKind::kFractional: return "pi_creep_fractional";
+  }
+  return "pi";
+}
+
+CreepKind creep_kind_from_name(const std::string& kind) {
+  if (kind == "pi") return CreepKind::kNone;
+  if (kind == "pi_creep_log") return CreepKind::kLog;
+  if (kind == "pi_creep_lti") return CreepKind::kLti;
+  if (kind == "pi_creep_fractional") return CreepKind::kFractional;
+  throw std::runtime_error("not a PI kind: '" + kind + "'");
+}
+
+void CreepParams::basis(std::vector<double>& taus, std::vector<std::vector<double>>& B) const {
+  taus.clear();
+  B.clear();
+  switch (kind) {
+    case CreepKind::kNone: return;
+    case CreepKind::kLog: {
+      if (!(t1_s > 0) || decades < 1 || modes_per_decade < 1) throw std::runtime_error("log creep: bad t1_s/decades/modes");
+      const int J = decades * modes_per_decade;
+      for (int j = 0; j < J; ++j) taus.push_back(t1_s * std::pow(10.0, double(j) / modes_per_decade));
+      B.assign(1, std::vector<double>(J, std::log(10.0) / modes_per_decade));
+      return;
+    }
+    case CreepKind::kFractional: {
+      if (!(alpha > 0 && alpha < 1)) throw std::runtime_error("fractional creep: alpha must be in (0, 1)");
+      if (!(tau_min_s > 0 && tau_max_s > tau_min_s) || modes_per_decade < 1)
+        throw std::runtime_error("fractional creep: need 0 < tau_min_s < tau_max_s");
+      const int J = static_cast<int>(std::round(std::log10(tau_max_s / tau_min_s) * modes_per_decade)) + 1;
+      const double dln = std::log(10.0) / modes_per_decade;
+      std::vector<double> row;
+      for (int j = 0; j < J; ++j) {
+        const double tau = tau_min_s * std::pow(10.0, double(j) / modes_per_decade);
+        taus.push_back(tau);
+        row.push_back(std::sin(M_PI * alpha) / M_PI * std::pow(tau, alpha) * dln);
+      }
+      B.push_back(row);
+      return;
+    }
+    case CreepKind::kLti: {
+      taus = taus_s;
+      for (std::size_t j = 0; j < taus.size(); ++j) {
+        if (!(taus[j] > 0)) throw std::runtime_error("lti creep: time constants must be > 0");
+        std::vector<double> row(taus.size(), 0.0);
+        row[j] = 1.0;
+        B.push_back(row);
+      }
+      return;
+    }
+  }
+}
+
+std::size_t CreepParams::num_coefficients() const {
+  switch (kind) {
+    case CreepKind::kNone: return 0;
+    case CreepKind::kLog:
+    case CreepKind::kFractional: return 1;
+    case CreepKind::kLti: return taus_s.size();
+  }
+  return 0;
+}
+
+void CreepParams::set_coefficients(const std::vector<double>& theta) {
+  if (theta.size() != num_coefficients()) throw std::runtime_error("creep: wrong number of coefficients");
+  if (kind == CreepKind::kLog) gamma_nm_per_v = theta[0];
+  if (kind == CreepKind::kFractional) b_nm_per_v = theta[0];
+  if (kind == CreepKind::kLti) gains_nm_per_v = theta;
+}
+
+void CreepParams::modes(std::vector<double>& taus, std::vector<double>& gains) const {
+  std::vector<std::vector<double>> B;
+  basis(taus, B);
+  gains.assign(taus.size(), 0.0);
+  std::vector<double> theta;
+  if (kind == CreepKind::kLog) theta = {gamma_nm_per_v};
+  if (kind == CreepKind::kFractional) theta = {b_nm_per_v};
+  if (kind == CreepKind::kLti) theta = gains_nm_per_v;
+  if (theta.size() != B.size()) throw std::runtime_error("creep: gains and time constants differ in number");
+  for (std::size_t k = 0; k < B.size(); ++k)
+    for (std::size_t j = 0; j < taus.size(); ++j) gains[j] += theta[k] * B[k][j];
+}
+
+}  // namespace piezo::models

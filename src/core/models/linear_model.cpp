@@ -1,0 +1,109 @@
+#include "piezo_compensation/models/linear_model.h"
+
+#include <cmath>
+#include <stdexcept>
+
+#include "piezo_compensation/models/c_export.h"
+#include "piezo_compensation/models/model_file.h"
+#include "piezo_compensation/training/fit_common.h"
+#include "piezo_compensation/training/lasso.h"
+
+namespace piezo::models {
+
+LinearModel::LinearModel(features::FeatureSpec spec, double sample_rate_hz, Eigen::VectorXd weights, double bias_nm,
+                         std::string method)
+    : stream_(spec, sample_rate_hz), w_(std::move(weights)), b_(bias_nm), method_(std::move(method)),
+      rate_hz_(sample_rate_hz) {
+  if (static_cast<std::size_t>(w_.size()) != stream_.size())
+    throw std::runtime_error("linear model: " + std::to_string(w_.size()) + " weights for " +
+                             std::to_string(stream_.size()) + " features");
+  if (!w_.allFinite() || !std::isfinite(b_)) throw std::runtime_error("linear model: non-finite weights");
+  meta.sample_rate_hz = sample_rate_hz;
+}
+
+double LinearModel::predict(const ModelInput& in) const {
+  const std::size_t n = stream_.size();
+  double buf[64];
+  std::vector<double> big;
+  double* x = buf;
+  if (n > 64) {
+    big.resize(n);
+    x = big.data();
+  }
+  stream_.compute(in, x);
+  double y = b_;
+  for (std::size_t j = 0; j < n; ++j) y += w_[j] * x[j];
+  return y;
+}
+
+bool LinearModel::is_affine_in_voltage() const {
+  for (std::size_t j = 0; j < stream_.size(); ++j) {
+    const std::string& t = stream_.spec().features[j].type;
+    if ((t == "play" || t == "stop" || t == "play_lowpass") && w_[j] != 0) return false;
+  }
+  return true;
+}
+
+YAML::Node LinearModel::to_yaml() const {
+  YAML::Node n;
+  n["method"] = method_;
+  n["features"] = stream_.spec().to_yaml();
+  n["bias_nm"] = b_;
+  n["weights"] = yaml_list(std::vector<double>(w_.data(), w_.data() + w_.size()));
+  YAML::Node names(YAML::NodeType::Sequence);
+  for (const auto& f : stream_.spec().features) names.push_back(f.name());
+  n["feature_names"] = names;  // informative only
+  return n;
+}
+
+ModelPtr LinearModel::load(const YAML::Node& node) {
+  const double rate = yaml_number(node, "sample_rate_hz");
+  if (!node["features"]) throw std::runtime_error("model.features: missing key");
+  features::FeatureSpec spec;
+  try {
+    spec = features::FeatureSpec::from_yaml(node["features"]);
+  } catch (const std::exception& e) {
+    throw std::runtime_error(std::string("model.features.") + e.what());
+  }
+  const auto w = yaml_numbers(node, "weights", static_cast<long>(spec.size()));
+  const double b = yaml_number(node, "bias_nm");
+  const std::string method = node["method"] ? yaml_string(node, "method") : "ols";
+  auto m = std::make_unique<LinearModel>(spec, rate, Eigen::Map<const Eigen::VectorXd>(w.data(), w.size()), b, method);
+  return m;
+}
+
+ModelPtr LinearModel::fit(const FitRequest& req) {
+  using namespace training;
+  if (!req.train) throw std::runtime_error("linear fit: no training data");
+  const std::string method = option_str(req.options, "method", "ols");
+  if (method != "ols" && method != "ridge" && method != "lasso")
+    throw std::runtime_error("option 'method': expected ols, ridge or lasso, got '" + method + "'");
+  const features::FeatureSpec spec = resolve_features(req, "study");
+  const int folds = method == "lasso" ? std::max(2, option_int(req.options, "folds", 5)) : 1;
+  const auto blocks = block_gram(spec, *req.train, req.axis, folds, req.progress);
+  GramStats all = blocks[0];
+  for (std::size_t k = 1; k < blocks.size(); ++k) all += blocks[k];
+  Eigen::VectorXd beta;
+  if (method == "lasso") {
+    LassoOptions lo;
+    lo.folds = folds;
+    const LassoPath path = lasso_path_cv(blocks, lo, req.progress);
+    const std::string choice = option_str(req.options, "lasso_choice", "1se");
+    if (choice != "1se" && choice != "min") throw std::runtime_error("option 'lasso_choice': expected 1se or min");
+    beta = path.coefs[choice == "min" ? path.index_min : path.index_1se];
+  } else {
+    // OLS keeps a negligible ridge (relative 1e-10) so exactly collinear candidates stay solvable.
+    const Eigen::MatrixXd G = all.centered_xx();
+    const double rel = method == "ridge" ? option_num(req.options, "ridge_lambda", 1e-3) : 1e-10;
+    beta = solve_normal(G, all.centered_xy(), rel * all.n);
+  }
+  const double b = all.mean_y() - all.mean_x().dot(beta);
+  auto m = std::make_unique<LinearModel>(spec, req.train->sample_rate_hz(), beta, b, method);
+  m->meta = make_meta(req);
+  return m;
+}
+
+PIEZO_REGISTER_MODEL_KIND(ModelKind{"linear", "linear regression on causal features (OLS / ridge / lasso)",
+                                    &LinearModel::load, &LinearModel::fit, &export_c99_linear});
+
+}  // namespace piezo::models

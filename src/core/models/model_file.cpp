@@ -1,0 +1,186 @@
+#include "piezo_compensation/models/model_file.h"
+
+#include <cmath>
+#include <fstream>
+#include <sstream>
+
+#include "piezo_compensation/models/registry.h"
+
+namespace piezo::models {
+
+namespace {
+std::string scalar_of(const YAML::Node& node, const std::string& key) {
+  const YAML::Node v = node[key];
+  if (!v) throw std::runtime_error("model." + key + ": missing key");
+  if (!v.IsScalar()) throw std::runtime_error("model." + key + ": expected a scalar");
+  return v.Scalar();
+}
+}  // namespace
+
+double yaml_number(const YAML::Node& node, const std::string& key) {
+  const std::string s = scalar_of(node, key);
+  char* end = nullptr;
+  const double v = std::strtod(s.c_str(), &end);
+  if (s.empty() || *end != '\0' || !std::isfinite(v))
+    throw std::runtime_error("model." + key + ": expected a finite number, got '" + s + "'");
+  return v;
+}
+
+int yaml_int(const YAML::Node& node, const std::string& key) {
+  const std::string s = scalar_of(node, key);
+  char* end = nullptr;
+  const long v = std::strtol(s.c_str(), &end, 10);
+  if (s.empty() || *end != '\0') throw std::runtime_error("model." + key + ": expected an integer, got '" + s + "'");
+  return static_cast<int>(v);
+}
+
+std::string yaml_string(const YAML::Node& node, const std::string& key) { return scalar_of(node, key); }
+
+std::vector<double> yaml_numbers(const YAML::Node& node, const std::string& key, long expected) {
+  const YAML::Node v = node[key];
+  if (!v) throw std::runtime_error("model." + key + ": missing key");
+  if (!v.IsSequence()) throw std::runtime_error("model." + key + ": expected a list of numbers");
+  std::vector<double> out;
+  for (std::size_t i = 0; i < v.size(); ++i) {
+    const std::string s = v[i].IsScalar() ? v[i].Scalar() : "";
+    char* end = nullptr;
+    const double x = std::strtod(s.c_str(), &end);
+    if (s.empty() || *end != '\0' || !std::isfinite(x))
+      throw std::runtime_error("model." + key + "[" + std::to_string(i) + "]: expected a finite number");
+    out.push_back(x);
+  }
+  if (expected >= 0 && static_cast<long>(out.size()) != expected)
+    throw std::runtime_error("model." + key + ": expected " + std::to_string(expected) + " entries, got " +
+                             std::to_string(out.size()));
+  return out;
+}
+
+YAML::Node yaml_list(const std::vector<double>& v) {
+  YAML::Node n(YAML::NodeType::Sequence);
+  for (double x : v) n.push_back(x);
+  n.SetStyle(YAML::EmitterStyle::Flow);
+  return n;
+}
+
+YAML::Node model_to_file_yaml(const Model& m) {
+  YAML::Node root;
+  root["format_version"] = kModelFormatVersion;
+  root["kind"] = m.kind();
+  root["axis"] = m.meta.axis;
+  root["sample_rate_hz"] = m.meta.sample_rate_hz;
+  root["created_utc"] = m.meta.created_utc;
+  root["training"]["fingerprint"] = m.meta.training_fingerprint;
+  root["training"]["source"] = m.meta.training_source;
+  YAML::Node val(YAML::NodeType::Map);
+  for (const auto& [k, v] : m.meta.validation) val[k] = v;
+  root["validation"] = val;
+  root["num_parameters"] = static_cast<unsigned long>(m.num_parameters());
+  root["model"] = m.to_yaml();
+  return root;
+}
+
+ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) {
+  try {
+    if (!root || !root.IsMap()) throw std::runtime_error("expected a YAML mapping at the top level");
+    auto top_err = [&](const std::string& key, const std::string& what) {
+      return std::runtime_error(key + ": " + what);
+    };
+    if (!root["format_version"]) throw top_err("format_version", "missing key");
+    int version = 0;
+    try {
+      version = root["format_version"].as<int>();
+    } catch (const YAML::Exception&) {
+      throw top_err("format_version", "expected an integer");
+    }
+    if (version > kModelFormatVersion)
+      throw top_err("format_version", std::to_string(version) + " is newer than this program reads (" +
+                                          std::to_string(kModelFormatVersion) + "); update piezo_compensation");
+    if (version < 1) throw top_err("format_version", "must be >= 1");
+    for (const char* k : {"kind", "axis", "sample_rate_hz", "model"})
+      if (!root[k]) throw top_err(k, "missing key");
+    if (!root["kind"].IsScalar()) throw top_err("kind", "expected a string");
+    if (!root["axis"].IsScalar()) throw top_err("axis", "expected a string");
+    const std::string kind = root["kind"].Scalar();
+    const std::string axis = root["axis"].Scalar();
+    if (axis != "a" && axis != "b" && axis != "c") throw top_err("axis", "expected a, b or c, got '" + axis + "'");
+    double rate = 0;
+    try {
+      rate = root["sample_rate_hz"].as<double>();
+    } catch (const YAML::Exception&) {
+      throw top_err("sample_rate_hz", "expected a number");
+    }
+    if (!(rate > 0) || !std::isfinite(rate)) throw top_err("sample_rate_hz", "must be > 0");
+    if (!root["model"].IsMap()) throw top_err("model", "expected a mapping");
+    const ModelKind& mk = model_kind(kind);  // throws listing known kinds
+    if (!mk.load) throw top_err("kind", "'" + kind + "' cannot be loaded");
+    YAML::Node node = YAML::Clone(root["model"]);
+    if (!node["sample_rate_hz"]) node["sample_rate_hz"] = rate;
+    if (!node["axis"]) node["axis"] = axis;
+    if (!node["kind"]) node["kind"] = kind;
+    ModelPtr m = mk.load(node);
+    if (!m) throw std::runtime_error("kind '" + kind + "' loader returned nothing");
+    if (m->kind() != kind) throw top_err("kind", "'" + kind + "' but the model node describes '" + m->kind() + "'");
+    m->meta.axis = axis;
+    m->meta.sample_rate_hz = rate;
+    if (root["created_utc"] && root["created_utc"].IsScalar()) m->meta.created_utc = root["created_utc"].Scalar();
+    if (const YAML::Node t = root["training"]) {
+      if (!t.IsMap()) throw top_err("training", "expected a mapping");
+      if (t["fingerprint"]) m->meta.training_fingerprint = t["fingerprint"].as<std::string>();
+      if (t["source"]) m->meta.training_source = t["source"].as<std::string>();
+    }
+    if (const YAML::Node v = root["validation"]) {
+      if (!v.IsMap()) throw top_err("validation", "expected a mapping");
+      for (const auto& kv : v) {
+        try {
+          m->meta.validation[kv.first.as<std::string>()] = kv.second.as<double>();
+        } catch (const YAML::Exception&) {
+          throw top_err("validation." + kv.first.as<std::string>(), "expected a number");
+        }
+      }
+    }
+    return m;
+  } catch (const ModelFileError&) {
+    throw;
+  } catch (const std::exception& e) {
+    throw ModelFileError(where + ": " + e.what());
+  }
+}
+
+void save_model(const std::string& path, const Model& model) {
+  YAML::Emitter out;
+  out.SetDoublePrecision(17);
+  out << model_to_file_yaml(model);
+  std::ofstream f(path);
+  if (!f) throw ModelFileError(path + ": cannot open for writing");
+  f << "# piezo_compensation model file (docs/models.md)\n" << out.c_str() << "\n";
+  if (!f) throw ModelFileError(path + ": write failed");
+}
+
+ModelPtr load_model(const std::string& path) {
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(path);
+  } catch (const YAML::BadFile&) {
+    throw ModelFileError(path + ": cannot open");
+  } catch (const YAML::Exception& e) {
+    throw ModelFileError(path + ": not valid YAML: " + e.what());
+  }
+  return model_from_file_yaml(root, path);
+}
+
+void check_model_matches_data(const Model& m, const io::Dataset& data, const std::string& where) {
+  if (!data.has_axis(m.meta.axis))
+    throw ModelFileError(where + ": model is for axis '" + m.meta.axis + "' but " +
+                         (data.source.empty() ? std::string("the data") : data.source) + " has no such axis");
+  const double rate = data.sample_rate_hz();
+  if (std::abs(rate - m.meta.sample_rate_hz) > 0.01 * m.meta.sample_rate_hz) {
+    std::ostringstream os;
+    os << where << ": sample_rate_hz " << m.meta.sample_rate_hz << " Hz does not match the data's " << rate << " Hz ("
+       << (data.source.empty() ? std::string("data") : data.source) << ")";
+    throw ModelFileError(os.str());
+  }
+  for (const auto& a : m.aux_inputs())
+    if (!data.find_aux(a)) throw ModelFileError(where + ": model reads aux signal '" + a + "' missing in the data");
+}
+
+}  // namespace piezo::models

@@ -1,0 +1,487 @@
+#include "piezo_compensation/models/pi_model.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+
+#include "piezo_compensation/models/c_export.h"
+#include "piezo_compensation/models/model_file.h"
+#include "piezo_compensation/training/fit_common.h"
+
+namespace piezo::models {
+
+namespace {
+inline double play(double v, double r, double prev) { return std::max(v - r, std::min(v + r, prev)); }
+}  // namespace
+
+PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights, double bias_nm,
+                           CreepParams creep, double sample_rate_hz)
+    : r_(std::move(thresholds_v)), w_(std::move(weights)), b_(bias_nm), creep_(std::move(creep)), rate_hz_(sample_rate_hz) {
+  if (r_.empty()) throw std::runtime_error("PI model: no play operators");
+  if (r_.size() != w_.size())
+    throw std::runtime_error("PI model: " + std::to_string(w_.size()) + " weights for " + std::to_string(r_.size()) +
+                             " thresholds");
+  for (std::size_t i = 0; i < r_.size(); ++i) {
+    if (!(r_[i] >= 0) || !std::isfinite(r_[i])) throw std::runtime_error("PI model: thresholds must be >= 0");
+    if (i > 0 && !(r_[i] > r_[i - 1])) throw std::runtime_error("PI model: thresholds must increase");
+    if (!std::isfinite(w_[i])) throw std::runtime_error("PI model: non-finite weight");
+  }
+  if (!std::isfinite(b_)) throw std::runtime_error("PI model: non-finite bias");
+  if (!(rate_hz_ > 0)) throw std::runtime_error("PI model: sample rate must be > 0");
+  creep_.modes(taus_, gains_);
+  for (double t : taus_) poles_.push_back(std::exp(-1.0 / (rate_hz_ * t)));
+  meta.sample_rate_hz = rate_hz_;
+  reset(0.0, 0.0);
+}
+
+void PiCreepModel::reset(double voltage_v, double /*position_nm*/) {
+  p_.assign(r_.size(), voltage_v);
+  l_.assign(taus_.size(), voltage_v);
+}
+
+double PiCreepModel::predict_v(double v) const {
+  double y = b_;
+  for (std::size_t i = 0; i < r_.size(); ++i) y += w_[i] * play(v, r_[i], p_[i]);
+  for (std::size_t j = 0; j < taus_.size(); ++j) y += gains_[j] * (poles_[j] * l_[j] + (1 - poles_[j]) * v);
+  return y;
+}
+
+void PiCreepModel::commit(const ModelInput& in, double) {
+  const double v = in.voltage_v;
+  for (std::size_t i = 0; i < r_.size(); ++i) p_[i] = play(v, r_[i], p_[i]);
+  for (std::size_t j = 0; j < taus_.size(); ++j) l_[j] = poles_[j] * l_[j] + (1 - poles_[j]) * v;
+}
+
+double PiCreepModel::inverse(double target) const {
+  // predict_v is piecewise linear with kinks at p_i ± r_i; walk the sorted kinks.
+  std::vector<double> k;
+  for (std::size_t i = 0; i < r_.size(); ++i) {
+    k.push_back(p_[i] - r_[i]);
+    if (r_[i] > 0) k.push_back(p_[i] + r_[i]);
+  }
+  std::sort(k.begin(), k.end());
+  double slope_out = 0;
+  for (double w : w_) slope_out += w;
+  for (std::size_t j = 0; j < taus_.size(); ++j) slope_out += gains_[j] * (1 - poles_[j]);
+  const double f0 = predict_v(k.front());
+  if (target <= f0) return slope_out > 0 ? k.front() + (target - f0) / slope_out : k.front();
+  double x_prev = k.front(), f_prev = f0;
+  for (std::size_t n = 1; n < k.size(); ++n) {
+    const double f = predict_v(k[n]);
+    if (target <= f && f > f_prev) return x_prev + (target - f_prev) * (k[n] - x_prev) / (f - f_prev);
+    if (target <= f) return 0.5 * (x_prev + k[n]);
+    x_prev = k[n];
+    f_prev = f;
+  }
+  return slope_out > 0 ? x_prev + (target - f_prev) / slope_out : x_prev;
+}
+
+std::size_t PiCreepModel::num_parameters() const {
+  std::size_t n = w_.size() + 1;
+  if (creep_.kind == CreepKind::kLti) n += 2 * creep_.taus_s.size();
+  if (creep_.kind == CreepKind::kLog || creep_.kind == CreepKind::kFractional) n += 2;
+  return n;
+}
+
+YAML::Node PiCreepModel::to_yaml() const {
+  YAML::Node n;
+  n["thresholds_v"] = yaml_list(r_);
+  n["weights_nm_per_v"] = yaml_list(w_);
+  n["bias_nm"] = b_;
+  if (creep_.kind != CreepKind::kNone) {
+    YAML::Node c;
+    switch (creep_.kind) {
+      case CreepKind::kLog:
+        c["gamma_nm_per_v"] = creep_.gamma_nm_per_v;
+        c["t1_s"] = creep_.t1_s;
+        c["decades"] = creep_.decades;
+        c["modes_per_decade"] = creep_.modes_per_decade;
+        break;
+      case CreepKind::kFractional:
+        c["alpha"] = creep_.alpha;
+        c["b_nm_per_v"] = creep_.b_nm_per_v;
+        c["tau_min_s"] = creep_.tau_min_s;
+        c["tau_max_s"] = creep_.tau_max_s;
+        c["modes_per_decade"] = creep_.modes_per_decade;
+        break;
+      case CreepKind::kLti: {
+        c["taus_s"] = yaml_list(creep_.taus_s);
+        c["gains_nm_per_v"] = yaml_list(creep_.gains_nm_per_v);
+        // The seed's spring–damper form, for reading: k_j = 1/g_j [V/nm], c_j = τ_j·k_j [V·s/nm].
+        std::vector<double> k, cc;
+        for (std::size_t j = 0; j < creep_.taus_s.size(); ++j) {
+          k.push_back(creep_.gains_nm_per_v[j] != 0 ? 1.0 / creep_.gains_nm_per_v[j] : 0.0);
+          cc.push_back(k.back() * creep_.taus_s[j]);
+        }
+        c["k0_v_per_nm"] = w_[0] != 0 ? 1.0 / w_[0] : 0.0;
+        c["k_v_per_nm"] = yaml_list(k);
+        c["c_v_s_per_nm"] = yaml_list(cc);
+        break;
+      }
+      default: break;
+    }
+    n["creep"] = c;
+  }
+  return n;
+}
+
+ModelPtr PiCreepModel::load(const YAML::Node& node) {
+  const double rate = yaml_number(node, "sample_rate_hz");
+  const auto r = yaml_numbers(node, "thresholds_v");
+  const auto w = yaml_numbers(node, "weights_nm_per_v", static_cast<long>(r.size()));
+  const double b = yaml_number(node, "bias_nm");
+  CreepParams cp;
+  const CreepKind expected = node["kind"] ? creep_kind_from_name(yaml_string(node, "kind")) : CreepKind::kNone;
+  if (node["creep"]) {
+    const YAML::Node c = node["creep"];
+    if (!c.IsMap()) throw std::runtime_error("model.creep: expected a mapping");
+    try {
+      if (c["gamma_nm_per_v"]) {
+        cp.kind = CreepKind::kLog;
+        cp.gamma_nm_per_v = yaml_number(c, "gamma_nm_per_v");
+        cp.t1_s = yaml_number(c, "t1_s");
+        cp.decades = yaml_int(c, "decades");
+        cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+      } else if (c["alpha"]) {
+        cp.kind = CreepKind::kFractional;
+        cp.alpha = yaml_number(c, "alpha");
+        cp.b_nm_per_v = yaml_number(c, "b_nm_per_v");
+        cp.tau_min_s = yaml_number(c, "tau_min_s");
+        cp.tau_max_s = yaml_number(c, "tau_max_s");
+        cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+      } else if (c["taus_s"]) {
+        cp.kind = CreepKind::kLti;
+        cp.taus_s = yaml_numbers(c, "taus_s");
+        cp.gains_nm_per_v = yaml_numbers(c, "gains_nm_per_v", static_cast<long>(cp.taus_s.size()));
+      } else {
+        throw std::runtime_error("model.creep: expected gamma_nm_per_v (log), alpha (fractional) or taus_s (lti)");
+      }
+    } catch (const std::runtime_error& e) {
+      std::string msg = e.what();
+      if (msg.rfind("model.", 0) == 0) msg = "model.creep." + msg.substr(6);
+      throw std::runtime_error(msg);
+    }
+  }
+  if (node["kind"] && cp.kind != expected)
+    throw std::runtime_error("model.creep: kind " + creep_kind_name(expected) + " needs " +
+                             (expected == CreepKind::kNone      ? std::string("no creep key")
+                              : expected == CreepKind::kLog     ? std::string("gamma_nm_per_v, t1_s, ...")
+                              : expected == CreepKind::kLti     ? std::string("taus_s, gains_nm_per_v")
+                                                                : std::string("alpha, b_nm_per_v, ...")));
+  return std::make_unique<PiCreepModel>(r, w, b, cp, rate);
+}
+
+// ---- fitting -----------------------------------------------------------------------------------
+
+Eigen::VectorXd nnls_gram(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, const std::vector<bool>& constrained) {
+  const Eigen::Index p = G.rows();
+  std::vector<bool> free(p);
+  for (Eigen::Index j = 0; j < p; ++j) free[j] = !constrained[j];
+  auto solve_free = [&](Eigen::VectorXd& z) {
+    std::vector<Eigen::Index> idx;
+    for (Eigen::Index j = 0; j < p; ++j)
+      if (free[j]) idx.push_back(j);
+    z = Eigen::VectorXd::Zero(p);
+    if (idx.empty()) return;
+    Eigen::MatrixXd A(idx.size(), idx.size());
+    Eigen::VectorXd b(idx.size());
+    for (std::size_t a = 0; a < idx.size(); ++a) {
+      b(a) = c(idx[a]);
+      for (std::size_t d = 0; d < idx.size(); ++d) A(a, d) = G(idx[a], idx[d]);
+    }
+    const Eigen::VectorXd s = training::solve_normal(A, b, 1e-12 * A.diagonal().cwiseAbs().maxCoeff());
+    for (std::size_t a = 0; a < idx.size(); ++a) z(idx[a]) = s(a);
+  };
+  Eigen::VectorXd x;
+  solve_free(x);
+  // Start feasible: unconstrained ones solved, constrained at 0.
+  const double tol = 1e-10 * (1 + c.cwiseAbs().maxCoeff());
+  for (int outer = 0; outer < 10 * p + 10; ++outer) {
+    const Eigen::VectorXd grad = c - G * x;
+    Eigen::Index best = -1;
+    double best_g = tol;
+    for (Eigen::Index j = 0; j < p; ++j)
+      if (!free[j] && grad(j) > best_g) best_g = grad(j), best = j;
+    if (best < 0) break;
+    free[best] = true;
+    for (int inner = 0; inner < 10 * p + 10; ++inner) {
+      Eigen::VectorXd z;
+      solve_free(z);
+      double step = 1.0;
+      bool ok = true;
+      for (Eigen::Index j = 0; j < p; ++j)
+        if (constrained[j] && free[j] && z(j) <= 0) {
+          ok = false;
+          const double den = x(j) - z(j);
+          if (den > 0) step = std::min(step, x(j) / den);
+        }
+      if (ok) {
+        x = z;
+        break;
+      }
+      x += step * (z - x);
+      for (Eigen::Index j = 0; j < p; ++j)
+        if (constrained[j] && free[j] && x(j) <= 1e-15) {
+          free[j] = false;
+          x(j) = 0;
+        }
+    }
+  }
+  return x;
+}
+
+namespace {
+
+struct FitData {
+  const std::vector<double>* v;
+  const std::vector<double>* y;
+  double rate;
+};
+
+struct EvalResult {
+  double sse = INFINITY;
+  std::vector<double> w, theta;
+  double b = 0;
+};
+
+// Streams play outputs and creep basis columns, then solves the constrained least squares.
+EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepParams& cp, double min_w0) {
+  std::vector<double> taus;
+  std::vector<std::vector<double>> B;
+  cp.basis(taus, B);
+  const std::size_t np = r.size(), nm = taus.size(), nk = B.size(), P = np + nk;
+  std::vector<double> a(nm);
+  for (std::size_t j = 0; j < nm; ++j) a[j] = std::exp(-1.0 / (d.rate * taus[j]));
+  const std::vector<double>& V = *d.v;
+  const std::vector<double>& Y = *d.y;
+  std::vector<double> p(np, V[0]), l(nm, V[0]);
+  training::GramStats g(P);
+  constexpr std::size_t kChunk = 2048;
+  Eigen::MatrixXd X(kChunk, P);
+  Eigen::VectorXd yc(kChunk);
+  std::size_t fill = 0;
+  auto flush = [&]() {
+    if (!fill) return;
+    auto Xc = X.topRows(fill);
+    auto yy = yc.head(fill);
+    g.n += double(fill);
+    g.sy += yy.sum();
+    g.syy += yy.squaredNorm();
+    g.sx += Xc.colwise().sum().transpose();
+    g.sxy.noalias() += Xc.transpose() * yy;
+    g.sxx.selfadjointView<Eigen::Lower>().rankUpdate(Xc.transpose());
+    fill = 0;
+  };
+  for (std::size_t t = 0; t < V.size(); ++t) {
+    const double v = V[t];
+    for (std::size_t i = 0; i < np; ++i) {
+      p[i] = play(v, r[i], p[i]);
+      X(fill, i) = p[i];
+    }
+    for (std::size_t j = 0; j < nm; ++j) l[j] = a[j] * l[j] + (1 - a[j]) * v;
+    for (std::size_t k = 0; k < nk; ++k) {
+      double s = 0;
+      for (std::size_t j = 0; j < nm; ++j) s += B[k][j] * l[j];
+      X(fill, np + k) = s;
+    }
+    yc(fill) = Y[t];
+    if (++fill == kChunk) flush();
+  }
+  flush();
+  g.sxx = g.sxx.selfadjointView<Eigen::Lower>();
+  Eigen::MatrixXd G = g.centered_xx();
+  Eigen::VectorXd c = g.centered_xy();
+  c -= min_w0 * G.col(0);  // w_0 = min_w0 + w_0' with w_0' ≥ 0 keeps the inverse well defined
+  std::vector<bool> constrained(P, false);
+  for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
+  Eigen::VectorXd x = nnls_gram(G, c, constrained);
+  x(0) += min_w0;
+  EvalResult res;
+  res.b = g.mean_y() - g.mean_x().dot(x);
+  res.sse = g.sse(x, res.b);
+  res.w.assign(x.data(), x.data() + np);
+  res.theta.assign(x.data() + np, x.data() + P);
+  return res;
+}
+
+// Golden-section minimisation of f on [lo, hi].
+template <class F>
+double golden(F&& f, double lo, double hi, int iters) {
+  const double g = (std::sqrt(5.0) - 1) / 2;
+  double x1 = hi - g * (hi - lo), x2 = lo + g * (hi - lo);
+  double f1 = f(x1), f2 = f(x2);
+  for (int i = 0; i < iters; ++i) {
+    if (f1 < f2) {
+      hi = x2, x2 = x1, f2 = f1;
+      x1 = hi - g * (hi - lo);
+      f1 = f(x1);
+    } else {
+      lo = x1, x1 = x2, f1 = f2;
+      x2 = lo + g * (hi - lo);
+      f2 = f(x2);
+    }
+  }
+  return f1 < f2 ? x1 : x2;
+}
+
+// Grid then golden refinement of a 1-D parameter.
+template <class F>
+double search_1d(F&& f, double lo, double hi, int grid, int iters) {
+  double best = lo, best_f = INFINITY;
+  const double step = (hi - lo) / (grid - 1);
+  for (int i = 0; i < grid; ++i) {
+    const double x = lo + step * i;
+    const double v = f(x);
+    if (v < best_f) best_f = v, best = x;
+  }
+  return golden(f, std::max(lo, best - step), std::min(hi, best + step), iters);
+}
+
+}  // namespace
+
+ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
+  using namespace training;
+  if (!req.train) throw std::runtime_error("PI fit: no training data");
+  const io::AxisSeries& ax = req.train->axis(req.axis);
+  if (ax.voltage_v.size() < 10) throw std::runtime_error("PI fit: need at least 10 samples");
+  FitData d{&ax.voltage_v, &ax.position_nm, req.train->sample_rate_hz()};
+  const YAML::Node& o = req.options;
+
+  std::vector<double> r;
+  if (o && o["thresholds_v"]) {
+    r = yaml_numbers(o, "thresholds_v");
+  } else {
+    const int n = option_int(o, "n_play", 12);
+    if (n < 1 || n > 200) throw std::runtime_error("option 'n_play': expected 1..200");
+    const auto [mn, mx] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
+    const double half_range = std::max(1e-6, 0.5 * (*mx - *mn));
+    for (int i = 0; i < n; ++i) r.push_back(half_range * i / n);
+  }
+  // Smallest allowed initial slope: a fraction of the overall voltage→position slope.
+  double min_w0 = 0;
+  {
+    double mv = 0, my = 0;
+    const std::size_t N = ax.voltage_v.size();
+    for (std::size_t t = 0; t < N; ++t) mv += ax.voltage_v[t], my += ax.position_nm[t];
+    mv /= N, my /= N;
+    double cvy = 0, cvv = 0;
+    for (std::size_t t = 0; t < N; ++t) {
+      cvy += (ax.voltage_v[t] - mv) * (ax.position_nm[t] - my);
+      cvv += (ax.voltage_v[t] - mv) * (ax.voltage_v[t] - mv);
+    }
+    if (cvv > 0 && cvy > 0) min_w0 = option_num(o, "min_slope_fraction", 0.01) * cvy / cvv;
+  }
+
+  CreepParams cp;
+  cp.kind = kind;
+  cp.decades = option_int(o, "decades", 5);
+  cp.modes_per_decade = option_int(o, "modes_per_decade", kind == CreepKind::kFractional ? 2 : 3);
+  cp.tau_min_s = option_num(o, "tau_min_s", 1.0);
+  cp.tau_max_s = option_num(o, "tau_max_s", 1e5);
+  int evals = 0;
+  double total = 1;
+  auto report = [&](const char* what) {
+    ++evals;
+    if (req.progress) req.progress(std::min<double>(evals, total), total, what);
+  };
+  auto sse_of = [&](const CreepParams& c) {
+    report("creep search");
+    return evaluate(d, r, c, min_w0).sse;
+  };
+  switch (kind) {
+    case CreepKind::kNone: break;
+    case CreepKind::kLog:
+      if (o && o["t1_s"]) {
+        cp.t1_s = option_num(o, "t1_s", 1.0);
+      } else {
+        total = 15 + 12;
+        cp.t1_s = std::pow(10.0, search_1d([&](double lg) { CreepParams c = cp; c.t1_s = std::pow(10.0, lg); return sse_of(c); },
+                                           -1.0, 2.5, 15, 12));
+      }
+      break;
+    case CreepKind::kFractional:
+      if (o && o["alpha"]) {
+        cp.alpha = option_num(o, "alpha", 0.5);
+      } else {
+        total = 19 + 12;
+        cp.alpha = search_1d([&](double al) { CreepParams c = cp; c.alpha = al; return sse_of(c); }, 0.03, 0.97, 19, 12);
+      }
+      break;
+    case CreepKind::kLti: {
+      if (o && o["taus_s"]) {
+        cp.taus_s = yaml_numbers(o, "taus_s");
+      } else {
+        const int n = option_int(o, "n_pairs", 2);
+        if (n < 1 || n > 6) throw std::runtime_error("option 'n_pairs': expected 1..6");
+        for (int j = 0; j < n; ++j) cp.taus_s.push_back(std::pow(10.0, 1.0 + 3.0 * (j + 0.5) / n));
+      }
+      cp.gains_nm_per_v.assign(cp.taus_s.size(), 0.0);
+      const int rounds = option_int(o, "search_rounds", 3);
+      const double lo = std::log10(2.0 / d.rate), hi = 5.0;
+      total = double(rounds) * cp.taus_s.size() * (11 + 10);
+      for (int round = 0; round < rounds && !(o && o["taus_s"] && o["fix_taus"]); ++round)
+        for (std::size_t j = 0; j < cp.taus_s.size(); ++j) {
+          auto f = [&](double lg) { CreepParams c = cp; c.taus_s[j] = std::pow(10.0, lg); return sse_of(c); };
+          const double cur = std::log10(cp.taus_s[j]);
+          // First round scans the whole range; later rounds refine around the current value.
+          const double a = round == 0 ? lo : std::max(lo, cur - 0.5), b = round == 0 ? hi : std::min(hi, cur + 0.5);
+          cp.taus_s[j] = std::pow(10.0, search_1d(f, a, b, 11, 10));
+        }
+      std::sort(cp.taus_s.begin(), cp.taus_s.end());
+      break;
+    }
+  }
+  EvalResult best = evaluate(d, r, cp, min_w0);
+  cp.set_coefficients(best.theta);
+  auto m = std::make_unique<PiCreepModel>(r, best.w, best.b, cp, d.rate);
+  m->meta = make_meta(req);
+  return m;
+}
+
+// ---- classical inverse -------------------------------------------------------------------------
+
+PiInverse::PiInverse(const std::vector<double>& r, const std::vector<double>& w, double bias_nm) : b_(bias_nm) {
+  if (r.empty() || r.size() != w.size() || r[0] != 0) throw std::runtime_error("PI inverse: need r_0 = 0 and one weight per threshold");
+  if (!(w[0] > 0)) throw std::runtime_error("PI inverse: w_0 must be > 0 for the inverse to exist");
+  double W_prev = 0, W = 0;
+  for (std::size_t i = 0; i < r.size(); ++i) {
+    if (w[i] < 0) throw std::runtime_error("PI inverse: weights must be >= 0");
+    W_prev = W;
+    W += w[i];
+    double ri = 0;
+    for (std::size_t j = 0; j <= i; ++j) ri += w[j] * (r[i] - r[j]);
+    r_.push_back(ri);
+    w_.push_back(i == 0 ? 1.0 / w[0] : -w[i] / (W * W_prev));
+  }
+  reset(bias_nm);
+}
+
+void PiInverse::reset(double position_nm) { p_.assign(r_.size(), position_nm - b_); }
+
+double PiInverse::step(double target_nm) {
+  const double y = target_nm - b_;
+  double v = 0;
+  for (std::size_t i = 0; i < r_.size(); ++i) {
+    p_[i] = play(y, r_[i], p_[i]);
+    v += w_[i] * p_[i];
+  }
+  return v;
+}
+
+PIEZO_REGISTER_MODEL_KIND(ModelKind{"pi", "Prandtl–Ishlinskii hysteresis (play operators, analytic inverse)",
+                                    &PiCreepModel::load,
+                                    [](const FitRequest& r) { return PiCreepModel::fit(r, CreepKind::kNone); },
+                                    &export_c99_pi});
+PIEZO_REGISTER_MODEL_KIND(ModelKind{"pi_creep_log", "PI hysteresis + logarithmic creep", &PiCreepModel::load,
+                                    [](const FitRequest& r) { return PiCreepModel::fit(r, CreepKind::kLog); },
+                                    &export_c99_pi});
+PIEZO_REGISTER_MODEL_KIND(ModelKind{"pi_creep_lti", "PI hysteresis + LTI creep (n spring–damper pairs)",
+                                    &PiCreepModel::load,
+                                    [](const FitRequest& r) { return PiCreepModel::fit(r, CreepKind::kLti); },
+                                    &export_c99_pi});
+PIEZO_REGISTER_MODEL_KIND(ModelKind{"pi_creep_fractional", "PI hysteresis + fractional-order creep (multi-mode s^-alpha)",
+                                    &PiCreepModel::load,
+                                    [](const FitRequest& r) { return PiCreepModel::fit(r, CreepKind::kFractional); },
+                                    &export_c99_pi});
+
+}  // namespace piezo::models

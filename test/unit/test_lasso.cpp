@@ -1,0 +1,109 @@
+#include <gtest/gtest.h>
+
+#include <random>
+
+#include "piezo_compensation/features/feature_specs.h"
+#include "piezo_compensation/training/lasso.h"
+#include "test_models_data.h"
+
+using namespace piezo;
+using namespace piezo::training;
+
+namespace {
+// Gram sums of rows [begin, end) of a dense design.
+GramStats stats(const Eigen::MatrixXd& X, const Eigen::VectorXd& y, Eigen::Index begin, Eigen::Index end) {
+  GramStats g(X.cols());
+  auto Xb = X.middleRows(begin, end - begin);
+  auto yb = y.segment(begin, end - begin);
+  g.n = double(end - begin);
+  g.sy = yb.sum();
+  g.syy = yb.squaredNorm();
+  g.sx = Xb.colwise().sum().transpose();
+  g.sxy = Xb.transpose() * yb;
+  g.sxx = Xb.transpose() * Xb;
+  return g;
+}
+}  // namespace
+
+TEST(Lasso, SoftThresholdOnOrthogonalDesign) {
+  // With XᵀX = n·I the lasso solution is the soft-thresholded OLS coefficient.
+  const double n = 100;
+  Eigen::MatrixXd G = n * Eigen::MatrixXd::Identity(3, 3);
+  Eigen::VectorXd c(3);
+  c << 250, -30, 80;  // OLS: 2.5, -0.3, 0.8
+  Eigen::VectorXd beta;
+  lasso_cd(G, c, n, 0.5, beta);
+  EXPECT_NEAR(beta(0), 2.0, 1e-12);
+  EXPECT_NEAR(beta(1), 0.0, 1e-12);
+  EXPECT_NEAR(beta(2), 0.3, 1e-12);
+}
+
+TEST(Lasso, RecoversPlantedSparseModelWithTimeBlockCV) {
+  const int N = 20000, p = 30;
+  std::mt19937_64 rng(42);
+  std::normal_distribution<double> g(0, 1);
+  Eigen::MatrixXd X(N, p);
+  for (int i = 0; i < N; ++i)
+    for (int j = 0; j < p; ++j) X(i, j) = g(rng) + (j > 0 ? 0.3 * X(i, j - 1) : 0.0);  // correlated columns
+  Eigen::VectorXd truth = Eigen::VectorXd::Zero(p);
+  truth(2) = 3.0, truth(7) = -2.0, truth(15) = 1.5, truth(22) = 0.8;
+  Eigen::VectorXd y = X * truth + Eigen::VectorXd::Constant(N, 10.0);
+  for (int i = 0; i < N; ++i) y(i) += 0.5 * g(rng);
+  std::vector<GramStats> blocks;
+  for (int k = 0; k < 5; ++k) blocks.push_back(stats(X, y, k * N / 5, (k + 1) * N / 5));
+  const LassoPath path = lasso_path_cv(blocks);
+  ASSERT_EQ(path.lambdas.size(), 60u);
+  EXPECT_GE(path.lambda_1se(), path.lambda_min());
+  const Eigen::VectorXd& b = path.coefs[path.index_1se];
+  for (int j = 0; j < p; ++j) {
+    if (truth(j) != 0) {
+      EXPECT_NEAR(b(j), truth(j), 0.1) << j;
+    } else {
+      EXPECT_EQ(b(j), 0.0) << "spurious feature " << j << " = " << b(j);
+    }
+  }
+  EXPECT_NEAR(path.intercepts[path.index_1se], 10.0, 0.1);
+  EXPECT_NEAR(std::sqrt(path.cv_mse[path.index_min]), 0.5, 0.03);  // CV error reaches the noise level
+  // The path starts empty (λ_max) and densifies.
+  EXPECT_EQ((path.coefs.front().array() != 0).count(), 0);
+}
+
+TEST(Lasso, SelectsPlantedFeaturesFromCandidatesOnStreamedData) {
+  // Positions made from two physics features; lasso on the candidate set must keep them.
+  features::FeatureSpec planted;
+  features::FeatureDef play;
+  play.type = "play";
+  play.threshold_v = 10;
+  features::FeatureDef lp;
+  lp.type = "lowpass";
+  lp.time_constant_s = 60;
+  planted.features = {play, lp};
+  const auto v = testdata::random_walk_v(30000, 7);
+  io::Dataset d;
+  io::AxisSeries& c = d.add_axis("c");
+  for (std::size_t i = 0; i < v.size(); ++i) d.time_s.push_back(i / 11.0);
+  c.voltage_v = v;
+  std::mt19937_64 rng(1);
+  std::normal_distribution<double> noise(0, 5);
+  c.position_nm.assign(v.size(), 0.0);
+  std::vector<double> pos;
+  for_each_sample(planted, d, "c", [&](std::size_t, const double* x, double) { pos.push_back(12 * x[0] + 4 * x[1] + noise(rng)); });
+  c.position_nm = pos;
+  const LassoSelection sel = run_lasso(features::physics_features(), d, "c");
+  const Eigen::VectorXd& b = sel.path.coefs[sel.path.index_1se];
+  int play_idx = -1, lp_idx = -1;
+  for (std::size_t j = 0; j < sel.spec.size(); ++j) {
+    if (sel.spec.features[j].name() == play.name()) play_idx = int(j);
+    if (sel.spec.features[j].name() == lp.name()) lp_idx = int(j);
+  }
+  ASSERT_GE(play_idx, 0);
+  ASSERT_GE(lp_idx, 0);
+  EXPECT_GT(std::abs(b(play_idx)), 0.0);
+  EXPECT_GT(std::abs(b(lp_idx)), 0.0);
+  // The two planted features carry almost all of the weight.
+  const double planted_weight = std::abs(b(play_idx)) + std::abs(b(lp_idx));
+  EXPECT_GT(planted_weight, 0.9 * b.cwiseAbs().sum());
+  const std::string report = lasso_report(sel.spec, sel.path);
+  EXPECT_NE(report.find(play.name()), std::string::npos);
+  EXPECT_NE(report.find("λ_1se"), std::string::npos);
+}
