@@ -9,3 +9,4 @@ target_compile_definitions(measure_predictor_node PRIVATE PIEZO_SOURCE_DIR="${CM
 add_dependencies(measure_predictor_node ${PROJECT_NAME}_generate_messages_cpp)
 set_target_properties(measure_predictor_node PROPERTIES
   RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
+piezo_rostest(test/rostest/predictor_fallback.test test/rostest/predictor_fallback.cpp DEPENDS piezo_predictor)

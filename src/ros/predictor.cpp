@@ -107,6 +107,9 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   s.ideal_line_hold_s = positive(pnh, "ideal_line_hold_s", s.ideal_line_hold_s, true);
   s.tf_period_s = positive(pnh, "tf_period_s", s.tf_period_s, true);
   s.marker_scale = positive(pnh, "marker_scale", s.marker_scale);
+  s.fallback_gain_nm_per_v = param<double>(pnh, "fallback_gain_nm_per_v", s.fallback_gain_nm_per_v);
+  if (!std::isfinite(s.fallback_gain_nm_per_v) || s.fallback_gain_nm_per_v == 0.0)
+    throw std::invalid_argument("~fallback_gain_nm_per_v: must be finite and non-zero");
   s.hardware_id = param<std::string>(pnh, "hardware_id", s.hardware_id);
   s.axis.voltage_min_v = param<double>(pnh, "voltage_min_v", s.axis.voltage_min_v);
   s.axis.voltage_max_v = param<double>(pnh, "voltage_max_v", s.axis.voltage_max_v);
@@ -123,9 +126,21 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
 // ---- PredictorAxis ----------------------------------------------------------------------------------------
 
 PredictorAxis::PredictorAxis(std::string axis, std::string model_name, models::ModelPtr model,
-                             const PredictorSettings& s)
-    : axis_(std::move(axis)), model_name_(std::move(model_name)), s_(s) {
-  const compensation::IdealLine line = line_for(*model, s_);
+                             const PredictorSettings& s, const std::string& model_error)
+    : axis_(std::move(axis)), model_name_(std::move(model_name)), s_(s), model_error_(model_error) {
+  compensation::IdealLine line{s_.fallback_gain_nm_per_v, 0.0};
+  if (model) {
+    try {
+      line = line_for(*model, s_);
+    } catch (const std::exception& e) {
+      model_error_ = model_name_ + ": " + e.what();
+      model.reset();
+    }
+  }
+  if (!model) {
+    model = std::make_unique<UnavailableModel>();
+    if (model_error_.empty()) model_error_ = "no model";
+  }
   comp_ = std::make_unique<compensation::AxisCompensator>(std::move(model), line, s_.axis);
 }
 
@@ -133,6 +148,7 @@ void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model
   const compensation::IdealLine line = line_for(*model, s_);
   comp_->replace_model(std::move(model), line);
   model_name_ = model_name;
+  model_error_.clear();
 }
 
 std::vector<PredictorAxis::Output> PredictorAxis::on_voltage(const AxisVoltage& msg, bool compensate,
@@ -240,6 +256,7 @@ PredictorAxis::Output PredictorAxis::process(const EncoderPosition& msg, double 
   fallback_now_ = !u.ok || c.fallback;
   p.fallback = fallback_now_;
   p.status = !u.ok ? u.status : c.status;
+  if (fallback_now_ && !model_error_.empty()) p.status = "model unavailable: " + model_error_;
   if (fallback_now_) last_status_ = p.status;
 
   // Drift over the horizons for the voltage that will be held next.
@@ -283,14 +300,18 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     auto a = std::make_unique<Axis>();
     const std::string& path = s_.model_files.at(name);
     models::ModelPtr m;
+    std::string error;
     try {
       m = load_model_file(path);
+      if (m->meta.axis != name)
+        ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
     } catch (const std::exception& e) {
-      throw std::runtime_error("~model_file" + (s_.model_files.size() > 1 ? "/" + name : std::string()) + ": " + e.what());
+      // Keep the axis movable: uncorrected commands with bounded steps, reported in diagnostics.
+      error = e.what();
+      ROS_ERROR("axis %s: ~model_file/%s: %s; running uncorrected (fallback) until ~reload_model succeeds",
+                name.c_str(), name.c_str(), e.what());
     }
-    if (m->meta.axis != name)
-      ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
-    a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_);
+    a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_, error);
     const auto& line = a->logic->compensator().ideal_line();
     ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
              a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
@@ -522,7 +543,9 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   std::vector<double> t(a.processing_us.begin(), a.processing_us.end());
   std::sort(t.begin(), t.end());
   const double p99 = t.empty() ? 0.0 : t[std::min(t.size() - 1, static_cast<std::size_t>(0.99 * t.size()))];
-  if (!l.compensator().started())
+  if (!l.model_error().empty())
+    st.summary(diagnostic_msgs::DiagnosticStatus::ERROR, "model unavailable, uncorrected commands: " + l.model_error());
+  else if (!l.compensator().started())
     st.summary(diagnostic_msgs::DiagnosticStatus::WARN, "no encoder sample yet");
   else if (l.fallback_now())
     st.summary(diagnostic_msgs::DiagnosticStatus::WARN, "fallback to uncorrected command: " + l.last_status());

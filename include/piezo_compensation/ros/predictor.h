@@ -41,6 +41,20 @@ using piezo_compensation::IntendedMotion;
 using piezo_compensation::Prediction;
 using piezo_compensation::VoltageCommand;
 
+// Stand-in when a model file cannot be loaded: every prediction is NaN, so the axis runs on the uncorrected
+// command with bounded steps and says why, instead of the node refusing to move the piezo.
+class UnavailableModel : public models::Model {
+ public:
+  std::string kind() const override { return "unavailable"; }
+  void reset(double, double) override {}
+  double predict(const models::ModelInput&) const override { return std::nan(""); }
+  void commit(const models::ModelInput&, double) override {}
+  models::ModelPtr clone() const override { return std::make_unique<UnavailableModel>(*this); }
+  bool uses_position_history() const override { return false; }
+  YAML::Node to_yaml() const override { return YAML::Node(); }
+  std::size_t num_parameters() const override { return 0; }
+};
+
 // Loads a model file (models/model_file.h) and checks it can be driven by the compensator.
 // Throws std::runtime_error with one line naming the file.
 models::ModelPtr load_model_file(const std::string& path);
@@ -58,6 +72,7 @@ struct PredictorSettings {
   double ideal_line_hold_s = 1800.0;
   double tf_period_s = 0.05;         // ROS time between tf/marker updates
   double marker_scale = 1e4;         // markers drawn this many times larger than life (1 µm → 1 cm)
+  double fallback_gain_nm_per_v = 12.5;  // ideal line when no model is usable (position intents, display)
   std::string hardware_id = "piezo_predictor";
   compensation::AxisCompensatorConfig axis;
 };
@@ -68,7 +83,9 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh);
 // One axis at message level, without a NodeHandle: the node, the replay measurement and the tests drive it.
 class PredictorAxis {
  public:
-  PredictorAxis(std::string axis, std::string model_name, models::ModelPtr model, const PredictorSettings& s);
+  // `model` null: run without a model (fallback), with `model_error` as the reason.
+  PredictorAxis(std::string axis, std::string model_name, models::ModelPtr model, const PredictorSettings& s,
+                const std::string& model_error = "");
 
   struct Output;
   // Voltage and encoder of one sample carry the same sequence number; a sample is processed when both are
@@ -90,6 +107,7 @@ class PredictorAxis {
 
   void set_forecast(const compensation::DriftForecast& f);
   void reload(const std::string& model_name, models::ModelPtr model);
+  const std::string& model_error() const { return model_error_; }
 
   const std::string& axis() const { return axis_; }
   const compensation::AxisCompensator& compensator() const { return *comp_; }
@@ -121,7 +139,7 @@ class PredictorAxis {
   compensation::DriftForecast forecast_;
   ros::Time last_forecast_;
   bool fallback_now_ = false;
-  std::string last_status_;
+  std::string last_status_, model_error_;
   std::size_t encoder_messages_ = 0, rejected_ = 0;
 };
 

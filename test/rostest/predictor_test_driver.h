@@ -1,0 +1,89 @@
+// A fake driver for the predictor rostests: publishes voltage/encoder pairs (same sequence number) of a plain
+// 14 nm/V plant, applies the last command it received, and records predictions and commands.
+#pragma once
+
+#include <ros/ros.h>
+
+#include <cmath>
+#include <vector>
+
+#include "piezo_compensation/AxisVoltage.h"
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/IntendedMotion.h"
+#include "piezo_compensation/Prediction.h"
+#include "piezo_compensation/VoltageCommand.h"
+
+namespace piezo::test {
+
+class FakeDriver {
+ public:
+  explicit FakeDriver(const std::string& ns = "/mm1/c") : nh_() {
+    voltage_ = nh_.advertise<piezo_compensation::AxisVoltage>(ns + "/voltage", 10);
+    encoder_ = nh_.advertise<piezo_compensation::EncoderPosition>(ns + "/encoder", 10);
+    intended_ = nh_.advertise<piezo_compensation::IntendedMotion>(ns + "/intended", 10, true);
+    command_ = nh_.subscribe(ns + "/command", 10, &FakeDriver::on_command, this);
+    prediction_ = nh_.subscribe(ns + "/prediction", 100, &FakeDriver::on_prediction, this);
+  }
+
+  bool wait_connected(double timeout_s) {
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
+    while (ros::ok() && ros::WallTime::now() < end) {
+      if (voltage_.getNumSubscribers() > 0 && encoder_.getNumSubscribers() > 0 && intended_.getNumSubscribers() > 0 &&
+          command_.getNumPublishers() > 0 && prediction_.getNumPublishers() > 0)
+        return true;
+      ros::WallDuration(0.05).sleep();
+      ros::spinOnce();
+    }
+    return false;
+  }
+
+  void intend(double voltage_v) {
+    piezo_compensation::IntendedMotion m;
+    m.header.stamp = ros::Time::now();
+    m.mode = piezo_compensation::IntendedMotion::VOLTAGE;
+    m.voltage = voltage_v;
+    intended_.publish(m);
+  }
+
+  // One sample: the plant holds the last command; report it and its position. Waits for the prediction.
+  void cycle() {
+    const std::size_t before = predictions.size();
+    ++seq_;
+    piezo_compensation::AxisVoltage v;
+    v.header.stamp = ros::Time::now();
+    v.axis = "c";
+    v.sequence = seq_;
+    v.voltage = applied_v;
+    piezo_compensation::EncoderPosition e;
+    e.header.stamp = v.header.stamp;
+    e.axis = "c";
+    e.sequence = seq_;
+    e.position = 14e-9 * applied_v;
+    e.valid = true;
+    encoder_.publish(e);  // encoder first on purpose: the node must pair by sequence
+    voltage_.publish(v);
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(2.0);
+    while (ros::ok() && predictions.size() == before && ros::WallTime::now() < end) {
+      ros::WallDuration(0.002).sleep();
+      ros::spinOnce();
+    }
+    ros::WallDuration(0.01).sleep();
+    ros::spinOnce();
+    if (!commands.empty()) applied_v = commands.back().voltage;
+  }
+
+  double applied_v = 0.0;
+  std::vector<piezo_compensation::VoltageCommand> commands;
+  std::vector<piezo_compensation::Prediction> predictions;
+
+ private:
+  void on_command(const piezo_compensation::VoltageCommand::ConstPtr& m) { commands.push_back(*m); }
+  void on_prediction(const piezo_compensation::Prediction::ConstPtr& m) { predictions.push_back(*m); }
+
+  ros::NodeHandle nh_;
+  ros::Publisher voltage_, encoder_, intended_;
+  ros::Subscriber command_, prediction_;
+  std::uint32_t seq_ = 100;
+};
+
+}  // namespace piezo::test
