@@ -178,7 +178,7 @@ LstmObjective::LstmObjective(const LstmNet& net, const Eigen::MatrixXd& x, const
 double LstmObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
                                Eigen::VectorXd* grad) const {
   const Eigen::Index B = static_cast<Eigen::Index>(n);
-  std::vector<Eigen::MatrixXd> xs(static_cast<std::size_t>(warmup_ + seq_len_), Eigen::MatrixXd(x_.rows(), B));
+  std::vector<Eigen::MatrixXd> xs(static_cast<std::size_t>(warmup_ + seq_len_), Eigen::MatrixXd::Zero(x_.rows(), B));
   Eigen::MatrixXd ys(seq_len_, B);
   for (Eigen::Index j = 0; j < B; ++j) {
     const std::size_t s = starts_[units[j]];
