@@ -6,6 +6,7 @@
 #include <array>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <memory>
@@ -84,9 +85,10 @@ class DriverCore {
   void start();  // starts the receive thread (which opens the transport, retrying with back-off)
   void stop();
 
-  // A command for one axis at time now_s (caller's clock: ROS time). Writes a frame at once when the slew
-  // limit allows a change.
-  CommandOutcome command(int axis, double voltage_v, double now_s);
+  // A command for one axis at time now_s (caller's clock: ROS time). command_time_s is when the commander
+  // issued it (its header stamp; NaN = now_s): the watchdog counts from there, so a stale command holds.
+  // Writes a frame at once when the slew limit allows a change.
+  CommandOutcome command(int axis, double voltage_v, double now_s, double command_time_s = std::nan(""));
   // Advances slew ramps and watchdogs of all axes (call at the output rate).
   void tick(double now_s);
 

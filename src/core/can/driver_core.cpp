@@ -141,7 +141,7 @@ void DriverCore::send_locked(int axis, double voltage_v, std::vector<Pending>& e
   }
 }
 
-CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s) {
+CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s, double command_time_s) {
   if (axis < 0 || axis >= kAxisCount) throw std::invalid_argument("axis index out of range");
   std::vector<Pending> events;
   CommandOutcome outcome;
@@ -156,7 +156,7 @@ CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s) {
       ++a.status.rejected_no_link;
       return CommandOutcome::kRejectedHeld;
     } else {
-      outcome = a.limiter.command(voltage_v, now_s);
+      outcome = a.limiter.command(voltage_v, std::isfinite(command_time_s) ? command_time_s : now_s);
     }
     switch (outcome) {
       case CommandOutcome::kRejectedNonFinite: ++a.status.rejected_non_finite; break;

@@ -1,0 +1,52 @@
+// The mm3e_driver node: ROS face of can::DriverCore (docs/driver.md). Per axis it publishes <axis>/voltage and
+// <axis>/encoder, takes <axis>/command (queue 1), enforces one commander per axis, reports the bus through
+// diagnostic_updater and offers ~halt and ~recover.
+#pragma once
+
+#include <diagnostic_updater/diagnostic_updater.h>
+#include <ros/ros.h>
+#include <std_srvs/Trigger.h>
+
+#include <array>
+#include <memory>
+#include <string>
+
+#include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/can/driver_core.h"
+
+namespace piezo::mm3e {
+
+class DriverNode {
+ public:
+  // Reads and validates every parameter; throws std::invalid_argument naming the bad one.
+  DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh);
+  ~DriverNode();
+
+ private:
+  void on_command(int axis, const piezo_compensation::VoltageCommand::ConstPtr& msg);
+  void on_tick(const ros::TimerEvent&);
+  void check_commanders();
+  bool on_halt(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  bool on_recover(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  void diagnose_bus(diagnostic_updater::DiagnosticStatusWrapper& stat);
+  void diagnose_axis(int axis, diagnostic_updater::DiagnosticStatusWrapper& stat);
+  ros::Time stamp_for(double receive_time_s) const;
+
+  ros::NodeHandle nh_, pnh_;
+  std::string frame_id_;
+  bool stamp_with_receive_time_ = true;
+  std::unique_ptr<can::DriverCore> core_;
+  std::array<ros::Publisher, can::kAxisCount> voltage_pub_, encoder_pub_;
+  std::array<ros::Subscriber, can::kAxisCount> command_sub_;
+  std::array<bool, can::kAxisCount> multiple_commanders_{};
+  ros::ServiceServer halt_srv_, recover_srv_;
+  ros::Timer tick_timer_;
+  ros::WallTimer diag_timer_;
+  diagnostic_updater::Updater updater_;
+  // Counters at the previous diagnostics update, for frame rates.
+  ros::WallTime last_diag_;
+  std::array<std::uint64_t, can::kAxisCount> last_encoder_frames_{}, last_voltage_frames_{}, last_sent_{};
+  double encoder_timeout_s_ = 0.5;
+};
+
+}  // namespace piezo::mm3e

@@ -1,0 +1,52 @@
+// The mm3e_sim node: a simulated MM3E controller on the same CAN protocol (can::DeviceCore backed by
+// sim::ManipulatorSimulator), over SocketCAN or UDP. Publishes <axis>/true_position for evaluation and, with
+// ~publish_clock, /clock at ~time_scale × real time so a demo runs faster than real time (docs/driver.md).
+#pragma once
+
+#include <ros/ros.h>
+#include <std_srvs/Trigger.h>
+
+#include <array>
+#include <atomic>
+#include <memory>
+#include <mutex>
+#include <thread>
+
+#include "piezo_compensation/can/device_core.h"
+#include "piezo_compensation/can/transport.h"
+#include "piezo_compensation/sim/manipulator_simulator.h"
+
+namespace piezo::mm3e {
+
+class SimNode {
+ public:
+  // Reads and validates every parameter; throws std::invalid_argument naming the bad one.
+  SimNode(ros::NodeHandle nh, ros::NodeHandle pnh);
+  ~SimNode();
+
+ private:
+  void run();
+  bool on_bus_off(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  bool on_garbage(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  void send_all(const std::vector<can_frame>& frames);
+
+  ros::NodeHandle nh_, pnh_;
+  std::string frame_id_;
+  double time_scale_ = 1.0;
+  bool publish_clock_ = false;
+  double clock_rate_hz_ = 200.0;
+  double fault_silence_s_ = 1.0;
+  std::unique_ptr<sim::ManipulatorSimulator> simulator_;
+  std::unique_ptr<can::DeviceCore> device_;
+  std::unique_ptr<can::Transport> transport_;
+  std::string transport_name_;
+  std::mutex mutex_;  // device_ and transport_ between the loop and the fault services
+  std::array<ros::Publisher, can::kAxisCount> truth_pub_;
+  ros::Publisher clock_pub_;
+  ros::ServiceServer bus_off_srv_, garbage_srv_;
+  std::atomic<bool> running_{true};
+  std::atomic<double> silent_until_wall_s_{0.0};
+  std::thread thread_;
+};
+
+}  // namespace piezo::mm3e

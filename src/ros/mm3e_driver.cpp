@@ -1,0 +1,265 @@
+#include "piezo_compensation/ros/mm3e_driver.h"
+
+#include <cmath>
+#include <cstdio>
+
+#include "piezo_compensation/AxisVoltage.h"
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/ros/mm3e_params.h"
+
+namespace piezo::mm3e {
+
+using piezo_compensation::AxisVoltage;
+using piezo_compensation::EncoderPosition;
+using piezo_compensation::VoltageCommand;
+
+namespace {
+std::string hex(std::uint32_t v) {
+  char b[16];
+  std::snprintf(b, sizeof b, "0x%X", v);
+  return b;
+}
+}  // namespace
+
+DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh), updater_(nh, pnh) {
+  can::DriverConfig config;
+  config.protocol = read_protocol(pnh_);
+  auto& lim = config.limits;
+  lim.min_voltage_v = param_double(pnh_, "min_voltage_v", -80.0, -1000.0, 1000.0);
+  lim.max_voltage_v = param_double(pnh_, "max_voltage_v", 80.0, -1000.0, 1000.0);
+  if (lim.min_voltage_v >= lim.max_voltage_v)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
+  lim.slew_rate_v_per_s = param_double(pnh_, "slew_rate_v_per_s", 200.0, 1e-6, 1e7);
+  lim.command_timeout_s = param_double(pnh_, "command_timeout_s", 0.5, 1e-3, 3600.0);
+  lim.max_step_dt_s = param_double(pnh_, "max_step_dt_s", 0.1, 1e-4, 10.0);
+  config.encoder_timeout_s = param_double(pnh_, "encoder_timeout_s", 0.5, 1e-3, 3600.0);
+  config.silence_reconnect_s = param_double(pnh_, "silence_reconnect_s", 2.0, 1e-3, 3600.0);
+  config.reconnect_min_s = param_double(pnh_, "reconnect_min_s", 0.1, 1e-3, 60.0);
+  config.reconnect_max_s = param_double(pnh_, "reconnect_max_s", 5.0, config.reconnect_min_s, 3600.0);
+  config.receive_poll_ms = param_int(pnh_, "receive_poll_ms", 20, 1, 1000);
+  const double output_rate_hz = param_double(pnh_, "output_rate_hz", 200.0, 1.0, 10000.0);
+  const double diagnostic_period_s = param_double(pnh_, "diagnostic_period_s", 1.0, 0.05, 60.0);
+  stamp_with_receive_time_ = param_bool(pnh_, "stamp_with_receive_time", true);
+  encoder_timeout_s_ = config.encoder_timeout_s;
+  const TransportParams transport = read_transport(pnh_, 47100, 47101);
+  const std::string prefix = param_string(pnh_, "frame_prefix", "");
+  frame_id_ = prefix + "base";
+  std::string hardware_id = param_string(pnh_, "hardware_id", "");
+  if (hardware_id.empty()) hardware_id = "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
+
+  can::DriverCallbacks cb;
+  cb.on_voltage = [this](const can::VoltageReport& v, std::uint32_t seq, double t) {
+    AxisVoltage msg;
+    msg.header.stamp = stamp_for(t);
+    msg.header.frame_id = frame_id_;
+    msg.axis = can::kAxisNames[v.axis];
+    msg.sequence = seq;
+    msg.voltage = v.voltage_v;
+    voltage_pub_[v.axis].publish(msg);
+  };
+  cb.on_encoder = [this](const can::EncoderReport& e, std::uint32_t seq, double t) {
+    EncoderPosition msg;
+    msg.header.stamp = stamp_for(t);
+    msg.header.frame_id = frame_id_;
+    msg.axis = can::kAxisNames[e.axis];
+    msg.sequence = seq;
+    msg.position = e.position_m;
+    msg.valid = e.valid;
+    encoder_pub_[e.axis].publish(msg);
+  };
+  cb.on_event = [](const std::string& text, bool error) {
+    if (error)
+      ROS_ERROR_STREAM("mm3e_driver: " << text);
+    else
+      ROS_INFO_STREAM("mm3e_driver: " << text);
+  };
+  const can::Codec codec(config.protocol);
+  core_ = std::make_unique<can::DriverCore>(config, transport_factory(transport, codec.driver_filters()), cb);
+
+  for (int i = 0; i < can::kAxisCount; ++i) {
+    const std::string axis = can::kAxisNames[i];
+    voltage_pub_[i] = nh_.advertise<AxisVoltage>(axis + "/voltage", 20);
+    encoder_pub_[i] = nh_.advertise<EncoderPosition>(axis + "/encoder", 20);
+    command_sub_[i] = nh_.subscribe<VoltageCommand>(axis + "/command", 1,
+                                                    [this, i](const VoltageCommand::ConstPtr& m) { on_command(i, m); },
+                                                    ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
+  }
+  halt_srv_ = pnh_.advertiseService("halt", &DriverNode::on_halt, this);
+  recover_srv_ = pnh_.advertiseService("recover", &DriverNode::on_recover, this);
+
+  updater_.setHardwareID(hardware_id);
+  updater_.add("bus", this, &DriverNode::diagnose_bus);
+  for (int i = 0; i < can::kAxisCount; ++i)
+    updater_.add(std::string("axis ") + can::kAxisNames[i],
+                 [this, i](diagnostic_updater::DiagnosticStatusWrapper& s) { diagnose_axis(i, s); });
+  last_diag_ = ros::WallTime::now();
+  core_->start();
+  tick_timer_ = nh_.createTimer(ros::Duration(1.0 / output_rate_hz), &DriverNode::on_tick, this);
+  diag_timer_ = nh_.createWallTimer(ros::WallDuration(diagnostic_period_s), [this](const ros::WallTimerEvent&) {
+    updater_.force_update();
+  });
+  ROS_INFO_STREAM("mm3e_driver: " << hardware_id << ", limits [" << lim.min_voltage_v << ", " << lim.max_voltage_v
+                                  << "] V, slew " << lim.slew_rate_v_per_s << " V/s, command timeout "
+                                  << lim.command_timeout_s << " s");
+}
+
+DriverNode::~DriverNode() {
+  tick_timer_.stop();
+  diag_timer_.stop();
+  if (core_) core_->stop();
+}
+
+ros::Time DriverNode::stamp_for(double receive_time_s) const {
+  // Kernel receive time is wall-clock; under sim time only ROS time makes sense to the other nodes.
+  if (stamp_with_receive_time_ && !ros::Time::isSimTime() && receive_time_s > 0) return ros::Time(receive_time_s);
+  return ros::Time::now();
+}
+
+void DriverNode::check_commanders() {
+  for (int i = 0; i < can::kAxisCount; ++i) {
+    const bool many = command_sub_[i].getNumPublishers() > 1;
+    if (many != multiple_commanders_[i]) {
+      multiple_commanders_[i] = many;
+      core_->set_multiple_commanders(i, many);
+      if (many)
+        ROS_ERROR_STREAM("mm3e_driver: " << command_sub_[i].getNumPublishers() << " publishers on "
+                                         << command_sub_[i].getTopic()
+                                         << ": holding axis " << can::kAxisNames[i] << " until one remains");
+      else
+        ROS_WARN_STREAM("mm3e_driver: one commander again on " << command_sub_[i].getTopic());
+    }
+  }
+}
+
+void DriverNode::on_command(int axis, const VoltageCommand::ConstPtr& msg) {
+  check_commanders();
+  const double now = ros::Time::now().toSec();
+  const double stamp = msg->header.stamp.isZero() ? std::nan("") : msg->header.stamp.toSec();
+  const can::CommandOutcome out = core_->command(axis, msg->voltage, now, stamp);
+  switch (out) {
+    case can::CommandOutcome::kRejectedNonFinite:
+      ROS_WARN_STREAM_THROTTLE(1.0, "mm3e_driver: axis " << can::kAxisNames[axis] << ": rejected non-finite command "
+                                                         << msg->voltage << "; holding");
+      break;
+    case can::CommandOutcome::kClamped:
+      ROS_WARN_STREAM_THROTTLE(1.0, "mm3e_driver: axis " << can::kAxisNames[axis] << ": command " << msg->voltage
+                                                         << " V clamped to the limits");
+      break;
+    case can::CommandOutcome::kRejectedHeld:
+    case can::CommandOutcome::kRejectedNoBaseline:
+      ROS_WARN_STREAM_THROTTLE(2.0, "mm3e_driver: axis " << can::kAxisNames[axis] << ": command "
+                                                         << can::to_string(out));
+      break;
+    case can::CommandOutcome::kAccepted: break;
+  }
+}
+
+void DriverNode::on_tick(const ros::TimerEvent&) {
+  check_commanders();
+  core_->tick(ros::Time::now().toSec());
+}
+
+bool DriverNode::on_halt(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  core_->halt();
+  res.success = true;
+  res.message = "halted: every axis holds its applied voltage; commands refused until ~recover";
+  ROS_WARN_STREAM("mm3e_driver: " << res.message);
+  return true;
+}
+
+bool DriverNode::on_recover(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  core_->recover();
+  res.success = true;
+  res.message = "recovering: halt cleared, transport reopening (state in diagnostics)";
+  ROS_INFO_STREAM("mm3e_driver: " << res.message);
+  return true;
+}
+
+void DriverNode::diagnose_bus(diagnostic_updater::DiagnosticStatusWrapper& stat) {
+  const can::BusStatus b = core_->bus_status();
+  using diagnostic_msgs::DiagnosticStatus;
+  switch (b.state) {
+    case can::BusState::kActive:
+      stat.summary(DiagnosticStatus::OK, "active");
+      break;
+    case can::BusState::kConnected:
+      stat.summary(DiagnosticStatus::WARN, "connected, no frame from the device yet");
+      break;
+    case can::BusState::kErrorPassive:
+      stat.summary(DiagnosticStatus::WARN, "error passive: " + b.last_error);
+      break;
+    case can::BusState::kBusOff:
+      stat.summary(DiagnosticStatus::ERROR, "bus-off: " + b.last_error);
+      break;
+    case can::BusState::kDisconnected:
+      stat.summary(DiagnosticStatus::ERROR, "disconnected: " + b.last_error);
+      break;
+  }
+  if (b.heartbeat_seen && b.device_state != can::DeviceState::kOperational && b.state == can::BusState::kActive)
+    stat.mergeSummary(DiagnosticStatus::WARN, std::string("device ") + can::to_string(b.device_state));
+  stat.add("state", can::to_string(b.state));
+  stat.add("transport", b.transport);
+  stat.add("last error", b.last_error);
+  stat.add("last error frame", b.last_error_frame);
+  stat.add("error frames", b.error_frames);
+  stat.add("bus-off events", b.bus_off_events);
+  stat.add("malformed frames", b.malformed_frames);
+  stat.add("unknown frames", b.unknown_frames);
+  stat.add("send failures", b.send_failures);
+  stat.add("connects", b.connects);
+  stat.add("connect failures", b.connect_failures);
+  stat.add("next reconnect in [s]", b.next_reconnect_in_s);
+  stat.add("device state", b.heartbeat_seen ? can::to_string(b.device_state) : "no heartbeat");
+  stat.add("device fault flags", hex(b.device_fault_flags));
+  stat.add("heartbeat age [s]", b.heartbeat_age_s);
+}
+
+void DriverNode::diagnose_axis(int i, diagnostic_updater::DiagnosticStatusWrapper& stat) {
+  const can::AxisStatus s = core_->axis_status(i);
+  const ros::WallTime now = ros::WallTime::now();
+  const double dt = std::max(1e-3, (now - last_diag_).toSec());
+  // Rates are per wall second since the previous update of this axis.
+  const double enc_hz = (s.encoder_frames - last_encoder_frames_[i]) / dt;
+  const double volt_hz = (s.voltage_frames - last_voltage_frames_[i]) / dt;
+  const double sent_hz = (s.frames_sent - last_sent_[i]) / dt;
+  last_encoder_frames_[i] = s.encoder_frames;
+  last_voltage_frames_[i] = s.voltage_frames;
+  last_sent_[i] = s.frames_sent;
+  if (i == can::kAxisCount - 1) last_diag_ = now;
+  using diagnostic_msgs::DiagnosticStatus;
+  stat.summary(DiagnosticStatus::OK, "ok");
+  if (s.encoder_age_s < 0)
+    stat.mergeSummary(DiagnosticStatus::WARN, "no encoder frame yet");
+  else if (s.encoder_age_s > encoder_timeout_s_)
+    stat.mergeSummary(DiagnosticStatus::ERROR, "encoder silent");
+  if (!s.encoder_valid) stat.mergeSummary(DiagnosticStatus::ERROR, "encoder reading flagged invalid");
+  if (s.amplifier_fault) stat.mergeSummary(DiagnosticStatus::ERROR, "amplifier fault");
+  if (s.multiple_commanders) stat.mergeSummary(DiagnosticStatus::ERROR, "more than one commander: holding");
+  if (s.halted) stat.mergeSummary(DiagnosticStatus::WARN, "halted");
+  if (s.timed_out) stat.mergeSummary(DiagnosticStatus::WARN, "command timeout: holding");
+  stat.add("encoder rate [Hz]", enc_hz);
+  stat.add("voltage report rate [Hz]", volt_hz);
+  stat.add("command frame rate [Hz]", sent_hz);
+  stat.add("encoder frames", s.encoder_frames);
+  stat.add("encoder dropped", s.encoder_dropped);
+  stat.add("encoder out of order", s.encoder_out_of_order);
+  stat.add("voltage dropped", s.voltage_dropped);
+  stat.add("voltage out of order", s.voltage_out_of_order);
+  stat.add("encoder age [s]", s.encoder_age_s);
+  stat.add("applied voltage [V]", s.applied_v);
+  stat.add("target voltage [V]", s.target_v);
+  stat.add("reported voltage [V]", s.reported_v);
+  stat.add("position [m]", s.position_m);
+  stat.add("commands", s.commands);
+  stat.add("clamped", s.clamped);
+  stat.add("rejected non-finite", s.rejected_non_finite);
+  stat.add("rejected held", s.rejected_held);
+  stat.add("rejected no baseline", s.rejected_no_baseline);
+  stat.add("rejected no link", s.rejected_no_link);
+  stat.add("timeouts", s.timeouts);
+  stat.add("timed out", s.timed_out);
+  stat.add("halted", s.halted);
+  stat.add("multiple commanders", s.multiple_commanders);
+}
+
+}  // namespace piezo::mm3e

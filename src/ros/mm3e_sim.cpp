@@ -1,0 +1,196 @@
+#include "piezo_compensation/ros/mm3e_sim.h"
+
+#include <linux/can/error.h>
+#include <rosgraph_msgs/Clock.h>
+
+#include <chrono>
+#include <cmath>
+
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/ros/mm3e_params.h"
+#include "piezo_compensation/sim/simulator_config.h"
+
+namespace piezo::mm3e {
+
+namespace {
+double wall_now_s() {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+}  // namespace
+
+SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
+  can::DeviceConfig config;
+  config.protocol = read_protocol(pnh_);
+  config.min_voltage_v = param_double(pnh_, "min_voltage_v", -80.0, -1000.0, 1000.0);
+  config.max_voltage_v = param_double(pnh_, "max_voltage_v", 80.0, -1000.0, 1000.0);
+  if (config.min_voltage_v >= config.max_voltage_v)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
+  const double initial = param_double(pnh_, "initial_voltage_v", 0.0, config.min_voltage_v, config.max_voltage_v);
+  config.initial_voltage_v = {initial, initial, initial};
+  time_scale_ = param_double(pnh_, "time_scale", 1.0, 0.01, 1000.0);
+  publish_clock_ = param_bool(pnh_, "publish_clock", false);
+  if (time_scale_ != 1.0 && !publish_clock_)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("time_scale") +
+                                " != 1 needs ~publish_clock: true (the device owns simulated time)");
+  if (publish_clock_ && !ros::Time::isSimTime())
+    throw std::invalid_argument("parameter " + pnh_.resolveName("publish_clock") +
+                                " is true but /use_sim_time is not set: set it before the nodes start");
+  clock_rate_hz_ = param_double(pnh_, "clock_rate_hz", 200.0, 1.0, 5000.0);
+  fault_silence_s_ = param_double(pnh_, "fault_silence_s", 1.0, 0.0, 600.0);
+  const int seed = param_int(pnh_, "seed", 1, 0, 2147483647);
+  const std::string sim_config_path = param_string(pnh_, "simulator_config", "");
+  frame_id_ = param_string(pnh_, "frame_prefix", "") + "base";
+  const TransportParams transport = read_transport(pnh_, 47101, 47100);
+
+  sim::SimulatorConfig sim_config = sim_config_path.empty() ? sim::default_simulator_config()
+                                                            : sim::load_simulator_config(sim_config_path);
+  XmlRpc::XmlRpcValue effects;
+  if (pnh_.getParam("effects", effects)) {
+    if (effects.getType() != XmlRpc::XmlRpcValue::TypeArray)
+      throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + " must be a list of effect names");
+    for (int i = 0; i < effects.size(); ++i) {
+      if (effects[i].getType() != XmlRpc::XmlRpcValue::TypeString)
+        throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + " must be a list of effect names");
+      try {
+        sim::enable_effect(sim_config, static_cast<std::string>(effects[i]));
+      } catch (const std::invalid_argument& e) {
+        throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + ": " + e.what());
+      }
+    }
+  }
+  simulator_ = std::make_unique<sim::ManipulatorSimulator>(sim_config, static_cast<std::uint64_t>(seed));
+  sim::ManipulatorSimulator* s = simulator_.get();
+  device_ = std::make_unique<can::DeviceCore>(
+      config, [s](const std::array<double, 3>& v, double dt) { return s->step(v, dt); });
+  transport_ = transport_factory(transport, device_->codec().device_filters())();
+  transport_name_ = transport_->describe();
+  transport_->open();  // the device is a test fixture: a missing interface is a start-up error here
+
+  for (int i = 0; i < can::kAxisCount; ++i)
+    truth_pub_[i] = nh_.advertise<piezo_compensation::EncoderPosition>(
+        std::string(can::kAxisNames[i]) + "/true_position", 20);
+  if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
+  bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
+  garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
+  ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
+                                             << " Hz, time scale " << time_scale_
+                                             << (publish_clock_ ? ", publishing /clock" : ""));
+  thread_ = std::thread([this] { run(); });
+}
+
+SimNode::~SimNode() {
+  running_ = false;
+  if (thread_.joinable()) thread_.join();
+}
+
+void SimNode::send_all(const std::vector<can_frame>& frames) {
+  if (wall_now_s() < silent_until_wall_s_) return;
+  for (const auto& f : frames) {
+    try {
+      transport_->send(f);
+    } catch (const can::TransportError& e) {
+      ROS_ERROR_STREAM_THROTTLE(1.0, "mm3e_sim: " << e.what());
+    }
+  }
+}
+
+void SimNode::run() {
+  const double period_s = device_->period_s();
+  const auto wall_start = std::chrono::steady_clock::now();
+  // Simulated time starts at the wall clock's epoch time so stamps look like real ones.
+  const double sim_start_s = publish_clock_ ? ros::WallTime::now().toSec() : ros::Time::now().toSec();
+  double next_sample_s = sim_start_s + period_s;
+  std::uint32_t sequence = 0;
+  std::vector<can::ReceivedFrame> in;
+  while (running_ && ros::ok()) {
+    double sim_now_s;
+    if (publish_clock_) {
+      const double wall_elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
+      sim_now_s = sim_start_s + time_scale_ * wall_elapsed;
+      rosgraph_msgs::Clock clock;
+      clock.clock = ros::Time(sim_now_s);
+      clock_pub_.publish(clock);
+    } else {
+      sim_now_s = ros::Time::now().toSec();
+    }
+    {
+      std::lock_guard<std::mutex> lock(mutex_);
+      while (next_sample_s <= sim_now_s) {
+        const can::DeviceCore::Output out = device_->step();
+        send_all(out.frames);
+        for (int i = 0; i < can::kAxisCount; ++i) {
+          piezo_compensation::EncoderPosition msg;
+          msg.header.stamp = ros::Time(next_sample_s);
+          msg.header.frame_id = frame_id_;
+          msg.axis = can::kAxisNames[i];
+          msg.sequence = sequence;
+          msg.position = out.sample.axes[i].true_position_nm * 1e-9;
+          msg.valid = true;
+          truth_pub_[i].publish(msg);
+        }
+        ++sequence;
+        next_sample_s += period_s;
+      }
+    }
+    // Wait for commands until the next clock tick or sample, whichever is first (in wall time).
+    double wait_s = publish_clock_ ? 1.0 / clock_rate_hz_ : (next_sample_s - sim_now_s);
+    wait_s = std::clamp(wait_s, 0.0005, 0.05);
+    in.clear();
+    try {
+      transport_->receive(in, static_cast<int>(std::ceil(wait_s * 1000.0)));
+    } catch (const can::TransportError& e) {
+      ROS_ERROR_STREAM_THROTTLE(1.0, "mm3e_sim: " << e.what());
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    std::lock_guard<std::mutex> lock(mutex_);
+    for (const auto& rf : in) device_->handle(rf.frame);
+  }
+}
+
+bool SimNode::on_bus_off(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  can::BusError e;
+  e.error_class = CAN_ERR_BUSOFF;
+  try {
+    transport_->send(can::Codec::encode(e));
+  } catch (const can::TransportError& err) {
+    res.success = false;
+    res.message = err.what();
+    return true;
+  }
+  silent_until_wall_s_ = wall_now_s() + fault_silence_s_;
+  res.success = true;
+  res.message = "bus-off error frame sent; silent for " + std::to_string(fault_silence_s_) + " s";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::on_garbage(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const can::Codec& codec = device_->codec();
+  std::vector<can_frame> frames;
+  for (int i = 0; i < can::kAxisCount; ++i) {
+    can_frame bad_len = codec.encode(can::EncoderReport{i, 1e-6, 0, true});
+    bad_len.can_dlc = 3;
+    can_frame bad_flags = codec.encode(can::VoltageReport{i, 70.0, 0, false});
+    bad_flags.data[7] = 0xF0;
+    can_frame rtr = codec.encode(can::EncoderReport{i, 0.0, 0, true});
+    rtr.can_id |= CAN_RTR_FLAG;
+    frames.insert(frames.end(), {bad_len, bad_flags, rtr});
+  }
+  can_frame hb = codec.encode(can::Heartbeat{});
+  hb.data[0] = 0xEE;
+  frames.push_back(hb);
+  int sent = 0;
+  for (const auto& f : frames) {
+    try {
+      sent += transport_->send(f) ? 1 : 0;
+    } catch (const can::TransportError&) {
+    }
+  }
+  res.success = sent == static_cast<int>(frames.size());
+  res.message = std::to_string(sent) + " malformed frames sent";
+  return true;
+}
+
+}  // namespace piezo::mm3e
