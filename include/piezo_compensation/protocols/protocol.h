@@ -23,6 +23,8 @@ enum class Phase : int {
   kSweep = 4,    // hysteresis sweep
 };
 const char* phase_name(Phase p);
+// Inverse of phase_name; throws std::invalid_argument listing the valid names.
+Phase phase_from_name(const std::string& name);
 
 struct ProtocolSample {
   std::array<double, 3> voltage_v{};  // a, b, c
@@ -48,5 +50,11 @@ class Protocol {
 std::unique_ptr<Protocol> make_protocol(const std::string& name, const YAML::Node& params, double sample_rate_hz,
                                         std::uint64_t seed);
 std::vector<std::string> protocol_names();
+
+// The built-in defaults of every protocol, keyed by name (mirrored by config/protocols.yaml).
+YAML::Node default_protocol_parameters();
+// Loads a protocols file shaped like config/protocols.yaml and returns the map for `name` (empty node if the
+// file has no entry for it). Throws std::invalid_argument naming the file on a read error.
+YAML::Node load_protocol_parameters(const std::string& yaml_path, const std::string& name);
 
 }  // namespace piezo::protocols

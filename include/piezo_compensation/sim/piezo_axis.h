@@ -1,0 +1,48 @@
+// Building blocks of one simulated piezo axis: Prandtl–Ishlinskii hysteresis and multi-mode creep.
+// Exposed so tests (and anyone curious) can check each piece on its own. Equations: docs/simulator.md.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "piezo_compensation/sim/simulator_config.h"
+
+namespace piezo::sim {
+
+// Weighted play operators on the centred voltage u = v − v_mid:
+//   F_i(t) = max(u − r_i, min(u + r_i, F_i(t−1))),  H = Σ w_i F_i.
+// Weights are derived from stroke_nm, loop_width_fraction and play_weight_decay_v (see docs/simulator.md).
+class PrandtlIshlinskii {
+ public:
+  explicit PrandtlIshlinskii(const AxisConfig& axis);
+  // Advances to voltage v; the non-linear operators (i ≥ 1) are weighted by nonlinear_scale (1 = rate
+  // independent). Returns H [nm].
+  double update(double voltage_v, double nonlinear_scale = 1.0);
+  double output_nm() const { return output_nm_; }
+  void reset();  // all operators to 0 (the state after a demagnetising sweep around v_mid)
+  const std::vector<double>& thresholds_v() const { return thresholds_v_; }
+  const std::vector<double>& weights_nm_per_v() const { return weights_; }
+
+ private:
+  double v_mid_ = 0.0;
+  std::vector<double> thresholds_v_, weights_, state_;
+  double output_nm_ = 0.0;
+};
+
+// Creep: first-order modes x_j relaxing towards the hysteretic displacement h with log-spaced τ_j;
+//   creep = Σ g_j x_j,  x_j(t+dt) = h + (x_j(t) − h)·exp(−dt/τ_j)  (exact for h held over dt).
+class CreepModes {
+ public:
+  explicit CreepModes(const AxisConfig& axis);
+  double update(double h_nm, double dt_s);  // returns the creep displacement Σ g_j x_j [nm]
+  double output_nm() const;
+  void reset();
+  const std::vector<double>& tau_s() const { return tau_s_; }
+  const std::vector<double>& gains() const { return gains_; }
+
+ private:
+  std::vector<double> tau_s_, gains_, state_, decay_;
+  double decay_dt_s_ = -1.0;
+};
+
+}  // namespace piezo::sim
