@@ -1,3 +1,11 @@
 # features/, models/ (linear, PI, creep, model file, C export), training/ (lasso, fit_common), analysis/ (eval).
 piezo_unit_test(test_features_stream test/unit/test_features_stream.cpp)
 piezo_unit_test(test_lasso test/unit/test_lasso.cpp)
+piezo_unit_test(test_models_linear test/unit/test_models_linear.cpp)
+piezo_unit_test(test_models_pi test/unit/test_models_pi.cpp)
+piezo_unit_test(test_models_creep test/unit/test_models_creep.cpp)
+piezo_unit_test(test_models_file test/unit/test_models_file.cpp)
+piezo_unit_test(test_models_export test/unit/test_models_export.cpp)
+if(TARGET test_models_export)
+  target_compile_definitions(test_models_export PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
+endif()

@@ -1,0 +1,102 @@
+#include <gtest/gtest.h>
+
+#include "piezo_compensation/models/pi_model.h"
+#include "piezo_compensation/models/registry.h"
+#include "test_models_data.h"
+
+using namespace piezo;
+using models::CreepKind;
+using models::CreepParams;
+using models::PiCreepModel;
+
+namespace {
+const std::vector<double> kR = {0, 10, 20, 30, 40, 50};
+const std::vector<double> kW = {8.0, 2.0, 1.5, 1.0, 0.6, 0.3};
+
+// Data from the model itself: 6 h random walk with long holds, small encoder noise.
+io::Dataset generate(const CreepParams& cp, double noise_nm) {
+  PiCreepModel truth(kR, kW, 10.0, cp, 11.0);
+  std::vector<int> phase;
+  const auto v = testdata::random_walk_v(6 * 3600 * 11, 17, 0.0005, &phase);
+  return testdata::make_dataset(truth, v, 11.0, noise_nm, 4, &phase);
+}
+
+const PiCreepModel& fit(const io::Dataset& d, const std::string& kind, models::ModelPtr& keep) {
+  models::FitRequest req;
+  req.train = &d;
+  req.options["thresholds_v"] = kR;
+  keep = models::model_kind(kind).fit(req);
+  EXPECT_EQ(keep->kind(), kind);
+  return dynamic_cast<const PiCreepModel&>(*keep);
+}
+}  // namespace
+
+TEST(CreepModels, LogarithmicRecoversGammaAndT1) {
+  CreepParams cp;
+  cp.kind = CreepKind::kLog;
+  cp.gamma_nm_per_v = 0.4;
+  cp.t1_s = 3.0;
+  models::ModelPtr keep;
+  const auto& m = fit(generate(cp, 2.0), "pi_creep_log", keep);
+  EXPECT_NEAR(m.creep().gamma_nm_per_v, 0.4, 0.02);
+  EXPECT_NEAR(std::log10(m.creep().t1_s), std::log10(3.0), 0.1);
+  EXPECT_NEAR(m.weights()[0], kW[0], 0.2);
+}
+
+TEST(CreepModels, LtiRecoversSpringDamperPairs) {
+  CreepParams cp;
+  cp.kind = CreepKind::kLti;
+  cp.taus_s = {30.0, 1500.0};
+  cp.gains_nm_per_v = {1.2, 0.8};
+  models::ModelPtr keep;
+  const auto& m = fit(generate(cp, 2.0), "pi_creep_lti", keep);
+  ASSERT_EQ(m.creep().taus_s.size(), 2u);
+  EXPECT_NEAR(std::log10(m.creep().taus_s[0]), std::log10(30.0), 0.05);
+  EXPECT_NEAR(std::log10(m.creep().taus_s[1]), std::log10(1500.0), 0.05);
+  EXPECT_NEAR(m.creep().gains_nm_per_v[0], 1.2, 0.05);
+  EXPECT_NEAR(m.creep().gains_nm_per_v[1], 0.8, 0.05);
+}
+
+TEST(CreepModels, FractionalRecoversOrderAndGain) {
+  CreepParams cp;
+  cp.kind = CreepKind::kFractional;
+  cp.alpha = 0.3;
+  cp.b_nm_per_v = 0.5;
+  cp.modes_per_decade = 2;
+  models::ModelPtr keep;
+  const auto& m = fit(generate(cp, 2.0), "pi_creep_fractional", keep);
+  EXPECT_NEAR(m.creep().alpha, 0.3, 0.02);
+  EXPECT_NEAR(m.creep().b_nm_per_v, 0.5, 0.05);
+}
+
+TEST(CreepModels, StepResponsesHaveTheirLawsShape) {
+  // log: equal rise per decade of time; fractional: power law t^α (between the mode bands).
+  auto step_response = [](const CreepParams& cp, std::vector<double> at_s) {
+    PiCreepModel m({0}, {1.0}, 0.0, cp, 11.0);
+    m.reset(0, 0);
+    std::vector<double> out;
+    std::size_t k = 0;
+    for (std::size_t i = 0; k < at_s.size(); ++i) {
+      const double y = m.predict_v(1.0);
+      if (i >= at_s[k] * 11.0) out.push_back(y - 1.0), ++k;  // minus the instantaneous part
+      m.commit({1.0, nullptr}, y);
+    }
+    return out;
+  };
+  CreepParams log;
+  log.kind = CreepKind::kLog;
+  log.gamma_nm_per_v = 1.0;
+  log.t1_s = 0.5;
+  const auto y = step_response(log, {10, 100, 1000});
+  EXPECT_NEAR(y[1] - y[0], std::log(10.0), 0.1);
+  EXPECT_NEAR(y[2] - y[1], std::log(10.0), 0.1);
+  CreepParams fr;
+  fr.kind = CreepKind::kFractional;
+  fr.alpha = 0.4;
+  fr.b_nm_per_v = 1.0;
+  fr.modes_per_decade = 4;
+  const auto z = step_response(fr, {30, 300, 3000});
+  EXPECT_NEAR(std::log10(z[1] / z[0]), 0.4, 0.05);
+  EXPECT_NEAR(std::log10(z[2] / z[1]), 0.4, 0.05);
+  EXPECT_NEAR(z[1], std::pow(300.0, 0.4) / std::tgamma(1.4), 0.1 * z[1]);
+}
