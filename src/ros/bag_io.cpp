@@ -1,11 +1,315 @@
-// TEMPORARY until the simulator issue lands its bag reader/writer.
+// Bag reader/writer for the shared data layout (include/piezo_compensation/ros/data_file.h, docs/data_formats.md).
+#include <piezo_compensation/AuxSignal.h>
+#include <piezo_compensation/AxisVoltage.h>
+#include <piezo_compensation/EncoderPosition.h>
+#include <piezo_compensation/ProtocolPhase.h>
+#include <ros/time.h>
+#include <rosbag/bag.h>
+#include <rosbag/view.h>
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <set>
+#include <sstream>
+
+#include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
 
 namespace piezo::ros_io {
-io::Dataset read_bag(const std::string& path, const BagOptions&) {
-  throw io::DataError(path + ": reading bags is not implemented yet");
+
+namespace {
+
+const char* kAxes[3] = {"a", "b", "c"};
+constexpr double kNmPerM = 1e9;
+
+std::string join_ns(const std::string& ns, const std::string& rest) {
+  if (ns.empty() || ns == "/") return "/" + rest;
+  return (ns.front() == '/' ? ns : "/" + ns) + (ns.back() == '/' ? "" : "/") + rest;
 }
-void write_bag(const std::string& path, const io::Dataset&, const BagOptions&) {
-  throw io::DataError(path + ": writing bags is not implemented yet");
+
+ros::Time stamp_of(double t_s) {
+  // Header stamps carry the data's own time; ros::Time cannot be negative.
+  return ros::Time(std::max(0.0, t_s));
 }
+
+ros::Time bag_time(double t_s) {
+  const ros::Time t = stamp_of(t_s);
+  return t < ros::TIME_MIN ? ros::TIME_MIN : t;  // rosbag refuses time 0
+}
+
+struct Sample {
+  double t = 0.0;
+  std::uint32_t seq = 0;
+  double value = 0.0;
+  bool valid = true;
+};
+
+// Messages of one topic, sorted by stamp, with a sequence index.
+struct Series {
+  std::vector<Sample> samples;
+  std::map<std::uint32_t, std::size_t> by_seq;
+  void index() {
+    std::stable_sort(samples.begin(), samples.end(), [](const Sample& a, const Sample& b) { return a.t < b.t; });
+    for (std::size_t i = 0; i < samples.size(); ++i) by_seq.emplace(samples[i].seq, i);
+  }
+  // By sequence number when that message is within one period of t, else the latest at or before t.
+  const Sample* match(std::uint32_t seq, double t, double period_s) const {
+    auto it = by_seq.find(seq);
+    if (it != by_seq.end() && std::fabs(samples[it->second].t - t) <= period_s) return &samples[it->second];
+    return latest(t, period_s);
+  }
+  const Sample* latest(double t, double period_s) const {
+    auto it = std::upper_bound(samples.begin(), samples.end(), t + 1e-9,
+                               [](double x, const Sample& s) { return x < s.t; });
+    if (it != samples.begin()) return &*(it - 1);
+    // Nothing before t: accept the first message if it comes within one sample period.
+    if (!samples.empty() && samples.front().t - t <= period_s) return &samples.front();
+    return nullptr;
+  }
+};
+
+std::string row_col(const std::string& path, std::size_t row, const std::string& col) {
+  std::ostringstream os;
+  os << path << ": row " << row + 2 << ", column " << col << ": ";
+  return os.str();
+}
+
+std::string detect_ns(rosbag::Bag& bag, const std::string& path) {
+  rosbag::View all(bag);
+  std::set<std::string> found;
+  for (const rosbag::ConnectionInfo* c : all.getConnections()) {
+    for (const char* ax : kAxes) {
+      const std::string suffix = std::string("/") + ax + "/encoder";
+      const std::string& topic = c->topic;
+      if (topic.size() >= suffix.size() && topic.compare(topic.size() - suffix.size(), suffix.size(), suffix) == 0)
+        found.insert(topic.substr(0, topic.size() - suffix.size()));
+    }
+  }
+  if (found.empty()) throw io::DataError(path + ": no <ns>/<axis>/encoder topic (axis a, b or c) in the bag");
+  if (found.size() > 1) {
+    std::string list;
+    for (const auto& f : found) list += (list.empty() ? "" : ", ") + (f.empty() ? std::string("/") : f);
+    throw io::DataError(path + ": the bag holds several manipulators (" + list + "); choose one namespace");
+  }
+  return *found.begin();
+}
+
+template <class Msg>
+boost::shared_ptr<Msg> instantiate(const rosbag::MessageInstance& m, const std::string& path) {
+  auto p = m.instantiate<Msg>();
+  if (!p)
+    throw io::DataError(path + ": topic " + m.getTopic() + " has type " + m.getDataType() + ", expected " +
+                        ros::message_traits::DataType<Msg>::value());
+  return p;
+}
+
+io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
+  rosbag::Bag bag;
+  try {
+    bag.open(path, rosbag::bagmode::Read);
+  } catch (const rosbag::BagException& e) {
+    throw io::DataError(path + ": cannot open bag: " + e.what() + " (a bag cut short may be fixed by `rosbag reindex`)");
+  }
+  const std::string ns = options.ns.empty() ? detect_ns(bag, path) : options.ns;
+
+  Series voltage[3], encoder[3], truth[3];
+  bool has_topic[3][3] = {};
+  std::map<std::string, Series> aux;
+  std::vector<std::pair<double, std::pair<int, int>>> markers;  // stamp → (segment, phase)
+  std::map<std::string, int> topic_kind;                        // 0..8 axis topics, 9 aux, 10 phase
+  for (int k = 0; k < 3; ++k) {
+    topic_kind[join_ns(ns, std::string(kAxes[k]) + "/voltage")] = k * 3 + 0;
+    topic_kind[join_ns(ns, std::string(kAxes[k]) + "/encoder")] = k * 3 + 1;
+    topic_kind[join_ns(ns, std::string(kAxes[k]) + "/true_position")] = k * 3 + 2;
+  }
+  topic_kind[join_ns(ns, "aux")] = 9;
+  topic_kind[join_ns(ns, "protocol_phase")] = 10;
+  std::vector<std::string> topics;
+  for (const auto& kv : topic_kind) topics.push_back(kv.first);
+
+  try {
+    rosbag::View view(bag, rosbag::TopicQuery(topics));
+    std::size_t n_msg = 0;
+    for (const rosbag::MessageInstance& m : view) {
+      ++n_msg;
+      const int kind = topic_kind.at(m.getTopic());
+      const std::string where = path + ": topic " + m.getTopic() + ", message " + std::to_string(n_msg);
+      if (kind < 9) {
+        const int k = kind / 3, what = kind % 3;
+        has_topic[k][what] = true;
+        Sample s;
+        if (what == 0) {
+          auto msg = instantiate<piezo_compensation::AxisVoltage>(m, path);
+          s = {msg->header.stamp.toSec(), msg->sequence, msg->voltage, true};
+        } else {
+          auto msg = instantiate<piezo_compensation::EncoderPosition>(m, path);
+          s = {msg->header.stamp.toSec(), msg->sequence, msg->position * kNmPerM, static_cast<bool>(msg->valid)};
+        }
+        if (!std::isfinite(s.value)) throw io::DataError(where + ": value is not finite");
+        (what == 0 ? voltage[k] : what == 1 ? encoder[k] : truth[k]).samples.push_back(s);
+      } else if (kind == 9) {
+        auto msg = instantiate<piezo_compensation::AuxSignal>(m, path);
+        if (msg->name.empty()) throw io::DataError(where + ": aux signal without a name");
+        if (!std::isfinite(msg->value)) throw io::DataError(where + ": aux signal " + msg->name + " is not finite");
+        aux[msg->name].samples.push_back({msg->header.stamp.toSec(), 0, msg->value, true});
+      } else {
+        auto msg = instantiate<piezo_compensation::ProtocolPhase>(m, path);
+        int phase = 0;
+        try {
+          phase = static_cast<int>(protocols::phase_from_name(msg->phase));
+        } catch (const std::invalid_argument& e) {
+          throw io::DataError(where + ": " + e.what());
+        }
+        markers.push_back({msg->header.stamp.toSec(), {static_cast<int>(msg->segment), phase}});
+      }
+    }
+  } catch (const rosbag::BagException& e) {
+    throw io::DataError(path + ": broken bag: " + e.what());
+  }
+
+  int first = -1;
+  for (int k = 0; k < 3; ++k) {
+    if (has_topic[k][1] != has_topic[k][0])
+      throw io::DataError(path + ": axis " + kAxes[k] + " has " + (has_topic[k][1] ? "encoder" : "voltage") +
+                          " messages but no " + (has_topic[k][1] ? join_ns(ns, std::string(kAxes[k]) + "/voltage")
+                                                                  : join_ns(ns, std::string(kAxes[k]) + "/encoder")));
+    if (has_topic[k][1] && first < 0) first = k;
+  }
+  if (first < 0) throw io::DataError(path + ": no encoder messages under namespace '" + ns + "'");
+  for (int k = 0; k < 3; ++k) voltage[k].index(), encoder[k].index(), truth[k].index();
+  for (auto& kv : aux) kv.second.index();
+  std::stable_sort(markers.begin(), markers.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+
+  const Series& rows = encoder[first];
+  const std::size_t n = rows.samples.size();
+  double period = 1.0;
+  if (n >= 2) period = (rows.samples.back().t - rows.samples.front().t) / static_cast<double>(n - 1);
+  if (!(period > 0.0)) period = 1.0;
+
+  io::Dataset d;
+  d.source = path;
+  d.time_s.resize(n);
+  for (std::size_t i = 0; i < n; ++i) d.time_s[i] = rows.samples[i].t;
+  for (int k = 0; k < 3; ++k) {
+    if (!has_topic[k][1]) continue;
+    auto& ax = d.add_axis(kAxes[k]);
+    const bool with_truth = has_topic[k][2];
+    if (with_truth) ax.true_position_nm.resize(n);
+    for (std::size_t i = 0; i < n; ++i) {
+      const Sample& row = rows.samples[i];
+      const Sample* e = k == first ? &row : encoder[k].match(row.seq, row.t, period);
+      if (!e) throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) + "no encoder message at t=" +
+                                  std::to_string(row.t) + " s");
+      if (!e->valid)
+        throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) + "encoder reading flagged invalid");
+      const Sample* v = voltage[k].match(row.seq, row.t, period);
+      if (!v) throw io::DataError(row_col(path, i, io::voltage_column(kAxes[k])) + "no voltage message at or before t=" +
+                                  std::to_string(row.t) + " s");
+      ax.position_nm[i] = e->value;
+      ax.voltage_v[i] = v->value;
+      if (with_truth) {
+        const Sample* tr = truth[k].match(row.seq, row.t, period);
+        if (!tr) throw io::DataError(row_col(path, i, io::true_position_column(kAxes[k])) + "no message at t=" +
+                                     std::to_string(row.t) + " s");
+        ax.true_position_nm[i] = tr->value;
+      }
+    }
+  }
+  for (const auto& kv : aux) {
+    io::AuxSignal s{kv.first, std::vector<double>(n)};
+    for (std::size_t i = 0; i < n; ++i) {
+      const Sample* x = kv.second.latest(rows.samples[i].t, period);
+      if (!x) throw io::DataError(row_col(path, i, kv.first) + "no aux message at or before t=" +
+                                  std::to_string(rows.samples[i].t) + " s");
+      s.values[i] = x->value;
+    }
+    d.aux.push_back(std::move(s));
+  }
+  if (!markers.empty()) {
+    d.segment.resize(n);
+    d.phase.resize(n);
+    if (markers.front().first - rows.samples.front().t > period)
+      throw io::DataError(row_col(path, 0, "phase") + "the first protocol_phase marker comes after the first sample");
+    std::size_t m = 0;
+    for (std::size_t i = 0; i < n; ++i) {
+      while (m + 1 < markers.size() && markers[m + 1].first <= rows.samples[i].t + 1e-9) ++m;
+      d.segment[i] = markers[m].second.first;
+      d.phase[i] = markers[m].second.second;
+    }
+  }
+  return d;
+}
+
+}  // namespace
+
+io::Dataset read_bag(const std::string& path, const BagOptions& options) { return read_bag_impl(path, options); }
+
+void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options) {
+  data.validate();
+  if (data.empty()) throw io::DataError(path + ": nothing to write (empty data set)");
+  if (!ros::Time::isValid()) ros::Time::init();
+  for (double t : data.time_s)
+    if (t < 0.0) throw io::DataError(path + ": column time_s: bags cannot hold negative times");
+  rosbag::Bag bag;
+  try {
+    bag.open(path, rosbag::bagmode::Write);
+    bag.setCompression(rosbag::compression::LZ4);
+    const std::string frame = "base";
+    int last_segment = -1, last_phase = -1;
+    for (std::size_t i = 0; i < data.size(); ++i) {
+      const ros::Time stamp = stamp_of(data.time_s[i]);
+      const ros::Time when = bag_time(data.time_s[i]);
+      const auto seq = static_cast<std::uint32_t>(i);
+      if (!data.segment.empty() || !data.phase.empty()) {
+        const int seg = data.segment.empty() ? 0 : data.segment[i];
+        const int ph = data.phase.empty() ? 0 : data.phase[i];
+        if (seg != last_segment || ph != last_phase) {
+          piezo_compensation::ProtocolPhase m;
+          m.header.stamp = stamp;
+          m.header.seq = seq;
+          // Data built from a protocol carry its name in `source` ("protocol <name>").
+          m.protocol = data.source.rfind("protocol ", 0) == 0 ? data.source.substr(9) : std::string();
+          m.phase = protocols::phase_name(static_cast<protocols::Phase>(ph));
+          m.segment = static_cast<std::uint32_t>(seg);
+          m.sample_index = i;
+          bag.write(join_ns(options.ns, "protocol_phase"), when, m);
+          last_segment = seg, last_phase = ph;
+        }
+      }
+      for (const auto& ax : data.axes) {
+        piezo_compensation::AxisVoltage v;
+        v.header.stamp = stamp;
+        v.header.frame_id = frame;
+        v.axis = ax.name;
+        v.sequence = seq;
+        v.voltage = ax.voltage_v[i];
+        bag.write(join_ns(options.ns, ax.name + "/voltage"), when, v);
+        piezo_compensation::EncoderPosition e;
+        e.header.stamp = stamp;
+        e.header.frame_id = frame;
+        e.axis = ax.name;
+        e.sequence = seq;
+        e.position = ax.position_nm[i] / kNmPerM;
+        e.valid = true;
+        bag.write(join_ns(options.ns, ax.name + "/encoder"), when, e);
+        if (ax.has_truth()) {
+          e.position = ax.true_position_nm[i] / kNmPerM;
+          bag.write(join_ns(options.ns, ax.name + "/true_position"), when, e);
+        }
+      }
+      for (const auto& s : data.aux) {
+        piezo_compensation::AuxSignal a;
+        a.header.stamp = stamp;
+        a.name = s.name;
+        a.value = s.values[i];
+        bag.write(join_ns(options.ns, "aux"), when, a);
+      }
+    }
+    bag.close();
+  } catch (const rosbag::BagException& e) {
+    throw io::DataError(path + ": cannot write bag: " + e.what());
+  }
+}
+
 }  // namespace piezo::ros_io
