@@ -3,3 +3,8 @@ piezo_unit_test(test_models_dense test/unit/test_models_dense.cpp)
 piezo_unit_test(test_models_lstm test/unit/test_models_lstm.cpp)
 piezo_unit_test(test_models_kan test/unit/test_models_kan.cpp)
 piezo_unit_test(test_training_optimizers test/unit/test_training_optimizers.cpp)
+piezo_benchmark(bench_models_neural bench/bench_models_neural.cpp)
+if(CATKIN_ENABLE_TESTING)
+  # The smoke run trains on a small synthetic set; `scripts/piezo bench` uses the full 26 h (~1 M samples).
+  set_tests_properties(bench_models_neural_smoke PROPERTIES ENVIRONMENT "PIEZO_BENCH_TRAIN_SAMPLES=3000")
+endif()

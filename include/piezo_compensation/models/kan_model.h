@@ -47,8 +47,8 @@ class KanNet {
 
   // Knots of input node i of layer l (num_knots() values).
   const double* knots(int layer, int input) const;
-  std::vector<std::vector<double>>& grids() { return grids_; }  // per layer: inputs × num_knots(), row-major
-  const std::vector<std::vector<double>>& grids() const { return grids_; }
+  const std::vector<std::vector<double>>& grids() const { return grids_; }  // per layer: inputs × num_knots()
+  void set_grid(int layer, std::vector<double> knots);  // throws unless sized and strictly increasing per node
 
   // One edge's function value.
   double edge(const double* params, int layer, int input, int output, double x) const;
@@ -68,6 +68,10 @@ class KanNet {
   std::size_t num_params_ = 0;
   std::vector<Eigen::Index> layer_offset_, bias_offset_;
   std::vector<std::vector<double>> grids_;
+  // 1 / (t[i+j] − t[i]) for j = 1 … order, per layer and input node: multiplications instead of divisions.
+  std::vector<std::vector<double>> inv_spans_;
+  void update_inv_spans(int layer);
+  bool basis(int layer, int input, double x, int* first, double* values, double* derivatives) const;
   // Node values of every layer for the columns of x (layer 0 = x).
   std::vector<Eigen::MatrixXd> activations(const Eigen::VectorXd& params, const Eigen::MatrixXd& x) const;
 };

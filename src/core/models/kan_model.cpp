@@ -18,15 +18,23 @@ constexpr int kMaxGrid = 64;
 double sigmoid(double z) { return 1.0 / (1.0 + std::exp(-z)); }
 }  // namespace
 
-bool bspline_basis(const double* t, int m, int k, double x, int* first, double* values, double* derivatives) {
+namespace {
+// Cox–de Boor on the k+1 basis functions that can be non-zero at x. inv (optional) holds 1/(t[i+j]−t[i]) at
+// inv[(j−1)·m + i] (0 for empty spans); without it the spans are divided directly.
+inline bool basis_impl(const double* t, const double* inv, int m, int k, double x, int* first, double* values,
+                       double* derivatives) {
   if (!(x >= t[0] && x < t[m - 1])) return false;
-  // Span s with t[s] <= x < t[s+1] (skipping empty spans).
   int lo = 0, hi = m - 1;
   while (hi - lo > 1) {
     const int mid = (lo + hi) / 2;
     (x >= t[mid] ? lo : hi) = mid;
   }
   const int s = lo;
+  auto rspan = [&](int i, int j) {
+    if (inv) return inv[(j - 1) * m + i];
+    const double d = t[i + j] - t[i];
+    return d > 0.0 ? 1.0 / d : 0.0;
+  };
   // N[r] = B_{s-j+r}^{j}(x); indices outside 0 … m-2-j are zero.
   double N[kMaxOrder + 1] = {1.0}, prev[kMaxOrder + 1] = {0.0};
   for (int j = 1; j <= k; ++j) {
@@ -35,14 +43,8 @@ bool bspline_basis(const double* t, int m, int k, double x, int* first, double* 
       const int i = s - j + r;
       double v = 0.0;
       if (i >= 0 && i <= m - 2 - j) {
-        if (r >= 1) {
-          const double d = t[i + j] - t[i];
-          if (d > 0.0) v += (x - t[i]) / d * prev[r - 1];
-        }
-        if (r <= j - 1) {
-          const double d = t[i + j + 1] - t[i + 1];
-          if (d > 0.0) v += (t[i + j + 1] - x) / d * prev[r];
-        }
+        if (r >= 1) v += (x - t[i]) * rspan(i, j) * prev[r - 1];
+        if (r <= j - 1) v += (t[i + j + 1] - x) * rspan(i + 1, j) * prev[r];
       }
       N[r] = v;
     }
@@ -53,14 +55,8 @@ bool bspline_basis(const double* t, int m, int k, double x, int* first, double* 
       const int i = s - k + r;
       double d = 0.0;
       if (k > 0 && i >= 0 && i <= m - 2 - k) {
-        if (r >= 1) {
-          const double den = t[i + k] - t[i];
-          if (den > 0.0) d += k / den * prev[r - 1];
-        }
-        if (r <= k - 1) {
-          const double den = t[i + k + 1] - t[i + 1];
-          if (den > 0.0) d -= k / den * prev[r];
-        }
+        if (r >= 1) d += k * rspan(i, k) * prev[r - 1];
+        if (r <= k - 1) d -= k * rspan(i + 1, k) * prev[r];
       }
       derivatives[r] = d;
     }
@@ -68,6 +64,11 @@ bool bspline_basis(const double* t, int m, int k, double x, int* first, double* 
   std::copy(N, N + k + 1, values);
   *first = s - k;
   return true;
+}
+}  // namespace
+
+bool bspline_basis(const double* t, int m, int k, double x, int* first, double* values, double* derivatives) {
+  return basis_impl(t, nullptr, m, k, x, first, values, derivatives);
 }
 
 namespace {
@@ -105,6 +106,39 @@ KanNet::KanNet(const KanShape& shape) : shape_(shape) {
     grids_.push_back(std::move(g));
   }
   num_params_ = static_cast<std::size_t>(o);
+  inv_spans_.resize(grids_.size());
+  for (int l = 0; l < num_layers(); ++l) update_inv_spans(l);
+}
+
+void KanNet::update_inv_spans(int layer) {
+  const int m = num_knots(), k = shape_.order, in = shape_.widths[static_cast<std::size_t>(layer)];
+  const std::vector<double>& g = grids_[static_cast<std::size_t>(layer)];
+  std::vector<double>& inv = inv_spans_[static_cast<std::size_t>(layer)];
+  inv.assign(static_cast<std::size_t>(in * std::max(k, 1) * m), 0.0);
+  for (int node = 0; node < in; ++node)
+    for (int j = 1; j <= k; ++j)
+      for (int i = 0; i + j < m; ++i) {
+        const double d = g[static_cast<std::size_t>(node * m + i + j)] - g[static_cast<std::size_t>(node * m + i)];
+        inv[static_cast<std::size_t>(node * k * m + (j - 1) * m + i)] = d > 0.0 ? 1.0 / d : 0.0;
+      }
+}
+
+void KanNet::set_grid(int layer, std::vector<double> knots) {
+  if (layer < 0 || layer >= num_layers()) throw std::runtime_error("kan: no layer " + std::to_string(layer));
+  const int m = num_knots();
+  if (knots.size() != grids_[static_cast<std::size_t>(layer)].size())
+    throw std::runtime_error("kan: grid of layer " + std::to_string(layer) + " has the wrong size");
+  for (std::size_t i = 0; i < knots.size(); ++i)
+    if (i % static_cast<std::size_t>(m) != 0 && !(knots[i] > knots[i - 1]))
+      throw std::runtime_error("kan: grids[" + std::to_string(layer) + "] knots must increase");
+  grids_[static_cast<std::size_t>(layer)] = std::move(knots);
+  update_inv_spans(layer);
+}
+
+bool KanNet::basis(int layer, int input, double x, int* first, double* values, double* derivatives) const {
+  const int m = num_knots(), k = shape_.order;
+  return basis_impl(knots(layer, input), inv_spans_[static_cast<std::size_t>(layer)].data() + input * k * m, m, k, x,
+                    first, values, derivatives);
 }
 
 Eigen::Index KanNet::edge_offset(int layer, int input, int output) const {
@@ -139,7 +173,7 @@ double KanNet::edge(const double* params, int layer, int input, int output, doub
   double y = e[0] * x * sigmoid(x);
   int first = 0;
   double v[kMaxOrder + 1];
-  if (bspline_basis(knots(layer, input), num_knots(), shape_.order, x, &first, v, nullptr))
+  if (basis(layer, input, x, &first, v, nullptr))
     for (int r = 0; r <= shape_.order; ++r) {
       const int b = first + r;
       if (b >= 0 && b < num_basis()) y += e[1 + b] * v[r];
@@ -159,7 +193,7 @@ double KanNet::forward(const double* params, const double* x) const {
     for (int i = 0; i < n_in; ++i) {
       const double xi = in[i], silu = xi * sigmoid(xi);
       int first = 0;
-      const bool any = bspline_basis(knots(l, i), num_knots(), k, xi, &first, v, nullptr);
+      const bool any = basis(l, i, xi, &first, v, nullptr);
       const double* e = params + edge_offset(l, i, 0);
       for (int j = 0; j < n_out; ++j, e += stride) {
         double y = e[0] * silu;
@@ -206,7 +240,7 @@ double KanNet::loss_grad(const Eigen::VectorXd& params, const Eigen::MatrixXd& x
         const double s = sigmoid(nd.x);
         nd.silu = nd.x * s;
         nd.dsilu = s * (1.0 + nd.x * (1.0 - s));
-        nd.any = bspline_basis(knots(l, i), num_knots(), k, nd.x, &nd.first, nd.v, grad ? nd.dv : nullptr);
+        nd.any = basis(l, i, nd.x, &nd.first, nd.v, grad ? nd.dv : nullptr);
         const double* e = p + edge_offset(l, i, 0);
         for (int j = 0; j < n_out; ++j, e += stride) {
           double yv = e[0] * nd.silu;
@@ -328,6 +362,7 @@ void KanNet::update_grids(Eigen::VectorXd& params, const Eigen::MatrixXd& x_all,
       }
       std::copy(t_new.begin(), t_new.end(), grids_[static_cast<std::size_t>(l)].begin() + static_cast<std::ptrdiff_t>(i * m));
     }
+    update_inv_spans(l);
   }
 }
 
@@ -554,13 +589,13 @@ std::unique_ptr<KanModel> KanModel::from_yaml(const YAML::Node& node) {
   for (int l = 0; l < net.num_layers(); ++l) {
     YAML::Node wrap;
     wrap["g"] = grids[static_cast<std::size_t>(l)];
-    const std::vector<double> g = training::yaml_doubles(wrap, "g", what + " grids[" + std::to_string(l) + "]",
-                                                         net.grids()[static_cast<std::size_t>(l)].size());
-    for (std::size_t i = 0; i + static_cast<std::size_t>(net.num_knots()) <= g.size(); i += static_cast<std::size_t>(net.num_knots()))
-      for (int q = 1; q < net.num_knots(); ++q)
-        if (!(g[i + static_cast<std::size_t>(q)] > g[i + static_cast<std::size_t>(q - 1)]))
-          throw std::runtime_error(what + ": grids[" + std::to_string(l) + "] knots must increase");
-    net.grids()[static_cast<std::size_t>(l)] = g;
+    std::vector<double> g = training::yaml_doubles(wrap, "g", what + " grids[" + std::to_string(l) + "]",
+                                                   net.grids()[static_cast<std::size_t>(l)].size());
+    try {
+      net.set_grid(l, std::move(g));
+    } catch (const std::runtime_error& e) {
+      throw std::runtime_error(what + ": " + e.what());
+    }
   }
   const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());
   auto m = std::make_unique<KanModel>(spec, rate, std::move(net),

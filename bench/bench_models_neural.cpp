@@ -1,0 +1,119 @@
+// Neural model speed. Targets (issue 5): inference per sample (feature stream + network, predict then commit)
+// dense and KAN ≤ 2 µs, LSTM ≤ 10 µs; one training run on ~1 M samples (26 h at 11 Hz) ≤ 3 min on 2 cores.
+// Training data: synthetic random walk with holds through a play operator plus first-order creep and 20 nm
+// noise (study-like, not the simulator). PIEZO_BENCH_TRAIN_SAMPLES overrides the size (the CTest smoke run
+// uses a small one).
+#include <benchmark/benchmark.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdlib>
+#include <random>
+
+#include "piezo_compensation/features/feature_specs.h"
+#include "piezo_compensation/models/dense_model.h"
+#include "piezo_compensation/models/kan_model.h"
+#include "piezo_compensation/models/lstm_model.h"
+#include "piezo_compensation/models/registry.h"
+
+using namespace piezo;
+
+namespace {
+
+io::Dataset synthetic(std::size_t n, std::uint64_t seed) {
+  io::Dataset d;
+  d.time_s.resize(n);
+  auto& ax = d.add_axis("c");
+  ax.voltage_v.resize(n);
+  ax.position_nm.resize(n);
+  std::mt19937_64 rng(seed);
+  std::normal_distribution<double> n01;
+  double v = 0.0, play = 0.0, creep = 0.0;
+  for (std::size_t t = 0; t < n; ++t) {
+    d.time_s[t] = static_cast<double>(t) / 11.0;
+    if (t % 400 < 300) v = std::clamp(v + 1.5 * n01(rng), -80.0, 80.0);
+    play = std::clamp(play, v - 4.0, v + 4.0);
+    creep += (play - creep) * 0.002;
+    ax.voltage_v[t] = v;
+    ax.position_nm[t] = 11.0 * play + 1.5 * creep + 20.79 * n01(rng);
+  }
+  return d;
+}
+
+std::size_t train_samples() {
+  const char* s = std::getenv("PIEZO_BENCH_TRAIN_SAMPLES");
+  return s ? static_cast<std::size_t>(std::atol(s)) : 1030000;  // 26 h at 11 Hz
+}
+
+features::FeatureSpec spec() {
+  // Identity standardisation: inference cost does not depend on the values.
+  return features::study_features();
+}
+
+void run_inference(benchmark::State& state, models::Model& m) {
+  m.reset(0.0, 0.0);
+  double v = 0.0, sink = 0.0;
+  for (auto _ : state) {
+    v = v > 70.0 ? -70.0 : v + 0.37;
+    const models::ModelInput in{v, nullptr};
+    const double p = m.predict(in);
+    m.commit(in, p);
+    sink += p;
+  }
+  benchmark::DoNotOptimize(sink);
+  state.SetItemsProcessed(state.iterations());
+}
+
+void BM_DenseInferencePerSample(benchmark::State& state) {
+  models::DenseShape s{static_cast<int>(spec().size()), 1, 10, 0.01};
+  models::DenseModel m(spec(), 11.0, s, models::DenseNet(s).initial_params(1), {});
+  run_inference(state, m);
+}
+BENCHMARK(BM_DenseInferencePerSample);
+
+void BM_LstmInferencePerSample(benchmark::State& state) {
+  models::LstmShape s{static_cast<int>(spec().size()), 1, 29};
+  models::LstmModel m(spec(), 11.0, s, models::LstmNet(s).initial_params(1), {}, 16);
+  run_inference(state, m);
+}
+BENCHMARK(BM_LstmInferencePerSample);
+
+void BM_KanInferencePerSample(benchmark::State& state) {
+  models::KanShape s;
+  s.widths = {static_cast<int>(spec().size()), 4, 1};
+  models::KanNet net(s);
+  const Eigen::VectorXd p = net.initial_params(1);
+  models::KanModel m(spec(), 11.0, net, p, {});
+  run_inference(state, m);
+}
+BENCHMARK(BM_KanInferencePerSample);
+
+// One full fit through the registry (features, standardisation, training with early stopping on the last
+// 10 %), the study's architecture and epochs, 2 threads.
+void run_fit(benchmark::State& state, const std::string& kind) {
+  static const io::Dataset data = synthetic(train_samples(), 7);
+  double epochs = 0, rmse = 0;
+  for (auto _ : state) {
+    models::FitRequest req;
+    req.train = &data;
+    req.threads = 2;
+    req.seed = 1;
+    const models::ModelPtr m = models::model_kind(kind).fit(req);
+    const YAML::Node info = m->to_yaml()["training"];
+    epochs = info["epochs_run"].as<double>();
+    rmse = info["validation_rmse_nm"].as<double>();
+  }
+  state.counters["samples"] = static_cast<double>(data.size());
+  state.counters["epochs_run"] = epochs;
+  state.counters["val_rmse_nm"] = rmse;
+}
+void BM_DenseFit(benchmark::State& state) { run_fit(state, "dense"); }
+void BM_LstmFit(benchmark::State& state) { run_fit(state, "lstm"); }
+void BM_KanFit(benchmark::State& state) { run_fit(state, "kan"); }
+BENCHMARK(BM_DenseFit)->Iterations(1)->Unit(benchmark::kSecond)->UseRealTime();
+BENCHMARK(BM_KanFit)->Iterations(1)->Unit(benchmark::kSecond)->UseRealTime();
+BENCHMARK(BM_LstmFit)->Iterations(1)->Unit(benchmark::kSecond)->UseRealTime();
+
+}  // namespace
+
+BENCHMARK_MAIN();
