@@ -54,6 +54,7 @@ class FakeDriver {
     v.axis = "c";
     v.sequence = seq_;
     v.voltage = applied_v;
+    reported_v = applied_v;
     piezo_compensation::EncoderPosition e;
     e.header.stamp = v.header.stamp;
     e.axis = "c";
@@ -72,7 +73,8 @@ class FakeDriver {
     if (!commands.empty()) applied_v = commands.back().voltage;
   }
 
-  double applied_v = 0.0;
+  double applied_v = 0.0;   // what the plant holds next (the last command)
+  double reported_v = 0.0;  // what the last published sample held
   std::vector<piezo_compensation::VoltageCommand> commands;
   std::vector<piezo_compensation::Prediction> predictions;
 
