@@ -137,9 +137,9 @@ class Params {
   std::string where_;
 };
 
-// Voltage program storage: float keeps a 26 h plan at ~20 MB and is far finer than any DAC.
+// Voltage program storage (the 41 h default plan: ~45 MB).
 struct Table {
-  std::vector<float> v[3];
+  std::vector<double> v[3];
   std::vector<std::int32_t> segment;
   std::vector<std::uint8_t> phase;
   std::array<double, 3> last{};
@@ -147,7 +147,7 @@ struct Table {
   std::size_t size() const { return segment.size(); }
   void push(const std::array<double, 3>& volts, int seg, Phase ph) {
     if (size() >= kMaxSamples) throw std::invalid_argument("protocol longer than 50 million samples: reduce durations");
-    for (int k = 0; k < 3; ++k) v[k].push_back(static_cast<float>(volts[k]));
+    for (int k = 0; k < 3; ++k) v[k].push_back(volts[k]);
     segment.push_back(seg);
     phase.push_back(static_cast<std::uint8_t>(ph));
     last = volts;
