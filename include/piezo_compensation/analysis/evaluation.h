@@ -1,0 +1,69 @@
+// Evaluation of a model over a data set through the Model interface, in both prediction modes:
+//   one-step: the measured position of each sample is committed (lagged-position features see measurements);
+//   free-run: the model's own prediction is committed (what a feedforward without a sensor has).
+// Errors against the measurement and, for simulated data, against the true position. Creep holds come from the
+// phase column (Phase::kHold) split at segment changes.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::analysis {
+
+struct Hold {
+  std::size_t begin = 0, end = 0;  // samples [begin, end)
+  int segment = -1;
+  double duration_s = 0;
+};
+// Runs of phase == Phase::kHold (a new run also starts where the segment changes). Empty without a phase column.
+std::vector<Hold> find_holds(const io::Dataset& data, double min_duration_s = 0.0);
+
+struct SeriesPrediction {
+  std::vector<double> one_step, free_run;
+};
+// Both modes from a fresh clone reset at the first sample (rest at V_0, D_0). Throws on NaN predictions.
+SeriesPrediction predict_series(const models::Model& model, const io::Dataset& data, const std::string& axis);
+
+struct ModeMetrics {
+  ErrorStats vs_measured, vs_truth;  // vs_truth invalid when the data has no truth
+};
+struct SetMetrics {
+  ModeMetrics one_step, free_run;
+};
+
+// Final position after a hold: means over its last `window_s` seconds.
+struct FinalDeviation {
+  int segment = -1;
+  double hold_s = 0;
+  double measured_nm = NAN, truth_nm = NAN, one_step_nm = NAN, free_run_nm = NAN;
+};
+
+struct ModelEvaluation {
+  std::string name, kind;
+  std::size_t num_parameters = 0;
+  bool uses_positions = false;
+  SetMetrics hysteresis;  // test data outside holds (random walk / sweeps), after the warm-up
+  SetMetrics creep;       // hold samples of the creep data
+  std::vector<FinalDeviation> finals;
+  SeriesPrediction test, creep_pred;
+};
+
+struct EvalOptions {
+  std::string axis = "c";
+  double warmup_s = 0.0;        // samples of the test data before this are not scored (history unknown to the model)
+  double final_window_s = 5.0;  // study: final position averaged over the last 5 s of each hold
+};
+
+// creep may be null: then the holds of `test` are used for the creep metrics.
+ModelEvaluation evaluate_model(const models::Model& model, const std::string& name, const io::Dataset& test,
+                               const io::Dataset* creep, const EvalOptions& opt);
+
+// Masks used above, exposed for reports and tests.
+std::vector<char> hysteresis_mask(const io::Dataset& data, double warmup_s);
+std::vector<char> hold_mask(const io::Dataset& data);
+
+}  // namespace piezo::analysis

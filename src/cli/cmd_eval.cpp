@@ -1,0 +1,89 @@
+// `piezo eval`: several model files on test (and creep) data → report.md, report.json and PNG plots.
+#include <cstdlib>
+#include <filesystem>
+#include <iostream>
+#include <set>
+
+#include "args.h"
+#include "command.h"
+#include "piezo_compensation/analysis/eval_report.h"
+#include "piezo_compensation/models/model_file.h"
+#include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/util/progress_bar.h"
+
+namespace piezo::cli {
+namespace {
+namespace fs = std::filesystem;
+
+int run(int argc, char** argv) {
+  Args args("eval", "Evaluate model files on test data (hysteresis: samples outside holds) and creep data (samples in\n"
+                    "holds), one-step and free-run, against the measurement and (simulated data) the true position.\n"
+                    "usage: piezo eval --models m1.yaml m2.yaml ... --data TEST [--creep CREEP] --out DIR");
+  args.option("models", "FILE.yaml", "model files (more may follow as plain arguments)", "", true)
+      .required("data", "FILE", "test data (CSV or bag)")
+      .option("creep", "FILE", "creep data with hold phases (else the holds in --data)")
+      .option("axis", "a|b|c", "axis (default: the models' axis)")
+      .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band", "20.79")
+      .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
+      .option("no-plots", "", "skip the PNG plots")
+      .required("out", "DIR", "output directory");
+  if (!args.parse(argc, argv)) return 0;
+  std::vector<std::string> paths = args.list("models");
+  for (const auto& p : args.positional()) paths.push_back(p);
+  if (paths.empty()) throw UsageError("eval: give at least one model file (--models m1.yaml ...)");
+
+  const io::Dataset test = ros_io::read_data(args.str("data"));
+  io::Dataset creep;
+  if (args.has("creep")) creep = ros_io::read_data(args.str("creep"));
+  const fs::path out = args.str("out");
+  fs::create_directories(out);
+
+  analysis::EvalContext ctx;
+  ctx.test_path = args.str("data");
+  ctx.creep_path = args.str("creep");
+  ctx.noise_sigma_nm = args.num("noise-sigma-nm");
+  ctx.warmup_s = args.num("warmup-s");
+  analysis::EvalOptions eo;
+  eo.warmup_s = ctx.warmup_s;
+
+  std::vector<models::ModelPtr> ms;
+  for (const auto& p : paths) {
+    ms.push_back(models::load_model(p));
+    const std::string axis = args.has("axis") ? args.str("axis") : ms.back()->meta.axis;
+    if (ms.size() == 1) ctx.axis = axis;
+    if (axis != ctx.axis) throw UsageError("eval: models are for different axes; pass --axis");
+    models::check_model_matches_data(*ms.back(), test, p);
+    if (!creep.empty()) models::check_model_matches_data(*ms.back(), creep, p);
+  }
+  eo.axis = ctx.axis;
+  const io::AxisSeries& ax = test.axis(ctx.axis);
+  if (ax.has_truth()) ctx.measured_sigma_nm = analysis::noise_sigma_nm(ax.position_nm, ax.true_position_nm);
+
+  util::ProgressBar bar(std::cerr, "models");
+  std::vector<analysis::ModelEvaluation> evals;
+  std::set<std::string> names;
+  for (std::size_t k = 0; k < ms.size(); ++k) {
+    std::string name = fs::path(paths[k]).stem().string();
+    while (names.count(name)) name += "_";
+    names.insert(name);
+    bar.update(double(k), double(ms.size()), "evaluating");
+    evals.push_back(analysis::evaluate_model(*ms[k], name, test, creep.empty() ? nullptr : &creep, eo));
+  }
+  bar.update(double(ms.size()), double(ms.size()), "evaluating");
+  bar.finish();
+  analysis::write_eval_report(out.string(), ctx, evals, test, creep.empty() ? nullptr : &creep);
+  std::cout << analysis::eval_markdown(ctx, evals).substr(0, std::string::npos);
+  if (!args.flag("no-plots")) {
+    const char* src = std::getenv("PIEZO_SOURCE_DIR");
+    const fs::path script = fs::path(src ? src : ".") / "scripts/plotting/eval_plots.py";
+    const std::string cmd = "/usr/bin/python3 '" + script.string() + "' '" + out.string() + "'";
+    if (std::system(cmd.c_str()) != 0) std::cerr << "eval: plotting failed (" << cmd << "); the reports are written\n";
+  }
+  std::cout << "\nwrote " << (out / "report.md").string() << ", report.json and plots\n";
+  return 0;
+}
+
+const Register reg("eval", "evaluate model files: Table 3, final positions, traces (report.md/json + PNG)", run);
+
+}  // namespace
+}  // namespace piezo::cli

@@ -1,0 +1,131 @@
+#include "piezo_compensation/analysis/evaluation.h"
+
+#include <cmath>
+#include <stdexcept>
+
+#include "piezo_compensation/protocols/protocol.h"
+#include "piezo_compensation/training/fit_common.h"
+
+namespace piezo::analysis {
+
+namespace {
+constexpr int kHold = static_cast<int>(protocols::Phase::kHold);
+}
+
+std::vector<Hold> find_holds(const io::Dataset& d, double min_duration_s) {
+  std::vector<Hold> out;
+  if (d.phase.empty()) return out;
+  const double dt = d.size() > 1 ? d.sample_period_s() : 0.0;
+  std::size_t i = 0;
+  while (i < d.size()) {
+    if (d.phase[i] != kHold) {
+      ++i;
+      continue;
+    }
+    Hold h;
+    h.begin = i;
+    h.segment = d.segment.empty() ? -1 : d.segment[i];
+    while (i < d.size() && d.phase[i] == kHold && (d.segment.empty() || d.segment[i] == h.segment)) ++i;
+    h.end = i;
+    h.duration_s = (h.end - h.begin) * dt;
+    if (h.duration_s >= min_duration_s) out.push_back(h);
+  }
+  return out;
+}
+
+SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d, const std::string& axis) {
+  const io::AxisSeries& ax = d.axis(axis);
+  SeriesPrediction p;
+  if (d.empty()) return p;
+  p.one_step.resize(d.size());
+  p.free_run.resize(d.size());
+  auto one = model.clone();
+  one->reset(ax.voltage_v[0], ax.position_nm[0]);
+  training::AuxRows aux(d, model.aux_inputs());
+  const bool same = !model.uses_position_history();
+  std::unique_ptr<models::Model> free = same ? nullptr : model.clone();
+  if (free) free->reset(ax.voltage_v[0], ax.position_nm[0]);
+  for (std::size_t i = 0; i < d.size(); ++i) {
+    const models::ModelInput in{ax.voltage_v[i], aux.at(i)};
+    const double y = one->predict(in);
+    if (!std::isfinite(y))
+      throw std::runtime_error("model '" + model.kind() + "' predicted a non-finite position at sample " + std::to_string(i));
+    p.one_step[i] = y;
+    one->commit(in, ax.position_nm[i]);
+    if (free) {
+      const double f = free->predict(in);
+      // A diverging free-run is a result, not an error: keep it finite so that metrics stay defined.
+      p.free_run[i] = std::isfinite(f) ? f : (f > 0 ? 1e12 : -1e12);
+      free->commit(in, p.free_run[i]);
+    } else {
+      p.free_run[i] = y;  // no position history: the two modes are the same computation
+    }
+  }
+  return p;
+}
+
+std::vector<char> hold_mask(const io::Dataset& d) {
+  std::vector<char> m(d.size(), 0);
+  for (const auto& h : find_holds(d))
+    for (std::size_t i = h.begin; i < h.end; ++i) m[i] = 1;
+  return m;
+}
+
+std::vector<char> hysteresis_mask(const io::Dataset& d, double warmup_s) {
+  std::vector<char> m(d.size(), 1);
+  if (!d.phase.empty())
+    for (std::size_t i = 0; i < d.size(); ++i) m[i] = d.phase[i] != kHold;
+  if (!d.empty())
+    for (std::size_t i = 0; i < d.size() && d.time_s[i] - d.time_s[0] < warmup_s; ++i) m[i] = 0;
+  return m;
+}
+
+namespace {
+SetMetrics metrics(const SeriesPrediction& p, const io::AxisSeries& ax, const std::vector<char>& mask) {
+  SetMetrics s;
+  s.one_step.vs_measured = error_stats(p.one_step, ax.position_nm, mask);
+  s.free_run.vs_measured = error_stats(p.free_run, ax.position_nm, mask);
+  if (ax.has_truth()) {
+    s.one_step.vs_truth = error_stats(p.one_step, ax.true_position_nm, mask);
+    s.free_run.vs_truth = error_stats(p.free_run, ax.true_position_nm, mask);
+  }
+  return s;
+}
+double mean_of(const std::vector<double>& v, std::size_t b, std::size_t e) {
+  if (v.empty() || b >= e) return NAN;
+  double s = 0;
+  for (std::size_t i = b; i < e; ++i) s += v[i];
+  return s / double(e - b);
+}
+}  // namespace
+
+ModelEvaluation evaluate_model(const models::Model& model, const std::string& name, const io::Dataset& test,
+                               const io::Dataset* creep, const EvalOptions& opt) {
+  ModelEvaluation ev;
+  ev.name = name;
+  ev.kind = model.kind();
+  ev.num_parameters = model.num_parameters();
+  ev.uses_positions = model.uses_position_history();
+  ev.test = predict_series(model, test, opt.axis);
+  ev.hysteresis = metrics(ev.test, test.axis(opt.axis), hysteresis_mask(test, opt.warmup_s));
+  const io::Dataset& cd = creep ? *creep : test;
+  ev.creep_pred = creep ? predict_series(model, *creep, opt.axis) : ev.test;
+  const io::AxisSeries& cax = cd.axis(opt.axis);
+  ev.creep = metrics(ev.creep_pred, cax, hold_mask(cd));
+  const double rate = cd.size() > 1 ? cd.sample_rate_hz() : 1.0;
+  for (const auto& h : find_holds(cd)) {
+    const std::size_t w = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(opt.final_window_s * rate)));
+    const std::size_t b = h.end > h.begin + w ? h.end - w : h.begin;
+    FinalDeviation f;
+    f.segment = h.segment;
+    f.hold_s = h.duration_s;
+    f.measured_nm = mean_of(cax.position_nm, b, h.end);
+    f.truth_nm = cax.has_truth() ? mean_of(cax.true_position_nm, b, h.end) : NAN;
+    f.one_step_nm = mean_of(ev.creep_pred.one_step, b, h.end);
+    f.free_run_nm = mean_of(ev.creep_pred.free_run, b, h.end);
+    ev.finals.push_back(f);
+  }
+  return ev;
+}
+
+}  // namespace piezo::analysis
