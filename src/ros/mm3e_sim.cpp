@@ -102,20 +102,24 @@ void SimNode::run() {
   double next_sample_s = sim_start_s + period_s;
   std::uint32_t sequence = 0;
   std::vector<can::ReceivedFrame> in;
+  auto publish_clock = [this](double t) {
+    rosgraph_msgs::Clock clock;
+    clock.clock = ros::Time(t);
+    clock_pub_.publish(clock);
+  };
   while (running_ && ros::ok()) {
     double sim_now_s;
     if (publish_clock_) {
       const double wall_elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - wall_start).count();
       sim_now_s = sim_start_s + time_scale_ * wall_elapsed;
-      rosgraph_msgs::Clock clock;
-      clock.clock = ros::Time(sim_now_s);
-      clock_pub_.publish(clock);
     } else {
       sim_now_s = ros::Time::now().toSec();
     }
     {
       std::lock_guard<std::mutex> lock(mutex_);
       while (next_sample_s <= sim_now_s) {
+        // The clock owner ticks exactly at each sample, so receivers stamping with ROS time get sample times.
+        if (publish_clock_) publish_clock(next_sample_s);
         const can::DeviceCore::Output out = device_->step();
         send_all(out.frames);
         for (int i = 0; i < can::kAxisCount; ++i) {
@@ -132,9 +136,17 @@ void SimNode::run() {
         next_sample_s += period_s;
       }
     }
-    // Wait for commands until the next clock tick or sample, whichever is first (in wall time).
-    double wait_s = publish_clock_ ? 1.0 / clock_rate_hz_ : (next_sample_s - sim_now_s);
-    wait_s = std::clamp(wait_s, 0.0005, 0.05);
+    if (publish_clock_) publish_clock(sim_now_s);
+    // Wait for commands until the next clock tick or sample, whichever is first (in wall time). Under someone
+    // else's /clock the simulated-time gap says nothing about wall time: poll at the clock rate.
+    double wait_s;
+    if (publish_clock_)
+      wait_s = std::min(1.0 / clock_rate_hz_, (next_sample_s - sim_now_s) / time_scale_);
+    else if (ros::Time::isSimTime())
+      wait_s = 1.0 / clock_rate_hz_;
+    else
+      wait_s = next_sample_s - sim_now_s;
+    wait_s = std::clamp(wait_s, 0.0002, 0.05);
     in.clear();
     try {
       transport_->receive(in, static_cast<int>(std::ceil(wait_s * 1000.0)));

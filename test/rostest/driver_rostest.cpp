@@ -1,0 +1,333 @@
+// Simulated device + driver over UDP, checked from outside through the driver's topics, services and
+// diagnostics. One .test file per safety behaviour selects its case with --gtest_filter and sets the
+// driver's parameters for it.
+#include <diagnostic_msgs/DiagnosticArray.h>
+#include <gtest/gtest.h>
+#include <ros/ros.h>
+#include <std_srvs/Trigger.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <map>
+#include <mutex>
+#include <vector>
+
+#include "piezo_compensation/AxisVoltage.h"
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/VoltageCommand.h"
+
+using piezo_compensation::AxisVoltage;
+using piezo_compensation::EncoderPosition;
+using piezo_compensation::VoltageCommand;
+
+namespace {
+
+const char* kAxes[] = {"a", "b", "c"};
+
+struct Sample {
+  double stamp_s, receive_s, value;
+  std::uint32_t sequence;
+  std::string frame_id;
+};
+
+class Bench {
+ public:
+  Bench() : nh_("mm1") {
+    for (int i = 0; i < 3; ++i) {
+      const std::string a = kAxes[i];
+      subs_.push_back(nh_.subscribe<AxisVoltage>(a + "/voltage", 100, [this, i](const AxisVoltage::ConstPtr& m) {
+        std::lock_guard<std::mutex> l(mutex_);
+        voltage_[i].push_back({m->header.stamp.toSec(), ros::WallTime::now().toSec(), m->voltage, m->sequence,
+                               m->header.frame_id});
+      }));
+      subs_.push_back(nh_.subscribe<EncoderPosition>(a + "/encoder", 100, [this, i](const EncoderPosition::ConstPtr& m) {
+        std::lock_guard<std::mutex> l(mutex_);
+        encoder_[i].push_back({m->header.stamp.toSec(), ros::WallTime::now().toSec(), m->position, m->sequence,
+                               m->header.frame_id});
+      }));
+      subs_.push_back(nh_.subscribe<EncoderPosition>(a + "/true_position", 100,
+                                                     [this, i](const EncoderPosition::ConstPtr& m) {
+                                                       std::lock_guard<std::mutex> l(mutex_);
+                                                       truth_[i].push_back({m->header.stamp.toSec(), 0, m->position,
+                                                                            m->sequence, m->header.frame_id});
+                                                     }));
+      commands_[i] = nh_.advertise<VoltageCommand>(a + "/command", 1);
+    }
+    diag_sub_ = ros::NodeHandle().subscribe<diagnostic_msgs::DiagnosticArray>(
+        "/diagnostics", 20, [this](const diagnostic_msgs::DiagnosticArray::ConstPtr& m) {
+          std::lock_guard<std::mutex> l(mutex_);
+          for (const auto& s : m->status) {
+            auto& d = diag_[s.name.substr(s.name.rfind(": ") + 2)];
+            d["__level"] = std::to_string(int(s.level));
+            d["__message"] = s.message;
+            for (const auto& kv : s.values) d[kv.key] = kv.value;
+          }
+        });
+  }
+
+  // Waits until the driver publishes on every axis and listens to our command topics.
+  void wait_ready() {
+    ASSERT_TRUE(wait([&] {
+      for (int i = 0; i < 3; ++i)
+        if (voltage_count(i) < 2 || commands_[i].getNumSubscribers() == 0) return false;
+      return true;
+    }, 20.0)) << "driver not up";
+  }
+
+  template <typename Pred>
+  bool wait(Pred pred, double seconds) {
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
+    while (ros::ok() && ros::WallTime::now() < end) {
+      if (pred()) return true;
+      ros::WallDuration(0.01).sleep();
+    }
+    return pred();
+  }
+
+  void command(int axis, double v) {
+    VoltageCommand c;
+    c.header.stamp = ros::Time::now();
+    c.voltage = v;
+    commands_[axis].publish(c);
+  }
+  // Publishes v at rate_hz for seconds (a commander keeping the watchdog fed).
+  void command_for(int axis, double v, double seconds, double rate_hz = 50.0) {
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
+    while (ros::ok() && ros::WallTime::now() < end) {
+      command(axis, v);
+      ros::WallDuration(1.0 / rate_hz).sleep();
+    }
+  }
+
+  std::vector<Sample> voltage(int i) { std::lock_guard<std::mutex> l(mutex_); return voltage_[i]; }
+  std::vector<Sample> encoder(int i) { std::lock_guard<std::mutex> l(mutex_); return encoder_[i]; }
+  std::vector<Sample> truth(int i) { std::lock_guard<std::mutex> l(mutex_); return truth_[i]; }
+  std::size_t voltage_count(int i) { std::lock_guard<std::mutex> l(mutex_); return voltage_[i].size(); }
+  std::size_t encoder_count(int i) { std::lock_guard<std::mutex> l(mutex_); return encoder_[i].size(); }
+  double last_voltage(int i) {
+    std::lock_guard<std::mutex> l(mutex_);
+    return voltage_[i].empty() ? std::nan("") : voltage_[i].back().value;
+  }
+  std::string diag(const std::string& status, const std::string& key) {
+    std::lock_guard<std::mutex> l(mutex_);
+    auto it = diag_.find(status);
+    if (it == diag_.end()) return "";
+    auto kv = it->second.find(key);
+    return kv == it->second.end() ? "" : kv->second;
+  }
+  double diag_number(const std::string& status, const std::string& key) {
+    const std::string v = diag(status, key);
+    return v.empty() ? std::nan("") : std::stod(v);
+  }
+  void clear() {
+    std::lock_guard<std::mutex> l(mutex_);
+    for (int i = 0; i < 3; ++i) voltage_[i].clear(), encoder_[i].clear(), truth_[i].clear();
+  }
+
+ private:
+  ros::NodeHandle nh_;
+  std::vector<ros::Subscriber> subs_;
+  ros::Subscriber diag_sub_;
+  ros::Publisher commands_[3];
+  std::mutex mutex_;
+  std::vector<Sample> voltage_[3], encoder_[3], truth_[3];
+  std::map<std::string, std::map<std::string, std::string>> diag_;
+};
+
+double rate_hz(const std::vector<Sample>& s, bool by_stamp) {
+  if (s.size() < 2) return 0.0;
+  const double span = by_stamp ? s.back().stamp_s - s.front().stamp_s : s.back().receive_s - s.front().receive_s;
+  return (s.size() - 1) / span;
+}
+
+}  // namespace
+
+TEST(Driver, TopicsAtEncoderRate) {
+  Bench b;
+  b.wait_ready();
+  ros::WallDuration(1.0).sleep();
+  b.clear();
+  ros::WallDuration(4.0).sleep();
+  for (int i = 0; i < 3; ++i) {
+    const auto enc = b.encoder(i), volt = b.voltage(i);
+    ASSERT_GE(enc.size(), 35u) << kAxes[i];
+    EXPECT_NEAR(rate_hz(enc, true), 11.0, 0.5) << "encoder stamps, axis " << kAxes[i];
+    EXPECT_NEAR(rate_hz(enc, false), 11.0, 1.0) << "encoder arrivals, axis " << kAxes[i];
+    EXPECT_NEAR(rate_hz(volt, true), 11.0, 0.5) << "voltage stamps, axis " << kAxes[i];
+    for (std::size_t k = 1; k < enc.size(); ++k) {
+      EXPECT_EQ(enc[k].sequence, enc[k - 1].sequence + 1) << "dropped or reordered on loopback";
+      EXPECT_GT(enc[k].stamp_s, enc[k - 1].stamp_s);
+    }
+    EXPECT_EQ(enc.front().frame_id, "mm1/base");
+    // The stamp is the frame's receive time: close to when we got the message.
+    EXPECT_NEAR(enc.back().stamp_s, enc.back().receive_s, 0.2);
+  }
+  ASSERT_TRUE(b.wait([&] { return !b.diag("bus", "state").empty(); }, 3.0));
+  EXPECT_EQ(b.diag("bus", "state"), "active");
+  EXPECT_NEAR(b.diag_number("axis a", "encoder rate [Hz]"), 11.0, 1.5);
+  EXPECT_EQ(b.diag_number("axis b", "encoder dropped"), 0.0);
+}
+
+TEST(Driver, CommandReachesThePiezo) {
+  Bench b;
+  b.wait_ready();
+  ASSERT_TRUE(b.wait([&] { return !b.truth(2).empty() && b.encoder_count(2) > 3; }, 5.0));
+  const double v0 = b.last_voltage(2);
+  const double x0 = b.truth(2).back().value;
+  b.command_for(2, 20.0, 2.0);
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(2) - 20.0) < 1e-3; }, 3.0)) << b.last_voltage(2);
+  ros::WallDuration(0.5).sleep();
+  const double x1 = b.truth(2).back().value;
+  const auto enc = b.encoder(2);
+  double enc_mean = 0;
+  for (std::size_t k = enc.size() - 5; k < enc.size(); ++k) enc_mean += enc[k].value / 5;
+  // +20 V moves the simulated piezo by roughly a hundred nanometres or more; noise is ~20 nm.
+  EXPECT_GT(x1 - x0, 100e-9) << "true position did not follow " << v0 << " V -> 20 V";
+  EXPECT_NEAR(enc_mean, x1, 60e-9) << "encoder does not follow the true position";
+  EXPECT_NEAR(b.last_voltage(0), 0.0, 1e-3) << "other axes must not move";
+}
+
+TEST(Driver, ClampsToTheLimits) {
+  Bench b;
+  b.wait_ready();
+  b.command_for(0, 150.0, 1.5);
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(0) - 80.0) < 1e-6; }, 3.0)) << b.last_voltage(0);
+  b.command_for(0, -1e6, 1.5);
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(0) + 80.0) < 1e-6; }, 3.0)) << b.last_voltage(0);
+  for (const auto& s : b.voltage(0)) {
+    EXPECT_LE(s.value, 80.0 + 1e-9);
+    EXPECT_GE(s.value, -80.0 - 1e-9);
+  }
+  EXPECT_GT(b.diag_number("axis a", "clamped"), 0.0);
+}
+
+TEST(Driver, SlewLimited) {
+  Bench b;
+  b.wait_ready();
+  ros::NodeHandle p("mm1/mm3e_driver");
+  double slew = 0;
+  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  b.clear();
+  const ros::WallTime t0 = ros::WallTime::now();
+  b.command_for(1, 30.0, 30.0 / slew + 1.0);
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(1) - 30.0) < 1e-6; }, 3.0));
+  const auto v = b.voltage(1);
+  double first_at_target = 0;
+  for (std::size_t k = 1; k < v.size(); ++k) {
+    const double dt = v[k].stamp_s - v[k - 1].stamp_s;
+    ASSERT_GT(dt, 0.0);
+    // Reports are 11 Hz samples of a ramp: the slope between two must not exceed the limit (+ timing jitter).
+    EXPECT_LE(std::abs(v[k].value - v[k - 1].value) / dt, slew * 1.25) << "sample " << k;
+    if (first_at_target == 0 && std::abs(v[k].value - 30.0) < 1e-6) first_at_target = v[k].receive_s;
+  }
+  EXPECT_GE(first_at_target - t0.toSec(), 0.9 * 30.0 / slew) << "reached 30 V faster than the slew limit allows";
+}
+
+TEST(Driver, RejectsNonFinite) {
+  Bench b;
+  b.wait_ready();
+  b.command_for(2, 10.0, 1.0);
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(2) - 10.0) < 1e-6; }, 3.0));
+  b.clear();
+  for (double bad : {std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity(),
+                     -std::numeric_limits<double>::infinity()})
+    b.command_for(2, bad, 0.5);
+  ros::WallDuration(0.3).sleep();
+  const auto v = b.voltage(2);
+  ASSERT_GE(v.size(), 10u);
+  for (const auto& s : v) EXPECT_NEAR(s.value, 10.0, 1e-6);
+  ASSERT_TRUE(b.wait([&] { return b.diag_number("axis c", "rejected non-finite") > 0; }, 3.0));
+}
+
+TEST(Driver, TimeoutHoldsLastVoltage) {
+  Bench b;
+  b.wait_ready();
+  ros::NodeHandle p("mm1/mm3e_driver");
+  double slew = 0, timeout = 0;
+  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  ASSERT_TRUE(p.getParam("command_timeout_s", timeout));
+  // One burst of commands towards 60 V, then silence: the ramp must stop where it is.
+  b.command_for(0, 60.0, 0.3);
+  ros::WallDuration(timeout + 0.7).sleep();
+  const double held = b.last_voltage(0);
+  EXPECT_GT(held, 1.0) << "fell back towards 0 V";
+  EXPECT_LT(held, 60.0 - 1.0) << "kept ramping after the timeout";
+  EXPECT_LE(held, slew * (0.3 + timeout + 0.3)) << "moved further than the commands allowed";
+  b.clear();
+  ros::WallDuration(2.0).sleep();
+  const auto v = b.voltage(0);
+  ASSERT_GE(v.size(), 15u);
+  for (const auto& s : v) EXPECT_DOUBLE_EQ(s.value, held);
+  ASSERT_TRUE(b.wait([&] { return b.diag("axis a", "timed out") == "True"; }, 3.0)) << b.diag("axis a", "timed out");
+  EXPECT_GE(b.diag_number("axis a", "timeouts"), 1.0);
+}
+
+TEST(Driver, RecoversAfterBusFault) {
+  Bench b;
+  b.wait_ready();
+  ros::ServiceClient inject = ros::NodeHandle().serviceClient<std_srvs::Trigger>("/mm1/mm3e_sim/inject_bus_off");
+  ASSERT_TRUE(inject.waitForExistence(ros::Duration(10.0)));
+  std_srvs::Trigger t;
+  ASSERT_TRUE(inject.call(t));
+  ASSERT_TRUE(t.response.success) << t.response.message;
+  const ros::WallTime fault = ros::WallTime::now();
+  ASSERT_TRUE(b.wait([&] { return b.diag_number("bus", "bus-off events") >= 1; }, 4.0)) << "bus-off not reported";
+  // The device is silent for a while; the driver reconnects and the encoder comes back.
+  b.clear();
+  ASSERT_TRUE(b.wait([&] { return b.encoder_count(1) >= 5; }, 10.0)) << "encoder did not come back";
+  EXPECT_GT(ros::WallTime::now().toSec() - fault.toSec(), 0.9);  // not before the silence ended
+  ASSERT_TRUE(b.wait([&] { return b.diag("bus", "state") == "active"; }, 3.0)) << b.diag("bus", "state");
+  EXPECT_GE(b.diag_number("bus", "connects"), 2.0);
+  // And commands work again.
+  b.command_for(1, 12.0, 1.5);
+  EXPECT_TRUE(b.wait([&] { return std::abs(b.last_voltage(1) - 12.0) < 1e-6; }, 3.0)) << b.last_voltage(1);
+  // Garbage on the bus is counted, not fatal.
+  ros::ServiceClient garbage = ros::NodeHandle().serviceClient<std_srvs::Trigger>("/mm1/mm3e_sim/inject_garbage");
+  ASSERT_TRUE(garbage.call(t));
+  // 7 reach the decoder (3 bad DLC, 3 reserved flags, 1 bad heartbeat state); the RTR frames stop at the filter.
+  ASSERT_TRUE(b.wait([&] { return b.diag_number("bus", "malformed frames") >= 7; }, 3.0))
+      << b.diag("bus", "malformed frames");
+  const std::size_t n = b.encoder_count(1);
+  EXPECT_TRUE(b.wait([&] { return b.encoder_count(1) > n + 5; }, 3.0));
+}
+
+TEST(Driver, SecondCommanderHolds) {
+  Bench b;
+  b.wait_ready();
+  // The .test file starts another node publishing 5 V on mm1/a/command; we add our own publisher.
+  ASSERT_TRUE(b.wait([&] { return b.diag("axis a", "multiple commanders") == "True"; }, 10.0))
+      << "second commander not detected";
+  const double held = b.last_voltage(0);
+  b.command_for(0, 40.0, 1.5);
+  EXPECT_NEAR(b.last_voltage(0), held, 1e-9) << "moved with two commanders";
+  EXPECT_GT(b.diag_number("axis a", "rejected held"), 0.0);
+  EXPECT_EQ(b.diag("axis a", "__level"), "2");
+}
+
+// `--second-commander AXIS VOLTS`: run as a plain publisher node (a second commander for SecondCommanderHolds).
+int second_commander(int argc, char** argv) {
+  ros::init(argc, argv, "second_commander");
+  const std::string axis = argc > 2 ? argv[2] : "a";
+  const double volts = argc > 3 ? std::stod(argv[3]) : 5.0;
+  ros::NodeHandle nh("mm1");
+  ros::Publisher pub = nh.advertise<VoltageCommand>(axis + "/command", 1);
+  ros::Rate rate(5.0);
+  while (ros::ok()) {
+    VoltageCommand c;
+    c.header.stamp = ros::Time::now();
+    c.voltage = volts;
+    pub.publish(c);
+    rate.sleep();
+  }
+  return 0;
+}
+
+int main(int argc, char** argv) {
+  if (argc > 1 && std::string(argv[1]) == "--second-commander") return second_commander(argc, argv);
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "driver_rostest");
+  ros::AsyncSpinner spinner(2);
+  spinner.start();
+  return RUN_ALL_TESTS();
+}
