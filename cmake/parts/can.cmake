@@ -11,3 +11,30 @@ if(CATKIN_ENABLE_TESTING)
     add_rostest(test/rostest/driver_${behaviour}.test DEPENDENCIES driver_topics mm3e_driver mm3e_sim)
   endforeach()
 endif()
+
+# libFuzzer target for the codec (clang from Debian, -fsanitize=fuzzer). CTest runs the seeded corpus plus a
+# short deterministic mutation run; new inputs go to a scratch directory in the build tree, never to fuzz/.
+# Longer sessions: devel/lib/piezo_compensation/fuzz_can_codec -max_total_time=600 <scratch> fuzz/corpus/can_codec
+find_program(PIEZO_CLANGXX NAMES clang++-14 clang++)
+set(PIEZO_FUZZ_CAN ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/fuzz_can_codec)
+if(PIEZO_CLANGXX)
+  set(fuzz_sources fuzz/fuzz_can_codec.cpp src/core/can/codec.cpp src/core/can/protocol.cpp)
+  add_custom_command(OUTPUT ${PIEZO_FUZZ_CAN}
+    COMMAND ${PIEZO_CLANGXX} -std=c++17 -O1 -g -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=undefined
+            -Wall -Wextra -I${CMAKE_CURRENT_SOURCE_DIR}/include ${fuzz_sources} -lyaml-cpp -o ${PIEZO_FUZZ_CAN}
+    DEPENDS ${fuzz_sources} include/piezo_compensation/can/codec.h include/piezo_compensation/can/protocol.h
+    WORKING_DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR}
+    COMMENT "Building libFuzzer target fuzz_can_codec with ${PIEZO_CLANGXX}")
+  add_custom_target(fuzz_can_codec DEPENDS ${PIEZO_FUZZ_CAN})
+  if(TARGET tests)
+    add_dependencies(tests fuzz_can_codec)
+  endif()
+  if(CATKIN_ENABLE_TESTING)
+    add_test(NAME fuzz_can_codec_corpus
+      COMMAND sh -c "rm -rf fuzz_can_scratch && mkdir -p fuzz_can_scratch && exec '${PIEZO_FUZZ_CAN}' -seed=1 -runs=30000 -max_len=64 fuzz_can_scratch '${CMAKE_CURRENT_SOURCE_DIR}/fuzz/corpus/can_codec'"
+      WORKING_DIRECTORY ${CMAKE_BINARY_DIR})
+  endif()
+elseif(CATKIN_ENABLE_TESTING)
+  add_test(NAME fuzz_can_codec_corpus COMMAND sh -c "echo 'SKIPPED: no clang++-14 (apt-get install clang-14 libclang-rt-14-dev)'; exit 77")
+  set_tests_properties(fuzz_can_codec_corpus PROPERTIES SKIP_RETURN_CODE 77)
+endif()
