@@ -137,8 +137,9 @@ TEST(KanModel, FitPrintsFormulasAndRoundTrips) {
   EXPECT_NE(text.find("R²"), std::string::npos);
   EXPECT_NE(text.find("z0 -> h1_0"), std::string::npos);
 
-  const std::string c = models::model_kind("kan").export_c99(*m, "ax_c");
-  EXPECT_NE(c.find("ax_c_network(const double* x)"), std::string::npos);
+  const std::string c = models::model_kind("kan").export_c99(*m, "pz");
+  EXPECT_NE(c.find("pz_network(const double* x)"), std::string::npos);
+  EXPECT_LT(test_data::c_export_max_diff(*m, c, data, "c"), 1e-10);
 
   YAML::Node bad = m->to_yaml();
   bad["grids"][0][1] = -100.0;

@@ -72,7 +72,9 @@ class DenseModel : public Model {
   std::size_t num_parameters() const override { return net_.num_params(); }
 
   static std::unique_ptr<DenseModel> from_yaml(const YAML::Node& node);
-  // Standalone C99 source: the network on the standardised feature vector (see export in dense_model.cpp).
+  // The network alone on the standardised feature vector: `static double <prefix>_network(const double* z)`.
+  std::string export_c99_network(const std::string& prefix) const;
+  // The streaming header (see neural_c99_header).
   std::string export_c99(const std::string& prefix) const;
 
   const DenseNet& net() const { return net_; }
@@ -87,6 +89,13 @@ class DenseModel : public Model {
   Eigen::VectorXd params_;
   training::TargetScale target_;
 };
+
+// A complete streaming C99 header (c_export.h's API: <p>_state, <p>_init, <p>_predict, <p>_commit, <p>_step) for a
+// network on a feature vector: the feature engine comes from the linear exporter (prefix <p>_feat, its own
+// predict/step/inverse removed), `network_code` must define `static double <p>_network(const double* z)` on the
+// standardised features. Throws for specs the engine cannot export (aux signals).
+std::string neural_c99_header(const features::FeatureSpec& spec, double sample_rate_hz, const std::string& prefix,
+                              const std::string& network_code);
 
 // Trains a dense model (with a hyperparameter search when request.tune_trials > 0).
 std::unique_ptr<DenseModel> fit_dense(const FitRequest& request);

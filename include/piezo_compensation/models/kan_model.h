@@ -117,7 +117,8 @@ class KanModel : public Model {
   // One line per edge: "layer 0, z2 → h1: 0.41·sin(1.2·z2 + 0.3) - 0.02  (R² 0.9993)", with the legend
   // z_i = (feature_i − mean_i) / scale_i. Edges sampled over their grid range.
   std::string formulas() const;
-  std::string export_c99(const std::string& prefix) const;
+  std::string export_c99_network(const std::string& prefix) const;  // network on the standardised features
+  std::string export_c99(const std::string& prefix) const;          // streaming header (neural_c99_header)
   const KanNet& net() const { return net_; }
   const Eigen::VectorXd& params() const { return params_; }
   YAML::Node training_info;

@@ -1,11 +1,14 @@
 #include "piezo_compensation/models/dense_model.h"
 
+#include <cctype>
 #include <cmath>
 #include <iomanip>
 #include <random>
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/models/c_export.h"
+#include "piezo_compensation/models/linear_model.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/training/hyperparameter_search.h"
 
@@ -196,7 +199,7 @@ std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
   return m;
 }
 
-std::string DenseModel::export_c99(const std::string& prefix) const {
+std::string DenseModel::export_c99_network(const std::string& prefix) const {
   std::ostringstream os;
   os << std::setprecision(17);
   const DenseShape& s = net_.shape();
@@ -223,6 +226,48 @@ std::string DenseModel::export_c99(const std::string& prefix) const {
      << "  }\n"
      << "  return " << target_.mean_nm << " + " << target_.scale_nm << " * in[0];\n"
      << "}\n";
+  return os.str();
+}
+
+std::string DenseModel::export_c99(const std::string& prefix) const {
+  return neural_c99_header(stream_.spec(), sample_rate_hz_, prefix, export_c99_network(prefix));
+}
+
+std::string neural_c99_header(const features::FeatureSpec& spec, double sample_rate_hz, const std::string& prefix,
+                              const std::string& network_code) {
+  const std::string feat = prefix + "_feat";
+  // Zero weights: only the linear exporter's feature engine (state, init, feature, commit) is used.
+  const LinearModel engine(spec, sample_rate_hz, Eigen::VectorXd::Zero(static_cast<Eigen::Index>(spec.size())), 0.0);
+  std::string text = export_c99_linear(engine, feat);
+  // Drop the engine's own predict/step/inverse: unused static functions break -Werror builds.
+  for (const std::string name : {"_predict(", "_step(", "_inverse("}) {
+    const std::size_t at = text.find("static double " + feat + name);
+    if (at == std::string::npos) continue;
+    const std::size_t end = text.find("\n}\n", at);
+    if (end == std::string::npos) throw std::runtime_error("C export: unexpected feature engine layout");
+    text.erase(at, end + 3 - at);
+  }
+  const std::string has_inverse = "#define " + feat + "_HAS_INVERSE 1\n";
+  for (std::size_t at; (at = text.find(has_inverse)) != std::string::npos;) text.erase(at, has_inverse.size());
+  std::string guard = prefix + "_NET_H_";
+  for (auto& c : guard) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+  std::ostringstream os;
+  os << text << "\n#ifndef " << guard << "\n#define " << guard << "\n\n" << network_code << "\n"
+     << "typedef " << feat << "_state " << prefix << "_state;\n"
+     << "static void " << prefix << "_init(" << prefix << "_state* st, double voltage_v, double position_nm) {\n"
+     << "  " << feat << "_init(st, voltage_v, position_nm);\n}\n"
+     << "static double " << prefix << "_predict(const " << prefix << "_state* st, double voltage_v) {\n"
+     << "  double z[" << spec.size() << "];\n  int i;\n"
+     << "  for (i = 0; i < " << spec.size() << "; ++i) z[i] = (" << feat << "_feature(st, i, voltage_v) - " << feat
+     << "_mean[i]) / " << feat << "_scale[i];\n"
+     << "  return " << prefix << "_network(z);\n}\n"
+     << "static void " << prefix << "_commit(" << prefix << "_state* st, double voltage_v, double position_nm) {\n"
+     << "  " << feat << "_commit(st, voltage_v, position_nm);\n}\n"
+     << "/* predict + commit; measured_nm = NAN remembers the prediction (free-run). */\n"
+     << "static double " << prefix << "_step(" << prefix << "_state* st, double voltage_v, double measured_nm) {\n"
+     << "  const double y = " << prefix << "_predict(st, voltage_v);\n"
+     << "  " << prefix << "_commit(st, voltage_v, isnan(measured_nm) ? y : measured_nm);\n"
+     << "  return y;\n}\n\n#endif\n";
   return os.str();
 }
 

@@ -7,6 +7,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/models/dense_model.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/training/hyperparameter_search.h"
 
@@ -639,6 +640,10 @@ std::string KanModel::formulas() const {
 }
 
 std::string KanModel::export_c99(const std::string& prefix) const {
+  return neural_c99_header(stream_.spec(), sample_rate_hz_, prefix, export_c99_network(prefix));
+}
+
+std::string KanModel::export_c99_network(const std::string& prefix) const {
   std::ostringstream os;
   os << std::setprecision(17);
   const KanShape& s = net_.shape();
