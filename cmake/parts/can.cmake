@@ -38,3 +38,13 @@ elseif(CATKIN_ENABLE_TESTING)
   add_test(NAME fuzz_can_codec_corpus COMMAND sh -c "echo 'SKIPPED: no clang++-14 (apt-get install clang-14 libclang-rt-14-dev)'; exit 77")
   set_tests_properties(fuzz_can_codec_corpus PROPERTIES SKIP_RETURN_CODE 77)
 endif()
+
+# The real SocketCAN path, inside a throwaway VM with vcan0 (test/vcan/run_vcan_test.sh). The gtest binary is
+# not a test of its own: on a kernel without AF_CAN it could only fail. SKIP (77) when the VM cannot start.
+if(CATKIN_ENABLE_TESTING)
+  catkin_add_executable_with_gtest(test_can_vcan test/vcan/test_can_vcan.cpp)
+  target_link_libraries(test_can_vcan piezo_core gtest_main)
+  add_test(NAME vcan_vm COMMAND ${CMAKE_CURRENT_SOURCE_DIR}/test/vcan/run_vcan_test.sh
+           $<TARGET_FILE:test_can_vcan> ${CMAKE_BINARY_DIR}/vcan_vm_work)
+  set_tests_properties(vcan_vm PROPERTIES SKIP_RETURN_CODE 77 TIMEOUT 300)
+endif()

@@ -1,0 +1,276 @@
+// The real SocketCAN path, run inside the vcan VM (test/vcan/run_vcan_test.sh): driver and simulated device
+// on vcan0 through CAN_RAW sockets, can-utils talking to the driver, interface down / missing, error frames.
+// Outside a kernel with vcan0 every test fails loudly: this binary is only meant to run in the VM.
+#include <gtest/gtest.h>
+#include <linux/can/error.h>
+#include <linux/can/raw.h>
+#include <net/if.h>
+#include <sys/ioctl.h>
+#include <sys/socket.h>
+#include <sys/time.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <mutex>
+#include <sstream>
+#include <thread>
+
+#include "piezo_compensation/can/device_core.h"
+#include "piezo_compensation/can/driver_core.h"
+
+using namespace piezo::can;
+using namespace std::chrono_literals;
+
+namespace {
+
+const char* kIf = "vcan0";
+
+ProtocolConfig protocol() {
+  ProtocolConfig p;
+  p.encoder_rate_hz = 50.0;
+  p.heartbeat_period_s = 0.2;
+  return p;
+}
+
+piezo::sim::StepResult linear_plant(const std::array<double, 3>& v, double) {
+  piezo::sim::StepResult r;
+  for (int i = 0; i < 3; ++i) r.axes[i].true_position_nm = r.axes[i].measured_position_nm = 25.0 * v[i];
+  return r;
+}
+
+template <typename Pred>
+bool wait_for(Pred pred, std::chrono::milliseconds limit) {
+  const auto end = std::chrono::steady_clock::now() + limit;
+  while (std::chrono::steady_clock::now() < end) {
+    if (pred()) return true;
+    std::this_thread::sleep_for(5ms);
+  }
+  return pred();
+}
+
+double now_s() { return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count(); }
+
+int sh(const std::string& cmd) { return std::system(cmd.c_str()); }
+
+class Device {
+ public:
+  Device() : core_(DeviceConfig{protocol(), -80, 80, {1.0, 2.0, 3.0}}, linear_plant) {
+    SocketCanOptions o;
+    o.interface = kIf;
+    o.filters = core_.codec().device_filters();
+    transport_ = make_socketcan_transport(o);
+    transport_->open();
+    thread_ = std::thread([this] {
+      auto next = std::chrono::steady_clock::now();
+      while (running_) {
+        std::vector<ReceivedFrame> in;
+        try {
+          transport_->receive(in, 2);
+        } catch (const TransportError&) {
+          std::this_thread::sleep_for(10ms);
+        }
+        std::lock_guard<std::mutex> lock(mutex_);
+        for (const auto& rf : in) core_.handle(rf.frame);
+        if (std::chrono::steady_clock::now() >= next) {
+          next += 20ms;
+          for (const auto& f : core_.step().frames) try {
+              transport_->send(f);
+            } catch (const TransportError&) {
+            }
+        }
+      }
+    });
+  }
+  ~Device() {
+    running_ = false;
+    thread_.join();
+  }
+  std::array<double, 3> voltages() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return core_.voltages_v();
+  }
+
+ private:
+  DeviceCore core_;
+  std::unique_ptr<Transport> transport_;
+  std::mutex mutex_;
+  std::atomic<bool> running_{true};
+  std::thread thread_;
+};
+
+DriverConfig driver_config() {
+  DriverConfig c;
+  c.protocol = protocol();
+  c.limits.slew_rate_v_per_s = 2000.0;
+  c.limits.command_timeout_s = 10.0;
+  c.reconnect_min_s = 0.05;
+  c.reconnect_max_s = 0.3;
+  c.silence_reconnect_s = 1.0;
+  return c;
+}
+
+DriverCore::TransportFactory socketcan(const std::string& ifname = kIf) {
+  return [ifname] {
+    SocketCanOptions o;
+    o.interface = ifname;
+    o.filters = Codec(protocol()).driver_filters();
+    return make_socketcan_transport(o);
+  };
+}
+
+struct Seen {
+  std::mutex m;
+  std::array<int, 3> encoder{};
+  std::array<double, 3> position{};
+  std::array<double, 3> rx_time{};
+  DriverCallbacks callbacks() {
+    DriverCallbacks cb;
+    cb.on_encoder = [this](const EncoderReport& e, std::uint32_t, double t) {
+      std::lock_guard<std::mutex> l(m);
+      ++encoder[e.axis];
+      position[e.axis] = e.position_m;
+      rx_time[e.axis] = t;
+    };
+    return cb;
+  }
+  int count(int axis) {
+    std::lock_guard<std::mutex> l(m);
+    return encoder[axis];
+  }
+  double pos(int axis) {
+    std::lock_guard<std::mutex> l(m);
+    return position[axis];
+  }
+};
+
+}  // namespace
+
+TEST(Vcan, DriverAndSimulatedDeviceOverVcan0) {
+  Device device;
+  Seen seen;
+  DriverCore driver(driver_config(), socketcan(), seen.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return seen.count(2) >= 10; }, 10s)) << driver.bus_status().last_error;
+  EXPECT_EQ(driver.bus_status().transport, "socketcan:vcan0");
+  EXPECT_NEAR(seen.pos(1), 50e-9, 1e-12);
+  // SO_TIMESTAMP: the kernel's receive time, in epoch seconds, close to now.
+  timeval tv;
+  gettimeofday(&tv, nullptr);
+  EXPECT_NEAR(seen.rx_time[0], tv.tv_sec + tv.tv_usec * 1e-6, 2.0);
+  ASSERT_TRUE(wait_for([&] { return driver.axis_status(0).has_baseline; }, 5s));
+  ASSERT_TRUE(wait_for([&] {
+    driver.command(0, -25.0, now_s());
+    driver.tick(now_s());
+    return std::abs(device.voltages()[0] + 25.0) < 1e-9;
+  }, 10s));
+  EXPECT_TRUE(wait_for([&] { return std::abs(seen.pos(0) + 625e-9) < 1e-12; }, 5s));
+  // Kernel filters: the driver sees only its reports and heartbeat, so nothing is "unknown".
+  EXPECT_EQ(driver.bus_status().unknown_frames, 0u);
+  EXPECT_EQ(driver.bus_status().malformed_frames, 0u);
+}
+
+TEST(Vcan, CansendFramesAreDecodedAndFilteredByTheKernel) {
+  Seen seen;
+  DriverCore driver(driver_config(), socketcan(), seen.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().state != BusState::kDisconnected; }, 5s));
+  // Encoder of axis b: 1000 nm (E8 03 00 00), sequence 5, valid.
+  ASSERT_EQ(sh("cansend vcan0 291#E803000005000000"), 0);
+  ASSERT_TRUE(wait_for([&] { return seen.count(1) == 1; }, 5s));
+  EXPECT_NEAR(seen.pos(1), 1000e-9, 1e-15);
+  // Another node's frame and a command frame never reach the driver's socket (CAN_RAW_FILTER).
+  ASSERT_EQ(sh("cansend vcan0 123#DEADBEEF && cansend vcan0 210#0000000000000000"), 0);
+  // A malformed encoder frame (DLC 3) passes the filter and is counted as malformed.
+  ASSERT_EQ(sh("cansend vcan0 291#010203"), 0);
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().malformed_frames == 1; }, 5s));
+  EXPECT_EQ(driver.bus_status().unknown_frames, 0u);
+  // A heartbeat makes the bus active.
+  ASSERT_EQ(sh("cansend vcan0 710#01000100"), 0);
+  EXPECT_TRUE(wait_for([&] { return driver.bus_status().heartbeat_seen; }, 5s));
+}
+
+TEST(Vcan, CandumpSeesTheCommandsTheDriverWrites) {
+  Seen seen;
+  DriverCore driver(driver_config(), socketcan(), seen.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().state != BusState::kDisconnected; }, 5s));
+  std::remove("candump.log");
+  ASSERT_EQ(sh("(candump -L -n 3 vcan0,212:7FF > candump.log &) ; sleep 1"), 0);
+  // The device's baseline: axis c reports 10 V (100000 counts = A0 86 01 00).
+  ASSERT_EQ(sh("cansend vcan0 192#A086010001000000"), 0);
+  ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }, 5s));
+  for (int i = 0; i < 50 && driver.axis_status(2).frames_sent < 3; ++i) {
+    driver.command(2, 200.0, now_s());  // clamped to 80 V, slew-limited from 10 V
+    driver.tick(now_s());
+    std::this_thread::sleep_for(20ms);
+  }
+  ASSERT_TRUE(wait_for([&] {
+    std::ifstream f("candump.log");
+    int lines = 0;
+    for (std::string l; std::getline(f, l);) ++lines;
+    return lines >= 3;
+  }, 10s));
+  std::ifstream f("candump.log");
+  const Codec codec(protocol());
+  double last = 10.0;
+  int n = 0;
+  for (std::string line; std::getline(f, line);) {
+    std::istringstream s(line);
+    std::string stamp, iface, frame;
+    s >> stamp >> iface >> frame;  // "(1700000000.123456) vcan0 212#..."
+    EXPECT_EQ(iface, "vcan0");
+    const DecodeResult r = codec.decode(from_candump(frame));
+    ASSERT_TRUE(r.ok()) << line << ": " << r.message;
+    const auto& c = std::get<CommandFrame>(r.message_value);
+    EXPECT_EQ(c.axis, 2);
+    EXPECT_GT(c.voltage_v, last) << "ramping up";
+    EXPECT_LE(c.voltage_v, 80.0);
+    last = c.voltage_v;
+    ++n;
+  }
+  EXPECT_EQ(n, 3);
+}
+
+TEST(Vcan, InterfaceDownAndErrorFramesAreSurvived) {
+  Device device;
+  Seen seen;
+  std::vector<std::string> events;
+  std::mutex em;
+  DriverCallbacks cb = seen.callbacks();
+  cb.on_event = [&](const std::string& t, bool) {
+    std::lock_guard<std::mutex> l(em);
+    events.push_back(t);
+  };
+  DriverCore driver(driver_config(), socketcan(), cb);
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().state == BusState::kActive; }, 10s));
+  // Bus-off as the kernel reports it: an error frame. The driver closes, holds, reconnects.
+  ASSERT_EQ(sh("cansend vcan0 20000040#0000000000000000"), 0);
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().bus_off_events == 1; }, 5s));
+  EXPECT_TRUE(wait_for([&] { return driver.bus_status().state == BusState::kActive; }, 10s));
+  // Controller error-passive: reported, not fatal.
+  ASSERT_EQ(sh("cansend vcan0 20000004#0020000000000000"), 0);
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().error_frames >= 2; }, 5s));
+  // Interface down: the link fails, the driver keeps retrying and says why; back up, it recovers.
+  ASSERT_EQ(sh("ip link set vcan0 down"), 0);
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().state == BusState::kDisconnected; }, 10s));
+  EXPECT_EQ(driver.command(1, 5.0, now_s()), CommandOutcome::kRejectedHeld);
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().last_error.find("down") != std::string::npos; }, 5s))
+      << driver.bus_status().last_error;
+  ASSERT_EQ(sh("ip link set vcan0 up"), 0);
+  const int before = seen.count(0);
+  EXPECT_TRUE(wait_for([&] { return seen.count(0) > before + 5; }, 15s)) << driver.bus_status().last_error;
+}
+
+TEST(Vcan, MissingInterfaceIsReportedByName) {
+  DriverCore driver(driver_config(), socketcan("vcan7"), {});
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().connect_failures >= 2; }, 5s));
+  EXPECT_NE(driver.bus_status().last_error.find("vcan7: interface does not exist"), std::string::npos)
+      << driver.bus_status().last_error;
+}
