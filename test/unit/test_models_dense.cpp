@@ -145,3 +145,28 @@ TEST(DenseModel, ExportedC99HeaderMatchesCppSampleBySample) {
   EXPECT_NE(c.find("pz_network(const double* x)"), std::string::npos);
   EXPECT_LT(test_data::c_export_max_diff(*m, c, data, "c"), 1e-10);
 }
+
+TEST(DenseModel, TuningThroughTheRegistryRunsTrialsAndReportsProgress) {
+  const io::Dataset data = test_data::hysteretic_dataset(1500, 13);
+  models::FitRequest req;
+  req.train = &data;
+  req.tune_trials = 4;
+  req.options["epochs"] = 2;
+  int calls = 0;
+  double last_done = 0, last_total = 0;
+  req.progress = [&](double done, double total, const std::string& what) {
+    ++calls;
+    EXPECT_EQ(what, "trial");
+    last_done = done;
+    last_total = total;
+  };
+  const models::ModelPtr m = models::model_kind("dense").fit(req);
+  EXPECT_EQ(calls, 4);
+  EXPECT_EQ(last_done, 4);
+  EXPECT_EQ(last_total, 4);
+  const YAML::Node info = m->to_yaml()["training"]["tuning"];
+  ASSERT_TRUE(info);
+  EXPECT_EQ(info["trials"].as<int>(), 4);
+  EXPECT_NE(info["best"].as<std::string>().find("learning_rate="), std::string::npos);
+  EXPECT_GT(m->meta.validation.at("validation_rmse_nm"), 0.0);
+}

@@ -613,8 +613,9 @@ std::string KanModel::formulas() const {
      << net_.shape().order << "; position_nm = " << num(target_.mean_nm) << " + " << num(target_.scale_nm)
      << " · output\n";
   for (std::size_t i = 0; i < spec.size(); ++i) {
-    os << "  z" << i << " = (" << spec.features[i].name() << " - " << (spec.mean.empty() ? 0.0 : spec.mean[i])
-       << ") / " << (spec.scale.empty() ? 1.0 : spec.scale[i]) << "\n";
+    const double mean = spec.mean.empty() ? 0.0 : spec.mean[i];
+    os << "  z" << i << " = (" << spec.features[i].name() << (mean < 0 ? " + " : " - ") << num(std::abs(mean))
+       << ") / " << num(spec.scale.empty() ? 1.0 : spec.scale[i]) << "\n";
   }
   for (int l = 0; l < net_.num_layers(); ++l) {
     const int n_in = net_.shape().widths[static_cast<std::size_t>(l)], n_out = net_.shape().widths[static_cast<std::size_t>(l + 1)];
@@ -784,6 +785,12 @@ std::unique_ptr<KanModel> fit_kan(const FitRequest& request) {
     const auto validation = m->meta.validation;
     m->meta = training::make_meta(request);
     m->meta.validation = validation;
+    // The interpretable form travels with the model file (one line per edge).
+    YAML::Node lines(YAML::NodeType::Sequence);
+    std::istringstream text(m->formulas());
+    for (std::string line; std::getline(text, line);)
+      if (line.find_first_not_of(' ') != std::string::npos) lines.push_back(line.substr(line.find_first_not_of(' ')));
+    m->training_info["formulas"] = lines;
     return m;
   };
   if (request.tune_trials <= 0) return finish(train_kan(data, shape, grid_updates, cfg).model);
