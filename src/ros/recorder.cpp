@@ -1,0 +1,583 @@
+#include "piezo_compensation/ros/recorder.h"
+
+#include <algorithm>
+#include <cmath>
+#include <filesystem>
+#include <limits>
+#include <sstream>
+
+#include <std_msgs/String.h>
+
+#include "piezo_compensation/ProtocolPhase.h"
+#include "piezo_compensation/RecorderProgress.h"
+#include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/ros/data_file.h"
+
+namespace fs = std::filesystem;
+
+namespace piezo::ros_nodes {
+
+namespace {
+
+YAML::Node to_yaml(const XmlRpc::XmlRpcValue& v) {
+  XmlRpc::XmlRpcValue x = v;  // the accessors are non-const
+  switch (x.getType()) {
+    case XmlRpc::XmlRpcValue::TypeBoolean: return YAML::Node(static_cast<bool>(x));
+    case XmlRpc::XmlRpcValue::TypeInt: return YAML::Node(static_cast<int>(x));
+    case XmlRpc::XmlRpcValue::TypeDouble: return YAML::Node(static_cast<double>(x));
+    case XmlRpc::XmlRpcValue::TypeString: return YAML::Node(static_cast<std::string>(x));
+    case XmlRpc::XmlRpcValue::TypeArray: {
+      YAML::Node n(YAML::NodeType::Sequence);
+      for (int i = 0; i < x.size(); ++i) n.push_back(to_yaml(x[i]));
+      return n;
+    }
+    case XmlRpc::XmlRpcValue::TypeStruct: {
+      YAML::Node n(YAML::NodeType::Map);
+      for (auto it = x.begin(); it != x.end(); ++it) n[it->first] = to_yaml(it->second);
+      return n;
+    }
+    default: throw std::invalid_argument("unsupported parameter value type");
+  }
+}
+
+std::size_t axis_index(const std::string& a) { return a == "a" ? 0 : a == "b" ? 1 : 2; }
+
+std::string join(const std::string& ns, const std::string& rel) { return ns + "/" + rel; }
+
+}  // namespace
+
+RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh) {
+  RecorderOptions o;
+  pnh.param("protocol", o.protocol, o.protocol);
+  if (pnh.hasParam("protocol_params")) {
+    XmlRpc::XmlRpcValue v;
+    pnh.getParam("protocol_params", v);
+    try {
+      if (v.getType() == XmlRpc::XmlRpcValue::TypeString)
+        o.protocol_params = YAML::Load(static_cast<std::string>(v));  // also accept a YAML string
+      else
+        o.protocol_params = to_yaml(v);
+    } catch (const std::exception& e) {
+      throw std::invalid_argument("~protocol_params: " + std::string(e.what()));
+    }
+    if (!o.protocol_params.IsMap()) throw std::invalid_argument("~protocol_params: expected a map");
+  }
+  int seed = static_cast<int>(o.seed);
+  pnh.param("seed", seed, seed);
+  if (seed < 0) throw std::invalid_argument("~seed must be >= 0");
+  o.seed = static_cast<std::uint64_t>(seed);
+  pnh.param("sample_rate_hz", o.sample_rate_hz, o.sample_rate_hz);
+  pnh.param("duration_s", o.duration_s, o.duration_s);
+  pnh.param("out", o.out, o.out);
+  pnh.param("resume", o.resume, o.resume);
+  pnh.param("axes", o.axes, o.axes);
+  pnh.param("chunk_period_s", o.chunk_period_s, o.chunk_period_s);
+  pnh.param("encoder_timeout_s", o.encoder_timeout_s, o.encoder_timeout_s);
+  pnh.param("startup_timeout_s", o.startup_timeout_s, o.startup_timeout_s);
+  pnh.param("min_free_space_mb", o.min_free_space_mb, o.min_free_space_mb);
+  pnh.param("voltage_tolerance_v", o.voltage_tolerance_v, o.voltage_tolerance_v);
+  pnh.param("max_wait_samples", o.max_wait_samples, o.max_wait_samples);
+  pnh.param("progress_period_s", o.progress_period_s, o.progress_period_s);
+  pnh.param("approach_timeout_s", o.approach_timeout_s, o.approach_timeout_s);
+  int stop_after = 0;
+  pnh.param("stop_after_samples", stop_after, stop_after);
+  if (stop_after < 0) throw std::invalid_argument("~stop_after_samples must be >= 0");
+  o.stop_after_samples = static_cast<std::uint64_t>(stop_after);
+  o.validate();
+  return o;
+}
+
+void RecorderOptions::validate() const {
+  auto positive = [](double v, const char* name) {
+    if (!(v > 0.0) || !std::isfinite(v)) throw std::invalid_argument(std::string("~") + name + " must be > 0");
+  };
+  if (out.empty()) throw std::invalid_argument("~out: give the bag to write (FILE.bag)");
+  if (out.size() < 4 || out.compare(out.size() - 4, 4, ".bag") != 0)
+    throw std::invalid_argument("~out must end in .bag, got '" + out + "'");
+  if (protocol.empty() && !resume) throw std::invalid_argument("~protocol: give a protocol name");
+  positive(sample_rate_hz, "sample_rate_hz");
+  if (!(duration_s >= 0.0)) throw std::invalid_argument("~duration_s must be >= 0 (0 = whole protocol)");
+  positive(chunk_period_s, "chunk_period_s");
+  positive(encoder_timeout_s, "encoder_timeout_s");
+  positive(startup_timeout_s, "startup_timeout_s");
+  if (!(min_free_space_mb >= 0.0)) throw std::invalid_argument("~min_free_space_mb must be >= 0");
+  if (!(voltage_tolerance_v >= 0.0)) throw std::invalid_argument("~voltage_tolerance_v must be >= 0");
+  if (max_wait_samples < 0) throw std::invalid_argument("~max_wait_samples must be >= 0");
+  positive(progress_period_s, "progress_period_s");
+  if (!(approach_timeout_s >= 0.0)) throw std::invalid_argument("~approach_timeout_s must be >= 0");
+  if (axes.empty()) throw std::invalid_argument("~axes: give at least one of a, b, c");
+  for (const auto& a : axes)
+    if (a != "a" && a != "b" && a != "c") throw std::invalid_argument("~axes: unknown axis '" + a + "'");
+}
+
+void Recorder::parse_spec(const std::string& yaml, RecorderOptions& o, std::uint64_t& total, double& t0_s) {
+  try {
+    const YAML::Node n = YAML::Load(yaml);
+    o.protocol = n["protocol"].as<std::string>();
+    o.seed = n["seed"].as<std::uint64_t>();
+    o.sample_rate_hz = n["sample_rate_hz"].as<double>();
+    o.protocol_params = n["parameters"];
+    total = n["samples"].as<std::uint64_t>();
+    t0_s = n["t0_s"].as<double>();
+  } catch (const YAML::Exception& e) {
+    throw ros_io::RecorderBagError(std::string("protocol_phase marker: parameters_yaml is not a recorder spec (") +
+                                   e.what() + ")");
+  }
+}
+
+std::string Recorder::topic(const std::string& axis, const std::string& what) const {
+  return ns_ + "/" + axis + "/" + what;
+}
+
+Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(nh)), options_(std::move(options)) {
+  options_.validate();
+  ns_ = nh_.getNamespace();
+  if (ns_ == "/") ns_.clear();
+
+  bool resumed = false;
+  if (options_.resume) {
+    const auto found = ros_io::scan_recording(options_.out, topic(options_.axes.front(), "encoder"),
+                                              join(ns_, "protocol_phase"));
+    for (const auto& f : found.set_aside)
+      ROS_WARN("recorder: %s was open when the last session died (no index); its samples are recorded again",
+               f.c_str());
+    if (found.found && found.samples > 0) {
+      const std::string wanted = options_.protocol;
+      parse_spec(found.parameters_yaml, options_, total_, t0_s_);
+      if (!wanted.empty() && wanted != options_.protocol)
+        throw std::invalid_argument("~resume: " + options_.out + " holds protocol '" + options_.protocol +
+                                    "', not '" + wanted + "'");
+      next_ = found.next_sample;
+      if (found.samples != found.next_sample)
+        ROS_WARN("recorder: %s holds %llu samples but its last is %llu: the earlier data has gaps or repeats",
+                 options_.out.c_str(), static_cast<unsigned long long>(found.samples),
+                 static_cast<unsigned long long>(found.next_sample));
+      resumed = true;
+      ROS_INFO("recorder: resuming %s (protocol %s) at sample %llu of %llu", options_.out.c_str(),
+               options_.protocol.c_str(), static_cast<unsigned long long>(next_),
+               static_cast<unsigned long long>(total_));
+    } else if (options_.protocol.empty()) {
+      throw std::invalid_argument("~resume: " + options_.out + " holds no recording to resume; give ~protocol");
+    }
+  } else if (fs::exists(options_.out) || fs::exists(ros_io::parts_dir_of(options_.out))) {
+    throw std::invalid_argument("~out: " + options_.out + " (or its .parts) exists; set ~resume to continue it");
+  }
+
+  protocol_ = protocols::make_protocol(options_.protocol, options_.protocol_params, options_.sample_rate_hz,
+                                       options_.seed);
+  if (!resumed) {
+    const YAML::Node full = protocol_->parameters();  // the full set, so the bag alone regenerates it
+    options_.protocol_params = full["parameters"] && full["parameters"].IsMap() ? full["parameters"] : full;
+    total_ = protocol_->size();
+    if (options_.duration_s > 0.0)
+      total_ = std::min<std::uint64_t>(total_, static_cast<std::uint64_t>(
+                                                   std::llround(options_.duration_s * options_.sample_rate_hz)));
+  }
+  if (total_ > protocol_->size())
+    throw std::invalid_argument("~resume: the recording asks for more samples than protocol " + options_.protocol +
+                                " has");
+  first_of_session_ = next_;
+  bag_ = std::make_unique<ros_io::ChunkedBag>(options_.out, options_.chunk_period_s, options_.min_free_space_mb);
+
+  for (const auto& a : options_.axes) {
+    axes_.emplace_back();
+    axes_.back().name = a;
+  }
+  for (std::size_t k = 0; k < axes_.size(); ++k) {
+    auto& ax = axes_[k];
+    ax.command = nh_.advertise<piezo_compensation::VoltageCommand>(ax.name + "/command", 1);
+    ax.encoder = nh_.subscribe<piezo_compensation::EncoderPosition>(
+        ax.name + "/encoder", 100, [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_encoder(k, m); });
+    ax.voltage = nh_.subscribe<piezo_compensation::AxisVoltage>(
+        ax.name + "/voltage", 100, [this, k](const piezo_compensation::AxisVoltage::ConstPtr& m) { on_voltage(k, m); });
+    ax.truth = nh_.subscribe<piezo_compensation::EncoderPosition>(
+        ax.name + "/true_position", 100,
+        [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_truth(k, m); });
+  }
+  phase_pub_ = nh_.advertise<piezo_compensation::ProtocolPhase>("protocol_phase", 10, true);
+  progress_pub_ = nh_.advertise<piezo_compensation::RecorderProgress>("recorder/progress", 10);
+  started_wall_ = last_encoder_wall_ = last_progress_log_ = last_progress_pub_ = Clock::now();
+  watchdog_ = nh_.createWallTimer(ros::WallDuration(0.1), &Recorder::on_watchdog, this);
+  ROS_INFO("recorder: protocol %s, %llu samples at %.3g Hz (%.1f h), into %s; waiting for encoder data",
+           options_.protocol.c_str(), static_cast<unsigned long long>(total_), options_.sample_rate_hz,
+           total_ / options_.sample_rate_hz / 3600.0, options_.out.c_str());
+  if (next_ >= total_) finish(0, "the recording was already complete");
+}
+
+Recorder::~Recorder() {
+  if (state_ != State::kDone) {
+    try {
+      finish(130, "recorder destroyed");
+    } catch (...) {
+    }
+  }
+}
+
+ros::Time Recorder::stamp_of(std::uint64_t sample) const {
+  return ros::Time(t0_s_ + static_cast<double>(sample) / options_.sample_rate_hz);
+}
+
+std::string Recorder::spec_yaml() const {
+  YAML::Emitter e;
+  YAML::Node n;
+  n["protocol"] = options_.protocol;
+  n["seed"] = options_.seed;
+  n["sample_rate_hz"] = options_.sample_rate_hz;
+  n["samples"] = total_;
+  n["t0_s"] = t0_s_;
+  n["parameters"] = options_.protocol_params;
+  e << n;
+  return e.c_str();
+}
+
+void Recorder::on_voltage(std::size_t k, const piezo_compensation::AxisVoltage::ConstPtr& msg) {
+  auto& q = axes_[k].voltages;
+  q.push_back(*msg);
+  if (q.size() > 32) q.pop_front();
+  if (state_ == State::kRunning &&
+      std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); }))
+    complete_sample();  // a reading was waiting for its voltage report
+}
+
+void Recorder::on_truth(std::size_t k, const piezo_compensation::EncoderPosition::ConstPtr& msg) {
+  auto& q = axes_[k].truths;
+  q.push_back(*msg);
+  if (q.size() > 32) q.pop_front();
+}
+
+void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPosition::ConstPtr& msg) {
+  last_encoder_wall_ = Clock::now();
+  auto& ax = axes_[k];
+  const auto arrival = ax.tracker.add(msg->sequence);
+  if (arrival == analysis::SequenceTracker::Arrival::kGap || arrival == analysis::SequenceTracker::Arrival::kLate ||
+      arrival == analysis::SequenceTracker::Arrival::kDuplicate)
+    ROS_WARN_THROTTLE(5.0, "recorder: axis %s encoder sequence %u arrived %s", ax.name.c_str(), msg->sequence,
+                      arrival == analysis::SequenceTracker::Arrival::kGap ? "after a gap (samples dropped)"
+                                                                          : "out of order");
+  if (state_ == State::kDone) return;
+  if (state_ == State::kWaiting) {
+    // a few readings and voltage reports on every axis, and the truth too where a simulated device publishes
+    // it, so that every row of the recording has the same columns
+    if (!std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) {
+          return a.tracker.received() >= 3 && !a.voltages.empty() &&
+                 (a.truth.getNumPublishers() == 0 || !a.truths.empty());
+        }))
+      return;
+    state_ = State::kApproach;
+    approach_started_ = Clock::now();
+    ROS_INFO("recorder: data on all axes; moving to the voltages of sample %llu",
+             static_cast<unsigned long long>(next_));
+  }
+  if (state_ == State::kApproach) {
+    // the driver slew-limits: let it reach the first sample's voltages before recording starts
+    const protocols::ProtocolSample s = protocol_->at(next_);
+    bool reached = true;
+    for (auto& ax : axes_) {
+      ax.commanded_v = s.voltage_v[axis_index(ax.name)];
+      if (ax.voltages.empty() || !(std::fabs(ax.voltages.back().voltage - ax.commanded_v) <= options_.voltage_tolerance_v))
+        reached = false;
+    }
+    const double waited_s = std::chrono::duration<double>(Clock::now() - approach_started_).count();
+    if (!reached && waited_s < options_.approach_timeout_s) {
+      if (k == 0)  // once per encoder sample, so the driver's command watchdog never holds half-way
+        for (auto& ax : axes_) {
+          piezo_compensation::VoltageCommand c;
+          c.header.stamp = ros::Time::now();
+          c.voltage = ax.commanded_v;
+          ax.command.publish(c);
+        }
+      return;
+    }
+    if (!reached)
+      ROS_WARN("recorder: the applied voltages did not reach sample %llu's within ~approach_timeout_s = %.1f s; "
+               "recording anyway", static_cast<unsigned long long>(next_), options_.approach_timeout_s);
+    state_ = State::kRunning;
+    if (next_ == 0) t0_s_ = std::max(ros::Time::now().toSec(), 1.0);  // bags need stamps > 0
+    ROS_INFO("recorder: recording from sample %llu", static_cast<unsigned long long>(next_));
+    send_sample();
+    return;
+  }
+  if (!ax.pending) {
+    ax.pending = *msg;
+  } else if (arrival == analysis::SequenceTracker::Arrival::kInOrder ||
+             arrival == analysis::SequenceTracker::Arrival::kGap) {
+    ax.pending = *msg;  // still waiting for another axis or a voltage report: keep the newest reading
+  }
+  if (std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); }))
+    complete_sample();
+}
+
+void Recorder::send_sample() {
+  try {
+    send_sample_unchecked();
+  } catch (const ros_io::RecorderBagError& e) {
+    finish(1, e.what());
+  }
+}
+
+void Recorder::send_sample_unchecked() {
+  const protocols::ProtocolSample s = protocol_->at(next_);
+  const ros::Time now = ros::Time::now();
+  for (auto& ax : axes_) {
+    ax.commanded_v = s.voltage_v[axis_index(ax.name)];
+    ax.pending.reset();
+    piezo_compensation::VoltageCommand c;
+    c.header.stamp = now;
+    c.voltage = ax.commanded_v;
+    ax.command.publish(c);
+  }
+  waited_samples_ = 0;
+  if (!last_marker_ || next_ == first_of_session_ || last_marker_->segment != s.segment ||
+      last_marker_->phase != s.phase)
+    write_marker(s);
+}
+
+void Recorder::write_marker(const protocols::ProtocolSample& s) {
+  piezo_compensation::ProtocolPhase m;
+  m.header.stamp = stamp_of(next_);
+  m.protocol = options_.protocol;
+  m.phase = protocols::phase_name(s.phase);
+  m.segment = static_cast<std::uint32_t>(s.segment);
+  m.sample_index = next_;
+  m.parameters_yaml = spec_yaml();
+  bag_->write(join(ns_, "protocol_phase"), m.header.stamp, m);
+  phase_pub_.publish(m);
+  last_marker_ = s;
+  ROS_INFO("recorder: sample %llu: segment %d, phase %s", static_cast<unsigned long long>(next_), s.segment,
+           m.phase.c_str());
+}
+
+void Recorder::complete_sample() {
+  // each axis' applied voltage: the report with the reading's sequence number (the controller numbers both)
+  std::vector<const piezo_compensation::AxisVoltage*> volts(axes_.size(), nullptr);
+  bool all_matched = true, applied = true;
+  for (std::size_t k = 0; k < axes_.size(); ++k) {
+    const auto& ax = axes_[k];
+    for (auto it = ax.voltages.rbegin(); it != ax.voltages.rend(); ++it)
+      if (it->sequence == ax.pending->sequence) {
+        volts[k] = &*it;
+        break;
+      }
+    if (!volts[k]) {
+      all_matched = false;
+      if (!ax.voltages.empty()) volts[k] = &ax.voltages.back();
+    }
+    if (!volts[k] || !(std::fabs(volts[k]->voltage - ax.commanded_v) <= options_.voltage_tolerance_v)) applied = false;
+  }
+  if (!all_matched && waited_samples_ == 0 && !applied) {
+    // the voltage report of this reading may still be on its way: wait once for it (on_voltage retries)
+    waited_samples_ = -1;
+    return;
+  }
+  if (waited_samples_ < 0) waited_samples_ = 0;
+  if (!applied && waited_samples_ < options_.max_wait_samples) {
+    // the command had not reached the piezo when this reading was taken: use the next one
+    ++waited_samples_;
+    for (auto& ax : axes_) ax.pending.reset();
+    return;
+  }
+  if (!applied) ++late_commands_;
+
+  try {
+    const ros::Time stamp = stamp_of(next_);
+    const auto seq = static_cast<std::uint32_t>(next_);
+    for (std::size_t k = 0; k < axes_.size(); ++k) {
+      auto& ax = axes_[k];
+      piezo_compensation::VoltageCommand c;
+      c.header.stamp = stamp;
+      c.header.seq = seq;
+      c.voltage = ax.commanded_v;
+      bag_->write(topic(ax.name, "command"), stamp, c);
+      if (volts[k]) {
+        piezo_compensation::AxisVoltage v = *volts[k];
+        v.header.stamp = stamp;
+        v.sequence = seq;
+        bag_->write(topic(ax.name, "voltage"), stamp, v);
+      }
+      const piezo_compensation::EncoderPosition* truth = nullptr;
+      for (auto it = ax.truths.rbegin(); it != ax.truths.rend(); ++it)
+        if (it->sequence == ax.pending->sequence) {
+          truth = &*it;
+          break;
+        }
+      // the simulated device numbers its truth itself; when the numbers disagree take the newest at or
+      // before the reading, so every row of a simulated recording has its truth
+      if (!truth)
+        for (auto it = ax.truths.rbegin(); it != ax.truths.rend(); ++it)
+          if (it->header.stamp <= ax.pending->header.stamp || it + 1 == ax.truths.rend()) {
+            truth = &*it;
+            break;
+          }
+      if (truth) {
+        piezo_compensation::EncoderPosition t = *truth;
+        t.header.stamp = stamp;
+        t.sequence = seq;
+        bag_->write(topic(ax.name, "true_position"), stamp, t);
+      }
+    }
+    // encoders last: a sample whose first-axis encoder is in a closed chunk is complete
+    for (std::size_t k = axes_.size(); k-- > 0;) {
+      piezo_compensation::EncoderPosition e = *axes_[k].pending;
+      e.header.stamp = stamp;
+      e.sequence = seq;
+      bag_->write(topic(axes_[k].name, "encoder"), stamp, e);
+    }
+    ++next_;
+    ++recorded_in_session_;
+    bag_->between_samples();
+  } catch (const ros_io::RecorderBagError& e) {
+    finish(1, e.what());
+    return;
+  }
+  const auto now = Clock::now();
+  rate_window_.emplace_back(now, next_);
+  while (rate_window_.size() > 2 && now - rate_window_.front().first > std::chrono::seconds(30))
+    rate_window_.pop_front();
+  if (next_ >= total_) {
+    finish(0, "protocol complete");
+    return;
+  }
+  if (options_.stop_after_samples > 0 && recorded_in_session_ >= options_.stop_after_samples) {
+    finish(130, "stopped after ~stop_after_samples = " + std::to_string(options_.stop_after_samples) + " samples");
+    return;
+  }
+  if (now - last_progress_pub_ > std::chrono::seconds(1)) publish_progress(false);
+  send_sample();
+}
+
+void Recorder::publish_progress(bool force_log) {
+  const auto now = Clock::now();
+  last_progress_pub_ = now;
+  piezo_compensation::RecorderProgress p;
+  p.header.stamp = ros::Time::now();
+  p.protocol = options_.protocol;
+  p.phase = last_marker_ ? protocols::phase_name(last_marker_->phase) : "waiting";
+  p.sample_index = next_;
+  p.total_samples = total_;
+  p.percent = total_ ? 100.0 * static_cast<double>(next_) / static_cast<double>(total_) : 100.0;
+  double per_s = 0.0;
+  if (rate_window_.size() >= 2) {
+    const double dt = std::chrono::duration<double>(rate_window_.back().first - rate_window_.front().first).count();
+    if (dt > 0) per_s = (rate_window_.back().second - rate_window_.front().second) / dt;
+  }
+  p.eta = per_s > 0 ? static_cast<double>(total_ - next_) / per_s : std::numeric_limits<double>::quiet_NaN();
+  std::uint64_t dropped = 0, ooo = 0;
+  for (const auto& ax : axes_) {
+    dropped += ax.tracker.dropped();
+    ooo += ax.tracker.out_of_order();
+  }
+  p.dropped_samples = static_cast<std::uint32_t>(dropped);
+  p.out_of_order_samples = static_cast<std::uint32_t>(ooo);
+  progress_pub_.publish(p);
+  if (state_ == State::kRunning) {
+    try {
+      bag_->write(join(ns_, "recorder/progress"), stamp_of(next_), p);
+    } catch (const ros_io::RecorderBagError&) {
+      // the next sample's write reports it
+    }
+  }
+  if (force_log || now - last_progress_log_ > std::chrono::duration<double>(options_.progress_period_s)) {
+    last_progress_log_ = now;
+    ROS_INFO("recorder: %5.1f %%  sample %llu / %llu  phase %s  ETA %.0f s  dropped %llu  out of order %llu",
+             p.percent, static_cast<unsigned long long>(next_), static_cast<unsigned long long>(total_),
+             p.phase.c_str(), p.eta, static_cast<unsigned long long>(dropped), static_cast<unsigned long long>(ooo));
+  }
+}
+
+void Recorder::on_watchdog(const ros::WallTimerEvent&) {
+  if (state_ == State::kDone) return;
+  const auto now = Clock::now();
+  if (state_ == State::kWaiting) {
+    if (std::chrono::duration<double>(now - started_wall_).count() > options_.startup_timeout_s)
+      finish(1, "no encoder data on every axis within ~startup_timeout_s = " +
+                    std::to_string(options_.startup_timeout_s) + " s (is the driver running?)");
+    return;
+  }
+  if (std::chrono::duration<double>(now - last_encoder_wall_).count() > options_.encoder_timeout_s) {
+    finish(1, "driver dead: no encoder data for more than ~encoder_timeout_s = " +
+                  std::to_string(options_.encoder_timeout_s) + " s; voltage held at the last command");
+    return;
+  }
+  if (now - last_progress_pub_ > std::chrono::seconds(1)) publish_progress(false);
+}
+
+void Recorder::request_stop(const std::string& why) {
+  if (state_ != State::kDone) finish(130, why);
+}
+
+void Recorder::abandon() {
+  if (state_ == State::kDone) return;
+  state_ = State::kDone;
+  exit_code_ = 1;
+  failure_ = "abandoned (simulated crash)";
+  watchdog_.stop();
+  for (auto& ax : axes_) ax.encoder.shutdown();
+  bag_->abandon();
+  bag_.reset();
+}
+
+void Recorder::finish(int exit_code, const std::string& why) {
+  if (state_ == State::kDone) return;
+  state_ = State::kDone;
+  exit_code_ = exit_code;
+  watchdog_.stop();
+  // no further commands: the driver holds the last applied voltage (never 0 V)
+  for (auto& ax : axes_) {
+    ax.encoder.shutdown();
+    ax.voltage.shutdown();
+    ax.truth.shutdown();
+  }
+  if (exit_code != 0) failure_ = why;
+  publish_progress(true);
+
+  summary_ = analysis::RecordingSummary{};
+  std::uint64_t messages = 0;
+  try {
+    if (bag_) {
+      std_msgs::String text;
+      bool wrote_any = recorded_in_session_ > 0;
+      if (wrote_any) {
+        std::ostringstream os;
+        os << "session ended at sample " << next_ << " of " << total_ << ": " << why;
+        text.data = os.str();
+        bag_->write(join(ns_, "recorder/log"), stamp_of(next_ > 0 ? next_ - 1 : 0), text);
+      }
+      messages = bag_->finish();
+      bag_.reset();
+    }
+  } catch (const ros_io::RecorderBagError& e) {
+    if (exit_code_ == 0) exit_code_ = 1;
+    failure_ = failure_.empty() ? e.what() : failure_ + "; " + e.what();
+    ROS_ERROR("recorder: %s", e.what());
+  }
+  // the summary reads the merged bag back, as fit and eval will
+  try {
+    if (messages > 0) {
+      io::Dataset data = ros_io::read_data(options_.out);
+      const io::Dataset program = protocol_->program(0, data.size());
+      summary_ = analysis::summarize(data, options_.protocol, &program, options_.voltage_tolerance_v);
+    }
+  } catch (const std::exception& e) {
+    const std::string what = std::string("reading ") + options_.out + " back failed: " + e.what();
+    if (exit_code_ == 0) exit_code_ = 1;
+    failure_ = failure_.empty() ? what : failure_ + "; " + what;
+  }
+  summary_.protocol = options_.protocol;
+  for (const auto& ax : axes_) summary_.sequences.push_back(analysis::report_of(ax.name, ax.tracker));
+  std::ostringstream os;
+  os << analysis::format_summary(summary_) << "  commands that had not reached the piezo after "
+     << options_.max_wait_samples << " samples: " << late_commands_ << "\n";
+  if (exit_code_ == 0) {
+    ROS_INFO("recorder: done, %s: %s\n%s", why.c_str(), options_.out.c_str(), os.str().c_str());
+  } else if (exit_code_ == 130) {
+    ROS_WARN("recorder: %s at sample %llu of %llu; %s is valid, continue with ~resume:=true\n%s", why.c_str(),
+             static_cast<unsigned long long>(next_), static_cast<unsigned long long>(total_), options_.out.c_str(),
+             os.str().c_str());
+  } else {
+    ROS_ERROR("recorder: STOPPED: %s (sample %llu of %llu; what was recorded is in %s)\n%s", failure_.c_str(),
+              static_cast<unsigned long long>(next_), static_cast<unsigned long long>(total_),
+              options_.out.c_str(), os.str().c_str());
+  }
+}
+
+}  // namespace piezo::ros_nodes
