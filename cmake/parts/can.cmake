@@ -48,3 +48,12 @@ if(CATKIN_ENABLE_TESTING)
            $<TARGET_FILE:test_can_vcan> ${CMAKE_BINARY_DIR}/vcan_vm_work)
   set_tests_properties(vcan_vm PROPERTIES SKIP_RETURN_CODE 77 TIMEOUT 300)
 endif()
+
+# Speed: codec throughput (Google Benchmark) and the command-latency histogram tool; `scripts/piezo bench can`.
+piezo_benchmark(bench_can_codec bench/bench_can_codec.cpp)
+add_executable(can_command_latency bench/can_command_latency.cpp)
+target_link_libraries(can_command_latency piezo_core)
+set_target_properties(can_command_latency PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
+if(CATKIN_ENABLE_TESTING)
+  add_test(NAME can_command_latency_smoke COMMAND can_command_latency --seconds 0.2)
+endif()
