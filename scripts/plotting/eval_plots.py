@@ -147,7 +147,10 @@ def traces_creep(out):
     fig, axes = plt.subplots(2, 2, figsize=(12, 8))
     for ax, r in zip(axes.flat, pick):
         t = (c["time_s"][r] - c["time_s"][r][0]) / 60
-        ax.plot(t, c["measured_nm"][r], color="0.6", lw=0.4, label="measured")
+        ax.plot(t, c["measured_nm"][r], color="0.8", lw=0.4, label="measured")
+        k = max(1, int(round(10.0 / dt)))  # 10-s mean of the encoder, as the study's Fig. 10 reads
+        ax.plot(t, np.convolve(c["measured_nm"][r], np.ones(k) / k, mode="same"), color="0.4", lw=0.8,
+                label="measured, 10-s mean")
         if np.isfinite(c["truth_nm"][r]).any():
             ax.plot(t, c["truth_nm"][r], "k", lw=1, label="true")
         for n in names:

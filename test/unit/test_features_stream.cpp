@@ -58,6 +58,7 @@ TEST(FeatureStream, EveryTypeMatchesItsDefinition) {
   f = def("lagged_position"), f.lag_s = 0.3, spec.features.push_back(f);                   // D_{t-3}
   f = def("position_mean"), f.window_s = 0.5, spec.features.push_back(f);                  // D_{t-5..t-1}
   f = def("aux"), f.signal = "temp", f.lag_s = 0.2, spec.features.push_back(f);
+  spec.features.push_back(def("voltage_sq"));
   ASSERT_EQ(spec.aux_signals(), std::vector<std::string>{"temp"});
   ASSERT_TRUE(spec.uses_positions());
 
@@ -91,6 +92,7 @@ TEST(FeatureStream, EveryTypeMatchesItsDefinition) {
     for (int k = 1; k <= 5; ++k) m += dat(s, t - k);
     EXPECT_NEAR(x[9], m / 5, 1e-9);
     EXPECT_DOUBLE_EQ(x[10], s.aux[std::max(0L, t - 2)]);
+    EXPECT_DOUBLE_EQ(x[11], v * v);
     fs.commit(in, s.d[t]);
   }
 }

@@ -76,7 +76,7 @@ TEST(Lasso, SelectsPlantedFeaturesFromCandidatesOnStreamedData) {
   play.threshold_v = 10;
   features::FeatureDef lp;
   lp.type = "lowpass";
-  lp.time_constant_s = 60;
+  lp.time_constant_s = 36;
   planted.features = {play, lp};
   const auto v = testdata::random_walk_v(30000, 7);
   io::Dataset d;

@@ -19,6 +19,7 @@ FeatureSpec study_features();
 FeatureSpec candidate_features();
 
 // Only voltage-history features (no positions): the candidates minus lagged positions. One-step = free-run.
+// Includes V² (asymmetry) and low-passed play outputs at 1 s … 8.3 h (creep of the hysteretic displacement).
 FeatureSpec physics_features();
 
 // "study", "candidates" or "physics"; throws std::runtime_error listing the names otherwise.

@@ -15,6 +15,7 @@ namespace piezo::features {
 // sample rate, so a spec fitted at 11 Hz means the same physical thing at any other constant rate.
 struct FeatureDef {
   // "voltage"           V_t
+  // "voltage_sq"        V_t²                          (asymmetric hysteresis: the modified PI's polynomial term)
   // "voltage_step"      V_t - V_{t-1}
   // "step_sum"          V_t - V_{t-w}                 (sum of the past steps over window_s)
   // "exp_sum"           Σ_{k=0}^{w-1} α^k V_{t-k}      (α from decay; window_s = w; study's rolling exponential sum)

@@ -38,6 +38,7 @@ FeatureSpec physics_features() {
   FeatureSpec s;
   s.features.push_back(def("voltage"));
   s.features.push_back(def("voltage_step"));
+  s.features.push_back(def("voltage_sq"));
   for (double w_s : {1.0, 5.0, 30.0, 120.0, 600.0}) {
     FeatureDef f = def("step_sum");
     f.window_s = w_s;
@@ -61,12 +62,13 @@ FeatureSpec physics_features() {
     f.threshold_v = r;
     s.features.push_back(f);
   }
-  // Creep: log-spaced time constants from 10 s to 3.6 h (factor 6), of V and of play outputs.
-  for (double tau : {10.0, 60.0, 360.0, 2160.0, 12960.0}) {
+  // Creep: log-spaced time constants from 1 s to 8.3 h (factor 6), of V and of play outputs (creep acting on
+  // the hysteretic displacement is a low-pass of play outputs).
+  for (double tau : {1.0, 6.0, 36.0, 216.0, 1296.0, 7776.0, 30000.0}) {
     FeatureDef f = def("lowpass");
     f.time_constant_s = tau;
     s.features.push_back(f);
-    for (double r : {5.0, 20.0}) {
+    for (double r : {5.0, 20.0, 45.0}) {
       FeatureDef p = def("play_lowpass");
       p.threshold_v = r;
       p.time_constant_s = tau;

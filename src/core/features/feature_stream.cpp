@@ -10,10 +10,11 @@ namespace piezo::features {
 
 namespace {
 
-enum class Type { kVoltage, kStep, kStepSum, kExpSum, kLowpass, kPlay, kStop, kPlayLowpass, kLag, kMean, kAux };
+enum class Type { kVoltageSq, kVoltage, kStep, kStepSum, kExpSum, kLowpass, kPlay, kStop, kPlayLowpass, kLag, kMean, kAux };
 
 Type parse_type(const std::string& t, std::size_t index) {
   if (t == "voltage") return Type::kVoltage;
+  if (t == "voltage_sq") return Type::kVoltageSq;
   if (t == "voltage_step") return Type::kStep;
   if (t == "step_sum") return Type::kStepSum;
   if (t == "exp_sum") return Type::kExpSum;
@@ -25,7 +26,7 @@ Type parse_type(const std::string& t, std::size_t index) {
   if (t == "position_mean") return Type::kMean;
   if (t == "aux") return Type::kAux;
   throw std::runtime_error("features[" + std::to_string(index) + "].type: unknown feature type '" + t +
-                           "' (known: voltage, voltage_step, step_sum, exp_sum, lowpass, play, stop, play_lowpass, "
+                           "' (known: voltage, voltage_sq, voltage_step, step_sum, exp_sum, lowpass, play, stop, play_lowpass, "
                            "lagged_position, position_mean, aux)");
 }
 
@@ -68,6 +69,7 @@ struct Compiled {
 std::string FeatureDef::name() const {
   if (type == "voltage") return "V";
   if (type == "voltage_step") return "dV";
+  if (type == "voltage_sq") return "V^2";
   if (type == "step_sum") return "step_sum(V, " + fmt(window_s) + " s)";
   if (type == "exp_sum") return "exp_sum(V, " + fmt(window_s) + " s, a=" + fmt(decay) + ")";
   if (type == "lowpass") return "lowpass(V, " + fmt(time_constant_s) + " s)";
@@ -203,6 +205,7 @@ struct FeatureStream::Impl {
     const double v = in.voltage_v;
     switch (f.type) {
       case Type::kVoltage: return v;
+      case Type::kVoltageSq: return v * v;
       case Type::kStep: return v - volts.get(1);
       case Type::kStepSum: return v - volts.get(f.w);
       case Type::kExpSum: return f.alpha * state[i] + v - f.alpha_w * volts.get(f.w);

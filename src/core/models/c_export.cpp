@@ -103,6 +103,7 @@ static double PFX_feature(const PFX_state* st, int i, double v) {
     case 7: return PFX_a[i] * st->s2[i] + (1.0 - PFX_a[i]) * PFX_play(v, PFX_r[i], st->s[i]);
     case 8: return PFX_pget(st, PFX_w[i]);
     case 9: return st->s[i] / (double)PFX_w[i];
+    case 10: return v * v;
     default: return 0.0;
   }
 }
@@ -212,8 +213,8 @@ static double PFX_inverse(const PFX_state* st, double target_nm) {
 
 int type_code(const std::string& t) {
   static const char* names[] = {"voltage", "voltage_step", "step_sum", "exp_sum", "lowpass",
-                                "play", "stop", "play_lowpass", "lagged_position", "position_mean"};
-  for (int i = 0; i < 10; ++i)
+                                "play", "stop", "play_lowpass", "lagged_position", "position_mean", "voltage_sq"};
+  for (int i = 0; i < 11; ++i)
     if (t == names[i]) return i;
   throw std::runtime_error("C export: feature type '" + t + "' is not supported (aux signals cannot be exported)");
 }
