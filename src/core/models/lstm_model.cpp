@@ -90,17 +90,19 @@ double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vec
   const double bh = params[head_offset_ + H];
 
   std::vector<MatrixXd> h(static_cast<std::size_t>(L), MatrixXd::Zero(H, B)), c = h;
-  MatrixXd gates(4 * H, B);
+  MatrixXd gates(4 * H, B), tanh_c(H, B);
   // Gate pre-activations → activations in place; then the new c and h.
   auto cell = [&](int l, const MatrixXd& input, MatrixXd& g, MatrixXd& c_l, MatrixXd& h_l) {
     g.noalias() = W(l) * input;
     g.noalias() += U(l) * h_l;
     g.colwise() += bias(l);
     g.topRows(2 * H) = 1.0 / (1.0 + (-g.topRows(2 * H).array()).exp());
-    g.middleRows(2 * H, H) = g.middleRows(2 * H, H).array().tanh();
+    // tanh through the vectorised exp (Eigen's double tanh is scalar): tanh(z) = 2 / (1 + e^{-2z}) - 1.
+    g.middleRows(2 * H, H) = 2.0 / (1.0 + (-2.0 * g.middleRows(2 * H, H).array()).exp()) - 1.0;
     g.bottomRows(H) = 1.0 / (1.0 + (-g.bottomRows(H).array()).exp());
     c_l = g.middleRows(H, H).cwiseProduct(c_l) + g.topRows(H).cwiseProduct(g.middleRows(2 * H, H));
-    h_l = g.bottomRows(H).cwiseProduct(c_l.array().tanh().matrix());
+    tanh_c = 2.0 / (1.0 + (-2.0 * c_l.array()).exp()) - 1.0;
+    h_l = g.bottomRows(H).cwiseProduct(tanh_c);
   };
   for (int tau = 0; tau < warmup; ++tau)
     for (int l = 0; l < L; ++l) cell(l, l == 0 ? xs[static_cast<std::size_t>(tau)] : h[static_cast<std::size_t>(l - 1)],
@@ -108,7 +110,7 @@ double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vec
 
   const std::vector<MatrixXd> h0 = h, c0 = c;
   const std::size_t steps = static_cast<std::size_t>(T * L);
-  std::vector<MatrixXd> G(grad ? steps : 0), C(grad ? steps : 0), Hs(grad ? steps : 0);
+  std::vector<MatrixXd> G(grad ? steps : 0), C(grad ? steps : 0), Hs(grad ? steps : 0), TC(grad ? steps : 0);
   MatrixXd err(T, B);
   double loss = 0.0;
   for (Eigen::Index t = 0; t < T; ++t) {
@@ -120,6 +122,7 @@ double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vec
         G[k] = gates;
         C[k] = c[li];
         Hs[k] = h[li];
+        TC[k] = tanh_c;
       }
     }
     err.row(t) = (wh.transpose() * h[static_cast<std::size_t>(L - 1)]).array() + bh - ys.row(t).array();
@@ -144,7 +147,7 @@ double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vec
       const MatrixXd& h_prev = t > 0 ? Hs[k - static_cast<std::size_t>(L)] : h0[li];
       const auto i = g.topRows(H).array(), f = g.middleRows(H, H).array(), gg = g.middleRows(2 * H, H).array(),
                  o = g.bottomRows(H).array();
-      const Eigen::ArrayXXd tc = C[k].array().tanh();
+      const auto tc = TC[k].array();
       dh = dh_next[li] + from_above;
       dc = dc_next[li].array() + dh.array() * o * (1.0 - tc.square());
       dA.topRows(H) = (dc.array() * gg * i * (1.0 - i)).matrix();
