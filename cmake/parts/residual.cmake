@@ -2,3 +2,4 @@
 piezo_unit_test(test_residual_stats test/unit/test_residual_stats.cpp)
 piezo_unit_test(test_residual_augmented test/unit/test_residual_augmented.cpp)
 piezo_unit_test(test_residual_loop test/unit/test_residual_loop.cpp)
+piezo_unit_test(test_residual_sim test/unit/test_residual_sim.cpp)

@@ -85,6 +85,11 @@ struct ResidualOptions {
   std::vector<std::string> families;   // empty = all
   std::uint64_t seed = 1;
   std::function<void(const std::string&)> log;  // progress lines (may be empty)
+  // Refits the base model on TRAIN's fit and validation parts (whose positions are then measurement minus the
+  // effect terms): after each added effect the base and the terms are refitted alternately (backfitting), so a
+  // base that absorbed part of the effect when first fitted gives it back. Empty = the base stays as given.
+  std::function<models::ModelPtr(const io::Dataset& fit_part, const io::Dataset& validation_part)> refit_base;
+  int backfit_iterations = 2;
 };
 
 struct ResidualResult {

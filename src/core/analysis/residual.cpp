@@ -468,6 +468,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   res.before_test = error_stats(meas_test, res.test_pred_before);
   if (!truth_test.empty()) res.before_test_truth = error_stats(truth_test, res.test_pred_before);
 
+  models::ModelPtr cur_base = base.clone();  // refitted by backfitting when options.refit_base is set
   std::vector<EffectTerm> terms;           // accepted, fitted on all of TRAIN
   std::vector<std::size_t> effect_first;   // first term index of each effect
   double offset = 0.0;
@@ -526,6 +527,21 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     effect_first.push_back(terms.size());
     for (const auto& t : winner->best.terms) terms.push_back(t);
     fit_terms(c, terms, offset, 0, n);
+    for (int it = 0; o.refit_base && it < o.backfit_iterations; ++it) {
+      const std::vector<double> p = corrected(c, terms, offset);
+      io::Dataset adj = train;
+      auto& pos = adj.axis(o.axis).position_nm;
+      for (std::size_t i = 0; i < n; ++i) pos[i] = c.measured[i] - (p[i] - c.x_base[i]);
+      models::ModelPtr nb = o.refit_base(adj.slice(0, n_fit), adj.slice(n_fit, n));
+      if (!nb) throw std::runtime_error("refit_base returned no model");
+      {
+        models::ModelPtr runner = nb->clone();
+        c.x_base = run_model(*runner, adj, o.axis, o.mode);
+      }
+      cur_base = std::move(nb);
+      fit_terms(c, terms, offset, 0, n);
+      log("  backfit " + std::to_string(it + 1) + ": base refitted without the effect terms' part");
+    }
 
     FoundEffect e;
     e.family = winner->family;
@@ -535,7 +551,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     e.p_value = winner->p_value;
     e.validation_gain = winner->validation_gain;
     e.ranking = ranking;
-    models::AugmentedModel m(base.clone(), terms, offset, fs);
+    models::AugmentedModel m(cur_base->clone(), terms, offset, fs);
     const std::vector<double> pt = run_model(m, test, o.axis, o.mode);
     e.test_after = error_stats(meas_test, pt);
     if (!truth_test.empty()) e.test_after_truth = error_stats(truth_test, pt);
@@ -550,7 +566,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     const std::size_t last = q + 1 < effect_first.size() ? effect_first[q + 1] : terms.size();
     describe(terms, first, last - first, res.effects[q]);
   }
-  auto model = std::make_unique<models::AugmentedModel>(base.clone(), terms, offset, fs);
+  auto model = std::make_unique<models::AugmentedModel>(cur_base->clone(), terms, offset, fs);
   res.test_pred_after = run_model(*model, test, o.axis, o.mode);
   res.after_test = error_stats(meas_test, res.test_pred_after);
   if (!truth_test.empty()) res.after_test_truth = error_stats(truth_test, res.test_pred_after);

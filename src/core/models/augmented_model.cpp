@@ -394,12 +394,21 @@ ModelPtr AugmentedModel::from_yaml(const YAML::Node& n) {
     if (!n[k]) throw std::runtime_error(std::string("augmented model: missing key '") + k + "'");
   for (const auto& kv : n) {
     const std::string k = kv.first.as<std::string>();
-    if (k != "base_kind" && k != "base" && k != "sample_rate_hz" && k != "offset_nm" && k != "terms")
+    // axis and kind are copied in by the model file reader (model_file.h).
+    if (k != "base_kind" && k != "base" && k != "sample_rate_hz" && k != "offset_nm" && k != "terms" && k != "axis" && k != "kind")
       throw std::runtime_error("augmented model: unknown key '" + k + "'");
   }
   const std::string base_kind = n["base_kind"].as<std::string>();
   if (base_kind == "augmented") throw std::runtime_error("augmented model: the base may not itself be augmented");
-  ModelPtr base = model_kind(base_kind).load(n["base"]);
+  if (!n["base"].IsMap()) throw std::runtime_error("augmented model: 'base' is not a map");
+  // The base's loader expects what the model file gives every kind: rate, axis and its own kind name.
+  YAML::Node base_node = YAML::Clone(n["base"]);
+  if (!base_node["sample_rate_hz"]) base_node["sample_rate_hz"] = n["sample_rate_hz"];
+  if (!base_node["axis"] && n["axis"]) base_node["axis"] = n["axis"];
+  if (!base_node["kind"]) base_node["kind"] = base_kind;
+  ModelPtr base = model_kind(base_kind).load(base_node);
+  if (n["axis"]) base->meta.axis = n["axis"].as<std::string>();
+  base->meta.sample_rate_hz = yaml_num(n, "sample_rate_hz", base->meta.sample_rate_hz);
   std::vector<EffectTerm> terms;
   if (!n["terms"].IsSequence()) throw std::runtime_error("augmented model: 'terms' is not a list");
   for (const auto& t : n["terms"]) terms.push_back(EffectTerm::from_yaml(t));
