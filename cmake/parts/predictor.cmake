@@ -11,3 +11,4 @@ set_target_properties(measure_predictor_node PROPERTIES
   RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
 piezo_rostest(test/rostest/predictor_fallback.test test/rostest/predictor_fallback.cpp DEPENDS piezo_predictor)
 piezo_rostest(test/rostest/predictor_live.test test/rostest/predictor_live.cpp DEPENDS piezo_predictor)
+piezo_node(piezo_demo src/nodes/piezo_demo_node.cpp)
