@@ -25,6 +25,8 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis (default: the models' axis)")
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band", "20.79")
       .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
+      .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
+      .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
       .required("out", "DIR", "output directory");
   if (!args.parse(argc, argv)) return 0;
@@ -45,6 +47,14 @@ int run(int argc, char** argv) {
   ctx.warmup_s = args.num("warmup-s");
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
+  try {
+    if (args.has("test-segments")) eo.test_segments = analysis::parse_segments(args.str("test-segments"));
+    if (args.has("creep-segments")) eo.creep_segments = analysis::parse_segments(args.str("creep-segments"));
+  } catch (const std::invalid_argument& e) {
+    throw UsageError(std::string("eval: ") + e.what());
+  }
+  ctx.test_segments = eo.test_segments;
+  ctx.creep_segments = eo.creep_segments;
 
   std::vector<models::ModelPtr> ms;
   for (const auto& p : paths) {

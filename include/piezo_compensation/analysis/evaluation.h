@@ -56,6 +56,9 @@ struct EvalOptions {
   std::string axis = "c";
   double warmup_s = 0.0;        // samples of the test data before this are not scored (history unknown to the model)
   double final_window_s = 5.0;  // study: final position averaged over the last 5 s of each hold
+  // Held out by time within one continuous recording (e.g. the plan: 2 = test, 3…17 = creep scenarios): the
+  // model runs over the whole file, as it would live, and only these segments are scored. Empty = all.
+  std::vector<int> test_segments, creep_segments;
 };
 
 // creep may be null: then the holds of `test` are used for the creep metrics.
@@ -63,7 +66,9 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
                                const io::Dataset* creep, const EvalOptions& opt);
 
 // Masks used above, exposed for reports and tests.
-std::vector<char> hysteresis_mask(const io::Dataset& data, double warmup_s);
-std::vector<char> hold_mask(const io::Dataset& data);
+std::vector<char> hysteresis_mask(const io::Dataset& data, double warmup_s, const std::vector<int>& segments = {});
+std::vector<char> hold_mask(const io::Dataset& data, const std::vector<int>& segments = {});
+// "2", "3-17", "1,4,6-8" → segment numbers; throws std::invalid_argument naming the bad part.
+std::vector<int> parse_segments(const std::string& list);
 
 }  // namespace piezo::analysis

@@ -36,6 +36,12 @@ std::vector<const std::vector<double>*> resolve_inputs(const std::vector<std::st
 // Streams `model` over the data set's `axis`: reset at row 0 with the first voltage and measured position, then
 // per row predict, then commit the measurement (one-step) or the model's own prediction (free-run).
 std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode);
+// Same, but first streams `warmup` (reset at its row 0), then continues into `data` without a reset, as a
+// feedforward that kept running would. Returns predictions for `data` only.
+std::vector<double> run_model_after(models::Model& model, const io::Dataset& warmup, const io::Dataset& data,
+                                    const std::string& axis, PredictionMode mode);
+// True when `next` starts one sample period after `prev` ends (a time split of one recording).
+bool continues_in_time(const io::Dataset& prev, const io::Dataset& next);
 
 // One candidate: a family, the terms that express it (unweighted), what the parameters mean.
 struct Candidate {
@@ -90,12 +96,16 @@ struct ResidualOptions {
   // base that absorbed part of the effect when first fitted gives it back. Empty = the base stays as given.
   std::function<models::ModelPtr(const io::Dataset& fit_part, const io::Dataset& validation_part)> refit_base;
   int backfit_iterations = 2;
+  // When TEST continues TRAIN in time, TEST predictions run on from TRAIN instead of restarting from a reset
+  // (a reset "rested at the first measured position" is wrong while creep from the past is still going on).
+  bool warm_start = true;
 };
 
 struct ResidualResult {
   ErrorStats before_test, after_test;
   ErrorStats before_test_truth, after_test_truth;  // n = 0 without truth
   ErrorStats before_validation, after_validation;
+  bool warm_started = false;  // TEST predictions continued from TRAIN (see ResidualOptions::warm_start)
   std::vector<FoundEffect> effects;        // in the order added
   std::vector<FamilyScore> final_ranking;  // the last round (nothing significant or limit reached)
   std::vector<double> test_pred_before, test_pred_after;

@@ -59,7 +59,17 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
      << "- test data: `" << ctx.test_path << "` (hysteresis: samples outside creep holds"
      << (ctx.warmup_s > 0 ? ", after a " + f1(ctx.warmup_s) + " s warm-up" : std::string()) << ")\n"
      << "- creep data: `" << (ctx.creep_path.empty() ? ctx.test_path + " (its holds)" : ctx.creep_path)
-     << "` (creep: samples in holds, phase = hold)\n- axis " << ctx.axis << "\n"
+     << "` (creep: samples in holds, phase = hold)\n- axis " << ctx.axis << "\n";
+  auto seglist = [](const std::vector<int>& v) {
+    std::string s;
+    for (int k : v) s += (s.empty() ? "" : ",") + std::to_string(k);
+    return s;
+  };
+  if (!ctx.test_segments.empty() || !ctx.creep_segments.empty())
+    os << "- one continuous recording, models run over all of it; scored segments: hysteresis "
+       << (ctx.test_segments.empty() ? std::string("all") : seglist(ctx.test_segments)) << ", creep "
+       << (ctx.creep_segments.empty() ? std::string("all") : seglist(ctx.creep_segments)) << "\n";
+  os
      << "- encoder noise σ = " << f2(ctx.noise_sigma_nm) << " nm → noise floor for MAE against the measurement: σ·√(2/π) = **"
      << f1(floor) << " nm** (a perfect predictor scores this against raw encoder samples)";
   if (std::isfinite(ctx.measured_sigma_nm)) os << "; σ measured from measured − truth on the test data: " << f2(ctx.measured_sigma_nm) << " nm";
@@ -173,7 +183,7 @@ void write_eval_report(const std::string& dir, const EvalContext& ctx, const std
       f << "\n";
     }
   };
-  const std::vector<char> hm = hysteresis_mask(test, ctx.warmup_s);
+  const std::vector<char> hm = hysteresis_mask(test, ctx.warmup_s, ctx.test_segments);
   std::size_t start = 0;  // a 20-min window from the middle of the scored hysteresis samples
   std::vector<std::size_t> scored;
   for (std::size_t i = 0; i < hm.size(); ++i)
@@ -182,7 +192,7 @@ void write_eval_report(const std::string& dir, const EvalContext& ctx, const std
   const std::size_t win = test.size() > 1 ? static_cast<std::size_t>(1200 * test.sample_rate_hz()) : 1;
   write_traces(dir + "/traces_test.csv", test, false, start, std::min(test.size(), start + win), 1, nullptr);
   const io::Dataset& cd = creep ? *creep : test;
-  const std::vector<char> cm = hold_mask(cd);
+  const std::vector<char> cm = hold_mask(cd, ctx.creep_segments);
   std::size_t holds = 0;
   for (char c : cm) holds += c;
   write_traces(dir + "/traces_creep.csv", cd, true, 0, cd.size(), std::max<std::size_t>(1, holds / 100000), &cm);

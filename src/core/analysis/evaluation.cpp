@@ -1,6 +1,8 @@
 #include "piezo_compensation/analysis/evaluation.h"
 
+#include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <stdexcept>
 
 #include "piezo_compensation/protocols/protocol.h"
@@ -64,17 +66,45 @@ SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d
   return p;
 }
 
-std::vector<char> hold_mask(const io::Dataset& d) {
+namespace {
+bool in_segments(const io::Dataset& d, std::size_t i, const std::vector<int>& segments) {
+  if (segments.empty()) return true;
+  if (d.segment.empty()) return false;
+  return std::find(segments.begin(), segments.end(), d.segment[i]) != segments.end();
+}
+}  // namespace
+
+std::vector<int> parse_segments(const std::string& list) {
+  std::vector<int> out;
+  std::size_t pos = 0;
+  while (pos <= list.size()) {
+    const std::size_t comma = std::min(list.find(',', pos), list.size());
+    const std::string part = list.substr(pos, comma - pos);
+    int a = 0, b = 0;
+    char extra = 0;
+    if (std::sscanf(part.c_str(), "%d-%d%c", &a, &b, &extra) == 2 && a <= b) {
+      for (int k = a; k <= b; ++k) out.push_back(k);
+    } else if (std::sscanf(part.c_str(), "%d%c", &a, &extra) == 1) {
+      out.push_back(a);
+    } else {
+      throw std::invalid_argument("segment list '" + list + "': cannot read '" + part + "' (use e.g. 2 or 3-17)");
+    }
+    pos = comma + 1;
+  }
+  return out;
+}
+
+std::vector<char> hold_mask(const io::Dataset& d, const std::vector<int>& segments) {
   std::vector<char> m(d.size(), 0);
   for (const auto& h : find_holds(d))
-    for (std::size_t i = h.begin; i < h.end; ++i) m[i] = 1;
+    for (std::size_t i = h.begin; i < h.end; ++i) m[i] = in_segments(d, i, segments);
   return m;
 }
 
-std::vector<char> hysteresis_mask(const io::Dataset& d, double warmup_s) {
+std::vector<char> hysteresis_mask(const io::Dataset& d, double warmup_s, const std::vector<int>& segments) {
   std::vector<char> m(d.size(), 1);
-  if (!d.phase.empty())
-    for (std::size_t i = 0; i < d.size(); ++i) m[i] = d.phase[i] != kHold;
+  for (std::size_t i = 0; i < d.size(); ++i)
+    m[i] = (d.phase.empty() || d.phase[i] != kHold) && in_segments(d, i, segments);
   if (!d.empty())
     for (std::size_t i = 0; i < d.size() && d.time_s[i] - d.time_s[0] < warmup_s; ++i) m[i] = 0;
   return m;
@@ -107,13 +137,14 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   ev.num_parameters = model.num_parameters();
   ev.uses_positions = model.uses_position_history();
   ev.test = predict_series(model, test, opt.axis);
-  ev.hysteresis = metrics(ev.test, test.axis(opt.axis), hysteresis_mask(test, opt.warmup_s));
+  ev.hysteresis = metrics(ev.test, test.axis(opt.axis), hysteresis_mask(test, opt.warmup_s, opt.test_segments));
   const io::Dataset& cd = creep ? *creep : test;
   ev.creep_pred = creep ? predict_series(model, *creep, opt.axis) : ev.test;
   const io::AxisSeries& cax = cd.axis(opt.axis);
-  ev.creep = metrics(ev.creep_pred, cax, hold_mask(cd));
+  ev.creep = metrics(ev.creep_pred, cax, hold_mask(cd, opt.creep_segments));
   const double rate = cd.size() > 1 ? cd.sample_rate_hz() : 1.0;
   for (const auto& h : find_holds(cd)) {
+    if (!in_segments(cd, h.begin, opt.creep_segments)) continue;
     const std::size_t w = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(opt.final_window_s * rate)));
     const std::size_t b = h.end > h.begin + w ? h.end - w : h.begin;
     FinalDeviation f;

@@ -214,6 +214,10 @@ std::vector<NoiseEstimate> estimate_noise(const io::Dataset& data) {
         const double r = axis.position_nm[i] - xm - slope * (data.time_s[i] - tm);
         ss += r * r;
       }
+      for (std::size_t i = b + 1; i < en; ++i) {
+        const double step = std::fabs(axis.position_nm[i] - axis.position_nm[i - 1]);
+        if (step > 1e-9 && (e.resolution_nm == 0.0 || step < e.resolution_nm)) e.resolution_nm = step;
+      }
       e.window_sigma_nm.push_back(std::sqrt(ss / static_cast<double>(n - 2)));
       e.window_voltage_v.push_back(vm);
       ss_total += ss;
@@ -288,7 +292,10 @@ std::string format_summary(const RecordingSummary& s) {
     for (std::size_t i = 0; i < n.window_sigma_nm.size(); ++i)
       os << (i ? ", " : "") << std::setprecision(3) << n.window_voltage_v[i] << " V: " << n.window_sigma_nm[i]
          << " nm";
-    os << ")\n" << std::setprecision(6);
+    os << ")";
+    if (n.below_resolution())
+      os << " -- below the encoder step of " << n.resolution_nm << " nm: not a measurable noise";
+    os << "\n" << std::setprecision(6);
   }
   return os.str();
 }

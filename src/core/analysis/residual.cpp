@@ -69,13 +69,13 @@ std::vector<const std::vector<double>*> resolve_inputs(const std::vector<std::st
   return cols;
 }
 
-std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode) {
+namespace {
+void stream_rows(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode,
+                 std::vector<double>& pred) {
   const io::AxisSeries& ax = data.axis(axis);
   const auto cols = resolve_inputs(model.aux_inputs(), data);
-  std::vector<double> pred(data.size());
-  if (data.empty()) return pred;
+  pred.assign(data.size(), 0.0);
   std::vector<double> aux(cols.size());
-  model.reset(ax.voltage_v[0], ax.position_nm[0]);
   for (std::size_t i = 0; i < data.size(); ++i) {
     for (std::size_t j = 0; j < cols.size(); ++j) aux[j] = (*cols[j])[i];
     const models::ModelInput in{ax.voltage_v[i], aux.empty() ? nullptr : aux.data()};
@@ -84,7 +84,33 @@ std::vector<double> run_model(models::Model& model, const io::Dataset& data, con
       throw std::runtime_error("model '" + model.kind() + "' predicted a non-finite position at row " + std::to_string(i + 1));
     model.commit(in, mode == PredictionMode::kOneStep ? ax.position_nm[i] : pred[i]);
   }
+}
+}  // namespace
+
+std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode) {
+  std::vector<double> pred;
+  if (data.empty()) return pred;
+  const io::AxisSeries& ax = data.axis(axis);
+  model.reset(ax.voltage_v[0], ax.position_nm[0]);
+  stream_rows(model, data, axis, mode, pred);
   return pred;
+}
+
+std::vector<double> run_model_after(models::Model& model, const io::Dataset& warmup, const io::Dataset& data,
+                                    const std::string& axis, PredictionMode mode) {
+  if (warmup.empty()) return run_model(model, data, axis, mode);
+  std::vector<double> pred;
+  const io::AxisSeries& ax = warmup.axis(axis);
+  model.reset(ax.voltage_v[0], ax.position_nm[0]);
+  stream_rows(model, warmup, axis, mode, pred);
+  stream_rows(model, data, axis, mode, pred);
+  return pred;
+}
+
+bool continues_in_time(const io::Dataset& prev, const io::Dataset& next) {
+  if (prev.size() < 2 || next.empty()) return false;
+  const double dt = prev.time_s[1] - prev.time_s[0];
+  return std::fabs(next.time_s.front() - (prev.time_s.back() + dt)) < 0.5 * dt;
 }
 
 namespace {
@@ -461,9 +487,13 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   const std::vector<double>& meas_test = test.axis(o.axis).position_nm;
 
   ResidualResult res;
+  res.warm_started = o.warm_start && continues_in_time(train, test);
+  auto run_test = [&](models::Model& m) {
+    return res.warm_started ? run_model_after(m, train, test, o.axis, o.mode) : run_model(m, test, o.axis, o.mode);
+  };
   {
     models::ModelPtr b = base.clone();
-    res.test_pred_before = run_model(*b, test, o.axis, o.mode);
+    res.test_pred_before = run_test(*b);
   }
   res.before_test = error_stats(meas_test, res.test_pred_before);
   if (!truth_test.empty()) res.before_test_truth = error_stats(truth_test, res.test_pred_before);
@@ -552,7 +582,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     e.validation_gain = winner->validation_gain;
     e.ranking = ranking;
     models::AugmentedModel m(cur_base->clone(), terms, offset, fs);
-    const std::vector<double> pt = run_model(m, test, o.axis, o.mode);
+    const std::vector<double> pt = run_test(m);
     e.test_after = error_stats(meas_test, pt);
     if (!truth_test.empty()) e.test_after_truth = error_stats(truth_test, pt);
     log("added " + e.family + ": TEST MAE " + std::to_string(e.test_after.mae_nm) + " nm");
@@ -567,7 +597,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     describe(terms, first, last - first, res.effects[q]);
   }
   auto model = std::make_unique<models::AugmentedModel>(cur_base->clone(), terms, offset, fs);
-  res.test_pred_after = run_model(*model, test, o.axis, o.mode);
+  res.test_pred_after = run_test(*model);
   res.after_test = error_stats(meas_test, res.test_pred_after);
   if (!truth_test.empty()) res.after_test_truth = error_stats(truth_test, res.test_pred_after);
   {
