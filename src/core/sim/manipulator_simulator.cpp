@@ -177,6 +177,8 @@ const SimulatorConfig& ManipulatorSimulator::config() const { return impl_->cfg;
 io::Dataset ManipulatorSimulator::run(const io::Dataset& program) {
   const std::string src = program.source.empty() ? std::string("simulator program") : program.source;
   const std::size_t n = program.size();
+  if (program.axes.empty())
+    throw io::DataError(src + ": no <axis>_voltage_v column (a, b or c) to drive the simulator with");
   for (const auto& a : program.axes) {
     if (axis_index(a.name) < 0) throw io::DataError(src + ": unknown axis '" + a.name + "' (valid: a, b, c)");
     if (a.voltage_v.size() != n)
