@@ -16,6 +16,8 @@
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/ros/mm3e_driver.h"
+#include "piezo_compensation/ros/mm3e_sim.h"
 
 using piezo_compensation::AxisVoltage;
 using piezo_compensation::EncoderPosition;
@@ -303,6 +305,46 @@ TEST(Driver, SecondCommanderHolds) {
   EXPECT_NEAR(b.last_voltage(0), held, 1e-9) << "moved with two commanders";
   EXPECT_GT(b.diag_number("axis a", "rejected held"), 0.0);
   EXPECT_EQ(b.diag("axis a", "__level"), "2");
+}
+
+// Start-up validation: each bad parameter stops the node with a message naming it (constructed in-process).
+TEST(Driver, InvalidParametersAreNamed) {
+  const std::vector<std::pair<std::string, XmlRpc::XmlRpcValue>> cases = {
+      {"slew_rate_v_per_s", XmlRpc::XmlRpcValue(-1.0)},
+      {"max_voltage_v", XmlRpc::XmlRpcValue(-90.0)},
+      {"transport", XmlRpc::XmlRpcValue("carrier_pigeon")},
+      {"command_timeout_s", XmlRpc::XmlRpcValue("soon")},
+      {"udp_local_port", XmlRpc::XmlRpcValue(70000)},
+      {"protocol/byte_order", XmlRpc::XmlRpcValue("middle")},
+      {"protocol/voltage_lsb_v", XmlRpc::XmlRpcValue(0.0)},
+      {"protocol/encoder_function_id", XmlRpc::XmlRpcValue(0x180)},  // collides with the voltage reports
+  };
+  int k = 0;
+  for (const auto& [param, value] : cases) {
+    const std::string ns = "/bad_params/driver_" + std::to_string(k++);
+    ros::NodeHandle pnh(ns);
+    pnh.setParam("transport", "udp");
+    pnh.setParam("udp_local_port", 47990);
+    pnh.setParam("udp_remote_port", 47991);
+    pnh.setParam(param, value);
+    try {
+      piezo::mm3e::DriverNode node(ros::NodeHandle("/bad_params"), pnh);
+      ADD_FAILURE() << param << ": accepted";
+    } catch (const std::invalid_argument& e) {
+      const std::string leaf = param.substr(param.rfind('/') + 1);
+      EXPECT_NE(std::string(e.what()).find(leaf), std::string::npos) << param << ": " << e.what();
+    }
+  }
+  // The simulated device too, including its own rule: a time scale needs the device to own /clock.
+  ros::NodeHandle spnh("/bad_params/sim");
+  spnh.setParam("transport", "udp");
+  spnh.setParam("time_scale", 50.0);
+  try {
+    piezo::mm3e::SimNode node(ros::NodeHandle("/bad_params"), spnh);
+    ADD_FAILURE() << "time_scale without publish_clock accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("time_scale"), std::string::npos) << e.what();
+  }
 }
 
 // `--second-commander AXIS VOLTS`: run as a plain publisher node (a second commander for SecondCommanderHolds).

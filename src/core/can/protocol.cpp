@@ -44,18 +44,23 @@ void validate(const ProtocolConfig& c) {
                                                     (c.extended_ids ? "29" : "11") + "-bit identifier range");
   // Every identifier must be unique, or the codec could not tell frames apart.
   std::uint32_t ids[3 * kAxisCount + 1];
+  std::string owners[3 * kAxisCount + 1];
   int n = 0;
   for (int f = 0; f < 3; ++f)
-    for (int a = 0; a < kAxisCount; ++a) ids[n++] = functions[f] + c.base_node_id + a * c.node_id_stride;
+    for (int a = 0; a < kAxisCount; ++a) {
+      owners[n] = std::string(names[f]) + " (axis " + kAxisNames[a] + ")";
+      ids[n++] = functions[f] + c.base_node_id + a * c.node_id_stride;
+    }
+  owners[n] = names[3];
   ids[n++] = c.heartbeat_function_id + c.base_node_id;
   for (int i = 0; i < n; ++i)
     for (int j = i + 1; j < n; ++j)
-      require(ids[i] != ids[j], "function IDs and node IDs give two frames the same identifier 0x" +
-                                    [](std::uint32_t v) {
-                                      char b[16];
-                                      std::snprintf(b, sizeof b, "%X", v);
-                                      return std::string(b);
-                                    }(ids[i]));
+      if (ids[i] == ids[j]) {
+        char hex[16];
+        std::snprintf(hex, sizeof hex, "0x%X", ids[i]);
+        throw std::invalid_argument("protocol." + owners[j] + " and " + owners[i] + " give the same identifier " +
+                                    hex + " (check the function IDs, base_node_id and node_id_stride)");
+      }
 }
 
 ProtocolConfig protocol_from_yaml(const YAML::Node& node) {
