@@ -292,7 +292,7 @@ int run(int argc, char** argv) {
     }
   }
   data.source = out;
-  write_checkpoint(out, data, spec, done == spec.samples);
+  if (done > done_at_start || !resuming) write_checkpoint(out, data, spec, done == spec.samples);
   const double wall_s = std::chrono::duration<double>(clock::now() - t_start).count();
 
   const io::Dataset program = protocol->program(0, data.size());

@@ -221,3 +221,18 @@ TEST(RecordingSummaryText, NamesTheProblems) {
   EXPECT_NE(text.find("encoder noise c: sigma"), std::string::npos) << text;
   ASSERT_EQ(s.noise.size(), 1u);
 }
+
+TEST(RecordingNoise, FlagsSigmaBelowTheEncoderStep) {
+  Dataset d = noise_data(20.79, 13, false);
+  auto& c = d.axis("c");
+  for (std::size_t i = 0; i < d.size(); ++i)  // a/b-axis encoder, readings next to a step: 0 or 250 nm
+    c.position_nm[i] = 250.0 * std::round((c.position_nm[i] - 12.5 * c.voltage_v[i] + 125.0) / 250.0);
+  const auto est = estimate_noise(d);
+  EXPECT_NEAR(est[0].resolution_nm, 250.0, 1e-9);
+  EXPECT_TRUE(est[0].below_resolution());
+  for (auto& x : c.position_nm) x = 500.0;  // nothing moves at all: no step seen, no measurable noise
+  EXPECT_TRUE(estimate_noise(d)[0].below_resolution());
+  const auto fine = estimate_noise(noise_data(20.79, 13, true));
+  EXPECT_NEAR(fine[0].resolution_nm, 20.0, 1e-9);
+  EXPECT_FALSE(fine[0].below_resolution());
+}

@@ -93,9 +93,9 @@ struct NoiseEstimate {
   std::size_t samples = 0;
   std::vector<double> window_sigma_nm;
   std::vector<double> window_voltage_v;  // mean applied voltage of each window
-  double resolution_nm = 0.0;         // smallest step between readings in the windows (the encoder LSB)
+  double resolution_nm = 0.0;         // smallest step between readings in the windows (0: all readings equal)
   // A σ well below the encoder step is not measurable (250 nm a/b encoders against ~20 nm noise).
-  bool below_resolution() const { return sigma_nm < 0.5 * resolution_nm; }
+  bool below_resolution() const { return resolution_nm == 0.0 || sigma_nm < 0.5 * resolution_nm; }
 };
 // Throws io::DataError naming the problem when there is no phase column or no window with ≥ 3 samples.
 std::vector<NoiseEstimate> estimate_noise(const io::Dataset& data);
