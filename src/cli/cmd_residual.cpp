@@ -84,8 +84,9 @@ YAML::Node parse_sets(const std::vector<std::string>& sets) {
 
 // The explaining variable of an effect on TEST: the signal its (first) term reads, after its lag/low-pass,
 // as a phase within the period for periodic terms.
+// `test` may be TRAIN+TEST joined (warm start): only its last `keep` rows are returned.
 std::vector<double> explaining_variable(const models::AugmentedModel& m, std::size_t term_index, const io::Dataset& test,
-                                        const std::string& axis, analysis::PredictionMode mode) {
+                                        const std::string& axis, analysis::PredictionMode mode, std::size_t keep) {
   const std::vector<models::EffectTerm>& all = m.terms();
   const models::EffectTerm target = all[term_index];
   // Same stream as the model (other terms keep their weights, so position terms see the corrected position).
@@ -112,7 +113,7 @@ std::vector<double> explaining_variable(const models::AugmentedModel& m, std::si
     }
     stream.commit(ax.voltage_v[i], xb[i], colv.data());
   }
-  return out;
+  return std::vector<double>(out.end() - static_cast<long>(keep), out.end());
 }
 
 std::string explaining_label(const models::EffectTerm& t) {
@@ -147,6 +148,7 @@ int run(int argc, char** argv) {
       .option("max-effects", "N", "at most this many effects", "5")
       .option("permutations", "N", "circular-shift null draws per family", "40")
       .option("seed", "N", "random seed", "1")
+      .option("refit-base", "", "with a model file: refit its kind (default options) while backfitting")
       .option("no-plots", "", "skip the PNGs")
       .required("out", "DIR", "output directory");
   if (!args.parse(argc, argv)) return 0;
@@ -192,6 +194,8 @@ int run(int argc, char** argv) {
   // Base model: a file, or a kind fitted on TRAIN's first part (the rest validates it).
   const std::string model_arg = args.str("model");
   models::ModelPtr base;
+  models::FitRequest req;
+  const YAML::Node fit_options = parse_sets(args.list("set"));
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   if (fs::exists(model_arg)) {
     base = models::load_model(model_arg);
@@ -201,14 +205,28 @@ int run(int argc, char** argv) {
     const models::ModelKind& kind = models::model_kind(model_arg);
     if (!kind.fit) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
-    models::FitRequest req;
     req.train = &fit_part;
     req.validation = &val_part;
     req.axis = axis;
-    req.options = parse_sets(args.list("set"));
+    req.options = fit_options;
     req.seed = o.seed;
     std::cerr << "residual: fitting " << model_arg << " on " << fit_part.size() << " TRAIN rows\n";
     base = kind.fit(req);
+  }
+  // Backfitting: the base is refitted with the same kind and options after each added effect. A loaded model
+  // file keeps its weights unless --refit-base asks to refit its kind with default options.
+  const std::string refit_kind = fs::exists(model_arg) ? (args.flag("refit-base") ? base->kind() : "") : model_arg;
+  if (!refit_kind.empty()) {
+    if (!models::model_kind(refit_kind).fit) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
+    o.refit_base = [&, refit_kind](const io::Dataset& fit_part, const io::Dataset& val_part) {
+      models::FitRequest r;
+      r.train = &fit_part;
+      r.validation = &val_part;
+      r.axis = axis;
+      r.options = fs::exists(model_arg) ? YAML::Node(YAML::NodeType::Map) : fit_options;
+      r.seed = o.seed;
+      return models::model_kind(refit_kind).fit(r);
+    };
   }
 
   const analysis::ResidualResult res = analysis::trace_residual(*base, train, test, o);
@@ -223,6 +241,11 @@ int run(int argc, char** argv) {
       f << test.time_s[i] << "," << meas[i] << "," << res.test_pred_before[i] << "," << res.test_pred_after[i] << "\n";
   }
   const auto& aug = dynamic_cast<const models::AugmentedModel&>(*res.model);
+  io::Dataset stream_data = test;  // what the explaining variables are streamed over
+  if (res.warm_started) {
+    stream_data = train;
+    stream_data.append(test);
+  }
   // Explaining variables of each effect on TEST, for the plots.
   {
     std::vector<std::vector<double>> ev;
@@ -231,7 +254,7 @@ int run(int argc, char** argv) {
     for (std::size_t e = 0; e < res.effects.size(); ++e) {
       while (term < aug.terms().size() && aug.terms()[term].family != res.effects[e].family) ++term;
       if (term >= aug.terms().size()) break;
-      ev.push_back(explaining_variable(aug, term, test, axis, o.mode));
+      ev.push_back(explaining_variable(aug, term, stream_data, axis, o.mode, test.size()));
       names.push_back("effect" + std::to_string(e + 1) + "_" + res.effects[e].family);
       ++term;
     }
@@ -252,7 +275,7 @@ int run(int argc, char** argv) {
     std::ofstream f(out / "report.json");
     f << "{\n  \"axis\": " << quote(axis) << ",\n  \"mode\": " << quote(args.str("mode")) << ",\n  \"base_model\": "
       << quote(base->kind()) << ",\n  \"train_rows\": " << train.size() << ",\n  \"test_rows\": " << test.size()
-      << ",\n  \"before\": " << stats_json(res.before_test) << ",\n  \"after\": " << stats_json(res.after_test) << ",\n";
+      << ",\n  \"warm_start\": " << (res.warm_started ? "true" : "false") << ",\n  \"before\": " << stats_json(res.before_test) << ",\n  \"after\": " << stats_json(res.after_test) << ",\n";
     if (truth)
       f << "  \"before_vs_truth\": " << stats_json(res.before_test_truth) << ",\n  \"after_vs_truth\": " << stats_json(res.after_test_truth) << ",\n";
     f << "  \"effects\": [";
@@ -288,7 +311,9 @@ int run(int argc, char** argv) {
     f << std::setprecision(4);
     f << "# Residual report: axis " << axis << ", base model `" << base->kind() << "`, " << args.str("mode") << "\n\n";
     f << "TRAIN " << train.size() << " rows (" << (train.source.empty() ? "?" : train.source) << "), TEST " << test.size()
-      << " rows (" << (test.source.empty() ? "?" : test.source) << "), " << train.sample_rate_hz() << " Hz.\n\n";
+      << " rows (" << (test.source.empty() ? "?" : test.source) << "), " << train.sample_rate_hz() << " Hz. "
+      << (res.warm_started ? "TEST continues TRAIN in time: the models run on from TRAIN into TEST (no reset).\n\n"
+                           : "The models are reset at the first TEST row.\n\n");
     f << "## TEST error against the measurement\n\n| step | MAE [nm] | RMS [nm] | max [nm] |";
     if (truth) f << " MAE vs truth [nm] |";
     f << "\n|---|---|---|---|" << (truth ? "---|" : "") << "\n";

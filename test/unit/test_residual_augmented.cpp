@@ -152,3 +152,19 @@ TEST(ResidualAugmented, PositionsAndTruthAreNeverInputs) {
   EXPECT_THROW(pa::resolve_inputs({"pressure_pa"}, d), piezo::io::DataError);
   EXPECT_EQ(pa::resolve_inputs({"a_voltage_v", "time_s", "temperature_c"}, d).size(), 3u);
 }
+
+TEST(ResidualAugmented, WarmStartContinuesTheStreamAcrossATimeSplit) {
+  piezo::test::register_test_kind();
+  const piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kNone, 0.1, 4);
+  const std::size_t k = d.size() / 2;
+  const piezo::io::Dataset a = d.slice(0, k), b = d.slice(k, d.size()), gap = d.slice(k + 5, d.size());
+  EXPECT_TRUE(pa::continues_in_time(a, b));
+  EXPECT_FALSE(pa::continues_in_time(a, gap));
+  EXPECT_FALSE(pa::continues_in_time(b, a));
+  auto m = piezo::test::LowpassLinearModel::fit(d, "c", d.size());
+  auto m2 = m->clone();
+  const auto whole = pa::run_model(*m, d, "c", pa::PredictionMode::kFreeRun);
+  const auto tail = pa::run_model_after(*m2, a, b, "c", pa::PredictionMode::kFreeRun);
+  ASSERT_EQ(tail.size(), b.size());
+  for (std::size_t i = 0; i < tail.size(); i += 97) EXPECT_DOUBLE_EQ(tail[i], whole[k + i]);
+}

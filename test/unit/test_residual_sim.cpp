@@ -63,7 +63,7 @@ double clean_mae() {
   static const double mae = [] {
     const Split s = split(simulate(""));
     const auto base = fit_base(s.train, options());
-    const auto pred = pa::run_model(*base, s.test, "c", pa::PredictionMode::kFreeRun);
+    const auto pred = pa::run_model_after(*base, s.train, s.test, "c", pa::PredictionMode::kFreeRun);
     return pa::error_stats(s.test.axis("c").position_nm, pred).mae_nm;
   }();
   return mae;
@@ -84,6 +84,7 @@ void expect_found(const std::string& effect, const std::string& family) {
             << " nm), effects:";
   for (const auto& e : r.effects) std::cerr << " " << e.family;
   std::cerr << "\n";
+  EXPECT_TRUE(r.warm_started);
   ASSERT_FALSE(r.effects.empty()) << effect << ": nothing found";
   EXPECT_EQ(r.effects.front().family, family) << effect;
   EXPECT_LT(r.after_test.mae_nm, 1.15 * clean) << effect << ": before " << r.before_test.mae_nm << " nm";
