@@ -7,6 +7,7 @@
 #include <std_srvs/Trigger.h>
 
 #include <algorithm>
+#include <cstdio>
 #include <cmath>
 #include <limits>
 #include <map>
@@ -371,5 +372,24 @@ int main(int argc, char** argv) {
   ros::init(argc, argv, "driver_rostest");
   ros::AsyncSpinner spinner(2);
   spinner.start();
+  // A .test file whose --gtest_filter names no test must not pass silently (rostest only reads the XML).
+  const std::string filter = testing::GTEST_FLAG(filter);
+  bool matched = filter == "*";
+  const auto* unit = testing::UnitTest::GetInstance();
+  for (int i = 0; i < unit->total_test_suite_count(); ++i)
+    for (int j = 0; j < unit->GetTestSuite(i)->total_test_count(); ++j) {
+      const auto* info = unit->GetTestSuite(i)->GetTestInfo(j);
+      matched |= filter == std::string(info->test_suite_name()) + "." + info->name();
+    }
+  if (!matched) {
+    struct NoMatch : testing::Test {
+      explicit NoMatch(std::string f) : f_(std::move(f)) {}
+      void TestBody() override { FAIL() << "--gtest_filter=" << f_ << " names no test"; }
+      std::string f_;
+    };
+    testing::RegisterTest("Driver", "FilterNamesNoTest", nullptr, nullptr, __FILE__, __LINE__,
+                          [filter]() -> testing::Test* { return new NoMatch(filter); });
+    testing::GTEST_FLAG(filter) = "Driver.FilterNamesNoTest";
+  }
   return RUN_ALL_TESTS();
 }
