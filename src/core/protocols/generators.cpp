@@ -45,6 +45,7 @@ creep:
   hold_s: 1800.0
   target_range_v: 60.0
   pre_approach_s: 30.0
+  pre_dwell_s: 120.0
   approach_min_s: 5.0
   approach_max_s: 60.0
   approach_min_v: 20.0
@@ -248,6 +249,8 @@ void append_creep(Table& t, const Params& p, const WalkParams& walk, double rate
   const double pre_s = p.num("pre_approach_s", 0.0, history_s);
   const double amin_s = p.num("approach_min_s", 1.0 / rate, history_s);
   const double amax_s = p.num("approach_max_s", amin_s, history_s);
+  // The dwell gives way to short histories (tests, quick runs) instead of rejecting them.
+  const double dwell_s = std::min(p.num("pre_dwell_s", 0.0, 1e7), std::max(0.0, history_s - pre_s - amax_s));
   const double amin_v = p.num("approach_min_v", 0.0, 2.0 * walk.bound_v);
   const double amax_v = p.num("approach_max_v", amin_v, 2.0 * walk.bound_v);
   if (pre_s + amax_s > history_s) p.fail("history_s", "must be at least pre_approach_s + approach_max_s");
@@ -255,8 +258,8 @@ void append_creep(Table& t, const Params& p, const WalkParams& walk, double rate
   for (int s = 0; s < scenarios; ++s) {
     const std::size_t n_hist = std::max<std::size_t>(1, samples(history_s, rate));
     const std::size_t n_app = std::max<std::size_t>(1, samples(rng.uniform(amin_s, amax_s), rate));
-    const std::size_t n_pre = samples(pre_s, rate);
-    const std::size_t n_walk = n_hist > n_app + n_pre ? n_hist - n_app - n_pre : 0;
+    const std::size_t n_pre = samples(pre_s, rate), n_dwell = samples(dwell_s, rate);
+    const std::size_t n_walk = n_hist > n_app + n_pre + n_dwell ? n_hist - n_app - n_pre - n_dwell : 0;
     append_walk(t, walk, rate, n_walk, seed, 2000 + static_cast<std::uint64_t>(s), seg0 + s, false, 0.0);
     // The history ends with a quick approach to the hold voltage from alternating sides (and per axis), so the
     // 15 drifts differ in size and take both signs.
@@ -275,6 +278,7 @@ void append_creep(Table& t, const Params& p, const WalkParams& walk, double rate
       }
     };
     ramp(pre, n_pre);
+    for (std::size_t i = 0; i < n_dwell; ++i) t.push(pre, seg0 + s, Phase::kExcite);  // let the opposite creep fade
     ramp(target, n_app);
     const std::size_t n_hold = samples(hold_s, rate);
     for (std::size_t i = 0; i < n_hold; ++i) t.push(target, seg0 + s, Phase::kHold);
