@@ -4,3 +4,14 @@ piezo_unit_test(test_sim_effects test/unit/test_sim_effects.cpp)
 piezo_unit_test(test_protocols_generators test/unit/test_protocols_generators.cpp)
 piezo_ros_unit_test(test_bag_io test/unit/test_bag_io.cpp)
 piezo_benchmark(bench_simulator bench/bench_simulator.cpp)
+# `piezo simulate` end to end: every protocol name accepted, a bag written and read back by `piezo info`.
+if(CATKIN_ENABLE_TESTING)
+  add_test(NAME cli_simulate_smoke COMMAND sh -c
+    "set -e; d=$(mktemp -d); \
+     $<TARGET_FILE:piezo> simulate --protocol sawtooth --seed 2 --effect thermal_drift --out $d/s.bag; \
+     $<TARGET_FILE:piezo> info $d/s.bag | grep -q 'aux: temperature_c'; \
+     $<TARGET_FILE:piezo> simulate --protocol noise --axes c --duration 30 --out $d/n.csv; \
+     test $(wc -l < $d/n.csv) -eq 331; \
+     ! $<TARGET_FILE:piezo> simulate --protocol nosuch --out $d/x.csv 2>/dev/null; \
+     rm -rf $d")
+endif()
