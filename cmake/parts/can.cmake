@@ -57,3 +57,7 @@ set_target_properties(can_command_latency PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${
 if(CATKIN_ENABLE_TESTING)
   add_test(NAME can_command_latency_smoke COMMAND can_command_latency --seconds 0.2)
 endif()
+add_executable(can_ros_command_latency bench/can_ros_command_latency.cpp)
+target_link_libraries(can_ros_command_latency piezo_ros piezo_core ${catkin_LIBRARIES})
+add_dependencies(can_ros_command_latency ${PROJECT_NAME}_generate_messages_cpp mm3e_driver)
+set_target_properties(can_ros_command_latency PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)

@@ -1,0 +1,235 @@
+// End-to-end command latency through ROS: a 1 kHz VoltageCommand stream published over TCPROS to a real
+// mm3e_driver process (UDP transport), timed until the command frame is in the kernel at the simulated device's
+// socket (SO_TIMESTAMP). Starts its own rosmaster on a free port and the driver as a child process, so it needs
+// no running ROS. Frames are matched to commands by voltage (every command is a distinct 0.1 mV step).
+// Run by `scripts/piezo bench`; options: --seconds S --rate-hz R.
+#include <ros/ros.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <filesystem>
+#include <mutex>
+#include <string>
+#include <thread>
+#include <unordered_map>
+#include <vector>
+
+#include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/can/codec.h"
+#include "piezo_compensation/can/transport.h"
+
+using namespace piezo::can;
+namespace fs = std::filesystem;
+
+namespace {
+
+double wall_s() {
+  timespec ts;
+  clock_gettime(CLOCK_REALTIME, &ts);
+  return ts.tv_sec + ts.tv_nsec * 1e-9;
+}
+
+double percentile(std::vector<double> v, double p) {
+  if (v.empty()) return std::nan("");
+  std::sort(v.begin(), v.end());
+  const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(std::ceil(p / 100.0 * v.size())) - 1);
+  return v[k];
+}
+
+pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
+  const pid_t pid = fork();
+  if (pid == 0) {
+    setpgid(0, 0);
+    if (FILE* f = std::fopen(log.c_str(), "w")) {
+      dup2(fileno(f), 1);
+      dup2(fileno(f), 2);
+    }
+    std::vector<char*> argv;
+    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    execvp(argv[0], argv.data());
+    _exit(127);
+  }
+  return pid;
+}
+
+void stop(pid_t pid) {
+  if (pid <= 0) return;
+  kill(pid, SIGINT);
+  for (int i = 0; i < 50; ++i) {
+    if (waitpid(pid, nullptr, WNOHANG) == pid) return;
+    std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  kill(pid, SIGKILL);
+  waitpid(pid, nullptr, 0);
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  double seconds = 10.0, rate_hz = 1000.0;
+  for (int i = 1; i + 1 < argc; i += 2) {
+    const std::string a = argv[i];
+    if (a == "--seconds") seconds = std::atof(argv[i + 1]);
+    else if (a == "--rate-hz") rate_hz = std::atof(argv[i + 1]);
+    else {
+      std::fprintf(stderr, "usage: %s [--seconds S] [--rate-hz R]\n", argv[0]);
+      return 2;
+    }
+  }
+  if (!(seconds > 0) || !(rate_hz > 0) || seconds * rate_hz > 700000) {
+    std::fprintf(stderr, "can_ros_command_latency: --seconds and --rate-hz must be > 0 (at most 700000 commands)\n");
+    return 2;
+  }
+  const fs::path self = fs::read_symlink("/proc/self/exe");
+  const fs::path driver_bin = self.parent_path().parent_path() / "mm3e_driver";
+  if (!fs::exists(driver_bin)) {
+    std::fprintf(stderr, "can_ros_command_latency: %s not built\n", driver_bin.c_str());
+    return 1;
+  }
+  const int base = 20000 + static_cast<int>(getpid() % 9000) * 3;
+  const std::string master = "http://127.0.0.1:" + std::to_string(base);
+  setenv("ROS_MASTER_URI", master.c_str(), 1);
+  setenv("ROS_IP", "127.0.0.1", 1);
+  unsetenv("ROS_HOSTNAME");
+  const std::string log_dir = fs::temp_directory_path() / ("can_ros_latency_" + std::to_string(getpid()));
+  fs::create_directories(log_dir);
+  setenv("ROS_LOG_DIR", log_dir.c_str(), 1);
+  const pid_t master_pid = spawn({"rosmaster", "--core", "-p", std::to_string(base)}, log_dir + "/rosmaster.log");
+
+  ros::init(argc, argv, "can_ros_command_latency", ros::init_options::NoSigintHandler | ros::init_options::AnonymousName);
+  for (int i = 0; i < 100 && !ros::master::check(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  if (!ros::master::check()) {
+    std::fprintf(stderr, "can_ros_command_latency: rosmaster did not start (log in %s)\n", log_dir.c_str());
+    stop(master_pid);
+    return 1;
+  }
+  const int drv_port = base + 1, dev_port = base + 2;
+  ros::NodeHandle p("/latency/mm3e_driver");
+  p.setParam("transport", "udp");
+  p.setParam("udp_local_port", drv_port);
+  p.setParam("udp_remote_port", dev_port);
+  p.setParam("slew_rate_v_per_s", 1e6);   // every command is one frame: the slew limit must not split steps
+  p.setParam("command_timeout_s", 1.0);
+  p.setParam("silence_reconnect_s", 3600.0);
+  const pid_t driver_pid = spawn({driver_bin.string(), "__name:=mm3e_driver", "__ns:=/latency"}, log_dir + "/driver.log");
+
+  const Codec codec{ProtocolConfig{}};
+  UdpOptions dev;
+  dev.local_port = dev_port;
+  dev.remote_port = drv_port;
+  dev.filters = codec.device_filters();
+  auto device = make_udp_transport(dev);
+  device->open();
+
+  std::mutex m;
+  std::unordered_map<std::int32_t, double> sent_at;  // voltage counts → wall time before publish()
+  std::vector<double> latency_us;
+  std::atomic<bool> done{false};
+  std::atomic<std::uint64_t> frames{0};
+  std::thread receiver([&] {
+    std::vector<ReceivedFrame> in;
+    auto next_report = std::chrono::steady_clock::now();
+    while (!done) {
+      if (std::chrono::steady_clock::now() >= next_report) {  // a live controller: baseline and no silence
+        for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, 0.0, 0, false}));
+        next_report += std::chrono::milliseconds(50);
+      }
+      in.clear();
+      device->receive(in, 5);
+      std::lock_guard<std::mutex> l(m);
+      for (const auto& rf : in) {
+        const DecodeResult r = codec.decode(rf.frame);
+        if (!r.ok()) continue;
+        const auto* c = std::get_if<CommandFrame>(&r.message_value);
+        if (!c) continue;
+        ++frames;
+        auto it = sent_at.find(static_cast<std::int32_t>(std::lround(c->voltage_v / 1e-4)));
+        if (it == sent_at.end()) continue;
+        latency_us.push_back((rf.receive_time_s - it->second) * 1e6);
+        sent_at.erase(it);
+      }
+    }
+  });
+
+  ros::NodeHandle nh("/latency");
+  ros::Publisher pub = nh.advertise<piezo_compensation::VoltageCommand>("a/command", 1);
+  auto publish = [&](std::int32_t counts) {
+    piezo_compensation::VoltageCommand c;
+    c.voltage = counts * 1e-4;
+    const double t = wall_s();
+    c.header.stamp = ros::Time(t);
+    {
+      std::lock_guard<std::mutex> l(m);
+      sent_at[counts] = t;
+    }
+    pub.publish(c);
+  };
+  // Warm-up: wait for the connection and for the driver to act on commands at all.
+  bool ready = false;
+  for (int i = 0; i < 300 && !ready; ++i) {
+    if (pub.getNumSubscribers() > 0) publish(-500000 + i);
+    std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    ready = frames > 0;
+  }
+  int rc = 0;
+  if (!ready) {
+    std::fprintf(stderr, "can_ros_command_latency: the driver never wrote a frame (logs in %s)\n", log_dir.c_str());
+    rc = 1;
+  } else {
+    std::this_thread::sleep_for(std::chrono::milliseconds(200));
+    {
+      std::lock_guard<std::mutex> l(m);
+      sent_at.clear();
+      latency_us.clear();
+    }
+    const long long total = static_cast<long long>(seconds * rate_hz);
+    const auto period = std::chrono::nanoseconds(static_cast<long long>(1e9 / rate_hz));
+    auto next = std::chrono::steady_clock::now();
+    for (long long k = 0; k < total; ++k) {
+      next += period;
+      std::this_thread::sleep_until(next);
+      publish(static_cast<std::int32_t>(-350000 + k));  // −35 V upwards in 0.1 mV steps: unique per command
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(300));
+    std::lock_guard<std::mutex> l(m);
+    const std::vector<double> edges = {50, 100, 200, 300, 500, 1000, 2000, 5000};
+    std::vector<std::size_t> counts(edges.size() + 1, 0);
+    for (double x : latency_us) counts[std::upper_bound(edges.begin(), edges.end(), x) - edges.begin()]++;
+    std::printf("VoltageCommand published -> mm3e_driver (TCPROS, separate process) -> CAN frame in the kernel at the "
+                "device socket (UDP loopback), %.0f Hz for %.1f s\n", rate_hz, seconds);
+    std::printf("commands %lld, frames matched %zu, dropped by the queue-1 subscriber %zu\n", total,
+                latency_us.size(), sent_at.size());
+    const std::size_t n = std::max<std::size_t>(1, latency_us.size());
+    for (std::size_t b = 0; b < counts.size(); ++b) {
+      char label[48];
+      if (b == 0)
+        std::snprintf(label, sizeof label, "      < %5.0f us", edges[0]);
+      else if (b == edges.size())
+        std::snprintf(label, sizeof label, "     >= %5.0f us", edges.back());
+      else
+        std::snprintf(label, sizeof label, "%5.0f - %5.0f us", edges[b - 1], edges[b]);
+      const int bar = static_cast<int>(std::round(60.0 * counts[b] / n));
+      std::printf("  %s %7zu %6.2f%% %s\n", label, counts[b], 100.0 * counts[b] / n, std::string(bar, '#').c_str());
+    }
+    const double p99 = percentile(latency_us, 99);
+    std::printf("latency [us]: p50 %.1f  p90 %.1f  p99 %.1f  p99.9 %.1f  max %.1f\n", percentile(latency_us, 50),
+                percentile(latency_us, 90), p99, percentile(latency_us, 99.9), percentile(latency_us, 100));
+    std::printf("target p99 <= 1000 us: %s\n", p99 <= 1000.0 ? "met" : "NOT met");
+    if (latency_us.empty()) rc = 1;
+  }
+  done = true;
+  receiver.join();
+  stop(driver_pid);
+  ros::shutdown();
+  stop(master_pid);
+  fs::remove_all(log_dir);
+  return rc;
+}
