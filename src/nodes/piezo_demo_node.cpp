@@ -80,7 +80,7 @@ std::vector<Step> scenario(const std::string& name, double hz, double hold_s, do
 
 struct Row {
   Step step;
-  double time_s, ideal_nm, true_nm, encoder_nm;
+  double time_s, ideal_nm, true_nm, encoder_nm;  // time_s: scenario sample index / rate
 };
 
 class Demo {
@@ -96,10 +96,11 @@ class Demo {
     hold_v_ = pnh.param<double>("hold_v", 20.0);
     auto model = piezo::predictor::load_model_file(model_file);
     piezo::compensation::IdealLineOptions o;  // the predictor's defaults (config/predictor.yaml)
-    o.hold_s = pnh.param<double>("ideal_line_hold_s", 1800.0);
+    o.hold_s = pnh.param<double>("ideal_line_hold_s", 60.0);
     o.sample_rate_hz = model->meta.sample_rate_hz;
     line_ = piezo::compensation::ideal_line_from_model(*model, o);
-    steps_ = scenario(scenario_name_, model->meta.sample_rate_hz, hold_s, hold_v_);
+    rate_hz_ = model->meta.sample_rate_hz;
+    steps_ = scenario(scenario_name_, rate_hz_, hold_s, hold_v_);
     intended_ = nh_.advertise<piezo_compensation::IntendedMotion>(axis_ + "/intended", 5);
     encoder_ = nh_.subscribe(axis_ + "/encoder", 50, &Demo::on_encoder, this);
     truth_ = nh_.subscribe(axis_ + "/true_position", 50, &Demo::on_truth, this);
@@ -176,12 +177,12 @@ class Demo {
     auto t = truth_by_seq_.find(seq);
     auto e = enc_by_seq_.find(seq);
     if (t == truth_by_seq_.end() || e == enc_by_seq_.end()) return;
-    const double true_nm = t->second, time_s = e->second.first, enc_nm = e->second.second;
+    const double true_nm = t->second, enc_nm = e->second.second;
     truth_by_seq_.erase(truth_by_seq_.begin(), std::next(t));
     enc_by_seq_.erase(enc_by_seq_.begin(), std::next(e));
     if (next_ > 0 && next_ <= steps_.size()) {
       const Step& s = steps_[next_ - 1];
-      rows_.push_back({s, time_s, line_.position_nm(s.intent_v), true_nm, enc_nm});
+      rows_.push_back({s, static_cast<double>(next_ - 1) / rate_hz_, line_.position_nm(s.intent_v), true_nm, enc_nm});
     }
     if (next_ >= steps_.size()) {
       ++next_;
@@ -206,7 +207,7 @@ class Demo {
 
   ros::NodeHandle nh_;
   std::string scenario_name_, axis_, out_prefix_;
-  double hold_v_ = 20.0;
+  double hold_v_ = 20.0, rate_hz_ = 11.0;
   piezo::compensation::IdealLine line_;
   std::vector<Step> steps_;
   std::size_t next_ = 0;

@@ -120,6 +120,7 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   s.axis.inverse_tolerance_nm = positive(pnh, "inverse_tolerance_nm", s.axis.inverse_tolerance_nm);
   s.axis.position_margin_nm = positive(pnh, "position_margin_nm", s.axis.position_margin_nm, true);
   s.axis.position_feedback = param<bool>(pnh, "position_feedback", s.axis.position_feedback);
+  s.axis.reanchor_time_constant_s = positive(pnh, "reanchor_time_constant_s", s.axis.reanchor_time_constant_s, true);
   return s;
 }
 
@@ -141,7 +142,10 @@ PredictorAxis::PredictorAxis(std::string axis, std::string model_name, models::M
     model = std::make_unique<UnavailableModel>();
     if (model_error_.empty()) model_error_ = "no model";
   }
-  comp_ = std::make_unique<compensation::AxisCompensator>(std::move(model), line, s_.axis);
+  compensation::AxisCompensatorConfig cfg = s_.axis;
+  cfg.sample_rate_hz = s_.sample_rate_hz > 0 ? s_.sample_rate_hz : model->meta.sample_rate_hz;
+  if (!(cfg.sample_rate_hz > 0.0)) cfg.sample_rate_hz = 11.0;
+  comp_ = std::make_unique<compensation::AxisCompensator>(std::move(model), line, cfg);
 }
 
 void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model) {
@@ -560,6 +564,7 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   st.add("command fallbacks", l.compensator().command_fallbacks());
   st.add("last fallback reason", l.last_status());
   st.add("ideal gain [nm/V]", l.compensator().ideal_line().gain_nm_per_v);
+  st.add("re-anchor offset [nm]", l.compensator().anchor_offset_nm());
   st.add("processing p99 [us]", p99);
 }
 

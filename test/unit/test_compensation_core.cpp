@@ -196,3 +196,29 @@ TEST(CompensationAxis, UnreachableIntentFallsBack) {
   EXPECT_NEAR(c.send_v, 1.0, 1e-12);  // default 1 V bounded step from 0 V
   EXPECT_THROW(comp.set_intended_voltage(std::nan("")), std::invalid_argument);
 }
+
+// A plant 60 nm off the model: pure feedforward keeps the offset, re-anchoring on the encoder removes it.
+TEST(CompensationAxis, ReanchoringRemovesSlowModelError) {
+  const IdealLine line{14.0, 0.0};
+  for (double tau : {0.0, 5.0}) {
+    AxisCompensatorConfig cfg;
+    cfg.reanchor_time_constant_s = tau;
+    AxisCompensator comp(test::make_pi_creep(), line, cfg);
+    auto plant = test::make_pi_creep();
+    plant->reset(0.0, 0.0);
+    comp.on_sample(0.0, 60.0, true);
+    comp.set_intended_voltage(20.0);
+    double x = 0.0;
+    for (int k = 0; k < 11 * 60; ++k) {
+      const CommandUpdate c = comp.command(true);
+      const models::ModelInput in{c.send_v, nullptr};
+      x = plant->predict(in) + 60.0;
+      plant->commit(in, x - 60.0);
+      comp.on_sample(c.send_v, x, true);
+    }
+    if (tau == 0.0)
+      EXPECT_NEAR(x - 280.0, 60.0, 0.5);
+    else
+      EXPECT_NEAR(x, 280.0, 0.5) << "anchor " << comp.anchor_offset_nm();
+  }
+}

@@ -23,6 +23,11 @@ struct AxisCompensatorConfig {
                                          // (0 = half the ideal stroke)
   bool position_feedback = false;        // false: free run (model remembers its own predictions);
                                          // true: one-step (model remembers the encoder readings)
+  // Re-anchoring: a low-pass (this time constant) of measured − predicted is taken off the target, so a slowly
+  // varying model error (offset, creep mismatch) is trimmed by the encoder. The model itself keeps free-running.
+  // 0 = pure feedforward.
+  double reanchor_time_constant_s = 0.0;
+  double sample_rate_hz = 11.0;          // for the re-anchoring time constant
 };
 
 // Result of one encoder sample.
@@ -70,6 +75,7 @@ class AxisCompensator {
   double last_applied_v() const { return last_applied_v_; }
   double last_predicted_nm() const { return last_predicted_nm_; }
   double last_sent_v() const { return last_sent_v_; }
+  double anchor_offset_nm() const { return anchor_nm_; }  // current low-passed measured − predicted
   std::size_t samples() const { return samples_; }
   std::size_t prediction_failures() const { return prediction_failures_; }
   std::size_t command_fallbacks() const { return command_fallbacks_; }
@@ -87,6 +93,7 @@ class AxisCompensator {
   double last_applied_v_ = 0.0;
   double last_predicted_nm_ = 0.0;
   double last_sent_v_ = 0.0;
+  double anchor_nm_ = 0.0;
   bool has_sent_ = false;
   std::size_t samples_ = 0, prediction_failures_ = 0, command_fallbacks_ = 0;
 };

@@ -69,7 +69,7 @@ struct PredictorSettings {
   double drift_update_period_s = 1.0;  // ROS time between forecasts per axis (0 = every sample)
   bool drift_async = true;           // forecast in a worker thread (keeps per-message processing short)
   double sample_rate_hz = 0.0;       // 0 = the model file's rate
-  double ideal_line_hold_s = 1800.0;
+  double ideal_line_hold_s = 60.0;
   double tf_period_s = 0.05;         // ROS time between tf/marker updates
   double marker_scale = 1e4;         // markers drawn this many times larger than life (1 µm → 1 cm)
   double fallback_gain_nm_per_v = 12.5;  // ideal line when no model is usable (position intents, display)

@@ -13,6 +13,8 @@ AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, 
   if (!model_) throw std::invalid_argument("AxisCompensator: no model");
   if (!(config_.voltage_max_v > config_.voltage_min_v)) throw std::invalid_argument("AxisCompensator: empty voltage limits");
   if (!(config_.fallback_max_step_v > 0.0)) throw std::invalid_argument("AxisCompensator: fallback_max_step_v must be > 0");
+  if (!(config_.reanchor_time_constant_s >= 0.0) || !(config_.sample_rate_hz > 0.0))
+    throw std::invalid_argument("AxisCompensator: reanchor_time_constant_s must be ≥ 0 and sample_rate_hz > 0");
   check_model(*model_);
 }
 
@@ -79,6 +81,10 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
   }
   model_->commit(in, config_.position_feedback && measured_valid ? measured_nm : p);
   last_predicted_nm_ = p;
+  if (config_.reanchor_time_constant_s > 0.0 && measured_valid) {
+    const double a = 1.0 - std::exp(-1.0 / (config_.reanchor_time_constant_s * config_.sample_rate_hz));
+    anchor_nm_ += a * ((measured_nm - p) - anchor_nm_);
+  }
   u.predicted_nm = p;
   return u;
 }
@@ -100,7 +106,8 @@ CommandUpdate AxisCompensator::command(bool compensate) {
     o.voltage_min_v = config_.voltage_min_v;
     o.voltage_max_v = config_.voltage_max_v;
     o.tolerance_nm = config_.inverse_tolerance_nm;
-    const InverseResult inv = invert(*model_, c.intended_nm, o);
+    // With re-anchoring the model is asked for the target minus its recent measured error.
+    const InverseResult inv = invert(*model_, c.intended_nm - anchor_nm_, o);
     if (inv.ok) {
       c.corrected_v = c.send_v = inv.voltage_v;
       c.compensation_active = true;
@@ -133,6 +140,7 @@ void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& lin
   model_ = std::move(model);
   line_ = line;
   if (started_) model_->reset(last_applied_v_, last_predicted_nm_);
+  anchor_nm_ = 0.0;
 }
 
 }  // namespace piezo::compensation
