@@ -119,3 +119,22 @@ TEST(EvalReport, WritesMarkdownJsonAndTraces) {
   EXPECT_TRUE(std::filesystem::exists(dir + "/traces_test.csv"));
   EXPECT_TRUE(std::filesystem::exists(dir + "/traces_creep.csv"));
 }
+
+TEST(Evaluation, SegmentListsAndSegmentScoring) {
+  EXPECT_EQ(parse_segments("2"), std::vector<int>{2});
+  EXPECT_EQ(parse_segments("3-5,8"), (std::vector<int>{3, 4, 5, 8}));
+  EXPECT_THROW(parse_segments("3-x"), std::invalid_argument);
+  EXPECT_THROW(parse_segments("5-3"), std::invalid_argument);
+  io::Dataset d;
+  d.add_axis("c");
+  for (int i = 0; i < 8; ++i) {
+    d.time_s.push_back(i);
+    d.axis("c").voltage_v.push_back(0);
+    d.axis("c").position_nm.push_back(0);
+  }
+  d.phase = {0, 1, 1, 0, 0, 1, 1, 0};
+  d.segment = {0, 0, 0, 1, 1, 1, 1, 2};
+  EXPECT_EQ(hold_mask(d, {1}), (std::vector<char>{0, 0, 0, 0, 0, 1, 1, 0}));
+  EXPECT_EQ(hysteresis_mask(d, 0, {1, 2}), (std::vector<char>{0, 0, 0, 1, 1, 0, 0, 1}));
+  EXPECT_EQ(hysteresis_mask(d, 3.5, {}), (std::vector<char>{0, 0, 0, 0, 1, 0, 0, 1}));
+}

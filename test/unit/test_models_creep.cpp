@@ -21,10 +21,12 @@ io::Dataset generate(const CreepParams& cp, double noise_nm) {
   return testdata::make_dataset(truth, v, 11.0, noise_nm, 4, &phase);
 }
 
-const PiCreepModel& fit(const io::Dataset& d, const std::string& kind, models::ModelPtr& keep) {
+const PiCreepModel& fit(const io::Dataset& d, const std::string& kind, models::ModelPtr& keep,
+                       const std::string& input = "voltage") {
   models::FitRequest req;
   req.train = &d;
   req.options["thresholds_v"] = kR;
+  req.options["creep_input"] = input;
   keep = models::model_kind(kind).fit(req);
   EXPECT_EQ(keep->kind(), kind);
   return dynamic_cast<const PiCreepModel&>(*keep);
@@ -55,6 +57,22 @@ TEST(CreepModels, LtiRecoversSpringDamperPairs) {
   EXPECT_NEAR(std::log10(m.creep().taus_s[1]), std::log10(1500.0), 0.05);
   EXPECT_NEAR(m.creep().gains_nm_per_v[0], 1.2, 0.05);
   EXPECT_NEAR(m.creep().gains_nm_per_v[1], 0.8, 0.05);
+}
+
+TEST(CreepModels, LtiOnTheHysteresisOutputRecoversByAlternatingLeastSquares) {
+  CreepParams cp;
+  cp.kind = CreepKind::kLti;
+  cp.on_hysteresis = true;
+  cp.taus_s = {20.0, 2000.0};
+  cp.gains_nm_per_v = {0.08, 0.12};  // relative: 8 % and 12 % of H
+  models::ModelPtr keep;
+  const auto& m = fit(generate(cp, 2.0), "pi_creep_lti", keep, "hysteresis");
+  ASSERT_TRUE(m.creep().on_hysteresis);
+  EXPECT_NEAR(std::log10(m.creep().taus_s[0]), std::log10(20.0), 0.05);
+  EXPECT_NEAR(std::log10(m.creep().taus_s[1]), std::log10(2000.0), 0.05);
+  EXPECT_NEAR(m.creep().gains_nm_per_v[0], 0.08, 0.005);
+  EXPECT_NEAR(m.creep().gains_nm_per_v[1], 0.12, 0.005);
+  for (std::size_t i = 0; i < kW.size(); ++i) EXPECT_NEAR(m.weights()[i], kW[i], 0.05 * kW[i] + 0.02) << i;
 }
 
 TEST(CreepModels, FractionalRecoversOrderAndGain) {

@@ -108,10 +108,12 @@ TEST(CExport, PiAndCreepKindsMatchCpp) {
   log.kind = CreepKind::kLog, log.gamma_nm_per_v = 0.3, log.t1_s = 2;
   lti.kind = CreepKind::kLti, lti.taus_s = {10, 100}, lti.gains_nm_per_v = {0.5, 0.25};
   frac.kind = CreepKind::kFractional, frac.alpha = 0.35, frac.b_nm_per_v = 0.2;
-  for (const auto& cp : {none, log, lti, frac}) {
-    PiCreepModel m({0, 10, 20, 35}, {5, 1, 0.5, 0.25}, 2.0, cp, 11.0);
-    expect_equal_to_cpp(m, true);
-  }
+  for (bool on_h : {false, true})
+    for (auto cp : {none, log, lti, frac}) {
+      cp.on_hysteresis = on_h;
+      PiCreepModel m({0, 10, 20, 35}, {5, 1, 0.5, 0.25}, 2.0, cp, 11.0);
+      expect_equal_to_cpp(m, true);
+    }
 }
 
 TEST(CExport, BadPrefixAndAuxAreRefused) {

@@ -37,6 +37,7 @@ std::vector<ModelPtr> one_of_each_kind() {
   log.kind = CreepKind::kLog, log.gamma_nm_per_v = 0.3, log.t1_s = 2;
   lti.kind = CreepKind::kLti, lti.taus_s = {10, 100}, lti.gains_nm_per_v = {0.5, 0.25};
   frac.kind = CreepKind::kFractional, frac.alpha = 0.35, frac.b_nm_per_v = 0.2;
+  frac.on_hysteresis = true;
   for (const auto& cp : {none, log, lti, frac})
     out.push_back(std::make_unique<PiCreepModel>(std::vector<double>{0, 10, 20}, std::vector<double>{5, 1, 0.5}, 2.0, cp, 11.0));
   for (auto& m : out) {

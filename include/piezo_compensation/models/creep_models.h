@@ -5,6 +5,7 @@
 //               for t1 ≪ t ≪ t1·10^decades (the seed's y = y1(1 + γ log(t/t1)) with y1 folded into γ).
 //   lti:        Σ_j g_j·LP_{τ_j}(V) — n spring–damper pairs of G_c(s) = 1/k0 + Σ 1/(c_j s + k_j):
 //               g_j = 1/k_j, τ_j = c_j/k_j; 1/k0 is the PI's initial slope.
+// With on_hysteresis the same laws act on H instead of V (gains in nm/nm, "nm_per_v" then reads "per nm of H").
 //   fractional: b·s^−α by its integral form s^−α = (sin πα/π)∫ τ^α/(τs+1) dlnτ over τ ∈ [τ_min, τ_max]
 //               (a multi-mode approximation with finite memory): g_j = b·(sin πα/π)·τ_j^α·Δlnτ;
 //               step response ≈ b·ΔV·t^α/Γ(1+α) for τ_min ≪ t ≪ τ_max.
@@ -21,6 +22,9 @@ CreepKind creep_kind_from_name(const std::string& kind);  // throws for other na
 
 struct CreepParams {
   CreepKind kind = CreepKind::kNone;
+  // What the creep modes low-pass: the applied voltage (the seed's Y(s)/U(s)) or the PI output H (creep of the
+  // hysteretic displacement: y = b + H + Σ g_j·LP_τj(H), gains then relative, in nm per nm of H).
+  bool on_hysteresis = false;
   // log
   double gamma_nm_per_v = 0, t1_s = 1;
   int decades = 5, modes_per_decade = 3;

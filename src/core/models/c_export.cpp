@@ -160,23 +160,29 @@ static double PFX_play(double v, double r, double prev) { double lo = v - r, hi 
 static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
   int i;
   (void)position_nm;
-  for (i = 0; i < PFX_NP; ++i) st->p[i] = voltage_v;
-  for (i = 0; i < PFX_NMODE; ++i) st->l[i] = voltage_v;
+  double h = 0.0;
+  for (i = 0; i < PFX_NP; ++i) { st->p[i] = voltage_v; h += PFX_w[i] * voltage_v; }
+  for (i = 0; i < PFX_NMODE; ++i) st->l[i] = PFX_CREEP_ON_H ? h : voltage_v;
 }
 
+/* y = bias + H + creep, H = sum of weighted play outputs; creep low-passes H or V (PFX_CREEP_ON_H). */
 static double PFX_predict(const PFX_state* st, double v) {
-  double y = PFX_bias_nm;
+  double h = 0.0, u, y;
   int i;
-  for (i = 0; i < PFX_NP; ++i) y += PFX_w[i] * PFX_play(v, PFX_r[i], st->p[i]);
-  for (i = 0; i < PFX_NMODE_USED; ++i) y += PFX_g[i] * (PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * v);
+  for (i = 0; i < PFX_NP; ++i) h += PFX_w[i] * PFX_play(v, PFX_r[i], st->p[i]);
+  u = PFX_CREEP_ON_H ? h : v;
+  y = PFX_bias_nm + h;
+  for (i = 0; i < PFX_NMODE_USED; ++i) y += PFX_g[i] * (PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * u);
   return y;
 }
 
 static void PFX_commit(PFX_state* st, double v, double position_nm) {
+  double h = 0.0, u;
   int i;
   (void)position_nm;
-  for (i = 0; i < PFX_NP; ++i) st->p[i] = PFX_play(v, PFX_r[i], st->p[i]);
-  for (i = 0; i < PFX_NMODE_USED; ++i) st->l[i] = PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * v;
+  for (i = 0; i < PFX_NP; ++i) { st->p[i] = PFX_play(v, PFX_r[i], st->p[i]); h += PFX_w[i] * st->p[i]; }
+  u = PFX_CREEP_ON_H ? h : v;
+  for (i = 0; i < PFX_NMODE_USED; ++i) st->l[i] = PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * u;
 }
 
 static double PFX_step(PFX_state* st, double voltage_v, double measured_nm) {
@@ -197,8 +203,12 @@ static double PFX_inverse(const PFX_state* st, double target_nm) {
     if (PFX_r[i] > 0.0) k[n++] = st->p[i] + PFX_r[i];
   }
   for (i = 1; i < n; ++i) { double x = k[i]; j = i - 1; while (j >= 0 && k[j] > x) { k[j + 1] = k[j]; --j; } k[j + 1] = x; }
-  for (i = 0; i < PFX_NP; ++i) slope += PFX_w[i];
-  for (i = 0; i < PFX_NMODE_USED; ++i) slope += PFX_g[i] * (1.0 - PFX_a[i]);
+  {
+    double sum_w = 0.0, creep = 0.0;
+    for (i = 0; i < PFX_NP; ++i) sum_w += PFX_w[i];
+    for (i = 0; i < PFX_NMODE_USED; ++i) creep += PFX_g[i] * (1.0 - PFX_a[i]);
+    slope = PFX_CREEP_ON_H ? sum_w * (1.0 + creep) : sum_w + creep;
+  }
   x_prev = k[0]; f_prev = PFX_predict(st, k[0]);
   if (target_nm <= f_prev) return slope > 0.0 ? k[0] + (target_nm - f_prev) / slope : k[0];
   for (i = 1; i < n; ++i) {
@@ -275,7 +285,7 @@ std::string export_c99_pi(const Model& model, const std::string& prefix) {
                                        std::string(m->creep().kind == CreepKind::kNone ? "" : " with creep modes"));
   const std::size_t nm = m->mode_taus_s().size();
   os << "#define PFX_NP " << m->thresholds_v().size() << "\n#define PFX_NMODE " << std::max<std::size_t>(1, nm)
-     << "\n#define PFX_NMODE_USED " << nm << "\n";
+     << "\n#define PFX_NMODE_USED " << nm << "\n#define PFX_CREEP_ON_H " << (m->creep().on_hysteresis ? 1 : 0) << "\n";
   os << "static const double PFX_bias_nm = " << num(m->bias_nm()) << ";\n";
   os << table("double", "PFX_r", nums(m->thresholds_v())) << table("double", "PFX_w", nums(m->weights()))
      << "/* creep modes: time constants [s] " ;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <functional>
 #include <stdexcept>
 
 #include "piezo_compensation/models/c_export.h"
@@ -36,20 +37,29 @@ PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double>
 
 void PiCreepModel::reset(double voltage_v, double /*position_nm*/) {
   p_.assign(r_.size(), voltage_v);
-  l_.assign(taus_.size(), voltage_v);
+  double h = 0;
+  for (double w : w_) h += w * voltage_v;
+  l_.assign(taus_.size(), creep_.on_hysteresis ? h : voltage_v);
 }
 
 double PiCreepModel::predict_v(double v) const {
-  double y = b_;
-  for (std::size_t i = 0; i < r_.size(); ++i) y += w_[i] * play(v, r_[i], p_[i]);
-  for (std::size_t j = 0; j < taus_.size(); ++j) y += gains_[j] * (poles_[j] * l_[j] + (1 - poles_[j]) * v);
+  double h = 0;
+  for (std::size_t i = 0; i < r_.size(); ++i) h += w_[i] * play(v, r_[i], p_[i]);
+  const double u = creep_.on_hysteresis ? h : v;
+  double y = b_ + h;
+  for (std::size_t j = 0; j < taus_.size(); ++j) y += gains_[j] * (poles_[j] * l_[j] + (1 - poles_[j]) * u);
   return y;
 }
 
 void PiCreepModel::commit(const ModelInput& in, double) {
   const double v = in.voltage_v;
-  for (std::size_t i = 0; i < r_.size(); ++i) p_[i] = play(v, r_[i], p_[i]);
-  for (std::size_t j = 0; j < taus_.size(); ++j) l_[j] = poles_[j] * l_[j] + (1 - poles_[j]) * v;
+  double h = 0;
+  for (std::size_t i = 0; i < r_.size(); ++i) {
+    p_[i] = play(v, r_[i], p_[i]);
+    h += w_[i] * p_[i];
+  }
+  const double u = creep_.on_hysteresis ? h : v;
+  for (std::size_t j = 0; j < taus_.size(); ++j) l_[j] = poles_[j] * l_[j] + (1 - poles_[j]) * u;
 }
 
 double PiCreepModel::inverse(double target) const {
@@ -60,9 +70,10 @@ double PiCreepModel::inverse(double target) const {
     if (r_[i] > 0) k.push_back(p_[i] + r_[i]);
   }
   std::sort(k.begin(), k.end());
-  double slope_out = 0;
-  for (double w : w_) slope_out += w;
-  for (std::size_t j = 0; j < taus_.size(); ++j) slope_out += gains_[j] * (1 - poles_[j]);
+  double sum_w = 0, creep_slope = 0;
+  for (double w : w_) sum_w += w;
+  for (std::size_t j = 0; j < taus_.size(); ++j) creep_slope += gains_[j] * (1 - poles_[j]);
+  const double slope_out = creep_.on_hysteresis ? sum_w * (1 + creep_slope) : sum_w + creep_slope;
   const double f0 = predict_v(k.front());
   if (target <= f0) return slope_out > 0 ? k.front() + (target - f0) / slope_out : k.front();
   double x_prev = k.front(), f_prev = f0;
@@ -90,6 +101,7 @@ YAML::Node PiCreepModel::to_yaml() const {
   n["bias_nm"] = b_;
   if (creep_.kind != CreepKind::kNone) {
     YAML::Node c;
+    c["input"] = creep_.on_hysteresis ? "hysteresis" : "voltage";
     switch (creep_.kind) {
       case CreepKind::kLog:
         c["gamma_nm_per_v"] = creep_.gamma_nm_per_v;
@@ -136,6 +148,11 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
     const YAML::Node c = node["creep"];
     if (!c.IsMap()) throw std::runtime_error("model.creep: expected a mapping");
     try {
+      if (c["input"]) {
+        const std::string in = yaml_string(c, "input");
+        if (in != "voltage" && in != "hysteresis") throw std::runtime_error("model.input: expected voltage or hysteresis");
+        cp.on_hysteresis = in == "hysteresis";
+      }
       if (c["gamma_nm_per_v"]) {
         cp.kind = CreepKind::kLog;
         cp.gamma_nm_per_v = yaml_number(c, "gamma_nm_per_v");
@@ -244,20 +261,11 @@ struct EvalResult {
   double b = 0;
 };
 
-// Streams play outputs and creep basis columns, then solves the constrained least squares.
-EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepParams& cp, double min_w0) {
-  std::vector<double> taus;
-  std::vector<std::vector<double>> B;
-  cp.basis(taus, B);
-  const std::size_t np = r.size(), nm = taus.size(), nk = B.size(), P = np + nk;
-  std::vector<double> a(nm);
-  for (std::size_t j = 0; j < nm; ++j) a[j] = std::exp(-1.0 / (d.rate * taus[j]));
-  const std::vector<double>& V = *d.v;
-  const std::vector<double>& Y = *d.y;
-  std::vector<double> p(np, V[0]), l(nm, V[0]);
+// Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
+training::GramStats stream_gram(std::size_t N, std::size_t P, const std::function<double(std::size_t, double*)>& row) {
   training::GramStats g(P);
   constexpr std::size_t kChunk = 2048;
-  Eigen::MatrixXd X(kChunk, P);
+  Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> X(kChunk, P);
   Eigen::VectorXd yc(kChunk);
   std::size_t fill = 0;
   auto flush = [&]() {
@@ -272,35 +280,125 @@ EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepP
     g.sxx.selfadjointView<Eigen::Lower>().rankUpdate(Xc.transpose());
     fill = 0;
   };
-  for (std::size_t t = 0; t < V.size(); ++t) {
-    const double v = V[t];
-    for (std::size_t i = 0; i < np; ++i) {
-      p[i] = play(v, r[i], p[i]);
-      X(fill, i) = p[i];
-    }
-    for (std::size_t j = 0; j < nm; ++j) l[j] = a[j] * l[j] + (1 - a[j]) * v;
-    for (std::size_t k = 0; k < nk; ++k) {
-      double s = 0;
-      for (std::size_t j = 0; j < nm; ++j) s += B[k][j] * l[j];
-      X(fill, np + k) = s;
-    }
-    yc(fill) = Y[t];
+  for (std::size_t t = 0; t < N; ++t) {
+    yc(fill) = row(t, X.row(fill).data());
     if (++fill == kChunk) flush();
   }
   flush();
   g.sxx = g.sxx.selfadjointView<Eigen::Lower>();
+  return g;
+}
+
+// Least squares on the Gram sums; columns flagged constrained stay ≥ 0, column 0 ≥ min_w0 when constrained.
+EvalResult solve(const training::GramStats& g, const std::vector<bool>& constrained, double min_w0) {
   Eigen::MatrixXd G = g.centered_xx();
   Eigen::VectorXd c = g.centered_xy();
-  c -= min_w0 * G.col(0);  // w_0 = min_w0 + w_0' with w_0' ≥ 0 keeps the inverse well defined
-  std::vector<bool> constrained(P, false);
-  for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
+  const double shift = constrained[0] ? min_w0 : 0.0;
+  c -= shift * G.col(0);  // w_0 = min_w0 + w_0' with w_0' ≥ 0 keeps the inverse well defined
   Eigen::VectorXd x = nnls_gram(G, c, constrained);
-  x(0) += min_w0;
+  x(0) += shift;
   EvalResult res;
   res.b = g.mean_y() - g.mean_x().dot(x);
   res.sse = g.sse(x, res.b);
-  res.w.assign(x.data(), x.data() + np);
-  res.theta.assign(x.data() + np, x.data() + P);
+  res.theta.assign(x.data(), x.data() + x.size());  // caller splits
+  return res;
+}
+
+std::vector<double> poles_of(const std::vector<double>& taus, double rate) {
+  std::vector<double> a;
+  for (double t : taus) a.push_back(std::exp(-1.0 / (rate * t)));
+  return a;
+}
+
+// Creep on the voltage: play outputs and creep basis columns, all weights at once (play weights ≥ 0).
+EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepParams& cp, double min_w0) {
+  std::vector<double> taus;
+  std::vector<std::vector<double>> B;
+  cp.basis(taus, B);
+  const std::size_t np = r.size(), nm = taus.size(), nk = B.size();
+  const std::vector<double> a = poles_of(taus, d.rate);
+  const std::vector<double>& V = *d.v;
+  std::vector<double> p(np, V[0]), l(nm, V[0]);
+  const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
+    const double v = V[t];
+    for (std::size_t i = 0; i < np; ++i) x[i] = p[i] = play(v, r[i], p[i]);
+    for (std::size_t j = 0; j < nm; ++j) l[j] = a[j] * l[j] + (1 - a[j]) * v;
+    for (std::size_t k = 0; k < nk; ++k) {
+      double s = 0;
+      for (std::size_t j = 0; j < nm; ++j) s += B[k][j] * l[j];
+      x[np + k] = s;
+    }
+    return (*d.y)[t];
+  });
+  std::vector<bool> constrained(np + nk, false);
+  for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
+  EvalResult res = solve(g, constrained, min_w0);
+  res.w.assign(res.theta.begin(), res.theta.begin() + np);
+  res.theta.erase(res.theta.begin(), res.theta.begin() + np);
+  return res;
+}
+
+// Creep on H with the play weights fixed up to a common scale: y = b + s·H + Σ_k θ_k·(basis of LP_j(H)).
+// The free scale s lets the alternation move along the valley where a larger H and a smaller fast-creep gain
+// explain the data almost equally well. Returns w·s and θ/s (gains relative to the rescaled H).
+EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& r, const std::vector<double>& w,
+                               const CreepParams& cp) {
+  std::vector<double> taus;
+  std::vector<std::vector<double>> B;
+  cp.basis(taus, B);
+  const std::size_t np = r.size(), nm = taus.size(), nk = B.size();
+  const std::vector<double> a = poles_of(taus, d.rate);
+  const std::vector<double>& V = *d.v;
+  std::vector<double> p(np, V[0]);
+  double h0 = 0;
+  for (double wi : w) h0 += wi * V[0];
+  std::vector<double> l(nm, h0);
+  const auto g = stream_gram(V.size(), nk + 1, [&](std::size_t t, double* x) {
+    double h = 0;
+    for (std::size_t i = 0; i < np; ++i) h += w[i] * (p[i] = play(V[t], r[i], p[i]));
+    for (std::size_t j = 0; j < nm; ++j) l[j] = a[j] * l[j] + (1 - a[j]) * h;
+    x[0] = h;
+    for (std::size_t k = 0; k < nk; ++k) {
+      double s = 0;
+      for (std::size_t j = 0; j < nm; ++j) s += B[k][j] * l[j];
+      x[1 + k] = s;
+    }
+    return (*d.y)[t];
+  });
+  EvalResult res = solve(g, std::vector<bool>(nk + 1, false), 0.0);
+  const double scale = res.theta[0] > 1e-6 ? res.theta[0] : 1.0;  // a non-positive scale would break invertibility
+  res.w = w;
+  for (double& x : res.w) x *= scale;
+  res.theta.erase(res.theta.begin());
+  for (double& x : res.theta) x /= scale;
+  return res;
+}
+
+// Creep on H with the creep gains fixed: y = b + Σ_i w_i·(F_i + Σ_j g_j·LP_j(F_i)), play weights ≥ 0.
+EvalResult evaluate_w_given_creep_on_h(const FitData& d, const std::vector<double>& r, const CreepParams& cp,
+                                       double min_w0) {
+  std::vector<double> taus, gains;
+  cp.modes(taus, gains);
+  const std::size_t np = r.size(), nm = taus.size();
+  const std::vector<double> a = poles_of(taus, d.rate);
+  const std::vector<double>& V = *d.v;
+  std::vector<double> p(np, V[0]), l(np * nm, V[0]);
+  const auto g = stream_gram(V.size(), np, [&](std::size_t t, double* x) {
+    for (std::size_t i = 0; i < np; ++i) {
+      p[i] = play(V[t], r[i], p[i]);
+      double s = p[i];
+      for (std::size_t j = 0; j < nm; ++j) {
+        double& lj = l[i * nm + j];
+        lj = a[j] * lj + (1 - a[j]) * p[i];
+        s += gains[j] * lj;
+      }
+      x[i] = s;
+    }
+    return (*d.y)[t];
+  });
+  EvalResult res = solve(g, std::vector<bool>(np, true), min_w0);
+  res.w = res.theta;
+  res.theta.clear();
   return res;
 }
 
@@ -337,6 +435,13 @@ double search_1d(F&& f, double lo, double hi, int grid, int iters) {
   return golden(f, std::max(lo, best - step), std::min(hi, best + step), iters);
 }
 
+}  // namespace
+
+namespace {
+double cp_pairs_hint(const YAML::Node& o) {
+  if (o && o["taus_s"] && o["taus_s"].IsSequence()) return double(o["taus_s"].size());
+  return double(training::option_int(o, "n_pairs", 2));
+}
 }  // namespace
 
 ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
@@ -384,9 +489,12 @@ ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
     ++evals;
     if (req.progress) req.progress(std::min<double>(evals, total), total, what);
   };
+  // Searches the law's nonlinear parameters (t1, α or the τ_j) for the least SSE of `sse_fn`.
+  const bool fixed = o && (o["t1_s"] || o["alpha"] || (o["taus_s"] && o["fix_taus"]));
+  auto search = [&](const std::function<double(const CreepParams&)>& sse_fn, bool refine_only) {
   auto sse_of = [&](const CreepParams& c) {
     report("creep search");
-    return evaluate(d, r, c, min_w0).sse;
+    return sse_fn(c);
   };
   switch (kind) {
     case CreepKind::kNone: break;
@@ -394,32 +502,34 @@ ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
       if (o && o["t1_s"]) {
         cp.t1_s = option_num(o, "t1_s", 1.0);
       } else {
-        total = 15 + 12;
+        const double cur = std::log10(cp.t1_s);
         cp.t1_s = std::pow(10.0, search_1d([&](double lg) { CreepParams c = cp; c.t1_s = std::pow(10.0, lg); return sse_of(c); },
-                                           -1.0, 2.5, 15, 12));
+                                           refine_only ? cur - 0.3 : -1.0, refine_only ? cur + 0.3 : 2.5, refine_only ? 5 : 15, 12));
       }
       break;
     case CreepKind::kFractional:
       if (o && o["alpha"]) {
         cp.alpha = option_num(o, "alpha", 0.5);
       } else {
-        total = 19 + 12;
-        cp.alpha = search_1d([&](double al) { CreepParams c = cp; c.alpha = al; return sse_of(c); }, 0.03, 0.97, 19, 12);
+        const double cur = cp.alpha;
+        cp.alpha = search_1d([&](double al) { CreepParams c = cp; c.alpha = al; return sse_of(c); },
+                             refine_only ? std::max(0.02, cur - 0.1) : 0.03, refine_only ? std::min(0.98, cur + 0.1) : 0.97,
+                             refine_only ? 5 : 19, 12);
       }
       break;
     case CreepKind::kLti: {
-      if (o && o["taus_s"]) {
+      if (refine_only) {
+      } else if (o && o["taus_s"]) {
         cp.taus_s = yaml_numbers(o, "taus_s");
       } else {
         const int n = option_int(o, "n_pairs", 2);
         if (n < 1 || n > 6) throw std::runtime_error("option 'n_pairs': expected 1..6");
         for (int j = 0; j < n; ++j) cp.taus_s.push_back(std::pow(10.0, 1.0 + 3.0 * (j + 0.5) / n));
       }
-      cp.gains_nm_per_v.assign(cp.taus_s.size(), 0.0);
-      const int rounds = option_int(o, "search_rounds", 3);
+      if (cp.gains_nm_per_v.size() != cp.taus_s.size()) cp.gains_nm_per_v.assign(cp.taus_s.size(), 0.0);
+      const int rounds = refine_only ? 1 : option_int(o, "search_rounds", 3);
       const double lo = std::log10(2.0 / d.rate), hi = 5.0;
-      total = double(rounds) * cp.taus_s.size() * (11 + 10);
-      for (int round = 0; round < rounds && !(o && o["taus_s"] && o["fix_taus"]); ++round)
+      for (int round = refine_only ? 1 : 0; round < (refine_only ? 2 : rounds) && !(o && o["taus_s"] && o["fix_taus"]); ++round)
         for (std::size_t j = 0; j < cp.taus_s.size(); ++j) {
           auto f = [&](double lg) { CreepParams c = cp; c.taus_s[j] = std::pow(10.0, lg); return sse_of(c); };
           const double cur = std::log10(cp.taus_s[j]);
@@ -431,8 +541,41 @@ ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
       break;
     }
   }
+  };
+  (void)fixed;
+
+  const std::string input = option_str(o, "creep_input", "hysteresis");
+  if (input != "voltage" && input != "hysteresis")
+    throw std::runtime_error("option 'creep_input': expected voltage or hysteresis, got '" + input + "'");
+  const int iters = kind == CreepKind::kNone || input == "voltage" ? 0 : option_int(o, "alternations", 6);
+  const double per_search = kind == CreepKind::kNone ? 0 : kind == CreepKind::kLti ? 21.0 * cp_pairs_hint(o) : 17;
+  total = per_search * (kind == CreepKind::kLti ? 3 : 1.8) + iters * (per_search + 2) + 1;
+  // Creep on the voltage: weights and creep coefficients are jointly linear.
+  search([&](const CreepParams& c) { return evaluate(d, r, c, min_w0).sse; }, false);
   EvalResult best = evaluate(d, r, cp, min_w0);
   cp.set_coefficients(best.theta);
+  if (iters > 0) {
+    // Creep on H is bilinear (w and g): alternate the two linear problems, refining the law's nonlinear
+    // parameters once, starting from the voltage-input solution.
+    cp.on_hysteresis = true;
+    std::vector<double> w = best.w;
+    // Voltage-input gains are in nm/V; as gains on H they are about (nm/V)/(Σw) nm/nm.
+    double sum_w = 0;
+    for (double x : w) sum_w += x;
+    std::vector<double> theta = best.theta;
+    for (double& t : theta) t /= std::max(1e-12, sum_w);
+    cp.set_coefficients(theta);
+    for (int it = 0; it < iters; ++it) {
+      search([&](const CreepParams& c) { return evaluate_creep_on_h(d, r, w, c).sse; }, true);
+      EvalResult cr = evaluate_creep_on_h(d, r, w, cp);
+      report("alternating fit");
+      cp.set_coefficients(cr.theta);
+      w = cr.w;
+      best = evaluate_w_given_creep_on_h(d, r, cp, min_w0);
+      report("alternating fit");
+      w = best.w;
+    }
+  }
   auto m = std::make_unique<PiCreepModel>(r, best.w, best.b, cp, d.rate);
   m->meta = make_meta(req);
   return m;
