@@ -39,14 +39,16 @@ class Protocol {
   virtual std::size_t size() const = 0;               // number of samples
   virtual ProtocolSample at(std::size_t i) const = 0; // sample i (0 ≤ i < size())
   virtual double sample_rate_hz() const = 0;
-  virtual YAML::Node parameters() const = 0;          // everything needed to regenerate it
+  // Everything needed to regenerate it: {protocol, sample_rate_hz, seed, parameters (complete, merged)}.
+  virtual YAML::Node parameters() const = 0;
 
   // Samples [begin, end) as a voltage-only data set (positions 0), with segment and phase columns.
   io::Dataset program(std::size_t begin = 0, std::size_t end = SIZE_MAX) const;
 };
 
 // Names: "noise", "random_walk", "sweep", "creep", "plan" (three random walks + creep set), "sawtooth".
-// `params` overrides the defaults (config/protocols.yaml); throws std::invalid_argument naming a bad key.
+// `params` is the map of that protocol's overrides (null = defaults; shape of config/protocols.yaml[name]); throws
+// std::invalid_argument naming a bad key as "<name>.<key>". Segments and phases per protocol: docs/simulator.md.
 std::unique_ptr<Protocol> make_protocol(const std::string& name, const YAML::Node& params, double sample_rate_hz,
                                         std::uint64_t seed);
 std::vector<std::string> protocol_names();
