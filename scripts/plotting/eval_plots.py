@@ -149,8 +149,9 @@ def traces_creep(out):
         t = (c["time_s"][r] - c["time_s"][r][0]) / 60
         ax.plot(t, c["measured_nm"][r], color="0.8", lw=0.4, label="measured")
         k = max(1, int(round(10.0 / dt)))  # 10-s mean of the encoder, as the study's Fig. 10 reads
-        ax.plot(t, np.convolve(c["measured_nm"][r], np.ones(k) / k, mode="same"), color="0.4", lw=0.8,
-                label="measured, 10-s mean")
+        x = c["measured_nm"][r]
+        mean10 = np.convolve(x, np.ones(k), mode="same") / np.convolve(np.ones_like(x), np.ones(k), mode="same")
+        ax.plot(t, mean10, color="0.4", lw=0.8, label="measured, 10-s mean")
         if np.isfinite(c["truth_nm"][r]).any():
             ax.plot(t, c["truth_nm"][r], "k", lw=1, label="true")
         for n in names:
