@@ -246,8 +246,14 @@ void Recorder::on_truth(std::size_t k, const piezo_compensation::EncoderPosition
 }
 
 void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPosition::ConstPtr& msg) {
-  last_encoder_wall_ = Clock::now();
   auto& ax = axes_[k];
+  if (!msg->valid) {
+    // a flagged reading is no measurement: never recorded, and it does not count as a live encoder either
+    ROS_WARN_THROTTLE(5.0, "recorder: axis %s: encoder reading %u flagged invalid by the controller; skipped",
+                      ax.name.c_str(), msg->sequence);
+    return;
+  }
+  last_encoder_wall_ = Clock::now();
   const auto arrival = ax.tracker.add(msg->sequence);
   if (arrival == analysis::SequenceTracker::Arrival::kGap || arrival == analysis::SequenceTracker::Arrival::kLate ||
       arrival == analysis::SequenceTracker::Arrival::kDuplicate)
@@ -494,7 +500,7 @@ void Recorder::on_watchdog(const ros::WallTimerEvent&) {
     return;
   }
   if (std::chrono::duration<double>(now - last_encoder_wall_).count() > options_.encoder_timeout_s) {
-    finish(1, "driver dead: no encoder data for more than ~encoder_timeout_s = " +
+    finish(1, "driver dead: no valid encoder data for more than ~encoder_timeout_s = " +
                   std::to_string(options_.encoder_timeout_s) + " s; voltage held at the last command");
     return;
   }
