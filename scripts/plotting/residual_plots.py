@@ -66,13 +66,16 @@ def main(out):
     fig.savefig(os.path.join(out, "residual_steps.png"), dpi=110)
     plt.close(fig)
 
+    # Effect k: the residual just before it was added (after effects 1..k-1) and the final residual.
+    # Diagonal stripes at slope −1, 20 nm apart, are the encoder quantisation seen during slow motion.
     names = [n for n in ex if n.startswith("effect")]
     for i, name in enumerate(names):
         x = ex[name]
         label = report["explaining_variables"][i] if i < len(report["explaining_variables"]) else name
+        prior = before if i == 0 else ex["residual_step%d_nm" % i]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         step = max(1, len(x) // 6000)
-        for a, y, what, colour in ((axes[0], before, "before", "tab:red"), (axes[1], after, "after", "tab:blue")):
+        for a, y, what, colour in ((axes[0], prior, "before", "tab:red"), (axes[1], after, "after", "tab:blue")):
             a.scatter(x[::step], y[::step], s=2, alpha=0.25, color=colour)
             c, m = binned(x, y)
             a.plot(c, m, color="k", lw=2, label="binned mean")

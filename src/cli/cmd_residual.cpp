@@ -260,10 +260,12 @@ int run(int argc, char** argv) {
     }
     std::ofstream f(out / "explain.csv");
     f << "time_s,residual_before_nm,residual_after_nm";
+    for (std::size_t e = 0; e < res.effects.size(); ++e) f << ",residual_step" << e + 1 << "_nm";
     for (const auto& n : names) f << "," << n;
     f << "\n" << std::setprecision(10);
     for (std::size_t i = 0; i < test.size(); ++i) {
       f << test.time_s[i] << "," << meas[i] - res.test_pred_before[i] << "," << meas[i] - res.test_pred_after[i];
+      for (const auto& e : res.effects) f << "," << meas[i] - e.test_prediction[i];
       for (const auto& v : ev) f << "," << v[i];
       f << "\n";
     }

@@ -75,6 +75,7 @@ struct FoundEffect {
   ErrorStats test_after;                      // TEST error after adding this effect (and the ones before)
   ErrorStats test_after_truth;                // against the true position when the data has it (n = 0 otherwise)
   std::vector<FamilyScore> ranking;           // all families at this step, best first
+  std::vector<double> test_prediction;        // TEST prediction after this step
 };
 
 struct ResidualOptions {

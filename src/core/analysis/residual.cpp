@@ -584,6 +584,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     models::AugmentedModel m(cur_base->clone(), terms, offset, fs);
     const std::vector<double> pt = run_test(m);
     e.test_after = error_stats(meas_test, pt);
+    e.test_prediction = pt;
     if (!truth_test.empty()) e.test_after_truth = error_stats(truth_test, pt);
     log("added " + e.family + ": TEST MAE " + std::to_string(e.test_after.mae_nm) + " nm");
     res.effects.push_back(std::move(e));
