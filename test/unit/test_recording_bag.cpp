@@ -5,9 +5,11 @@
 
 #include <filesystem>
 #include <fstream>
+#include <limits>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ProtocolPhase.h"
+#include "piezo_compensation/ros/recorder.h"
 #include "piezo_compensation/ros/recorder_bag.h"
 
 namespace fs = std::filesystem;
@@ -131,4 +133,57 @@ TEST(RecordingBag, FullDiskStopsWithOneClearMessage) {
     EXPECT_NE(std::string(e.what()).find("disk nearly full"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("min_free_space_mb"), std::string::npos) << e.what();
   }
+}
+
+TEST(RecorderOptions, BadParametersAreNamed) {
+  using piezo::ros_nodes::RecorderOptions;
+  auto message = [](const RecorderOptions& o) -> std::string {
+    try {
+      o.validate();
+    } catch (const std::invalid_argument& e) {
+      return e.what();
+    }
+    return "";
+  };
+  RecorderOptions ok;
+  ok.protocol = "noise";
+  ok.out = "/tmp/x.bag";
+  EXPECT_EQ(message(ok), "");
+  auto o = ok;
+  o.out = "/tmp/x.csv";
+  EXPECT_NE(message(o).find("~out must end in .bag"), std::string::npos);
+  o = ok;
+  o.protocol.clear();
+  EXPECT_NE(message(o).find("~protocol"), std::string::npos);
+  o.resume = true;  // resuming takes the protocol from the bag
+  EXPECT_EQ(message(o), "");
+  o = ok;
+  o.sample_rate_hz = 0.0;
+  EXPECT_NE(message(o).find("~sample_rate_hz"), std::string::npos);
+  o = ok;
+  o.encoder_timeout_s = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_NE(message(o).find("~encoder_timeout_s"), std::string::npos);
+  o = ok;
+  o.axes = {"a", "x"};
+  EXPECT_NE(message(o).find("~axes: unknown axis 'x'"), std::string::npos);
+  o = ok;
+  o.max_wait_samples = -1;
+  EXPECT_NE(message(o).find("~max_wait_samples"), std::string::npos);
+}
+
+TEST(RecorderOptions, SpecRoundTripsThroughTheMarkerYaml) {
+  using piezo::ros_nodes::Recorder;
+  using piezo::ros_nodes::RecorderOptions;
+  RecorderOptions o;
+  std::uint64_t total = 0;
+  double t0 = 0;
+  Recorder::parse_spec(
+      "protocol: creep\nseed: 9\nsample_rate_hz: 11\nsamples: 1234\nt0_s: 1700000000.5\nparameters: {scenarios: 2}\n", o,
+      total, t0);
+  EXPECT_EQ(o.protocol, "creep");
+  EXPECT_EQ(o.seed, 9u);
+  EXPECT_EQ(total, 1234u);
+  EXPECT_DOUBLE_EQ(t0, 1700000000.5);
+  EXPECT_EQ(o.protocol_params["scenarios"].as<int>(), 2);
+  EXPECT_THROW(Recorder::parse_spec("protocol: creep\n", o, total, t0), RecorderBagError);
 }
