@@ -151,7 +151,8 @@ TEST(DenseModel, TuningThroughTheRegistryRunsTrialsAndReportsProgress) {
   models::FitRequest req;
   req.train = &data;
   req.tune_trials = 4;
-  req.options["epochs"] = 2;
+  req.options["epochs"] = 3;
+  req.options["tune_epochs"] = 1;  // trials short, the winner retrained with 3 epochs
   int calls = 0;
   double last_done = 0, last_total = 0;
   req.progress = [&](double done, double total, const std::string& what) {

@@ -148,3 +148,19 @@ TEST(KanModel, FitPrintsFormulasAndRoundTrips) {
   bad["hyperparameters"]["widths"][0] = 2;
   EXPECT_THROW(models::model_kind("kan").load(bad), std::runtime_error);
 }
+
+TEST(KanModel, TuningSearchesGridOrderAndWidth) {
+  const io::Dataset data = test_data::hysteretic_dataset(800, 33);
+  models::FitRequest req;
+  req.train = &data;
+  req.tune_trials = 2;
+  req.options["epochs"] = 1;
+  req.options["grid_updates"] = 1;
+  const models::ModelPtr m = models::model_kind("kan").fit(req);
+  const YAML::Node h = m->to_yaml()["hyperparameters"];
+  EXPECT_GE(h["grid"].as<int>(), 3);
+  EXPECT_LE(h["grid"].as<int>(), 20);
+  EXPECT_GE(h["order"].as<int>(), 1);
+  EXPECT_LE(h["order"].as<int>(), 4);
+  EXPECT_EQ(m->to_yaml()["training"]["tuning"]["trials"].as<int>(), 2);
+}

@@ -112,3 +112,20 @@ TEST(LstmModel, FitsStreamsAndRoundTrips) {
   bad["hyperparameters"]["hidden"] = 9;
   EXPECT_THROW(models::model_kind("lstm").load(bad), std::runtime_error);
 }
+
+TEST(LstmModel, TuningSearchesTheStudySpace) {
+  const io::Dataset data = test_data::hysteretic_dataset(800, 23);
+  models::FitRequest req;
+  req.train = &data;
+  req.tune_trials = 2;
+  req.options["epochs"] = 1;
+  req.options["seq_len"] = 8;
+  req.options["warmup"] = 4;
+  const models::ModelPtr m = models::model_kind("lstm").fit(req);
+  const YAML::Node h = m->to_yaml()["hyperparameters"];
+  EXPECT_GE(h["layers"].as<int>(), 1);
+  EXPECT_LE(h["layers"].as<int>(), 5);
+  EXPECT_GE(h["hidden"].as<int>(), 4);
+  EXPECT_LE(h["hidden"].as<int>(), 64);
+  EXPECT_EQ(m->to_yaml()["training"]["tuning"]["trials"].as<int>(), 2);
+}
