@@ -41,6 +41,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   const double diagnostic_period_s = param_double(pnh_, "diagnostic_period_s", 1.0, 0.05, 60.0);
   stamp_with_receive_time_ = param_bool(pnh_, "stamp_with_receive_time", true);
   encoder_timeout_s_ = config.encoder_timeout_s;
+  sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   const TransportParams transport = read_transport(pnh_, 47100, 47101);
   const std::string prefix = param_string(pnh_, "frame_prefix", "");
   frame_id_ = prefix + "base";
@@ -50,7 +51,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   can::DriverCallbacks cb;
   cb.on_voltage = [this](const can::VoltageReport& v, std::uint32_t seq, double t) {
     AxisVoltage msg;
-    msg.header.stamp = stamp_for(t);
+    msg.header.stamp = stamp_for(v.axis, seq, t);
     msg.header.frame_id = frame_id_;
     msg.axis = can::kAxisNames[v.axis];
     msg.sequence = seq;
@@ -59,7 +60,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   };
   cb.on_encoder = [this](const can::EncoderReport& e, std::uint32_t seq, double t) {
     EncoderPosition msg;
-    msg.header.stamp = stamp_for(t);
+    msg.header.stamp = stamp_for(e.axis, seq, t);
     msg.header.frame_id = frame_id_;
     msg.axis = can::kAxisNames[e.axis];
     msg.sequence = seq;
@@ -109,10 +110,26 @@ DriverNode::~DriverNode() {
   if (core_) core_->stop();
 }
 
-ros::Time DriverNode::stamp_for(double receive_time_s) const {
-  // Kernel receive time is wall-clock; under sim time only ROS time makes sense to the other nodes.
-  if (stamp_with_receive_time_ && !ros::Time::isSimTime() && receive_time_s > 0) return ros::Time(receive_time_s);
-  return ros::Time::now();
+ros::Time DriverNode::stamp_for(int axis, std::uint32_t sequence, double receive_time_s) {
+  if (!ros::Time::isSimTime()) {
+    if (stamp_with_receive_time_ && receive_time_s > 0) return ros::Time(receive_time_s);
+    return ros::Time::now();
+  }
+  // Kernel receive time is wall-clock; under sim time /clock arrives in coarse steps (a simulated device that
+  // does not own the clock sends samples in bursts), so ROS time at reception can be off by several samples.
+  // Stamps follow the controller's sequence at the encoder period instead. They may run ahead of a coarse clock
+  // for a while; they are re-anchored to ROS time when they fall behind it by more than 1.5 periods, run more
+  // than 5 s ahead, or the sequence steps back (start, gaps, device restart).
+  const double now = ros::Time::now().toSec();
+  std::lock_guard<std::mutex> lock(anchor_mutex_);
+  Anchor& a = anchors_[axis];
+  const std::int32_t steps = static_cast<std::int32_t>(sequence - a.sequence);
+  const double expected = a.stamp_s + steps * sample_period_s_;
+  if (!a.set || steps < 0 || expected < now - 1.5 * sample_period_s_ || expected > now + 5.0) {
+    a = Anchor{true, sequence, now};
+    return ros::Time(now);
+  }
+  return ros::Time(expected);
 }
 
 void DriverNode::check_commanders() {

@@ -96,6 +96,10 @@ void SimNode::send_all(const std::vector<can_frame>& frames) {
 
 void SimNode::run() {
   const double period_s = device_->period_s();
+  // Under another node's /clock, ROS time is 0 until the first clock message: wait for it rather than
+  // "catching up" from 0.
+  while (running_ && ros::ok() && !publish_clock_ && ros::Time::now().isZero())
+    std::this_thread::sleep_for(std::chrono::milliseconds(10));
   const auto wall_start = std::chrono::steady_clock::now();
   // Simulated time starts at the wall clock's epoch time so stamps look like real ones.
   const double sim_start_s = publish_clock_ ? ros::WallTime::now().toSec() : ros::Time::now().toSec();
@@ -115,6 +119,8 @@ void SimNode::run() {
     } else {
       sim_now_s = ros::Time::now().toSec();
     }
+    // A clock that jumps (restarted clock owner, bag loop) resynchronises instead of replaying the gap.
+    if (sim_now_s < next_sample_s - 2 * period_s || sim_now_s > next_sample_s + 5.0) next_sample_s = sim_now_s + period_s;
     {
       std::lock_guard<std::mutex> lock(mutex_);
       while (next_sample_s <= sim_now_s) {

@@ -9,6 +9,7 @@
 
 #include <array>
 #include <memory>
+#include <mutex>
 #include <string>
 
 #include "piezo_compensation/VoltageCommand.h"
@@ -30,7 +31,7 @@ class DriverNode {
   bool on_recover(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   void diagnose_bus(diagnostic_updater::DiagnosticStatusWrapper& stat);
   void diagnose_axis(int axis, diagnostic_updater::DiagnosticStatusWrapper& stat);
-  ros::Time stamp_for(double receive_time_s) const;
+  ros::Time stamp_for(int axis, std::uint32_t sequence, double receive_time_s);
 
   ros::NodeHandle nh_, pnh_;
   std::string frame_id_;
@@ -47,6 +48,15 @@ class DriverNode {
   ros::WallTime last_diag_;
   std::array<std::uint64_t, can::kAxisCount> last_encoder_frames_{}, last_voltage_frames_{}, last_sent_{};
   double encoder_timeout_s_ = 0.5;
+  double sample_period_s_ = 1.0 / 11.0;
+  // Under sim time: per-axis anchor (sequence, stamp) so stamps advance by exactly one period per sample.
+  struct Anchor {
+    bool set = false;
+    std::uint32_t sequence = 0;
+    double stamp_s = 0.0;
+  };
+  std::mutex anchor_mutex_;
+  std::array<Anchor, can::kAxisCount> anchors_{};
 };
 
 }  // namespace piezo::mm3e
