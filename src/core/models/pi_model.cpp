@@ -253,6 +253,7 @@ struct FitData {
   const std::vector<double>* v;
   const std::vector<double>* y;
   double rate;
+  bool initial_state_terms = true;
 };
 
 struct EvalResult {
@@ -262,7 +263,12 @@ struct EvalResult {
 };
 
 // Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
-training::GramStats stream_gram(std::size_t N, std::size_t P, const std::function<double(std::size_t, double*)>& row) {
+// Extra columns a_j^(t+1) for the poles in `init` absorb the unknown initial state of slow modes: a recording
+// never starts from the rest the model's reset assumes, and without them the first hours bias the creep fit.
+training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::function<double(std::size_t, double*)>& row,
+                                const std::vector<double>& init = {}) {
+  const std::size_t P = P0 + init.size();
+  std::vector<double> e(init);
   training::GramStats g(P);
   constexpr std::size_t kChunk = 2048;
   Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> X(kChunk, P);
@@ -281,7 +287,12 @@ training::GramStats stream_gram(std::size_t N, std::size_t P, const std::functio
     fill = 0;
   };
   for (std::size_t t = 0; t < N; ++t) {
-    yc(fill) = row(t, X.row(fill).data());
+    double* x = X.row(fill).data();
+    yc(fill) = row(t, x);
+    for (std::size_t j = 0; j < e.size(); ++j) {
+      x[P0 + j] = e[j];
+      e[j] *= init[j];
+    }
     if (++fill == kChunk) flush();
   }
   flush();
@@ -290,7 +301,9 @@ training::GramStats stream_gram(std::size_t N, std::size_t P, const std::functio
 }
 
 // Least squares on the Gram sums; columns flagged constrained stay ≥ 0, column 0 ≥ min_w0 when constrained.
-EvalResult solve(const training::GramStats& g, const std::vector<bool>& constrained, double min_w0) {
+EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, double min_w0) {
+  const std::size_t used = constrained.size();
+  constrained.resize(static_cast<std::size_t>(g.sx.size()), false);  // initial-state columns are free
   Eigen::MatrixXd G = g.centered_xx();
   Eigen::VectorXd c = g.centered_xy();
   const double shift = constrained[0] ? min_w0 : 0.0;
@@ -300,7 +313,7 @@ EvalResult solve(const training::GramStats& g, const std::vector<bool>& constrai
   EvalResult res;
   res.b = g.mean_y() - g.mean_x().dot(x);
   res.sse = g.sse(x, res.b);
-  res.theta.assign(x.data(), x.data() + x.size());  // caller splits
+  res.theta.assign(x.data(), x.data() + used);  // caller splits; initial-state terms are dropped
   return res;
 }
 
@@ -308,6 +321,17 @@ std::vector<double> poles_of(const std::vector<double>& taus, double rate) {
   std::vector<double> a;
   for (double t : taus) a.push_back(std::exp(-1.0 / (rate * t)));
   return a;
+}
+
+// Poles of the modes whose initial state is worth estimating: slower than 10 s, and faster than a third of the
+// record (slower ones are indistinguishable from the bias there).
+std::vector<double> init_poles(const std::vector<double>& taus, const FitData& d) {
+  std::vector<double> out;
+  if (!d.initial_state_terms) return out;
+  const double span_s = d.v->size() / d.rate;
+  for (double t : taus)
+    if (t >= 10.0 && t <= span_s / 3) out.push_back(std::exp(-1.0 / (d.rate * t)));
+  return out;
 }
 
 // Creep on the voltage: play outputs and creep basis columns, all weights at once (play weights ≥ 0).
@@ -329,7 +353,7 @@ EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepP
       x[np + k] = s;
     }
     return (*d.y)[t];
-  });
+  }, init_poles(taus, d));
   std::vector<bool> constrained(np + nk, false);
   for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
   EvalResult res = solve(g, constrained, min_w0);
@@ -364,7 +388,7 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& r, c
       x[1 + k] = s;
     }
     return (*d.y)[t];
-  });
+  }, init_poles(taus, d));
   EvalResult res = solve(g, std::vector<bool>(nk + 1, false), 0.0);
   const double scale = res.theta[0] > 1e-6 ? res.theta[0] : 1.0;  // a non-positive scale would break invertibility
   res.w = w;
@@ -395,7 +419,7 @@ EvalResult evaluate_w_given_creep_on_h(const FitData& d, const std::vector<doubl
       x[i] = s;
     }
     return (*d.y)[t];
-  });
+  }, init_poles(taus, d));
   EvalResult res = solve(g, std::vector<bool>(np, true), min_w0);
   res.w = res.theta;
   res.theta.clear();
@@ -451,6 +475,7 @@ ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
   if (ax.voltage_v.size() < 10) throw std::runtime_error("PI fit: need at least 10 samples");
   FitData d{&ax.voltage_v, &ax.position_nm, req.train->sample_rate_hz()};
   const YAML::Node& o = req.options;
+  d.initial_state_terms = option_str(o, "initial_state_terms", "true") != "false";
 
   std::vector<double> r;
   if (o && o["thresholds_v"]) {
@@ -493,7 +518,7 @@ ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
   const bool fixed = o && (o["t1_s"] || o["alpha"] || (o["taus_s"] && o["fix_taus"]));
   auto search = [&](const std::function<double(const CreepParams&)>& sse_fn, bool refine_only) {
   auto sse_of = [&](const CreepParams& c) {
-    report("creep search");
+    report("PI + creep fit");
     return sse_fn(c);
   };
   switch (kind) {
@@ -568,11 +593,11 @@ ModelPtr PiCreepModel::fit(const FitRequest& req, CreepKind kind) {
     for (int it = 0; it < iters; ++it) {
       search([&](const CreepParams& c) { return evaluate_creep_on_h(d, r, w, c).sse; }, true);
       EvalResult cr = evaluate_creep_on_h(d, r, w, cp);
-      report("alternating fit");
+      report("PI + creep fit");
       cp.set_coefficients(cr.theta);
       w = cr.w;
       best = evaluate_w_given_creep_on_h(d, r, cp, min_w0);
-      report("alternating fit");
+      report("PI + creep fit");
       w = best.w;
     }
   }
