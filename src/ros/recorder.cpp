@@ -383,6 +383,13 @@ void Recorder::complete_sample() {
     return;
   }
   if (!applied) ++late_commands_;
+  // device samples between two recorded rows: on simulated time each one stretches the real time behind a row
+  const std::uint32_t seq0 = axes_.front().pending->sequence;
+  if (last_row_sequence_ && recorded_in_session_ > 0) {
+    const std::uint32_t d = seq0 - *last_row_sequence_;
+    if (d > 1 && d < 100000) skipped_device_samples_ += d - 1;
+  }
+  last_row_sequence_ = seq0;
 
   try {
     const ros::Time stamp = stamp_of(next_);
@@ -572,7 +579,9 @@ void Recorder::finish(int exit_code, const std::string& why) {
   for (const auto& ax : axes_) summary_.sequences.push_back(analysis::report_of(ax.name, ax.tracker));
   std::ostringstream os;
   os << analysis::format_summary(summary_) << "  commands that had not reached the piezo after "
-     << options_.max_wait_samples << " samples: " << late_commands_ << "\n";
+     << options_.max_wait_samples << " samples: " << late_commands_ << "\n"
+     << "  device samples that passed between recorded rows (time the rows do not show): "
+     << skipped_device_samples_ << "\n";
   if (exit_code_ == 0) {
     ROS_INFO("recorder: done, %s: %s\n%s", why.c_str(), options_.out.c_str(), os.str().c_str());
   } else if (exit_code_ == 130) {

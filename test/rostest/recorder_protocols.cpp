@@ -101,6 +101,10 @@ TEST(RecorderProtocols, EachProtocolGivesItsPatternAndAReadableBag) {
     EXPECT_EQ(r.next_sample(), r.total_samples());
     EXPECT_FALSE(fs::exists(out + ".parts")) << "chunks left behind";
     check_recording(out, c.protocol, c.params, r.total_samples(), 0.05);
+    std::printf("%s: %llu samples, %llu late commands, %llu device samples skipped between rows\n",
+                c.protocol.c_str(), static_cast<unsigned long long>(r.total_samples()),
+                static_cast<unsigned long long>(r.late_commands()),
+                static_cast<unsigned long long>(r.skipped_device_samples()));
   }
 }
 

@@ -70,6 +70,9 @@ class Recorder {
   std::uint64_t total_samples() const { return total_; }
   const std::string& bag_path() const { return options_.out; }
   const analysis::RecordingSummary& summary() const { return summary_; }
+  std::uint64_t late_commands() const { return late_commands_; }
+  // Device samples between recorded rows (0 when the recorder kept up with the encoder).
+  std::uint64_t skipped_device_samples() const { return skipped_device_samples_; }
   // Reads `parameters_yaml` of a marker back into protocol, seed, rate, params, sample count and time base.
   static void parse_spec(const std::string& yaml, RecorderOptions& options, std::uint64_t& total, double& t0_s);
 
@@ -113,7 +116,8 @@ class Recorder {
   std::uint64_t next_ = 0, total_ = 0, first_of_session_ = 0, recorded_in_session_ = 0;
   double t0_s_ = 0.0;
   int waited_samples_ = 0;
-  std::uint64_t late_commands_ = 0;
+  std::uint64_t late_commands_ = 0, skipped_device_samples_ = 0;
+  std::optional<std::uint32_t> last_row_sequence_;
   std::optional<protocols::ProtocolSample> last_marker_;
   using Clock = std::chrono::steady_clock;
   Clock::time_point last_encoder_wall_, started_wall_, approach_started_, last_progress_log_, last_progress_pub_;
