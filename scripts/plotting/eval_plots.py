@@ -45,6 +45,7 @@ def table3(rep, out):
                     ax.text(b.get_x() + b.get_width() / 2, b.get_height(), f"{v:.1f}", ha="center", va="bottom", fontsize=6,
                             rotation=90)
         ax.axhline(floor, color="k", ls="--", lw=1, label=f"noise floor {floor:.1f} nm")
+        ax.set_ylim(0, ax.get_ylim()[1] * 1.15)  # room for the value labels
         ax.set_xticks(x)
         ax.set_xticklabels([m["name"] for m in models], rotation=20, ha="right", fontsize=8)
         ax.set_ylabel("MAE [nm]")
