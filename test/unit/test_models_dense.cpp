@@ -5,6 +5,7 @@
 #include <cmath>
 #include <random>
 
+#include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/dense_model.h"
 #include "piezo_compensation/models/registry.h"
 #include "test_models_dense_data.h"
@@ -170,4 +171,30 @@ TEST(DenseModel, TuningThroughTheRegistryRunsTrialsAndReportsProgress) {
   EXPECT_EQ(info["trials"].as<int>(), 4);
   EXPECT_NE(info["best"].as<std::string>().find("learning_rate="), std::string::npos);
   EXPECT_GT(m->meta.validation.at("validation_rmse_nm"), 0.0);
+}
+
+TEST(DenseModel, FreeRunStaysWithinTheOutputRails) {
+  models::DenseShape s{6, 1, 3, 0.01};
+  training::TargetScale target;
+  target.output_min_nm = -100.0;
+  target.output_max_nm = 100.0;
+  // Huge weights: unclamped, the free-run feedback through the position features would explode.
+  const Eigen::VectorXd p = models::DenseNet(s).initial_params(3) * 1e6;
+  models::DenseModel m(features::study_features(), 11.0, s, p, target);
+  m.reset(0.0, 0.0);
+  double lo = 0, hi = 0;
+  for (int t = 0; t < 300; ++t) {
+    const models::ModelInput in{40.0 * std::sin(0.05 * t), nullptr};
+    const double y = m.predict(in);
+    lo = std::min(lo, y);
+    hi = std::max(hi, y);
+    m.commit(in, y);
+  }
+  EXPECT_GE(lo, -100.0);
+  EXPECT_LE(hi, 100.0);
+  EXPECT_TRUE(lo == -100.0 || hi == 100.0);  // a rail was reached: the clamp did the work
+
+  YAML::Node n = m.to_yaml();
+  n["target"]["output_min_nm"] = 200.0;
+  EXPECT_THROW(models::model_kind("dense").load(n), std::runtime_error);
 }

@@ -80,8 +80,18 @@ Eigen::MatrixXd feature_matrix(const features::FeatureSpec& spec, const io::Data
 struct TargetScale {
   double mean_nm = 0.0;
   double scale_nm = 1.0;
-  double to_nm(double z) const { return mean_nm + scale_nm * z; }
+  // Output rails: the training range widened by half its span each side. Networks extrapolate without bound;
+  // fed back in free-run they can run away to ±inf, so outputs are held to physically plausible values.
+  double output_min_nm = -std::numeric_limits<double>::infinity();
+  double output_max_nm = std::numeric_limits<double>::infinity();
+  double to_nm(double z) const {
+    const double y = mean_nm + scale_nm * z;
+    return y < output_min_nm ? output_min_nm : (y > output_max_nm ? output_max_nm : y);
+  }
   double to_z(double nm) const { return (nm - mean_nm) / scale_nm; }
+  YAML::Node to_yaml() const;
+  static TargetScale from_yaml(const YAML::Node& node, const std::string& what);  // rails optional
+  std::string c99_expression(const std::string& z) const;  // to_nm in C
 };
 TargetScale fit_target_scale(const std::vector<double>& position_nm);
 

@@ -163,8 +163,7 @@ YAML::Node DenseModel::to_yaml() const {
   YAML::Node n;
   n["sample_rate_hz"] = sample_rate_hz_;
   n["features"] = stream_.spec().to_yaml();
-  n["target"]["mean_nm"] = target_.mean_nm;
-  n["target"]["scale_nm"] = target_.scale_nm;
+  n["target"] = target_.to_yaml();
   n["hyperparameters"]["depth"] = net_.shape().depth;
   n["hyperparameters"]["width"] = net_.shape().width;
   n["hyperparameters"]["leaky_slope"] = net_.shape().leaky_slope;
@@ -175,16 +174,16 @@ YAML::Node DenseModel::to_yaml() const {
 
 std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
   const std::string what = "dense model";
-  training::check_keys(node, {"sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
+  // The model file adds axis and kind to this node.
+  training::check_keys(
+      node, {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
+  if (node["kind"] && node["kind"].as<std::string>() != "dense")
+    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
   const double rate = training::yaml_double(node, "sample_rate_hz", what);
   if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
   if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
   const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
-  const YAML::Node t = node["target"];
-  if (!t) throw std::runtime_error(what + ": missing key 'target'");
-  training::check_keys(t, {"mean_nm", "scale_nm"}, what + " target");
-  training::TargetScale target{training::yaml_double(t, "mean_nm", what + " target"),
-                               training::yaml_double(t, "scale_nm", what + " target")};
+  const training::TargetScale target = training::TargetScale::from_yaml(node["target"], what);
   const YAML::Node h = node["hyperparameters"];
   if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
   training::check_keys(h, {"depth", "width", "leaky_slope"}, what + " hyperparameters");
@@ -225,7 +224,7 @@ std::string DenseModel::export_c99_network(const std::string& prefix) const {
      << "    if (l < " << s.depth << ") for (j = 0; j < n_out; ++j) if (out[j] < 0.0) out[j] *= " << s.leaky_slope << ";\n"
      << "    w = bias + n_out; in = out; out = (out == a) ? b : a;\n"
      << "  }\n"
-     << "  return " << target_.mean_nm << " + " << target_.scale_nm << " * in[0];\n"
+     << "  return " << target_.c99_expression("in[0]") << ";\n"
      << "}\n";
   return os.str();
 }

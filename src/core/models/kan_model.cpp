@@ -535,8 +535,7 @@ YAML::Node KanModel::to_yaml() const {
   YAML::Node n;
   n["sample_rate_hz"] = sample_rate_hz_;
   n["features"] = stream_.spec().to_yaml();
-  n["target"]["mean_nm"] = target_.mean_nm;
-  n["target"]["scale_nm"] = target_.scale_nm;
+  n["target"] = target_.to_yaml();
   YAML::Node widths(YAML::NodeType::Sequence);
   for (int w : net_.shape().widths) widths.push_back(w);
   widths.SetStyle(YAML::EmitterStyle::Flow);
@@ -554,17 +553,17 @@ YAML::Node KanModel::to_yaml() const {
 
 std::unique_ptr<KanModel> KanModel::from_yaml(const YAML::Node& node) {
   const std::string what = "kan model";
-  training::check_keys(node,
-                       {"sample_rate_hz", "features", "target", "hyperparameters", "training", "grids", "weights"}, what);
+  // The model file adds axis and kind to this node.
+  training::check_keys(node, {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters", "training",
+                              "grids", "weights"},
+                       what);
+  if (node["kind"] && node["kind"].as<std::string>() != "kan")
+    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
   const double rate = training::yaml_double(node, "sample_rate_hz", what);
   if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
   if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
   const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
-  const YAML::Node t = node["target"];
-  if (!t) throw std::runtime_error(what + ": missing key 'target'");
-  training::check_keys(t, {"mean_nm", "scale_nm"}, what + " target");
-  const training::TargetScale target{training::yaml_double(t, "mean_nm", what + " target"),
-                                     training::yaml_double(t, "scale_nm", what + " target")};
+  const training::TargetScale target = training::TargetScale::from_yaml(node["target"], what);
   const YAML::Node h = node["hyperparameters"];
   if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
   training::check_keys(h, {"widths", "grid", "order"}, what + " hyperparameters");
@@ -712,7 +711,7 @@ std::string KanModel::export_c99_network(const std::string& prefix) const {
      << "    }\n"
      << "    t += n_in * " << M << "; p = bias + n_out; in = out; out = (out == a) ? b : a;\n"
      << "  }\n"
-     << "  return " << target_.mean_nm << " + " << target_.scale_nm << " * in[0];\n"
+     << "  return " << target_.c99_expression("in[0]") << ";\n"
      << "}\n";
   return os.str();
 }

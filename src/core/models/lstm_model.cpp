@@ -238,8 +238,7 @@ YAML::Node LstmModel::to_yaml() const {
   YAML::Node n;
   n["sample_rate_hz"] = sample_rate_hz_;
   n["features"] = stream_.spec().to_yaml();
-  n["target"]["mean_nm"] = target_.mean_nm;
-  n["target"]["scale_nm"] = target_.scale_nm;
+  n["target"] = target_.to_yaml();
   n["hyperparameters"]["layers"] = net_.shape().layers;
   n["hyperparameters"]["hidden"] = net_.shape().hidden;
   n["hyperparameters"]["warmup"] = warmup_;
@@ -250,16 +249,16 @@ YAML::Node LstmModel::to_yaml() const {
 
 std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
   const std::string what = "lstm model";
-  training::check_keys(node, {"sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
+  // The model file adds axis and kind to this node.
+  training::check_keys(
+      node, {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
+  if (node["kind"] && node["kind"].as<std::string>() != "lstm")
+    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
   const double rate = training::yaml_double(node, "sample_rate_hz", what);
   if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
   if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
   const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
-  const YAML::Node t = node["target"];
-  if (!t) throw std::runtime_error(what + ": missing key 'target'");
-  training::check_keys(t, {"mean_nm", "scale_nm"}, what + " target");
-  const training::TargetScale target{training::yaml_double(t, "mean_nm", what + " target"),
-                                     training::yaml_double(t, "scale_nm", what + " target")};
+  const training::TargetScale target = training::TargetScale::from_yaml(node["target"], what);
   const YAML::Node h = node["hyperparameters"];
   if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
   training::check_keys(h, {"layers", "hidden", "warmup"}, what + " hyperparameters");

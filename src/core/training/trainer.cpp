@@ -207,7 +207,48 @@ TargetScale fit_target_scale(const std::vector<double>& position_nm) {
   for (double p : position_nm) ss += (p - s.mean_nm) * (p - s.mean_nm);
   const double sd = std::sqrt(ss / static_cast<double>(position_nm.size()));
   s.scale_nm = sd > 1e-9 ? sd : 1.0;
+  const auto [lo, hi] = std::minmax_element(position_nm.begin(), position_nm.end());
+  const double half_span = 0.5 * std::max(*hi - *lo, s.scale_nm);
+  s.output_min_nm = *lo - half_span;
+  s.output_max_nm = *hi + half_span;
   return s;
+}
+
+YAML::Node TargetScale::to_yaml() const {
+  YAML::Node n;
+  n["mean_nm"] = mean_nm;
+  n["scale_nm"] = scale_nm;
+  if (std::isfinite(output_min_nm)) n["output_min_nm"] = output_min_nm;
+  if (std::isfinite(output_max_nm)) n["output_max_nm"] = output_max_nm;
+  return n;
+}
+
+TargetScale TargetScale::from_yaml(const YAML::Node& node, const std::string& what) {
+  if (!node) throw std::runtime_error(what + ": missing key 'target'");
+  check_keys(node, {"mean_nm", "scale_nm", "output_min_nm", "output_max_nm"}, what + " target");
+  TargetScale t;
+  t.mean_nm = yaml_double(node, "mean_nm", what + " target");
+  t.scale_nm = yaml_double(node, "scale_nm", what + " target");
+  if (!(t.scale_nm > 0.0)) throw std::runtime_error(what + " target: 'scale_nm' must be positive");
+  if (node["output_min_nm"]) t.output_min_nm = yaml_double(node, "output_min_nm", what + " target");
+  if (node["output_max_nm"]) t.output_max_nm = yaml_double(node, "output_max_nm", what + " target");
+  if (!(t.output_min_nm < t.output_max_nm))
+    throw std::runtime_error(what + " target: 'output_min_nm' must be below 'output_max_nm'");
+  return t;
+}
+
+std::string TargetScale::c99_expression(const std::string& z) const {
+  std::ostringstream os;
+  os.precision(17);
+  os << "(" << mean_nm << " + " << scale_nm << " * (" << z << "))";
+  std::string e = os.str();
+  if (std::isfinite(output_min_nm) && std::isfinite(output_max_nm)) {
+    std::ostringstream c;
+    c.precision(17);
+    c << "fmin(fmax(" << e << ", " << output_min_nm << "), " << output_max_nm << ")";
+    e = c.str();
+  }
+  return e;
 }
 
 SplitData split_for_validation(const models::FitRequest& request, double fraction) {
