@@ -42,6 +42,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   stamp_with_receive_time_ = param_bool(pnh_, "stamp_with_receive_time", true);
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
+  heartbeat_period_s_ = config.protocol.heartbeat_period_s;
   const TransportParams transport = read_transport(pnh_, 47100, 47101);
   const std::string prefix = param_string(pnh_, "frame_prefix", "");
   frame_id_ = prefix + "base";
@@ -214,6 +215,9 @@ void DriverNode::diagnose_bus(diagnostic_updater::DiagnosticStatusWrapper& stat)
   }
   if (b.heartbeat_seen && b.device_state != can::DeviceState::kOperational && b.state == can::BusState::kActive)
     stat.mergeSummary(DiagnosticStatus::WARN, std::string("device ") + can::to_string(b.device_state));
+  if (b.state == can::BusState::kActive &&
+      (!b.heartbeat_seen || b.heartbeat_age_s > 3.0 * heartbeat_period_s_))
+    stat.mergeSummary(DiagnosticStatus::WARN, "no heartbeat from the controller");
   stat.add("state", can::to_string(b.state));
   stat.add("transport", b.transport);
   stat.add("last error", b.last_error);

@@ -49,6 +49,7 @@ class DriverNode {
   std::array<std::uint64_t, can::kAxisCount> last_encoder_frames_{}, last_voltage_frames_{}, last_sent_{};
   double encoder_timeout_s_ = 0.5;
   double sample_period_s_ = 1.0 / 11.0;
+  double heartbeat_period_s_ = 1.0;
   // Under sim time: per-axis anchor (sequence, stamp) so stamps advance by exactly one period per sample.
   struct Anchor {
     bool set = false;

@@ -12,6 +12,7 @@
 #include <sys/time.h>
 #include <unistd.h>
 
+#include <atomic>
 #include <cstring>
 
 namespace piezo::can {
@@ -123,7 +124,7 @@ class SocketTransport : public Transport {
   }
 
   int fd_ = -1;
-  std::uint64_t malformed_ = 0;
+  std::atomic<std::uint64_t> malformed_{0};  // read by status queries on other threads
 };
 
 class SocketCanTransport : public SocketTransport {
