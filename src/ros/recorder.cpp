@@ -183,16 +183,21 @@ Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(
     axes_.emplace_back();
     axes_.back().name = a;
   }
+  // small messages at the encoder rate: Nagle's algorithm would hold them back by up to tens of ms
+  const ros::TransportHints hints = ros::TransportHints().tcpNoDelay();
   for (std::size_t k = 0; k < axes_.size(); ++k) {
     auto& ax = axes_[k];
     ax.command = nh_.advertise<piezo_compensation::VoltageCommand>(ax.name + "/command", 1);
     ax.encoder = nh_.subscribe<piezo_compensation::EncoderPosition>(
-        ax.name + "/encoder", 100, [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_encoder(k, m); });
+        ax.name + "/encoder", 100, [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_encoder(k, m); },
+        ros::VoidConstPtr(), hints);
     ax.voltage = nh_.subscribe<piezo_compensation::AxisVoltage>(
-        ax.name + "/voltage", 100, [this, k](const piezo_compensation::AxisVoltage::ConstPtr& m) { on_voltage(k, m); });
+        ax.name + "/voltage", 100, [this, k](const piezo_compensation::AxisVoltage::ConstPtr& m) { on_voltage(k, m); },
+        ros::VoidConstPtr(), hints);
     ax.truth = nh_.subscribe<piezo_compensation::EncoderPosition>(
         ax.name + "/true_position", 100,
-        [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_truth(k, m); });
+        [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_truth(k, m); }, ros::VoidConstPtr(),
+        hints);
   }
   phase_pub_ = nh_.advertise<piezo_compensation::ProtocolPhase>("protocol_phase", 10, true);
   progress_pub_ = nh_.advertise<piezo_compensation::RecorderProgress>("recorder/progress", 10);
