@@ -3,7 +3,7 @@
 // Also writes the reference bag for the replay rostest: the input plus the predictions made here.
 //
 //   measure_predictor_node [--bag B] [--ns /mm1] [--axis c] [--write-reference OUT.bag] MODEL...
-// Without arguments: bags/demo_input.bag with every bags/model_*.yaml (what `piezo bench` runs).
+// Without arguments: bags/demo_sawtooth.bag with every bags/model*.yaml (what `piezo bench` runs).
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
 
@@ -62,13 +62,13 @@ int main(int argc, char** argv) {
       return usage(e.what());
     }
   }
-  if (o.bag.empty()) o.bag = (src / "bags" / "demo_input.bag").string();
+  if (o.bag.empty()) o.bag = (src / "bags" / "demo_sawtooth.bag").string();
   if (o.models.empty() && fs::is_directory(src / "bags"))
     for (const auto& e : fs::directory_iterator(src / "bags"))
-      if (e.path().filename().string().rfind("model_", 0) == 0 && e.path().extension() == ".yaml")
+      if (e.path().filename().string().rfind("model", 0) == 0 && e.path().extension() == ".yaml")
         o.models.push_back(e.path().string());
   std::sort(o.models.begin(), o.models.end());
-  if (o.models.empty()) return usage("no model files given and none in bags/model_*.yaml");
+  if (o.models.empty()) return usage("no model files given and none in bags/model*.yaml");
   if (!o.reference.empty() && o.models.size() != 1) return usage("--write-reference needs exactly one MODEL");
 
   ros::Time::init();

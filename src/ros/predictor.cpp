@@ -164,29 +164,41 @@ std::vector<PredictorAxis::Output> PredictorAxis::on_voltage(const AxisVoltage& 
     return outs;
   }
   applied_v_ = msg.voltage;
-  voltage_seq_ = msg.sequence;
   have_voltage_ = true;
-  if (pending_ && pending_->sequence == msg.sequence) {
-    outs.push_back(process(*pending_, applied_v_, compensate, now));
-    pending_.reset();
-  }
+  voltages_[msg.sequence] = msg.voltage;
+  if (voltages_.size() > 64) voltages_.erase(voltages_.begin());
+  drain(outs, compensate, now);
   return outs;
 }
 
 std::vector<PredictorAxis::Output> PredictorAxis::on_encoder(const EncoderPosition& msg, bool compensate,
                                                             const ros::Time& now) {
   std::vector<Output> outs;
-  // Before any voltage report the axis is taken to rest at 0 V.
-  if (pending_) {
-    outs.push_back(process(*pending_, have_voltage_ ? applied_v_ : 0.0, compensate, now));
-    pending_.reset();
-  }
-  // Serial-number arithmetic: the voltage is for this sample or a later one → use it now.
-  if (have_voltage_ && static_cast<std::int32_t>(voltage_seq_ - msg.sequence) >= 0)
-    outs.push_back(process(msg, applied_v_, compensate, now));
-  else
-    pending_ = msg;
+  pending_.push_back(msg);
+  drain(outs, compensate, now);
   return outs;
+}
+
+void PredictorAxis::drain(std::vector<Output>& outs, bool compensate, const ros::Time& now) {
+  while (!pending_.empty()) {
+    const EncoderPosition& e = pending_.front();
+    auto it = voltages_.find(e.sequence);
+    double v;
+    if (it != voltages_.end()) {
+      v = it->second;
+    } else if (pending_.size() > kMaxPending) {
+      // Its voltage is lost: take the latest one reported for an earlier sample (the axis held it).
+      auto prev = voltages_.lower_bound(e.sequence);
+      v = prev != voltages_.begin() ? std::prev(prev)->second : (have_voltage_ ? applied_v_ : 0.0);
+    } else {
+      return;
+    }
+    const std::uint32_t seq = e.sequence;
+    outs.push_back(process(e, v, compensate, now));
+    pending_.pop_front();
+    // Older voltages are no longer needed (this one stays: it stands in for a lost next one).
+    voltages_.erase(voltages_.begin(), voltages_.lower_bound(seq));
+  }
 }
 
 bool PredictorAxis::on_intended(const IntendedMotion& msg, std::string& error) {
@@ -513,7 +525,7 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
     p.z = std::isfinite(x[2]) ? x[2] * k : 0.0;
     return p;
   };
-  const double r = 150.0 * k;  // spheres of 150 nm (scaled)
+  const double r = 250.0 * k;  // spheres of 250 nm (scaled)
   struct Tip { const char* ns; const double* x; float rgb[3]; };
   const Tip tips[] = {{"tip_measured", measured, {0.2f, 0.4f, 1.0f}},
                       {"tip_predicted", predicted, {1.0f, 0.5f, 0.0f}},
@@ -534,8 +546,8 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
   arr.markers.push_back(arrow);
   auto label = marker(id++, visualization_msgs::Marker::TEXT_VIEW_FACING, "error_text");
   label.pose.position = point(predicted);
-  label.pose.position.z += 2.5 * r;
-  label.scale.z = r * 0.6;
+  label.pose.position.z += 3.0 * r;
+  label.scale.z = r * 0.9;
   label.color.r = label.color.g = label.color.b = 1.0;
   label.text = text.str();
   arr.markers.push_back(label);

@@ -89,8 +89,8 @@ class PredictorAxis {
 
   struct Output;
   // Voltage and encoder of one sample carry the same sequence number; a sample is processed when both are
-  // in, whatever order they arrive in (a voltage that never comes is replaced by the latest one at the next
-  // encoder message). Each call returns the samples it completed (0, 1 or 2).
+  // in, whatever order they arrive in. An encoder sample whose voltage has not come after kMaxPending later
+  // encoder samples is processed with the latest earlier voltage. Each call returns the samples it completed.
   std::vector<Output> on_voltage(const AxisVoltage& msg, bool compensate, const ros::Time& now);
   std::vector<Output> on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now);
   // Returns false (with `error`) when the intent is malformed; it is then ignored.
@@ -131,9 +131,11 @@ class PredictorAxis {
   std::unique_ptr<compensation::AxisCompensator> comp_;
   const PredictorSettings& s_;
   double applied_v_ = 0.0;
-  std::uint32_t voltage_seq_ = 0;
+  static constexpr std::size_t kMaxPending = 3;
+  void drain(std::vector<Output>& outs, bool compensate, const ros::Time& now);
+  std::map<std::uint32_t, double> voltages_;   // recent applied voltages by sequence
   bool have_voltage_ = false, have_measured_ = false;
-  std::optional<EncoderPosition> pending_;
+  std::deque<EncoderPosition> pending_;
   double measured_nm_ = std::nan(""), predicted_nm_ = std::nan(""), intended_nm_ = std::nan("");
   double hold_v_ = 0.0;
   compensation::DriftForecast forecast_;
