@@ -77,7 +77,8 @@ int main(int argc, char** argv) {
   try {
     rosbag::Bag in(o.bag, rosbag::bagmode::Read);
     std::cout << "bag " << o.bag << ", axis " << o.ns << "/" << o.axis << "\n";
-    for (const auto& model_path : o.models) {
+    int failures = 0;
+    for (const auto& model_path : o.models) try {
       predictor::PredictorSettings s;
       s.axes = {o.axis};
       s.model_files[o.axis] = model_path;
@@ -119,7 +120,12 @@ int main(int argc, char** argv) {
                   axis.compensator().model().kind().c_str(), fs::path(model_path).filename().c_str(), messages,
                   percentile(us, 0.5), percentile(us, 0.99), percentile(us, 1.0));
       if (out) std::cout << "wrote reference " << o.reference << "\n";
+    } catch (const std::exception& e) {
+      // One unloadable model must not hide the figures of the others.
+      std::cerr << "measure_predictor_node: " << e.what() << "\n";
+      ++failures;
     }
+    if (failures) return 1;
   } catch (const std::exception& e) {
     std::cerr << "measure_predictor_node: " << e.what() << "\n";
     return 1;
