@@ -525,7 +525,7 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
     p.z = std::isfinite(x[2]) ? x[2] * k : 0.0;
     return p;
   };
-  const double r = 250.0 * k;  // spheres of 250 nm (scaled)
+  const double r = 100.0 * k;  // spheres of 100 nm (scaled)
   struct Tip { const char* ns; const double* x; float rgb[3]; };
   const Tip tips[] = {{"tip_measured", measured, {0.2f, 0.4f, 1.0f}},
                       {"tip_predicted", predicted, {1.0f, 0.5f, 0.0f}},
@@ -541,13 +541,13 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
   auto arrow = marker(id++, visualization_msgs::Marker::ARROW, "drift");
   const double end[3] = {predicted[0] + drift[0], predicted[1] + drift[1], predicted[2] + drift[2]};
   arrow.points = {point(predicted), point(end)};
-  arrow.scale.x = r * 0.25, arrow.scale.y = r * 0.5, arrow.scale.z = r * 0.5;
+  arrow.scale.x = r * 0.3, arrow.scale.y = r * 0.7, arrow.scale.z = r * 0.7;
   arrow.color.r = 1.0, arrow.color.g = 0.1, arrow.color.b = 0.1;
   arr.markers.push_back(arrow);
   auto label = marker(id++, visualization_msgs::Marker::TEXT_VIEW_FACING, "error_text");
   label.pose.position = point(predicted);
-  label.pose.position.z += 3.0 * r;
-  label.scale.z = r * 0.9;
+  label.pose.position.z += 6.0 * r;
+  label.scale.z = r * 0.8;
   label.color.r = label.color.g = label.color.b = 1.0;
   label.text = text.str();
   arr.markers.push_back(label);
