@@ -107,6 +107,8 @@ SplitData split_for_validation(const models::FitRequest& request, double fractio
 void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what);
 // Required finite scalar / vector under key.
 double yaml_double(const YAML::Node& node, const std::string& key, const std::string& what);
+// Required integer in [low, high] under key.
+int yaml_int(const YAML::Node& node, const std::string& key, const std::string& what, int low, int high);
 std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
                                  std::size_t expected_size);
 YAML::Node flow_sequence(const Eigen::VectorXd& values);

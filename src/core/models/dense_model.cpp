@@ -189,8 +189,8 @@ std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
   training::check_keys(h, {"depth", "width", "leaky_slope"}, what + " hyperparameters");
   DenseShape shape;
   shape.inputs = static_cast<int>(spec.size());
-  shape.depth = static_cast<int>(training::yaml_double(h, "depth", what));
-  shape.width = static_cast<int>(training::yaml_double(h, "width", what));
+  shape.depth = training::yaml_int(h, "depth", what, 0, 16);
+  shape.width = training::yaml_int(h, "width", what, 1, 256);
   shape.leaky_slope = training::yaml_double(h, "leaky_slope", what);
   const DenseNet net(shape);
   const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());

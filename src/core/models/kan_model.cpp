@@ -577,8 +577,8 @@ std::unique_ptr<KanModel> KanModel::from_yaml(const YAML::Node& node) {
       throw std::runtime_error(what + ": 'widths' entries must be integers");
     }
   }
-  shape.grid = static_cast<int>(training::yaml_double(h, "grid", what));
-  shape.order = static_cast<int>(training::yaml_double(h, "order", what));
+  shape.grid = training::yaml_int(h, "grid", what, 1, 64);
+  shape.order = training::yaml_int(h, "order", what, 0, 5);
   if (shape.widths.empty() || shape.widths.front() != static_cast<int>(spec.size()))
     throw std::runtime_error(what + ": 'widths' must start with the number of features (" +
                              std::to_string(spec.size()) + ")");

@@ -264,9 +264,9 @@ std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
   training::check_keys(h, {"layers", "hidden", "warmup"}, what + " hyperparameters");
   LstmShape shape;
   shape.inputs = static_cast<int>(spec.size());
-  shape.layers = static_cast<int>(training::yaml_double(h, "layers", what));
-  shape.hidden = static_cast<int>(training::yaml_double(h, "hidden", what));
-  const int warmup = static_cast<int>(training::yaml_double(h, "warmup", what));
+  shape.layers = training::yaml_int(h, "layers", what, 1, 8);
+  shape.hidden = training::yaml_int(h, "hidden", what, 1, 256);
+  const int warmup = training::yaml_int(h, "warmup", what, 0, 100000);
   const LstmNet net(shape);
   const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());
   auto m = std::make_unique<LstmModel>(spec, rate, shape,

@@ -294,6 +294,14 @@ double yaml_double(const YAML::Node& node, const std::string& key, const std::st
   return d;
 }
 
+int yaml_int(const YAML::Node& node, const std::string& key, const std::string& what, int low, int high) {
+  const double d = yaml_double(node, key, what);
+  if (d != std::floor(d) || d < low || d > high)
+    throw std::runtime_error(what + ": '" + key + "' must be an integer in " + std::to_string(low) + ".." +
+                             std::to_string(high));
+  return static_cast<int>(d);
+}
+
 std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
                                  std::size_t expected_size) {
   const YAML::Node v = node[key];
