@@ -17,7 +17,9 @@ namespace piezo::ros_io {
 
 namespace {
 void ensure_time() {
-  if (!ros::Time::isValid()) ros::Time::init();
+  // Time::init() switches a node on /use_sim_time back to the wall clock (until the next /clock message):
+  // only for plain programs without ROS time
+  if (!ros::Time::isValid() && !ros::Time::isSimTime()) ros::Time::init();
 }
 
 bool ends_with(const std::string& s, const std::string& suffix) {
