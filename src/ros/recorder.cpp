@@ -279,6 +279,9 @@ void Recorder::on_truth(std::size_t k, const piezo_compensation::EncoderPosition
       device_instant_known_ = true;
     }
     lockstep_try_step();
+  } else if (waiting_truth_ && state_ == State::kRunning &&
+             std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); })) {
+    complete_sample();  // a reading was waiting for its truth
   }
 }
 
@@ -366,6 +369,12 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
     send_sample();
     return;
   }
+  if (waiting_truth_) {
+    // the next reading is here and the last one's truth is not: record that row with the newest truth
+    truth_wait_expired_ = true;
+    complete_sample();
+    if (state_ != State::kRunning) return;
+  }
   if (!ax.pending) {
     ax.pending = *msg;
   } else if (arrival == analysis::SequenceTracker::Arrival::kInOrder ||
@@ -396,6 +405,7 @@ void Recorder::send_sample_unchecked() {
     ax.command.publish(c);
   }
   waited_samples_ = 0;
+  waiting_truth_ = truth_wait_expired_ = false;
   if (!last_marker_ || next_ == first_of_session_ || last_marker_->segment != s.segment ||
       last_marker_->phase != s.phase)
     write_marker(s);
@@ -444,15 +454,42 @@ void Recorder::complete_sample() {
     ++waited_samples_;
     for (auto& ax : axes_) ax.pending.reset();
     if (lockstep_) {
-      // the set point reached the device after its sample instant: give it longer from now on
-      settle_s_ = std::min(2.0 * settle_s_, 0.05);
-      good_streak_ = 0;
+      // An applied voltage that did not move at all means the set point reached the device after its sample
+      // instant: give it longer from now on. One that moved but not all the way is the driver's slew limit.
+      bool stuck = false;
+      for (std::size_t k = 0; k < axes_.size(); ++k) {
+        const auto& q = axes_[k].voltages;
+        const std::uint32_t seq = volts[k] ? volts[k]->sequence : 0;
+        for (const auto& v : q)
+          if (volts[k] && v.sequence + 1 == seq && v.voltage == volts[k]->voltage &&
+              std::fabs(v.voltage - axes_[k].commanded_v) > options_.voltage_tolerance_v)
+            stuck = true;
+      }
+      if (stuck) {
+        // first suspect the driver: it had stepped at the half period before the command came, so it waits
+        // for ROS time to move again; a second intermediate clock step covers that. Then suspect the wait.
+        if (two_steps_left_ == 0)
+          two_steps_left_ = 500;
+        else
+          settle_s_ = std::min(2.0 * settle_s_, 0.05);
+        good_streak_ = 0;
+      }
       lockstep_advance();
     }
     return;
   }
+  if (with_truth_ && !lockstep_ && !truth_wait_expired_) {
+    // the simulator publishes its truth directly, the reading comes through the driver: either may be first
+    for (const auto& ax : axes_)
+      if (std::none_of(ax.truths.begin(), ax.truths.end(),
+                       [&](const auto& t) { return t.sequence == ax.pending->sequence; })) {
+        waiting_truth_ = true;
+        return;
+      }
+  }
+  waiting_truth_ = truth_wait_expired_ = false;
   if (!applied) ++late_commands_;
-  if (lockstep_ && waited_samples_ == 0 && ++good_streak_ >= 200) {
+  if (lockstep_ && waited_samples_ == 0 && ++good_streak_ >= 100) {
     settle_s_ = std::max(0.8 * settle_s_, options_.lockstep_settle_s);
     good_streak_ = 0;
   }
@@ -622,8 +659,22 @@ void Recorder::lockstep_advance() {
       if (ax.voltages.empty() || std::fabs(ax.voltages.back().voltage - ax.commanded_v) > options_.voltage_tolerance_v)
         moving = true;
   if (moving && device_instant_known_) {
-    // The driver slew-limits in ROS time and sends a new set point only when ROS time has moved: half a
-    // period lets it send; the settle wait lets the frame reach the device before its sample instant.
+    // The driver slew-limits in ROS time and sends a new set point only when ROS time has moved: an
+    // intermediate step lets it send; the settle wait lets the frame reach the device before its sample instant.
+    if (two_steps_left_ > 0) {
+      --two_steps_left_;
+      publish_clock(device_instant_s_ + period_s / 3.0);
+      settle_timer_ = nh_.createWallTimer(
+          ros::WallDuration(settle_s_),
+          [this](const ros::WallTimerEvent&) {
+            if (state_ == State::kDone) return;
+            publish_clock(device_instant_s_ + 2.0 * (1.0 / options_.sample_rate_hz) / 3.0);
+            settle_timer_ = nh_.createWallTimer(
+                ros::WallDuration(settle_s_), [this](const ros::WallTimerEvent&) { lockstep_publish_full(); }, true);
+          },
+          true);
+      return;
+    }
     publish_clock(device_instant_s_ + 0.5 * period_s);
     settle_timer_ = nh_.createWallTimer(
         ros::WallDuration(settle_s_), [this](const ros::WallTimerEvent&) { lockstep_publish_full(); }, true);

@@ -135,13 +135,13 @@ class Recorder {
   double t0_s_ = 0.0;
   int waited_samples_ = 0;
   std::uint64_t late_commands_ = 0, skipped_device_samples_ = 0, substituted_truths_ = 0;
-  bool truth_checked_ = false, with_truth_ = false;
+  bool truth_checked_ = false, with_truth_ = false, waiting_truth_ = false, truth_wait_expired_ = false;
   // lock-step state
   ros::Publisher clock_pub_;
   ros::WallTimer settle_timer_, kick_timer_;
   double clock_s_ = 0.0, device_instant_s_ = 0.0, settle_s_ = 0.0;
   bool lockstep_ = false, device_instant_known_ = false, awaiting_step_ = false;
-  int lockstep_steps_ = 0;
+  int lockstep_steps_ = 0, two_steps_left_ = 0;
   std::uint64_t good_streak_ = 0;
   std::optional<std::uint32_t> last_step_sequence_;
   std::optional<std::uint32_t> last_row_sequence_;
