@@ -3,14 +3,22 @@
 // density of the rest. N trials within a time budget, deterministic for a seed (no Python in the loop).
 #pragma once
 
+#include <algorithm>
+#include <chrono>
+#include <cmath>
 #include <cstdint>
 #include <functional>
 #include <limits>
 #include <map>
+#include <stdexcept>
 #include <string>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fit_common.h"
+#include "piezo_compensation/training/trainer.h"
 
 namespace piezo::training {
 
@@ -61,5 +69,51 @@ SearchResult tpe_search(const std::vector<ParamDef>& space, const SearchConfig& 
 std::vector<ParamDef> dense_search_space();
 std::vector<ParamDef> lstm_search_space();
 std::vector<ParamDef> kan_search_space();
+
+// The neural kinds' tuning: TPE over `space` with trials of `tune_epochs` (option; default the full epochs),
+// then the winner retrained with the full `cfg.epochs` while time is left, keeping the better of the two.
+// `train(params, config)` applies the trial's shape and optimiser from `params` and trains with `config`, whose
+// epochs, seed (request seed + trial), time budget and (no) progress are already set; it returns a trial with
+// `model` (a pointer) and `validation_mse`. The search is recorded in the winner's training_info["tuning"].
+template <typename Train>
+auto tune_and_retrain(const std::string& kind, const std::vector<ParamDef>& space, const models::FitRequest& request,
+                      const TrainerConfig& cfg, Train&& train) {
+  using Trial = std::invoke_result_t<Train&, const TrialParams&, TrainerConfig>;
+  Trial best;
+  SearchConfig sc;
+  sc.trials = request.tune_trials;
+  sc.time_budget_s = request.time_budget_s;
+  sc.seed = request.seed;
+  sc.progress = request.progress;
+  const int tune_epochs = option_int(request.options, "tune_epochs", cfg.epochs);
+  const auto t0 = std::chrono::steady_clock::now();
+  auto run = [&](const TrialParams& p, int trial, int epochs, double left) {
+    TrainerConfig c = cfg;
+    c.epochs = epochs;
+    c.progress = nullptr;
+    c.seed = request.seed + static_cast<std::uint64_t>(trial);
+    c.time_budget_s = std::isfinite(left) ? std::max(left, 1e-3) : 0.0;
+    return train(p, std::move(c));
+  };
+  const auto search = tpe_search(space, sc, [&](const TrialParams& p, int trial, double left) {
+    Trial t = run(p, trial, tune_epochs, left);
+    const double v = t.validation_mse;
+    if (v < best.validation_mse) best = std::move(t);
+    return v;
+  });
+  if (!best.model) throw std::runtime_error(kind + ": every tuning trial failed");
+  if (tune_epochs < cfg.epochs) {
+    const double used = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const double left =
+        request.time_budget_s > 0.0 ? request.time_budget_s - used : std::numeric_limits<double>::infinity();
+    if (left > 0.0) {
+      Trial t = run(search.best_trial().params, static_cast<int>(search.best), cfg.epochs, left);
+      if (t.validation_mse < best.validation_mse) best = std::move(t);
+    }
+  }
+  best.model->training_info["tuning"]["trials"] = static_cast<int>(search.trials.size());
+  best.model->training_info["tuning"]["best"] = search.best_trial().params.to_string();
+  return best;
+}
 
 }  // namespace piezo::training

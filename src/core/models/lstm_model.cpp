@@ -1,6 +1,5 @@
 #include "piezo_compensation/models/lstm_model.h"
 
-#include <chrono>
 #include <cmath>
 #include <random>
 #include <stdexcept>
@@ -333,46 +332,16 @@ std::unique_ptr<LstmModel> fit_lstm(const FitRequest& request) {
   };
   if (request.tune_trials <= 0) return finish(train_lstm(data, shape, seq_len, warmup, cfg).model);
 
-  LstmTrial best;
-  training::SearchConfig sc;
-  sc.trials = request.tune_trials;
-  sc.time_budget_s = request.time_budget_s;
-  sc.seed = request.seed;
-  sc.progress = request.progress;
-  const int tune_epochs = training::option_int(request.options, "tune_epochs", cfg.epochs);
-  const auto t0 = std::chrono::steady_clock::now();
-  auto run = [&](const training::TrialParams& p, int trial, int epochs, double left) {
-    LstmShape s = shape;
-    s.layers = static_cast<int>(p.number.at("layers"));
-    s.hidden = static_cast<int>(p.number.at("hidden"));
-    training::TrainerConfig c = cfg;
-    c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
-    c.optimizer.learning_rate = p.number.at("learning_rate");
-    c.epochs = epochs;
-    c.progress = nullptr;
-    c.seed = request.seed + static_cast<std::uint64_t>(trial);
-    c.time_budget_s = std::isfinite(left) ? std::max(left, 1e-3) : 0.0;
-    return train_lstm(data, s, seq_len, warmup, c);
-  };
-  const auto search = training::tpe_search(
-      training::lstm_search_space(), sc, [&](const training::TrialParams& p, int trial, double left) {
-        LstmTrial t = run(p, trial, tune_epochs, left);
-        const double v = t.validation_mse;
-        if (v < best.validation_mse) best = std::move(t);
-        return v;
+  LstmTrial best = training::tune_and_retrain(
+      "lstm", training::lstm_search_space(), request, cfg,
+      [&](const training::TrialParams& p, training::TrainerConfig c) {
+        LstmShape s = shape;
+        s.layers = static_cast<int>(p.number.at("layers"));
+        s.hidden = static_cast<int>(p.number.at("hidden"));
+        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
+        c.optimizer.learning_rate = p.number.at("learning_rate");
+        return train_lstm(data, s, seq_len, warmup, c);
       });
-  if (!best.model) throw std::runtime_error("lstm: every tuning trial failed");
-  // Trials ran `tune_epochs`: retrain the winner with the full `epochs` while time is left; keep the better.
-  if (tune_epochs < cfg.epochs) {
-    const double used = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    const double left = request.time_budget_s > 0.0 ? request.time_budget_s - used : std::numeric_limits<double>::infinity();
-    if (left > 0.0) {
-      LstmTrial t = run(search.best_trial().params, static_cast<int>(search.best), cfg.epochs, left);
-      if (t.validation_mse < best.validation_mse) best = std::move(t);
-    }
-  }
-  best.model->training_info["tuning"]["trials"] = static_cast<int>(search.trials.size());
-  best.model->training_info["tuning"]["best"] = search.best_trial().params.to_string();
   return finish(std::move(best.model));
 }
 
