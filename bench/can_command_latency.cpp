@@ -20,26 +20,12 @@
 #include <thread>
 #include <vector>
 
+#include "latency_histogram.h"
 #include "piezo_compensation/can/driver_core.h"
 
 using namespace piezo::can;
-
-namespace {
-
-double wall_s() {
-  timespec ts;
-  clock_gettime(CLOCK_REALTIME, &ts);
-  return ts.tv_sec + ts.tv_nsec * 1e-9;
-}
-
-double percentile(std::vector<double> v, double p) {
-  if (v.empty()) return std::nan("");
-  std::sort(v.begin(), v.end());
-  const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(std::ceil(p / 100.0 * v.size())) - 1);
-  return v[k];
-}
-
-}  // namespace
+using piezo::bench::percentile;
+using piezo::bench::wall_s;
 
 int main(int argc, char** argv) {
   double seconds = 10.0, rate_hz = 1000.0;
@@ -156,28 +142,13 @@ int main(int argc, char** argv) {
 
   std::lock_guard<std::mutex> l(m);
   const std::vector<double> edges = {10, 20, 50, 100, 200, 500, 1000, 2000, 5000};
-  std::vector<std::size_t> counts(edges.size() + 1, 0);
-  for (double x : latency_us) counts[std::upper_bound(edges.begin(), edges.end(), x) - edges.begin()]++;
   std::printf("command received -> CAN frame written (UDP loopback, kernel rx timestamp), %.0f Hz for %.1f s\n",
               rate_hz, seconds);
   std::printf("commands %lld, frames matched %zu, no frame needed %llu, lost %zu, unmatched %llu\n", total,
               latency_us.size(), static_cast<unsigned long long>(no_frame), sent_at.size(),
               static_cast<unsigned long long>(unmatched));
-  const std::size_t n = std::max<std::size_t>(1, latency_us.size());
-  for (std::size_t b = 0; b < counts.size(); ++b) {
-    char label[48];
-    if (b == 0)
-      std::snprintf(label, sizeof label, "      < %5.0f us", edges[0]);
-    else if (b == edges.size())
-      std::snprintf(label, sizeof label, "     >= %5.0f us", edges.back());
-    else
-      std::snprintf(label, sizeof label, "%5.0f - %5.0f us", edges[b - 1], edges[b]);
-    const int bar = static_cast<int>(std::round(60.0 * counts[b] / n));
-    std::printf("  %s %7zu %6.2f%% %s\n", label, counts[b], 100.0 * counts[b] / n, std::string(bar, '#').c_str());
-  }
-  const double p99 = percentile(latency_us, 99);
-  std::printf("latency [us]: p50 %.1f  p90 %.1f  p99 %.1f  p99.9 %.1f  max %.1f\n", percentile(latency_us, 50),
-              percentile(latency_us, 90), p99, percentile(latency_us, 99.9), percentile(latency_us, 100));
+  piezo::bench::print_latency_histogram(latency_us, edges);
+  const double p99 = piezo::bench::print_latency_percentiles(latency_us);
   std::printf("DriverCore::command() call [us]: p50 %.1f  p99 %.1f  max %.1f\n", percentile(call_us, 50),
               percentile(call_us, 99), percentile(call_us, 100));
   std::printf("target p99 <= 1000 us: %s\n", p99 <= 1000.0 ? "met" : "NOT met");

@@ -21,27 +21,16 @@
 #include <unordered_map>
 #include <vector>
 
+#include "latency_histogram.h"
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/can/codec.h"
 #include "piezo_compensation/can/transport.h"
 
 using namespace piezo::can;
 namespace fs = std::filesystem;
+using piezo::bench::wall_s;
 
 namespace {
-
-double wall_s() {
-  timespec ts;
-  clock_gettime(CLOCK_REALTIME, &ts);
-  return ts.tv_sec + ts.tv_nsec * 1e-9;
-}
-
-double percentile(std::vector<double> v, double p) {
-  if (v.empty()) return std::nan("");
-  std::sort(v.begin(), v.end());
-  const std::size_t k = std::min(v.size() - 1, static_cast<std::size_t>(std::ceil(p / 100.0 * v.size())) - 1);
-  return v[k];
-}
 
 pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
   const pid_t pid = fork();
@@ -201,27 +190,12 @@ int main(int argc, char** argv) {
     std::this_thread::sleep_for(std::chrono::milliseconds(300));
     std::lock_guard<std::mutex> l(m);
     const std::vector<double> edges = {50, 100, 200, 300, 500, 1000, 2000, 5000};
-    std::vector<std::size_t> counts(edges.size() + 1, 0);
-    for (double x : latency_us) counts[std::upper_bound(edges.begin(), edges.end(), x) - edges.begin()]++;
     std::printf("VoltageCommand published -> mm3e_driver (TCPROS, separate process) -> CAN frame in the kernel at the "
                 "device socket (UDP loopback), %.0f Hz for %.1f s\n", rate_hz, seconds);
     std::printf("commands %lld, frames matched %zu, dropped by the queue-1 subscriber %zu\n", total,
                 latency_us.size(), sent_at.size());
-    const std::size_t n = std::max<std::size_t>(1, latency_us.size());
-    for (std::size_t b = 0; b < counts.size(); ++b) {
-      char label[48];
-      if (b == 0)
-        std::snprintf(label, sizeof label, "      < %5.0f us", edges[0]);
-      else if (b == edges.size())
-        std::snprintf(label, sizeof label, "     >= %5.0f us", edges.back());
-      else
-        std::snprintf(label, sizeof label, "%5.0f - %5.0f us", edges[b - 1], edges[b]);
-      const int bar = static_cast<int>(std::round(60.0 * counts[b] / n));
-      std::printf("  %s %7zu %6.2f%% %s\n", label, counts[b], 100.0 * counts[b] / n, std::string(bar, '#').c_str());
-    }
-    const double p99 = percentile(latency_us, 99);
-    std::printf("latency [us]: p50 %.1f  p90 %.1f  p99 %.1f  p99.9 %.1f  max %.1f\n", percentile(latency_us, 50),
-                percentile(latency_us, 90), p99, percentile(latency_us, 99.9), percentile(latency_us, 100));
+    piezo::bench::print_latency_histogram(latency_us, edges);
+    const double p99 = piezo::bench::print_latency_percentiles(latency_us);
     std::printf("target p99 <= 1000 us: %s\n", p99 <= 1000.0 ? "met" : "NOT met");
     if (latency_us.empty()) rc = 1;
   }
