@@ -10,6 +10,7 @@
 #include <cstdlib>
 #include <random>
 
+#include "hysteretic_walk.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/dense_model.h"
 #include "piezo_compensation/models/kan_model.h"
@@ -21,23 +22,16 @@ using namespace piezo;
 namespace {
 
 io::Dataset synthetic(std::size_t n, std::uint64_t seed) {
-  io::Dataset d;
-  d.time_s.resize(n);
-  auto& ax = d.add_axis("c");
-  ax.voltage_v.resize(n);
-  ax.position_nm.resize(n);
-  std::mt19937_64 rng(seed);
-  std::normal_distribution<double> n01;
-  double v = 0.0, play = 0.0, creep = 0.0;
-  for (std::size_t t = 0; t < n; ++t) {
-    d.time_s[t] = static_cast<double>(t) / 11.0;
-    if (t % 400 < 300) v = std::clamp(v + 1.5 * n01(rng), -80.0, 80.0);
-    play = std::clamp(play, v - 4.0, v + 4.0);
-    creep += (play - creep) * 0.002;
-    ax.voltage_v[t] = v;
-    ax.position_nm[t] = 11.0 * play + 1.5 * creep + 20.79 * n01(rng);
-  }
-  return d;
+  test_data::HystereticWalk w;
+  w.period_samples = 400;
+  w.walk_samples = 300;
+  w.step_v = 1.5;
+  w.play_half_width_v = 4.0;
+  w.creep_rate = 0.002;
+  w.play_gain_nm_per_v = 11.0;
+  w.creep_gain_nm_per_v = 1.5;
+  w.noise_nm = 20.79;
+  return test_data::hysteretic_walk(n, seed, w);
 }
 
 std::size_t train_samples() {

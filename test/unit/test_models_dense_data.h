@@ -1,5 +1,5 @@
-// Small synthetic data for the neural model tests: a random-walk voltage through a play operator with a
-// first-order creep term and a little noise, so every feature family carries signal.
+// Small synthetic data for the neural model tests (hysteretic_walk.h with its defaults and a little noise),
+// one-step MAE and the C99 export check.
 #pragma once
 
 #include <algorithm>
@@ -7,29 +7,16 @@
 #include <random>
 #include <vector>
 
+#include "hysteretic_walk.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
 
 namespace test_data {
 
 inline piezo::io::Dataset hysteretic_dataset(std::size_t n, std::uint64_t seed, double noise_nm = 2.0) {
-  piezo::io::Dataset d;
-  d.time_s.resize(n);
-  auto& ax = d.add_axis("c");
-  ax.voltage_v.resize(n);
-  ax.position_nm.resize(n);
-  std::mt19937_64 rng(seed);
-  std::normal_distribution<double> n01;
-  double v = 0.0, play = 0.0, creep = 0.0;
-  for (std::size_t t = 0; t < n; ++t) {
-    d.time_s[t] = static_cast<double>(t) / 11.0;
-    if (t % 40 < 30) v = std::clamp(v + 3.0 * n01(rng), -80.0, 80.0);  // walk, then hold
-    play = std::clamp(play, v - 5.0, v + 5.0);
-    creep += (play - creep) * 0.01;
-    ax.voltage_v[t] = v;
-    ax.position_nm[t] = 12.0 * play + 2.0 * creep + noise_nm * n01(rng);
-  }
-  return d;
+  HystereticWalk w;  // the defaults: walk 30 of every 40 samples, steps of 3 V, play ±5 V, creep 0.01/sample
+  w.noise_nm = noise_nm;
+  return hysteretic_walk(n, seed, w);
 }
 
 // One-step MAE of a model on the data (measured positions committed).
