@@ -8,6 +8,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/util/splitmix64.h"
+
 namespace piezo::protocols {
 
 namespace {
@@ -58,12 +60,7 @@ sawtooth: {teeth: 8, amplitude_start_v: 10.0, amplitude_end_v: 80.0, rate_v_per_
 constexpr double kTwoPi = 6.283185307179586;
 constexpr std::size_t kMaxSamples = 50'000'000;  // ~52 days at 11 Hz: guards against absurd durations
 
-std::uint64_t splitmix64(std::uint64_t& x) {
-  std::uint64_t z = (x += 0x9E3779B97F4A7C15ULL);
-  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
-  z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
-  return z ^ (z >> 31);
-}
+using util::splitmix64;
 
 // Small self-contained generator so programs are identical on every platform and library version.
 class Rng {

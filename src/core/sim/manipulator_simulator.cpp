@@ -7,6 +7,7 @@
 
 #include "piezo_compensation/sim/piezo_axis.h"
 #include "piezo_compensation/sim/simulator_config.h"
+#include "piezo_compensation/util/splitmix64.h"
 
 namespace piezo::sim {
 
@@ -14,12 +15,7 @@ namespace {
 
 constexpr double kTwoPi = 6.283185307179586;
 
-std::uint64_t splitmix64(std::uint64_t& x) {
-  std::uint64_t z = (x += 0x9E3779B97F4A7C15ULL);
-  z = (z ^ (z >> 30)) * 0xBF58476D1CE4E5B9ULL;
-  z = (z ^ (z >> 27)) * 0x94D049BB133111EBULL;
-  return z ^ (z >> 31);
-}
+using util::splitmix64;
 
 // xoshiro256+ with Box–Muller normals: fast, and the same sequence on every platform.
 class Rng {
