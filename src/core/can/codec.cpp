@@ -121,6 +121,14 @@ can_frame make_frame(std::uint32_t id, bool extended, std::uint8_t dlc) {
   f.can_dlc = dlc;
   return f;
 }
+
+// Voltage and encoder reports share one payload (decoded together too): counts (4 bytes), the 24-bit
+// sequence (3 bytes), the flag byte.
+void put_report(can_frame& f, std::int32_t counts, std::uint32_t sequence, bool fault, ByteOrder order) {
+  put(f.data, static_cast<std::uint32_t>(counts), 4, order);
+  put(f.data + 4, sequence % kSequenceModulo, 3, order);
+  f.data[7] = fault ? kReportFlagFault : 0;
+}
 }  // namespace
 
 can_frame Codec::encode(const CommandFrame& m) const {
@@ -135,20 +143,16 @@ can_frame Codec::encode(const CommandFrame& m) const {
 can_frame Codec::encode(const VoltageReport& m) const {
   check_axis(m.axis);
   can_frame f = make_frame(voltage_id(m.axis), config_.extended_ids, kVoltageDlc);
-  put(f.data, static_cast<std::uint32_t>(to_counts(m.voltage_v, config_.voltage_lsb_v, "reported voltage")), 4,
-      config_.byte_order);
-  put(f.data + 4, m.sequence % kSequenceModulo, 3, config_.byte_order);
-  f.data[7] = m.fault ? kReportFlagFault : 0;
+  put_report(f, to_counts(m.voltage_v, config_.voltage_lsb_v, "reported voltage"), m.sequence, m.fault,
+             config_.byte_order);
   return f;
 }
 
 can_frame Codec::encode(const EncoderReport& m) const {
   check_axis(m.axis);
   can_frame f = make_frame(encoder_id(m.axis), config_.extended_ids, kEncoderDlc);
-  put(f.data, static_cast<std::uint32_t>(to_counts(m.position_m, config_.position_lsb_m, "encoder position")), 4,
-      config_.byte_order);
-  put(f.data + 4, m.sequence % kSequenceModulo, 3, config_.byte_order);
-  f.data[7] = m.valid ? 0 : kReportFlagFault;
+  put_report(f, to_counts(m.position_m, config_.position_lsb_m, "encoder position"), m.sequence, !m.valid,
+             config_.byte_order);
   return f;
 }
 
