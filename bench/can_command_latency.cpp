@@ -29,15 +29,7 @@ using piezo::bench::wall_s;
 
 int main(int argc, char** argv) {
   double seconds = 10.0, rate_hz = 1000.0;
-  for (int i = 1; i + 1 < argc; i += 2) {
-    const std::string a = argv[i];
-    if (a == "--seconds") seconds = std::atof(argv[i + 1]);
-    else if (a == "--rate-hz") rate_hz = std::atof(argv[i + 1]);
-    else {
-      std::fprintf(stderr, "usage: %s [--seconds S] [--rate-hz R]\n", argv[0]);
-      return 2;
-    }
-  }
+  if (!piezo::bench::parse_latency_options(argc, argv, seconds, rate_hz)) return 2;
   if (!(seconds > 0) || !(rate_hz > 0)) {
     std::fprintf(stderr, "can_command_latency: --seconds and --rate-hz must be > 0\n");
     return 2;

@@ -1,6 +1,6 @@
-// What the command-latency tools (can_command_latency, can_ros_command_latency) share: the wall clock the
-// commands are stamped with (CLOCK_REALTIME, comparable with the kernel's SO_TIMESTAMP), percentiles, and the
-// printed latency histogram and percentile line.
+// What the command-latency tools (can_command_latency, can_ros_command_latency) share: their options, the wall
+// clock the commands are stamped with (CLOCK_REALTIME, comparable with the kernel's SO_TIMESTAMP), percentiles,
+// and the printed latency histogram and percentile line.
 #pragma once
 
 #include <time.h>
@@ -9,10 +9,25 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdio>
+#include <cstdlib>
 #include <string>
 #include <vector>
 
 namespace piezo::bench {
+
+// Reads --seconds S and --rate-hz R into the given defaults; prints the usage and returns false on any other option.
+inline bool parse_latency_options(int argc, char** argv, double& seconds, double& rate_hz) {
+  for (int i = 1; i + 1 < argc; i += 2) {
+    const std::string a = argv[i];
+    if (a == "--seconds") seconds = std::atof(argv[i + 1]);
+    else if (a == "--rate-hz") rate_hz = std::atof(argv[i + 1]);
+    else {
+      std::fprintf(stderr, "usage: %s [--seconds S] [--rate-hz R]\n", argv[0]);
+      return false;
+    }
+  }
+  return true;
+}
 
 inline double wall_s() {
   timespec ts;
