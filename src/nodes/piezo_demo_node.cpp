@@ -1,7 +1,8 @@
 // piezo_demo: drives one axis of the simulated manipulator through the demo scenarios (scripts/demo), once
 // uncompensated and once compensated, in lockstep with the encoder samples, and measures the true position.
 //   ~scenario  "sawtooth": triangles of increasing amplitude (study Fig. 11) → deviation from the ideal line
-//              "creep": several voltage histories, each followed by a 30-min hold → drift of the true position
+//              "creep": histories of the package's own `creep` protocol (~creep_seed, ~creep_scenarios), each
+//              followed by its hold (the intent held ~hold_s) → drift of the true position
 //   ~model_file  the predictor's model (for the ideal line, same definition as the predictor)
 //   ~out_prefix  writes <prefix>.csv (every sample) and <prefix>.json (the metrics)
 #include <ros/ros.h>
@@ -15,8 +16,11 @@
 #include <vector>
 
 #include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/IntendedMotion.h"
+#include "piezo_compensation/Prediction.h"
 #include "piezo_compensation/compensation/ideal_line.h"
+#include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/predictor.h"
 
 namespace {
@@ -37,50 +41,86 @@ void hold(std::vector<Step>& s, int mode, int seg, const std::string& ph, double
   for (int i = 0; i < n; ++i) s.push_back({mode, seg, ph, v});
 }
 
-std::vector<Step> scenario(const std::string& name, double hz, double hold_s, double hold_v) {
+struct CreepOptions {
+  int seed = 3;                  // protocol seed (the demo's training plan uses the creep set of seed + 7)
+  std::vector<int> scenarios;    // protocol segments (0-based)
+  double history_s = 1800.0, hold_s = 1800.0;
+};
+
+std::vector<Step> sawtooth(double hz) {
   std::vector<Step> s;
   for (int mode = 0; mode < 2; ++mode) {
-    if (name == "sawtooth") {
-      hold(s, mode, 0, "rest", 0.0, 30.0, hz);
-      // Triangles 0 → +A → −A → 0 with A = 10 … 70 V, 8 V/s (Fig. 11 of the study: increasing amplitude).
-      for (double a = 10.0; a <= 70.0 + 1e-9; a += 10.0) {
-        ramp(s, mode, 0, "saw", 0.0, a, a / 8.0, hz);
-        ramp(s, mode, 0, "saw", a, -a, 2 * a / 8.0, hz);
-        ramp(s, mode, 0, "saw", -a, 0.0, a / 8.0, hz);
-      }
-      hold(s, mode, 0, "rest", 0.0, 5.0, hz);
-    } else {
-      // Four different histories arriving at the same intended voltage, each held for hold_s.
-      for (int h = 0; h < 4; ++h) {
-        hold(s, mode, h, "rest", 0.0, 60.0, hz);
-        if (h == 0) {
-          ramp(s, mode, h, "history", 0.0, hold_v, 5.0, hz);
-        } else if (h == 1) {
-          ramp(s, mode, h, "history", 0.0, 70.0, 10.0, hz);
-          hold(s, mode, h, "history", 70.0, 5.0, hz);
-          ramp(s, mode, h, "history", 70.0, hold_v, 10.0, hz);
-        } else if (h == 2) {
-          ramp(s, mode, h, "history", 0.0, -60.0, 10.0, hz);
-          hold(s, mode, h, "history", -60.0, 5.0, hz);
-          ramp(s, mode, h, "history", -60.0, hold_v, 10.0, hz);
-        } else {
-          for (int k = 0; k < 3; ++k) {
-            ramp(s, mode, h, "history", k == 0 ? 0.0 : -50.0, 50.0, 10.0, hz);
-            ramp(s, mode, h, "history", 50.0, -50.0, 10.0, hz);
-          }
-          ramp(s, mode, h, "history", -50.0, hold_v, 5.0, hz);
-        }
-        hold(s, mode, h, "hold", hold_v, hold_s, hz);
-        ramp(s, mode, h, "rest", hold_v, 0.0, 5.0, hz);
-      }
+    hold(s, mode, 0, "rest", 0.0, 30.0, hz);
+    // Triangles 0 → +A → −A → 0 with A = 10 … 70 V, 8 V/s (Fig. 11 of the study: increasing amplitude).
+    for (double a = 10.0; a <= 70.0 + 1e-9; a += 10.0) {
+      ramp(s, mode, 0, "saw", 0.0, a, a / 8.0, hz);
+      ramp(s, mode, 0, "saw", a, -a, 2 * a / 8.0, hz);
+      ramp(s, mode, 0, "saw", -a, 0.0, a / 8.0, hz);
     }
+    hold(s, mode, 0, "rest", 0.0, 5.0, hz);
   }
   return s;
 }
 
+// The chosen scenarios of the creep protocol (axis c column): its ~30-min history, then its hold. A short ramp
+// (≤ 8 V/s) joins the scenarios, which in the protocol follow other scenarios.
+std::vector<Step> creep(const CreepOptions& o, double hz) {
+  YAML::Node params;
+  params["history_s"] = o.history_s;
+  params["hold_s"] = o.hold_s;
+  const auto protocol = piezo::protocols::make_protocol("creep", params, hz, static_cast<std::uint64_t>(o.seed));
+  std::map<int, std::vector<piezo::protocols::ProtocolSample>> by_segment;
+  for (std::size_t i = 0; i < protocol->size(); ++i) {
+    const auto p = protocol->at(i);
+    by_segment[p.segment].push_back(p);
+  }
+  std::vector<Step> s;
+  double v = 0.0;
+  for (int mode = 0; mode < 2; ++mode) {
+    for (std::size_t h = 0; h < o.scenarios.size(); ++h) {
+      const int seg = o.scenarios[h];
+      const int n_scen = static_cast<int>(by_segment.size());
+      if (seg < 0 || seg >= n_scen)
+        throw std::invalid_argument("~creep_scenarios: " + std::to_string(seg) + " outside 0.." +
+                                    std::to_string(n_scen - 1));
+      const auto& samples = by_segment.at(seg);
+      const double first = samples.front().voltage_v[2];
+      ramp(s, mode, static_cast<int>(h), "rest", v, first, std::max(5.0, std::abs(first - v) / 8.0), hz);
+      for (const auto& p : samples)
+        s.push_back({mode, static_cast<int>(h), p.phase == piezo::protocols::Phase::kHold ? "hold" : "history",
+                     p.voltage_v[2]});
+      v = samples.back().voltage_v[2];
+    }
+  }
+  ramp(s, 1, static_cast<int>(o.scenarios.size()) - 1, "rest", v, 0.0, std::max(5.0, std::abs(v) / 8.0), hz);
+  return s;
+}
+
+// A list parameter given as a YAML list or, from the command line (_name:="[11, 8]"), as a string holding one.
+std::vector<int> int_list(const ros::NodeHandle& pnh, const std::string& name, const std::vector<int>& def) {
+  XmlRpc::XmlRpcValue v;
+  if (!pnh.getParam(name, v)) return def;
+  std::vector<int> out;
+  try {
+    if (v.getType() == XmlRpc::XmlRpcValue::TypeString) {
+      for (const auto& x : YAML::Load(static_cast<std::string>(v))) out.push_back(x.as<int>());
+    } else if (v.getType() == XmlRpc::XmlRpcValue::TypeArray) {
+      for (int i = 0; i < v.size(); ++i) {
+        if (v[i].getType() != XmlRpc::XmlRpcValue::TypeInt) throw std::invalid_argument("element not an integer");
+        out.push_back(static_cast<int>(v[i]));
+      }
+    } else {
+      throw std::invalid_argument("not a list");
+    }
+  } catch (const std::exception& e) {
+    throw std::invalid_argument("~" + name + ": expected a list of integers such as [11, 8] (" + e.what() + ")");
+  }
+  return out;
+}
+
 struct Row {
   Step step;
-  double time_s, ideal_nm, true_nm, encoder_nm;  // time_s: scenario sample index / rate
+  double time_s, ideal_nm, true_nm, encoder_nm, applied_v;  // time_s: scenario sample index / rate
 };
 
 class Demo {
@@ -92,18 +132,28 @@ class Demo {
     axis_ = pnh.param<std::string>("axis", "c");
     out_prefix_ = pnh.param<std::string>("out_prefix", "demo");
     const std::string model_file = pnh.param<std::string>("model_file", "");
-    const double hold_s = pnh.param<double>("hold_s", 1800.0);
-    hold_v_ = pnh.param<double>("hold_v", 20.0);
+    CreepOptions co;
+    co.hold_s = pnh.param<double>("hold_s", 1800.0);
+    co.history_s = pnh.param<double>("creep_history_s", 1800.0);
+    co.seed = pnh.param<int>("creep_seed", 3);
+    co.scenarios = int_list(pnh, "creep_scenarios", {11, 8, 13, 6});
+    if (co.scenarios.empty()) throw std::invalid_argument("~creep_scenarios: empty list");
+    if (!(co.hold_s > 0.0) || !(co.history_s > 0.0))
+      throw std::invalid_argument("~hold_s and ~creep_history_s must be > 0 s");
     auto model = piezo::predictor::load_model_file(model_file);
     piezo::compensation::IdealLineOptions o;  // the predictor's defaults (config/predictor.yaml)
     o.hold_s = pnh.param<double>("ideal_line_hold_s", 60.0);
     o.sample_rate_hz = model->meta.sample_rate_hz;
     line_ = piezo::compensation::ideal_line_from_model(*model, o);
     rate_hz_ = model->meta.sample_rate_hz;
-    steps_ = scenario(scenario_name_, rate_hz_, hold_s, hold_v_);
+    creep_seed_ = co.seed;
+    creep_scenarios_ = co.scenarios;
+    steps_ = scenario_name_ == "sawtooth" ? sawtooth(rate_hz_) : creep(co, rate_hz_);
     intended_ = nh_.advertise<piezo_compensation::IntendedMotion>(axis_ + "/intended", 5);
     encoder_ = nh_.subscribe(axis_ + "/encoder", 50, &Demo::on_encoder, this);
     truth_ = nh_.subscribe(axis_ + "/true_position", 50, &Demo::on_truth, this);
+    voltage_ = nh_.subscribe(axis_ + "/voltage", 50, &Demo::on_voltage, this);
+    prediction_ = nh_.subscribe(axis_ + "/prediction", 50, &Demo::on_prediction, this);
     switch_ = nh_.serviceClient<std_srvs::SetBool>("predictor/set_compensation");
     ROS_INFO("demo %s: %zu samples (%.0f s simulated per mode), ideal line %.4f nm/V + %.2f nm", scenario_name_.c_str(),
              steps_.size(), steps_.size() / model->meta.sample_rate_hz / 2, line_.gain_nm_per_v, line_.offset_nm);
@@ -113,10 +163,11 @@ class Demo {
 
   void finish() {
     std::ofstream csv(out_prefix_ + ".csv");
-    csv << "mode,segment,phase,time_s,intent_v,ideal_nm,true_nm,encoder_nm\n";
+    csv << "mode,segment,phase,time_s,intent_v,applied_v,ideal_nm,true_nm,encoder_nm\n";
+    csv.precision(10);
     for (const auto& r : rows_)
       csv << r.step.mode << "," << r.step.segment << "," << r.step.phase << "," << r.time_s << "," << r.step.intent_v
-          << "," << r.ideal_nm << "," << r.true_nm << "," << r.encoder_nm << "\n";
+          << "," << r.applied_v << "," << r.ideal_nm << "," << r.true_nm << "," << r.encoder_nm << "\n";
     std::ofstream js(out_prefix_ + ".json");
     js.precision(6);
     if (scenario_name_ == "sawtooth") {
@@ -153,10 +204,29 @@ class Demo {
           if (key.first == mode) js << (first ? "" : ", ") << std::abs(v.second - v.first), first = false;
         js << "]";
       }
-      js << ", \"hold_start_error_nm\": [";
-      bool first = true;
-      for (const auto& [key, v] : ends)
-        js << (first ? "" : ", ") << (v.first - line_.position_nm(hold_v_)), first = false;
+      // Per hold: intended voltage, true − intended position where the hold starts, samples until the hold's
+      // command was applied (command latency through predictor → driver → device), whether that was forced.
+      std::map<std::pair<int, int>, double> hold_v;
+      for (const auto& r : rows_)
+        if (r.step.phase == "hold") hold_v[{r.step.mode, r.step.segment}] = r.step.intent_v;
+      const auto list = [&](const char* name, auto value) {
+        js << ", \"" << name << "\": [";
+        bool first = true;
+        for (const auto& [key, v] : ends) js << (first ? "" : ", ") << value(key, v), first = false;
+        js << "]";
+      };
+      list("hold_v", [&](auto key, auto) { return hold_v[key]; });
+      list("hold_start_error_nm", [&](auto key, auto v) { return v.first - line_.position_nm(hold_v[key]); });
+      list("hold_start_delay_samples", [&](auto key, auto) { return hold_delay_[key]; });
+      list("hold_start_forced", [&](auto key, auto) { return forced_[key] ? 1 : 0; });
+      // In-step check: uncompensated samples of the histories whose applied voltage was not the intent in force
+      // (a command that reached the device late).
+      std::size_t late = 0, moving = 0;
+      for (const auto& r : rows_)
+        if (r.step.mode == 0 && r.step.phase == "history") ++moving, late += std::abs(r.applied_v - r.step.intent_v) > 5e-4;
+      js << ", \"uncompensated_history_samples\": " << moving << ", \"uncompensated_late_samples\": " << late;
+      js << ", \"creep_seed\": " << creep_seed_ << ", \"creep_scenarios\": [";
+      for (std::size_t i = 0; i < creep_scenarios_.size(); ++i) js << (i ? ", " : "") << creep_scenarios_[i];
       js << "]}\n";
     }
     ROS_INFO("demo %s: wrote %s.csv and %s.json (%zu samples)", scenario_name_.c_str(), out_prefix_.c_str(),
@@ -168,6 +238,18 @@ class Demo {
     truth_by_seq_[m->sequence] = m->position * 1e9;
     pair(m->sequence);
   }
+  void on_voltage(const piezo_compensation::AxisVoltage::ConstPtr& m) {
+    volt_by_seq_[m->sequence] = m->voltage;
+    pair(m->sequence);
+  }
+  // Voltages the predictor sent for the hold intent: the hold starts when one of them is applied.
+  void on_prediction(const piezo_compensation::Prediction::ConstPtr& m) {
+    if (next_ == 0 || next_ > steps_.size()) return;
+    const Step& s = steps_[next_ - 1];
+    if (s.phase != "hold" || m->fallback) return;
+    if (std::abs(m->commanded_voltage - s.intent_v) > 1e-6) return;
+    hold_sent_v_.push_back(m->compensation_active ? m->corrected_voltage : m->commanded_voltage);
+  }
   void on_encoder(const piezo_compensation::EncoderPosition::ConstPtr& m) {
     enc_by_seq_[m->sequence] = {m->header.stamp.toSec(), m->position * 1e9};
     pair(m->sequence);
@@ -176,13 +258,34 @@ class Demo {
   void pair(std::uint32_t seq) {
     auto t = truth_by_seq_.find(seq);
     auto e = enc_by_seq_.find(seq);
-    if (t == truth_by_seq_.end() || e == enc_by_seq_.end()) return;
-    const double true_nm = t->second, enc_nm = e->second.second;
+    auto v = volt_by_seq_.find(seq);
+    if (t == truth_by_seq_.end() || e == enc_by_seq_.end() || v == volt_by_seq_.end()) return;
+    const double true_nm = t->second, enc_nm = e->second.second, applied_v = v->second;
     truth_by_seq_.erase(truth_by_seq_.begin(), std::next(t));
     enc_by_seq_.erase(enc_by_seq_.begin(), std::next(e));
+    volt_by_seq_.erase(volt_by_seq_.begin(), std::next(v));
     if (next_ > 0 && next_ <= steps_.size()) {
-      const Step& s = steps_[next_ - 1];
-      rows_.push_back({s, static_cast<double>(next_ - 1) / rate_hz_, line_.position_nm(s.intent_v), true_nm, enc_nm});
+      Step s = steps_[next_ - 1];
+      if (s.phase == "hold") {
+        // The hold (and its drift) starts at the first sample that has the hold's command applied; before
+        // that the tip is still on the approach, one or two samples behind the intent.
+        const auto key = std::make_pair(s.mode, s.segment);
+        if (!hold_started_[key]) {
+          const bool hit = std::any_of(hold_sent_v_.begin(), hold_sent_v_.end(),
+                                       [&](double x) { return std::abs(x - applied_v) <= 5e-4; });
+          if (hit || hold_delay_[key] >= 20) {
+            hold_started_[key] = true;
+            forced_[key] = !hit;
+          } else {
+            ++hold_delay_[key];
+            s.phase = "hold_wait";
+          }
+        }
+      } else {
+        hold_sent_v_.clear();
+      }
+      rows_.push_back(
+          {s, static_cast<double>(next_ - 1) / rate_hz_, line_.position_nm(s.intent_v), true_nm, enc_nm, applied_v});
     }
     if (next_ >= steps_.size()) {
       ++next_;
@@ -207,7 +310,13 @@ class Demo {
 
   ros::NodeHandle nh_;
   std::string scenario_name_, axis_, out_prefix_;
-  double hold_v_ = 20.0, rate_hz_ = 11.0;
+  double rate_hz_ = 11.0;
+  int creep_seed_ = 3;
+  std::vector<int> creep_scenarios_;
+  std::map<std::pair<int, int>, bool> hold_started_, forced_;
+  std::map<std::pair<int, int>, int> hold_delay_;
+  std::vector<double> hold_sent_v_;
+  std::map<std::uint32_t, double> volt_by_seq_;
   piezo::compensation::IdealLine line_;
   std::vector<Step> steps_;
   std::size_t next_ = 0;
@@ -215,7 +324,7 @@ class Demo {
   std::map<std::uint32_t, double> truth_by_seq_;
   std::map<std::uint32_t, std::pair<double, double>> enc_by_seq_;
   ros::Publisher intended_;
-  ros::Subscriber encoder_, truth_;
+  ros::Subscriber encoder_, truth_, voltage_, prediction_;
   ros::ServiceClient switch_;
 };
 
