@@ -113,6 +113,19 @@ std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key,
                                  std::size_t expected_size);
 YAML::Node flow_sequence(const Eigen::VectorXd& values);
 
+// What every neural kind's model-file node shares, read and checked in one place: the kind, the sample rate, the
+// feature spec, the target scale and the hyperparameters map (keys checked against `hyperparameter_keys`).
+// `extra_keys` are the kind's own further top-level keys (e.g. KAN's "grids"). Errors name "<kind> model".
+struct NeuralFileHeader {
+  double sample_rate_hz = 0.0;
+  features::FeatureSpec spec;
+  TargetScale target;
+  YAML::Node hyperparameters;
+};
+NeuralFileHeader read_neural_file_header(const YAML::Node& node, const std::string& kind,
+                                         const std::vector<std::string>& hyperparameter_keys,
+                                         const std::vector<std::string>& extra_keys = {});
+
 }  // namespace piezo::training
 
 namespace piezo::training {

@@ -173,19 +173,11 @@ YAML::Node DenseModel::to_yaml() const {
 
 std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
   const std::string what = "dense model";
-  // The model file adds axis and kind to this node.
-  training::check_keys(
-      node, {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters", "training", "weights"}, what);
-  if (node["kind"] && node["kind"].as<std::string>() != "dense")
-    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
-  const double rate = training::yaml_double(node, "sample_rate_hz", what);
-  if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
-  if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
-  const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
-  const training::TargetScale target = training::TargetScale::from_yaml(node["target"], what);
-  const YAML::Node h = node["hyperparameters"];
-  if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
-  training::check_keys(h, {"depth", "width", "leaky_slope"}, what + " hyperparameters");
+  const training::NeuralFileHeader header = training::read_neural_file_header(node, "dense", {"depth", "width", "leaky_slope"});
+  const double rate = header.sample_rate_hz;
+  const features::FeatureSpec& spec = header.spec;
+  const training::TargetScale& target = header.target;
+  const YAML::Node h = header.hyperparameters;
   DenseShape shape;
   shape.inputs = static_cast<int>(spec.size());
   shape.depth = training::yaml_int(h, "depth", what, 0, 16);

@@ -552,20 +552,11 @@ YAML::Node KanModel::to_yaml() const {
 
 std::unique_ptr<KanModel> KanModel::from_yaml(const YAML::Node& node) {
   const std::string what = "kan model";
-  // The model file adds axis and kind to this node.
-  training::check_keys(node, {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters", "training",
-                              "grids", "weights"},
-                       what);
-  if (node["kind"] && node["kind"].as<std::string>() != "kan")
-    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
-  const double rate = training::yaml_double(node, "sample_rate_hz", what);
-  if (!(rate > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
-  if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
-  const features::FeatureSpec spec = features::FeatureSpec::from_yaml(node["features"]);
-  const training::TargetScale target = training::TargetScale::from_yaml(node["target"], what);
-  const YAML::Node h = node["hyperparameters"];
-  if (!h) throw std::runtime_error(what + ": missing key 'hyperparameters'");
-  training::check_keys(h, {"widths", "grid", "order"}, what + " hyperparameters");
+  const training::NeuralFileHeader header = training::read_neural_file_header(node, "kan", {"widths", "grid", "order"}, {"grids"});
+  const double rate = header.sample_rate_hz;
+  const features::FeatureSpec& spec = header.spec;
+  const training::TargetScale& target = header.target;
+  const YAML::Node h = header.hyperparameters;
   KanShape shape;
   if (!h["widths"] || !h["widths"].IsSequence()) throw std::runtime_error(what + ": 'widths' must be a list");
   shape.widths.clear();

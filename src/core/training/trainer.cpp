@@ -269,6 +269,30 @@ SplitData split_for_validation(const models::FitRequest& request, double fractio
 
 // ---- YAML helpers ------------------------------------------------------------------------------------------
 
+NeuralFileHeader read_neural_file_header(const YAML::Node& node, const std::string& kind,
+                                         const std::vector<std::string>& hyperparameter_keys,
+                                         const std::vector<std::string>& extra_keys) {
+  const std::string what = kind + " model";
+  // The model file adds axis and kind to this node.
+  std::vector<std::string> allowed = {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters",
+                                      "training"};
+  allowed.insert(allowed.end(), extra_keys.begin(), extra_keys.end());
+  allowed.push_back("weights");
+  check_keys(node, allowed, what);
+  if (node["kind"] && node["kind"].as<std::string>() != kind)
+    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
+  NeuralFileHeader header;
+  header.sample_rate_hz = yaml_double(node, "sample_rate_hz", what);
+  if (!(header.sample_rate_hz > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
+  if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
+  header.spec = features::FeatureSpec::from_yaml(node["features"]);
+  header.target = TargetScale::from_yaml(node["target"], what);
+  header.hyperparameters = node["hyperparameters"];
+  if (!header.hyperparameters) throw std::runtime_error(what + ": missing key 'hyperparameters'");
+  check_keys(header.hyperparameters, hyperparameter_keys, what + " hyperparameters");
+  return header;
+}
+
 void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what) {
   if (!node || !node.IsMap()) throw std::runtime_error(what + ": expected a map");
   for (const auto& kv : node) {
