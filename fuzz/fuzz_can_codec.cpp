@@ -73,6 +73,8 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
       again = codec.encode(*m);
     } else if (const auto* m = std::get_if<Heartbeat>(&r.message_value)) {
       again = codec.encode(*m);
+    } else if (const auto* m = std::get_if<SyncFrame>(&r.message_value)) {
+      again = codec.encode(*m);
     } else {
       encoded = false;  // error frames: only the class bits and data are kept
       check(!std::get<BusError>(r.message_value).description.empty(), "error frame described");

@@ -40,6 +40,8 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   const double output_rate_hz = param_double(pnh_, "output_rate_hz", 200.0, 1.0, 10000.0);
   const double diagnostic_period_s = param_double(pnh_, "diagnostic_period_s", 1.0, 0.05, 60.0);
   stamp_with_receive_time_ = param_bool(pnh_, "stamp_with_receive_time", true);
+  sync_mode_ = param_bool(pnh_, "sync_mode", false);
+  sync_idle_s_ = param_double(pnh_, "sync_idle_s", 0.5, 0.001, 60.0);
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;
@@ -96,17 +98,28 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
                  [this, i](diagnostic_updater::DiagnosticStatusWrapper& s) { diagnose_axis(i, s); });
   last_diag_ = ros::WallTime::now();
   core_->start();
-  tick_timer_ = nh_.createTimer(ros::Duration(1.0 / output_rate_hz), &DriverNode::on_tick, this);
+  if (sync_mode_) {
+    last_sync_wall_ = ros::WallTime::now();
+    sync_idle_timer_ = nh_.createWallTimer(ros::WallDuration(sync_idle_s_ / 2), [this](const ros::WallTimerEvent&) {
+      check_commanders();
+      std::lock_guard<std::mutex> lock(sync_mutex_);
+      if ((ros::WallTime::now() - last_sync_wall_).toSec() >= sync_idle_s_) sync_locked();
+    });
+  } else {
+    tick_timer_ = nh_.createTimer(ros::Duration(1.0 / output_rate_hz), &DriverNode::on_tick, this);
+  }
   diag_timer_ = nh_.createWallTimer(ros::WallDuration(diagnostic_period_s), [this](const ros::WallTimerEvent&) {
     updater_.force_update();
   });
   ROS_INFO_STREAM("mm3e_driver: " << hardware_id << ", limits [" << lim.min_voltage_v << ", " << lim.max_voltage_v
                                   << "] V, slew " << lim.slew_rate_v_per_s << " V/s, command timeout "
-                                  << lim.command_timeout_s << " s");
+                                  << lim.command_timeout_s << " s"
+                                  << (sync_mode_ ? "; synchronous mode: the controller samples on SYNC" : ""));
 }
 
 DriverNode::~DriverNode() {
   tick_timer_.stop();
+  sync_idle_timer_.stop();
   diag_timer_.stop();
   if (core_) core_->stop();
 }
@@ -151,9 +164,20 @@ void DriverNode::check_commanders() {
 
 void DriverNode::on_command(int axis, const VoltageCommand::ConstPtr& msg) {
   check_commanders();
-  const double now = ros::Time::now().toSec();
-  const double stamp = msg->header.stamp.isZero() ? std::nan("") : msg->header.stamp.toSec();
-  const can::CommandOutcome out = core_->command(axis, msg->voltage, now, stamp);
+  can::CommandOutcome out;
+  if (sync_mode_) {
+    std::lock_guard<std::mutex> lock(sync_mutex_);
+    out = core_->command(axis, msg->voltage, bus_time_s_, bus_time_s_);
+    commanded_since_sync_[axis] = true;
+    bool complete = true;
+    for (int i = 0; i < can::kAxisCount; ++i)
+      if (command_sub_[i].getNumPublishers() > 0 && !commanded_since_sync_[i]) complete = false;
+    if (complete) sync_locked();
+  } else {
+    const double now = ros::Time::now().toSec();
+    const double stamp = msg->header.stamp.isZero() ? std::nan("") : msg->header.stamp.toSec();
+    out = core_->command(axis, msg->voltage, now, stamp);
+  }
   switch (out) {
     case can::CommandOutcome::kRejectedNonFinite:
       ROS_WARN_STREAM_THROTTLE(1.0, "mm3e_driver: axis " << can::kAxisNames[axis] << ": rejected non-finite command "
@@ -175,6 +199,18 @@ void DriverNode::on_command(int axis, const VoltageCommand::ConstPtr& msg) {
 void DriverNode::on_tick(const ros::TimerEvent&) {
   check_commanders();
   core_->tick(ros::Time::now().toSec());
+}
+
+void DriverNode::sync_locked() {
+  // ramps of axes without a command this sample, and the watchdog, move on by one period first
+  core_->tick(bus_time_s_);
+  if (core_->sync()) {
+    bus_time_s_ += sample_period_s_;
+  } else {
+    ROS_WARN_STREAM_THROTTLE(2.0, "mm3e_driver: SYNC not sent (bus down); the controller is not sampling");
+  }
+  commanded_since_sync_.fill(false);
+  last_sync_wall_ = ros::WallTime::now();
 }
 
 bool DriverNode::on_halt(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
@@ -229,6 +265,7 @@ void DriverNode::diagnose_bus(diagnostic_updater::DiagnosticStatusWrapper& stat)
   stat.add("send failures", b.send_failures);
   stat.add("connects", b.connects);
   stat.add("connect failures", b.connect_failures);
+  if (sync_mode_) stat.add("SYNC frames sent", b.syncs_sent);
   stat.add("next reconnect in [s]", b.next_reconnect_in_s);
   stat.add("device state", b.heartbeat_seen ? can::to_string(b.device_state) : "no heartbeat");
   stat.add("device fault flags", hex(b.device_fault_flags));

@@ -94,6 +94,7 @@ can::ProtocolConfig read_protocol(const ros::NodeHandle& pnh) {
   c.voltage_function_id = param_int(p, "voltage_function_id", c.voltage_function_id, 0, max_id);
   c.encoder_function_id = param_int(p, "encoder_function_id", c.encoder_function_id, 0, max_id);
   c.heartbeat_function_id = param_int(p, "heartbeat_function_id", c.heartbeat_function_id, 0, max_id);
+  c.sync_function_id = param_int(p, "sync_function_id", c.sync_function_id, 0, max_id);
   c.extended_ids = param_bool(p, "extended_ids", c.extended_ids);
   c.byte_order = param_string(p, "byte_order", "little", {"little", "big"}) == "big" ? can::ByteOrder::kBig
                                                                                     : can::ByteOrder::kLittle;

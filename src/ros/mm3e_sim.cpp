@@ -5,6 +5,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <variant>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ros/mm3e_params.h"
@@ -35,6 +36,10 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   if (publish_clock_ && !ros::Time::isSimTime())
     throw std::invalid_argument("parameter " + pnh_.resolveName("publish_clock") +
                                 " is true but /use_sim_time is not set: set it before the nodes start");
+  sync_mode_ = param_bool(pnh_, "sync_mode", false);
+  if (sync_mode_ && !publish_clock_)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
+                                " needs ~publish_clock: true (simulated time advances one period per SYNC)");
   clock_rate_hz_ = param_double(pnh_, "clock_rate_hz", 200.0, 1.0, 5000.0);
   fault_silence_s_ = param_double(pnh_, "fault_silence_s", 1.0, 0.0, 600.0);
   const int seed = param_int(pnh_, "seed", 1, 0, 2147483647);
@@ -73,7 +78,9 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
   garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
   ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
-                                             << " Hz, time scale " << time_scale_
+                                             << " Hz, "
+                                             << (sync_mode_ ? std::string("synchronous: one sample per SYNC")
+                                                            : "time scale " + std::to_string(time_scale_))
                                              << (publish_clock_ ? ", publishing /clock" : ""));
   thread_ = std::thread([this] { run(); });
 }
@@ -94,7 +101,35 @@ void SimNode::send_all(const std::vector<can_frame>& frames) {
   }
 }
 
+void SimNode::step_once(double t_s) {
+  // The clock owner ticks exactly at each sample, so receivers stamping with ROS time get sample times.
+  if (publish_clock_) publish_clock(t_s);
+  const can::DeviceCore::Output out = device_->step();
+  send_all(out.frames);
+  for (int i = 0; i < can::kAxisCount; ++i) {
+    piezo_compensation::EncoderPosition msg;
+    msg.header.stamp = ros::Time(t_s);
+    msg.header.frame_id = frame_id_;
+    msg.axis = can::kAxisNames[i];
+    msg.sequence = sequence_;
+    msg.position = out.sample.axes[i].true_position_nm * 1e-9;
+    msg.valid = true;
+    truth_pub_[i].publish(msg);
+  }
+  ++sequence_;
+}
+
+void SimNode::publish_clock(double t_s) {
+  rosgraph_msgs::Clock clock;
+  clock.clock = ros::Time(t_s);
+  clock_pub_.publish(clock);
+}
+
 void SimNode::run() {
+  if (sync_mode_) {
+    run_synchronous();
+    return;
+  }
   const double period_s = device_->period_s();
   // Under another node's /clock, ROS time is 0 until the first clock message: wait for it rather than
   // "catching up" from 0.
@@ -104,13 +139,7 @@ void SimNode::run() {
   // Simulated time starts at the wall clock's epoch time so stamps look like real ones.
   const double sim_start_s = publish_clock_ ? ros::WallTime::now().toSec() : ros::Time::now().toSec();
   double next_sample_s = sim_start_s + period_s;
-  std::uint32_t sequence = 0;
   std::vector<can::ReceivedFrame> in;
-  auto publish_clock = [this](double t) {
-    rosgraph_msgs::Clock clock;
-    clock.clock = ros::Time(t);
-    clock_pub_.publish(clock);
-  };
   while (running_ && ros::ok()) {
     double sim_now_s;
     if (publish_clock_) {
@@ -124,21 +153,7 @@ void SimNode::run() {
     {
       std::lock_guard<std::mutex> lock(mutex_);
       while (next_sample_s <= sim_now_s) {
-        // The clock owner ticks exactly at each sample, so receivers stamping with ROS time get sample times.
-        if (publish_clock_) publish_clock(next_sample_s);
-        const can::DeviceCore::Output out = device_->step();
-        send_all(out.frames);
-        for (int i = 0; i < can::kAxisCount; ++i) {
-          piezo_compensation::EncoderPosition msg;
-          msg.header.stamp = ros::Time(next_sample_s);
-          msg.header.frame_id = frame_id_;
-          msg.axis = can::kAxisNames[i];
-          msg.sequence = sequence;
-          msg.position = out.sample.axes[i].true_position_nm * 1e-9;
-          msg.valid = true;
-          truth_pub_[i].publish(msg);
-        }
-        ++sequence;
+        step_once(next_sample_s);
         next_sample_s += period_s;
       }
     }
@@ -162,6 +177,35 @@ void SimNode::run() {
     }
     std::lock_guard<std::mutex> lock(mutex_);
     for (const auto& rf : in) device_->handle(rf.frame);
+  }
+}
+
+void SimNode::run_synchronous() {
+  // Simulated time moves only on the driver's SYNC: one period, one sample, as fast as the host asks. Frames
+  // are handled in bus order, so the set points written before a SYNC are in that sample.
+  const double period_s = device_->period_s();
+  double sim_now_s = ros::WallTime::now().toSec();
+  std::vector<can::ReceivedFrame> in;
+  while (running_ && ros::ok()) {
+    in.clear();
+    try {
+      transport_->receive(in, 50);
+    } catch (const can::TransportError& e) {
+      ROS_ERROR_STREAM_THROTTLE(1.0, "mm3e_sim: " << e.what());
+      std::this_thread::sleep_for(std::chrono::milliseconds(50));
+    }
+    std::lock_guard<std::mutex> lock(mutex_);
+    if (in.empty()) publish_clock(sim_now_s);  // for nodes that start while nobody asks for samples
+    for (const auto& rf : in) {
+      const can::DecodeResult r = device_->codec().decode(rf.frame);
+      if (r.ok() && std::holds_alternative<can::SyncFrame>(r.message_value)) {
+        sim_now_s += period_s;
+        step_once(sim_now_s);
+        ++syncs_;
+      } else {
+        device_->handle(rf.frame);
+      }
+    }
   }
 }
 

@@ -7,7 +7,6 @@
 #include <sstream>
 
 #include <ros/master.h>
-#include <rosgraph_msgs/Clock.h>
 #include <std_msgs/String.h>
 
 #include "piezo_compensation/ProtocolPhase.h"
@@ -85,8 +84,11 @@ RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh) {
   pnh.param("stop_after_samples", stop_after, stop_after);
   if (stop_after < 0) throw std::invalid_argument("~stop_after_samples must be >= 0");
   o.stop_after_samples = static_cast<std::uint64_t>(stop_after);
-  pnh.param("publish_clock", o.publish_clock, o.publish_clock);
-  pnh.param("lockstep_settle_s", o.lockstep_settle_s, o.lockstep_settle_s);
+  for (const char* gone : {"publish_clock", "lockstep_settle_s"})
+    if (pnh.hasParam(gone))
+      throw std::invalid_argument(std::string("~") + gone +
+                                  " is no longer a recorder parameter: lock-step with a simulated device is the "
+                                  "driver's and mm3e_sim's ~sync_mode (record.launch lockstep:=true)");
   o.validate();
   return o;
 }
@@ -110,8 +112,6 @@ void RecorderOptions::validate() const {
   positive(progress_period_s, "progress_period_s");
   if (!(approach_timeout_s >= 0.0)) throw std::invalid_argument("~approach_timeout_s must be >= 0");
   if (axes.empty()) throw std::invalid_argument("~axes: give at least one of a, b, c");
-  if (!(lockstep_settle_s > 0.0 && lockstep_settle_s <= 0.05))
-    throw std::invalid_argument("~lockstep_settle_s must be in (0, 0.05] s");
   for (const auto& a : axes)
     if (a != "a" && a != "b" && a != "c") throw std::invalid_argument("~axes: unknown axis '" + a + "'");
 }
@@ -209,20 +209,6 @@ Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(
   progress_pub_ = nh_.advertise<piezo_compensation::RecorderProgress>("recorder/progress", 10);
   started_wall_ = last_encoder_wall_ = last_progress_log_ = last_progress_pub_ = Clock::now();
   watchdog_ = nh_.createWallTimer(ros::WallDuration(0.1), &Recorder::on_watchdog, this);
-  if (options_.publish_clock) {
-    if (!ros::Time::isSimTime())
-      throw std::invalid_argument("~publish_clock: true needs /use_sim_time: true (set it before the nodes start)");
-    lockstep_ = true;
-    settle_s_ = options_.lockstep_settle_s;
-    clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
-    // continue a clock that already ran (an earlier session in this process) rather than jumping back
-    clock_s_ = std::max(ros::WallTime::now().toSec(), ros::Time::now().toSec());
-    publish_clock(clock_s_);
-    awaiting_step_ = true;
-    full_published_wall_ = Clock::now();
-    kick_timer_ = nh_.createWallTimer(ros::WallDuration(0.01), &Recorder::on_kick, this);
-    ROS_INFO("recorder: lock-step: this node owns /clock and steps the simulated device sample by sample");
-  }
   ROS_INFO("recorder: protocol %s, %llu samples at %.3g Hz (%.1f h), into %s; waiting for encoder data",
            options_.protocol.c_str(), static_cast<unsigned long long>(total_), options_.sample_rate_hz,
            total_ / options_.sample_rate_hz / 3600.0, options_.out.c_str());
@@ -259,27 +245,15 @@ void Recorder::on_voltage(std::size_t k, const piezo_compensation::AxisVoltage::
   auto& q = axes_[k].voltages;
   q.push_back(*msg);
   if (q.size() > 32) q.pop_front();
-  if (lockstep_) {
-    lockstep_try_step();
-    return;
-  }
-  if (state_ == State::kRunning &&
-      std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); }))
-    complete_sample();  // a reading was waiting for its voltage report
+  if (std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); }))
+    row_ready();  // a reading was waiting for its voltage report
 }
 
 void Recorder::on_truth(std::size_t k, const piezo_compensation::EncoderPosition::ConstPtr& msg) {
   auto& q = axes_[k].truths;
   q.push_back(*msg);
   if (q.size() > 32) q.pop_front();
-  if (lockstep_) {
-    // the simulated device stamps its truth with its sample instant: the clock's next target follows from it
-    if (k == 0 && (!device_instant_known_ || msg->header.stamp.toSec() > device_instant_s_)) {
-      device_instant_s_ = msg->header.stamp.toSec();
-      device_instant_known_ = true;
-    }
-    lockstep_try_step();
-  } else if (waiting_truth_ && state_ == State::kRunning &&
+  if (waiting_truth_ && state_ == State::kRunning &&
              std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); })) {
     complete_sample();  // a reading was waiting for its truth
   }
@@ -300,7 +274,6 @@ bool Recorder::data_ready_to_start() {
   }
   for (const auto& a : axes_)
     if (a.truth.getNumPublishers() > 0 || !a.truths.empty()) with_truth_ = true;
-  if (lockstep_) with_truth_ = true;
   if (with_truth_)
     for (const auto& a : axes_)
       if (a.truths.empty()) return false;
@@ -316,10 +289,8 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
     return;
   }
   last_encoder_wall_ = Clock::now();
-  if (lockstep_) {
-    ax.encoders.push_back(*msg);
-    if (ax.encoders.size() > 32) ax.encoders.pop_front();
-  }
+  ax.readings.push_back(*msg);
+  if (ax.readings.size() > 32) ax.readings.pop_front();
   const auto arrival = ax.tracker.add(msg->sequence);
   if (arrival == analysis::SequenceTracker::Arrival::kGap || arrival == analysis::SequenceTracker::Arrival::kLate ||
       arrival == analysis::SequenceTracker::Arrival::kDuplicate)
@@ -327,10 +298,6 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
                       arrival == analysis::SequenceTracker::Arrival::kGap ? "after a gap (samples dropped)"
                                                                           : "out of order");
   if (state_ == State::kDone) return;
-  if (lockstep_) {
-    lockstep_try_step();
-    return;
-  }
   if (state_ == State::kWaiting) {
     // a few readings and voltage reports on every axis, and the truth too where a simulated device publishes
     // it, so that every row of the recording has the same columns
@@ -339,34 +306,7 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
     approach_started_ = Clock::now();
     ROS_INFO("recorder: data on all axes; moving to the voltages of sample %llu",
              static_cast<unsigned long long>(next_));
-  }
-  if (state_ == State::kApproach) {
-    // the driver slew-limits: let it reach the first sample's voltages before recording starts
-    const protocols::ProtocolSample s = protocol_->at(next_);
-    bool reached = true;
-    for (auto& ax : axes_) {
-      ax.commanded_v = s.voltage_v[axis_index(ax.name)];
-      if (ax.voltages.empty() || !(std::fabs(ax.voltages.back().voltage - ax.commanded_v) <= options_.voltage_tolerance_v))
-        reached = false;
-    }
-    const double waited_s = std::chrono::duration<double>(Clock::now() - approach_started_).count();
-    if (!reached && waited_s < options_.approach_timeout_s) {
-      if (k == 0)  // once per encoder sample, so the driver's command watchdog never holds half-way
-        for (auto& ax : axes_) {
-          piezo_compensation::VoltageCommand c;
-          c.header.stamp = ros::Time::now();
-          c.voltage = ax.commanded_v;
-          ax.command.publish(c);
-        }
-      return;
-    }
-    if (!reached)
-      ROS_WARN("recorder: the applied voltages did not reach sample %llu's within ~approach_timeout_s = %.1f s; "
-               "recording anyway", static_cast<unsigned long long>(next_), options_.approach_timeout_s);
-    state_ = State::kRunning;
-    if (next_ == 0) t0_s_ = std::max(ros::Time::now().toSec(), 1.0);  // bags need stamps > 0
-    ROS_INFO("recorder: recording from sample %llu", static_cast<unsigned long long>(next_));
-    send_sample();
+    publish_commands(protocol_->at(next_));
     return;
   }
   if (waiting_truth_) {
@@ -375,14 +315,60 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
     complete_sample();
     if (state_ != State::kRunning) return;
   }
-  if (!ax.pending) {
-    ax.pending = *msg;
-  } else if (arrival == analysis::SequenceTracker::Arrival::kInOrder ||
-             arrival == analysis::SequenceTracker::Arrival::kGap) {
-    ax.pending = *msg;  // still waiting for another axis or a voltage report: keep the newest reading
-  }
-  if (std::all_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); }))
+  assemble_row();
+}
+
+void Recorder::row_ready() {
+  if (state_ == State::kApproach)
+    approach_step();
+  else if (state_ == State::kRunning)
     complete_sample();
+}
+
+void Recorder::approach_step() {
+  // the driver slew-limits: let it reach the first sample's voltages before recording starts; one command per
+  // device sample, so the driver's command watchdog never holds half-way
+  bool reached = true;
+  for (const auto& ax : axes_) {
+    const auto it = std::find_if(ax.voltages.rbegin(), ax.voltages.rend(),
+                                 [&](const auto& v) { return v.sequence == ax.pending->sequence; });
+    if (it == ax.voltages.rend()) return;  // its voltage report is on its way (on_voltage comes back here)
+    if (!(std::fabs(it->voltage - ax.commanded_v) <= options_.voltage_tolerance_v)) reached = false;
+  }
+  const double waited_s = std::chrono::duration<double>(Clock::now() - approach_started_).count();
+  if (!reached && waited_s < options_.approach_timeout_s) {
+    publish_commands(protocol_->at(next_));
+    return;
+  }
+  if (!reached)
+    ROS_WARN("recorder: the applied voltages did not reach sample %llu's within ~approach_timeout_s = %.1f s; "
+             "recording anyway", static_cast<unsigned long long>(next_), options_.approach_timeout_s);
+  state_ = State::kRunning;
+  if (next_ == 0) t0_s_ = std::max(ros::Time::now().toSec(), 1.0);  // bags need stamps > 0
+  ROS_INFO("recorder: recording from sample %llu", static_cast<unsigned long long>(next_));
+  send_sample();
+}
+
+void Recorder::assemble_row() {
+  // The row is the first device sample after the command that every axis has a reading of. Pairing by the
+  // controller's sequence keeps the axes of one row from one sample even when one axis' reading of an earlier
+  // sample arrives after the command went out (otherwise that axis would stay one sample behind for good when
+  // the device samples only on request).
+  if (std::any_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); })) return;
+  for (const auto& candidate : axes_.front().readings) {
+    const std::uint32_t s = candidate.sequence;
+    if (has_row_floor_ && static_cast<std::int32_t>(s - row_floor_sequence_) < 0) continue;
+    bool everywhere = true;
+    for (const auto& ax : axes_)
+      everywhere = everywhere && std::any_of(ax.readings.begin(), ax.readings.end(),
+                                             [s](const auto& m) { return m.sequence == s; });
+    if (!everywhere) continue;
+    for (auto& ax : axes_)
+      for (const auto& m : ax.readings)
+        if (m.sequence == s) ax.pending = m;
+    row_ready();
+    return;
+  }
 }
 
 void Recorder::send_sample() {
@@ -393,8 +379,14 @@ void Recorder::send_sample() {
   }
 }
 
-void Recorder::send_sample_unchecked() {
-  const protocols::ProtocolSample s = protocol_->at(next_);
+void Recorder::publish_commands(const protocols::ProtocolSample& s) {
+  // readings already here were taken before this command: the next row starts after the newest of them
+  for (const auto& ax : axes_)
+    for (const auto& m : ax.readings)
+      if (!has_row_floor_ || static_cast<std::int32_t>(m.sequence + 1 - row_floor_sequence_) > 0) {
+        row_floor_sequence_ = m.sequence + 1;
+        has_row_floor_ = true;
+      }
   const ros::Time now = ros::Time::now();
   for (auto& ax : axes_) {
     ax.commanded_v = s.voltage_v[axis_index(ax.name)];
@@ -404,6 +396,11 @@ void Recorder::send_sample_unchecked() {
     c.voltage = ax.commanded_v;
     ax.command.publish(c);
   }
+}
+
+void Recorder::send_sample_unchecked() {
+  const protocols::ProtocolSample s = protocol_->at(next_);
+  publish_commands(s);
   waited_samples_ = 0;
   waiting_truth_ = truth_wait_expired_ = false;
   if (!last_marker_ || next_ == first_of_session_ || last_marker_->segment != s.segment ||
@@ -452,33 +449,12 @@ void Recorder::complete_sample() {
   if (!applied && waited_samples_ < options_.max_wait_samples) {
     // the command had not reached the piezo when this reading was taken: use the next one
     ++waited_samples_;
+    row_floor_sequence_ = axes_.front().pending->sequence + 1;
+    has_row_floor_ = true;
     for (auto& ax : axes_) ax.pending.reset();
-    if (lockstep_) {
-      // An applied voltage that did not move at all means the set point reached the device after its sample
-      // instant: give it longer from now on. One that moved but not all the way is the driver's slew limit.
-      bool stuck = false;
-      for (std::size_t k = 0; k < axes_.size(); ++k) {
-        const auto& q = axes_[k].voltages;
-        const std::uint32_t seq = volts[k] ? volts[k]->sequence : 0;
-        for (const auto& v : q)
-          if (volts[k] && v.sequence + 1 == seq && v.voltage == volts[k]->voltage &&
-              std::fabs(v.voltage - axes_[k].commanded_v) > options_.voltage_tolerance_v)
-            stuck = true;
-      }
-      if (stuck) {
-        // first suspect the driver: it had stepped at the half period before the command came, so it waits
-        // for ROS time to move again; a second intermediate clock step covers that. Then suspect the wait.
-        if (two_steps_left_ == 0)
-          two_steps_left_ = 500;
-        else
-          settle_s_ = std::min(2.0 * settle_s_, 0.05);
-        good_streak_ = 0;
-      }
-      lockstep_advance();
-    }
     return;
   }
-  if (with_truth_ && !lockstep_ && !truth_wait_expired_) {
+  if (with_truth_ && !truth_wait_expired_) {
     // the simulator publishes its truth directly, the reading comes through the driver: either may be first
     for (const auto& ax : axes_)
       if (std::none_of(ax.truths.begin(), ax.truths.end(),
@@ -489,15 +465,15 @@ void Recorder::complete_sample() {
   }
   waiting_truth_ = truth_wait_expired_ = false;
   if (!applied) ++late_commands_;
-  if (lockstep_ && waited_samples_ == 0 && ++good_streak_ >= 100) {
-    settle_s_ = std::max(0.8 * settle_s_, options_.lockstep_settle_s);
-    good_streak_ = 0;
-  }
   // device samples between two recorded rows: on simulated time each one stretches the real time behind a row
   const std::uint32_t seq0 = axes_.front().pending->sequence;
   if (last_row_sequence_ && recorded_in_session_ > 0) {
     const std::uint32_t d = seq0 - *last_row_sequence_;
-    if (d > 1 && d < 100000) skipped_device_samples_ += d - 1;
+    if (d > 1 && d < 100000) {
+      skipped_device_samples_ += d - 1;
+      ROS_WARN_THROTTLE(5.0, "recorder: %u device sample(s) passed unrecorded before sample %llu (waited %d)", d - 1,
+                        static_cast<unsigned long long>(next_), waited_samples_);
+    }
   }
   last_row_sequence_ = seq0;
 
@@ -571,138 +547,6 @@ void Recorder::complete_sample() {
   }
   if (now - last_progress_pub_ > std::chrono::seconds(1)) publish_progress(false);
   send_sample();
-  if (lockstep_) lockstep_advance();
-}
-
-void Recorder::publish_clock(double t_s) {
-  rosgraph_msgs::Clock c;
-  c.clock = ros::Time(t_s);
-  clock_pub_.publish(c);
-  clock_s_ = std::max(clock_s_, t_s);
-}
-
-void Recorder::lockstep_try_step() {
-  if (!awaiting_step_ || state_ == State::kDone) return;
-  const auto& e0 = axes_.front().encoders;
-  if (e0.empty()) return;
-  const std::uint32_t s = e0.back().sequence;
-  if (last_step_sequence_ && static_cast<std::int32_t>(s - *last_step_sequence_) <= 0) return;
-  auto has = [s](const auto& q) {
-    return std::any_of(q.rbegin(), q.rend(), [s](const auto& m) { return m.sequence == s; });
-  };
-  bool valid = true;
-  for (const auto& ax : axes_) {
-    if (!has(ax.encoders) || !has(ax.voltages) || !has(ax.truths)) return;  // more of this sample is on its way
-    for (const auto& e : ax.encoders)
-      if (e.sequence == s) valid = valid && e.valid;
-  }
-  awaiting_step_ = false;
-  last_step_sequence_ = s;
-  ++lockstep_steps_;
-  if (!valid) {  // a flagged reading is no measurement: step again (on_encoder warned)
-    lockstep_advance();
-    return;
-  }
-  if (state_ == State::kWaiting) {
-    if (!data_ready_to_start()) {
-      lockstep_advance();
-      return;
-    }
-    state_ = State::kApproach;
-    approach_started_ = Clock::now();
-    ROS_INFO("recorder: data on all axes; moving to the voltages of sample %llu",
-             static_cast<unsigned long long>(next_));
-  }
-  if (state_ == State::kApproach) {
-    const protocols::ProtocolSample p = protocol_->at(next_);
-    bool reached = true;
-    for (auto& ax : axes_) {
-      ax.commanded_v = p.voltage_v[axis_index(ax.name)];
-      if (!(std::fabs(ax.voltages.back().voltage - ax.commanded_v) <= options_.voltage_tolerance_v)) reached = false;
-    }
-    const double waited_s = std::chrono::duration<double>(Clock::now() - approach_started_).count();
-    if (!reached && waited_s < options_.approach_timeout_s) {
-      for (auto& ax : axes_) {
-        piezo_compensation::VoltageCommand c;
-        c.header.stamp = ros::Time::now();
-        c.voltage = ax.commanded_v;
-        ax.command.publish(c);
-      }
-      lockstep_advance();
-      return;
-    }
-    if (!reached)
-      ROS_WARN("recorder: the applied voltages did not reach sample %llu's within ~approach_timeout_s = %.1f s; "
-               "recording anyway", static_cast<unsigned long long>(next_), options_.approach_timeout_s);
-    state_ = State::kRunning;
-    if (next_ == 0) t0_s_ = std::max(ros::Time::now().toSec(), 1.0);
-    ROS_INFO("recorder: recording from sample %llu", static_cast<unsigned long long>(next_));
-    send_sample();
-    lockstep_advance();
-    return;
-  }
-  for (auto& ax : axes_)
-    for (auto it = ax.encoders.rbegin(); it != ax.encoders.rend(); ++it)
-      if (it->sequence == s) {
-        ax.pending = *it;
-        break;
-      }
-  complete_sample();
-}
-
-void Recorder::lockstep_advance() {
-  if (state_ == State::kDone) return;
-  const double period_s = 1.0 / options_.sample_rate_hz;
-  bool moving = false;
-  if (state_ != State::kWaiting)
-    for (const auto& ax : axes_)
-      if (ax.voltages.empty() || std::fabs(ax.voltages.back().voltage - ax.commanded_v) > options_.voltage_tolerance_v)
-        moving = true;
-  if (moving && device_instant_known_) {
-    // The driver slew-limits in ROS time and sends a new set point only when ROS time has moved: an
-    // intermediate step lets it send; the settle wait lets the frame reach the device before its sample instant.
-    if (two_steps_left_ > 0) {
-      --two_steps_left_;
-      publish_clock(device_instant_s_ + period_s / 3.0);
-      settle_timer_ = nh_.createWallTimer(
-          ros::WallDuration(settle_s_),
-          [this](const ros::WallTimerEvent&) {
-            if (state_ == State::kDone) return;
-            publish_clock(device_instant_s_ + 2.0 * (1.0 / options_.sample_rate_hz) / 3.0);
-            settle_timer_ = nh_.createWallTimer(
-                ros::WallDuration(settle_s_), [this](const ros::WallTimerEvent&) { lockstep_publish_full(); }, true);
-          },
-          true);
-      return;
-    }
-    publish_clock(device_instant_s_ + 0.5 * period_s);
-    settle_timer_ = nh_.createWallTimer(
-        ros::WallDuration(settle_s_), [this](const ros::WallTimerEvent&) { lockstep_publish_full(); }, true);
-    return;
-  }
-  lockstep_publish_full();
-}
-
-void Recorder::lockstep_publish_full() {
-  if (state_ == State::kDone) return;
-  const double period_s = 1.0 / options_.sample_rate_hz;
-  // just past the device's next sample instant (10 µs: well above the rounding of a 1e9 s double)
-  const double next_s = (device_instant_known_ ? device_instant_s_ : clock_s_) + period_s + 1e-5;
-  publish_clock(std::max(next_s, clock_s_));
-  awaiting_step_ = true;
-  full_published_wall_ = Clock::now();
-}
-
-void Recorder::on_kick(const ros::WallTimerEvent&) {
-  if (!awaiting_step_ || state_ == State::kDone) return;
-  const double waited_s = std::chrono::duration<double>(Clock::now() - full_published_wall_).count();
-  // Before the first data the device or the driver may not listen yet; later a lost message (load) would
-  // otherwise stall the lock-step: one more step costs one device sample, the dead-driver watchdog still works.
-  const double limit_s = state_ == State::kWaiting || !device_instant_known_ ? 0.05 : 0.5;
-  if (waited_s < limit_s) return;
-  if (state_ != State::kWaiting)
-    ROS_WARN_THROTTLE(5.0, "recorder: lock-step: sample data incomplete after %.2f s; stepping on", waited_s);
-  lockstep_publish_full();
 }
 
 void Recorder::publish_progress(bool force_log) {
@@ -771,8 +615,6 @@ void Recorder::abandon() {
   exit_code_ = 1;
   failure_ = "abandoned (simulated crash)";
   watchdog_.stop();
-  settle_timer_.stop();
-  kick_timer_.stop();
   for (auto& ax : axes_) ax.encoder.shutdown();
   bag_->abandon();
   bag_.reset();
@@ -783,9 +625,6 @@ void Recorder::finish(int exit_code, const std::string& why) {
   state_ = State::kDone;
   exit_code_ = exit_code;
   watchdog_.stop();
-  settle_timer_.stop();
-  kick_timer_.stop();
-  awaiting_step_ = false;
   // no further commands: the driver holds the last applied voltage (never 0 V)
   for (auto& ax : axes_) {
     ax.encoder.shutdown();
@@ -835,9 +674,6 @@ void Recorder::finish(int exit_code, const std::string& why) {
      << "  device samples that passed between recorded rows (time the rows do not show): "
      << skipped_device_samples_ << "\n"
      << "  rows whose true position was late or missing (newest earlier one used): " << substituted_truths_ << "\n";
-  if (lockstep_)
-    os << "  lock-step: " << lockstep_steps_ << " device samples stepped, settle wait at the end "
-       << 1e3 * settle_s_ << " ms\n";
   if (exit_code_ == 0) {
     ROS_INFO("recorder: done, %s: %s\n%s", why.c_str(), options_.out.c_str(), os.str().c_str());
   } else if (exit_code_ == 130) {
@@ -852,3 +688,4 @@ void Recorder::finish(int exit_code, const std::string& why) {
 }
 
 }  // namespace piezo::ros_nodes
+

@@ -1,5 +1,5 @@
 // Helpers shared by the recorder rostests (recorder_protocols.cpp: free-running device, recorder_lockstep.cpp:
-// the recorder owns /clock).
+// device and driver in synchronous mode).
 #pragma once
 
 #include <gtest/gtest.h>

@@ -43,6 +43,7 @@ TEST(CanCodec, IdentifiersFollowBaseNodeId) {
   EXPECT_EQ(codec.voltage_id(1), 0x1A4u);
   EXPECT_EQ(codec.encoder_id(2), 0x2A8u);
   EXPECT_EQ(codec.heartbeat_id(), 0x720u);
+  EXPECT_EQ(codec.sync_id(), 0x0A0u);  // CANopen SYNC function code + base node: two manipulators stay apart
 }
 
 TEST(CanCodec, RoundTripEveryKindBothByteOrders) {
@@ -70,7 +71,25 @@ TEST(CanCodec, RoundTripEveryKindBothByteOrders) {
     EXPECT_EQ(h.state, DeviceState::kHalted);
     EXPECT_EQ(h.fault_flags, 0x85);
     EXPECT_EQ(h.counter, 0xBEEF);
+    const can_frame sync = codec.encode(SyncFrame{200});
+    EXPECT_EQ(sync.can_dlc, 1);
+    EXPECT_EQ(decode_as<SyncFrame>(codec, sync).counter, 200);
   }
+}
+
+TEST(CanCodec, SyncFrameIsTheDevicesOnly) {
+  Codec codec{ProtocolConfig{}};
+  can_frame sync = codec.encode(SyncFrame{1});
+  EXPECT_EQ(sync.can_id, 0x090u);
+  auto passes = [&sync](const std::vector<can_filter>& filters) {
+    for (const auto& f : filters)
+      if ((sync.can_id & f.can_mask) == (f.can_id & f.can_mask)) return true;
+    return false;
+  };
+  EXPECT_TRUE(passes(codec.device_filters()));
+  EXPECT_FALSE(passes(codec.driver_filters()));
+  sync.can_dlc = 0;  // CANopen allows an empty SYNC; this protocol always carries the counter
+  EXPECT_EQ(codec.decode(sync).error, DecodeError::kBadLength);
 }
 
 TEST(CanCodec, ByteOrderIsOnTheWire) {
@@ -233,6 +252,14 @@ TEST(CanProtocol, ValidationNamesTheField) {
   c = ProtocolConfig{};
   c.encoder_function_id = c.voltage_function_id;  // two frames on one identifier
   EXPECT_THROW(validate(c), std::invalid_argument);
+  c = ProtocolConfig{};
+  c.sync_function_id = c.voltage_function_id;  // SYNC on axis a's voltage report identifier
+  try {
+    validate(c);
+    FAIL();
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("sync_function_id"), std::string::npos) << e.what();
+  }
   c = ProtocolConfig{};
   c.base_node_id = 0x7F0;  // heartbeat 0x700 + 0x7F0 exceeds 11 bit
   EXPECT_THROW(validate(c), std::invalid_argument);

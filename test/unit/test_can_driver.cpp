@@ -11,6 +11,7 @@
 #include <cstring>
 #include <mutex>
 #include <thread>
+#include <variant>
 
 #include "piezo_compensation/can/device_core.h"
 #include "piezo_compensation/can/driver_core.h"
@@ -62,6 +63,11 @@ class Device {
     transport_->send(f);
   }
   void set_silent(bool s) { silent_ = s; }
+  int syncs() const { return syncs_; }
+  std::array<double, 3> voltages_at_last_sync() {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return voltages_at_sync_;
+  }
   std::array<double, 3> voltages() {
     std::lock_guard<std::mutex> lock(mutex_);
     return core_.voltages_v();
@@ -74,7 +80,14 @@ class Device {
       std::vector<ReceivedFrame> in;
       transport_->receive(in, 2);
       std::lock_guard<std::mutex> lock(mutex_);
-      for (const auto& rf : in) core_.handle(rf.frame);
+      for (const auto& rf : in) {
+        const DecodeResult r = core_.codec().decode(rf.frame);
+        if (r.ok() && std::holds_alternative<SyncFrame>(r.message_value)) {
+          ++syncs_;
+          voltages_at_sync_ = core_.voltages_v();
+        }
+        core_.handle(rf.frame);
+      }
       if (std::chrono::steady_clock::now() >= next) {
         next += 10ms;
         const auto out = core_.step();
@@ -87,6 +100,8 @@ class Device {
   std::unique_ptr<Transport> transport_;
   std::mutex mutex_;
   std::atomic<bool> running_{true}, silent_{false};
+  std::atomic<int> syncs_{0};
+  std::array<double, 3> voltages_at_sync_{};
   std::thread thread_;
 };
 
@@ -200,6 +215,26 @@ TEST(CanDriver, CommandReachesTheDeviceWithinLimits) {
   EXPECT_NEAR(device.voltages()[0], 1.0, 1e-9);  // other axes untouched
   EXPECT_EQ(driver.command(0, std::nan(""), now_s()), CommandOutcome::kRejectedNonFinite);
   EXPECT_EQ(driver.axis_status(0).rejected_non_finite, 1u);
+}
+
+TEST(CanDriver, SyncFollowsTheSetPointsOnTheBus) {
+  // synchronous mode: the set point written before sync() is in place when the device sees the SYNC
+  Device device;
+  Recorder rec;
+  DriverCore driver(driver_config(), udp_factory(fast_protocol()), rec.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }, 3000ms));
+  double t = 100.0;  // bus time: one period per SYNC, whatever the wall clock does
+  driver.tick(t);
+  for (int k = 1; k <= 5; ++k) {
+    t += 0.1;
+    const double target = 3.0 + 2.0 * k;  // within one period's slew (1000 V/s · 0.1 s)
+    driver.command(2, target, t, t);
+    ASSERT_TRUE(driver.sync());
+    ASSERT_TRUE(wait_for([&] { return device.syncs() >= k; }, 2000ms));
+    EXPECT_NEAR(device.voltages_at_last_sync()[2], target, 1e-3) << "SYNC " << k << " overtook its set point";
+  }
+  EXPECT_EQ(driver.bus_status().syncs_sent, 5u);
 }
 
 TEST(CanDriver, GarbageDatagramsAreCountedNotFatal) {

@@ -50,6 +50,12 @@ struct Heartbeat {
   std::uint16_t counter = 0;
 };
 
+// Driver → device, synchronous mode only: the controller takes its next sample when this arrives instead of
+// on its own clock (CANopen SYNC; DLC 1, a wrapping counter so candump readers see lost SYNCs).
+struct SyncFrame {
+  std::uint8_t counter = 0;
+};
+
 // A SocketCAN error frame (CAN_ERR_FLAG), as the kernel reports bus problems.
 struct BusError {
   std::uint32_t error_class = 0;  // CAN_ERR_* bits of can_id
@@ -60,7 +66,7 @@ struct BusError {
   std::string description;     // "bus-off; controller: tx error passive"
 };
 
-using Message = std::variant<CommandFrame, VoltageReport, EncoderReport, Heartbeat, BusError>;
+using Message = std::variant<CommandFrame, VoltageReport, EncoderReport, Heartbeat, SyncFrame, BusError>;
 
 enum class DecodeError {
   kNone,
@@ -92,6 +98,7 @@ class Codec {
   can_frame encode(const VoltageReport& m) const;
   can_frame encode(const EncoderReport& m) const;
   can_frame encode(const Heartbeat& m) const;
+  can_frame encode(const SyncFrame& m) const;
   static can_frame encode(const BusError& m);  // error frame (for the simulated device's fault injection)
 
   // Never throws; any 16-byte input is accepted.
@@ -102,9 +109,10 @@ class Codec {
   std::uint32_t voltage_id(int axis) const;
   std::uint32_t encoder_id(int axis) const;
   std::uint32_t heartbeat_id() const;
+  std::uint32_t sync_id() const;
 
   // Kernel filters (id, mask) for what the driver receives (reports + heartbeat) or the device receives
-  // (commands). Masks include CAN_EFF_FLAG and CAN_RTR_FLAG so only data frames of the right format pass.
+  // (commands and SYNC). Masks include CAN_EFF_FLAG and CAN_RTR_FLAG so only data frames of the right format pass.
   std::vector<can_filter> driver_filters() const;
   std::vector<can_filter> device_filters() const;
 

@@ -58,6 +58,7 @@ struct BusStatus {
   std::string last_error_frame;  // candump text of the last error frame
   std::uint64_t error_frames = 0, bus_off_events = 0, malformed_frames = 0, unknown_frames = 0;
   std::uint64_t send_failures = 0, connects = 0, connect_failures = 0;
+  std::uint64_t syncs_sent = 0;  // synchronous mode
   bool heartbeat_seen = false;
   DeviceState device_state = DeviceState::kBoot;
   std::uint8_t device_fault_flags = 0;
@@ -91,6 +92,9 @@ class DriverCore {
   CommandOutcome command(int axis, double voltage_v, double now_s, double command_time_s = std::nan(""));
   // Advances slew ramps and watchdogs of all axes (call at the output rate).
   void tick(double now_s);
+  // Synchronous mode: asks the controller for its next sample now (a SYNC frame). Call after the set points
+  // of that sample have been written (command()/tick()): the bus keeps the order. False when the link is down.
+  bool sync();
 
   void halt();                 // hold every axis where it is and refuse commands until recover()
   void recover();              // clear halt, reopen the transport now, reset the back-off
@@ -123,6 +127,7 @@ class DriverCore {
   BusStatus bus_;
   bool halted_ = false;
   std::uint32_t command_counter_ = 0;
+  std::uint8_t sync_counter_ = 0;
   Clock::time_point last_rx_{}, last_heartbeat_{}, next_attempt_{};
   double backoff_s_ = 0.0;
   bool ever_connected_ = false;

@@ -22,7 +22,7 @@ int axis_index(const std::string& name);
 enum class ByteOrder { kLittle, kBig };
 
 struct ProtocolConfig {
-  // Node ID of axis a; axis i uses base_node_id + i * node_id_stride. The heartbeat uses base_node_id.
+  // Node ID of axis a; axis i uses base_node_id + i * node_id_stride. The heartbeat and SYNC use base_node_id.
   std::uint32_t base_node_id = 0x10;
   std::uint32_t node_id_stride = 1;
   // Function codes, added to the node ID (CANopen style).
@@ -30,6 +30,9 @@ struct ProtocolConfig {
   std::uint32_t voltage_function_id = 0x180;    // device → driver: applied voltage report
   std::uint32_t encoder_function_id = 0x280;    // device → driver: encoder reading
   std::uint32_t heartbeat_function_id = 0x700;  // device → driver: state and fault flags
+  // driver → device, synchronous mode only: "take the next sample now" (CANopen SYNC, + base_node_id so two
+  // manipulators on one bus stay independent)
+  std::uint32_t sync_function_id = 0x080;
   bool extended_ids = false;                    // 29-bit identifiers instead of 11-bit
   ByteOrder byte_order = ByteOrder::kLittle;
   double voltage_lsb_v = 1e-4;   // [V] per count of the int32 voltage fields

@@ -26,6 +26,7 @@ class DriverNode {
  private:
   void on_command(int axis, const piezo_compensation::VoltageCommand::ConstPtr& msg);
   void on_tick(const ros::TimerEvent&);
+  void sync_locked();
   void check_commanders();
   bool on_halt(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool on_recover(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
@@ -42,6 +43,17 @@ class DriverNode {
   std::array<bool, can::kAxisCount> multiple_commanders_{};
   ros::ServiceServer halt_srv_, recover_srv_;
   ros::Timer tick_timer_;
+  // Synchronous mode (~sync_mode): the controller samples on our SYNC, not on its clock. Bus time advances one
+  // encoder period per SYNC and is the limiter's clock, so slew and watchdog count samples, whatever the wall
+  // or ROS time does. A SYNC goes out once every commanded axis has its command for the sample, or after
+  // ~sync_idle_s without one (so an idle device still reports).
+  bool sync_mode_ = false;
+  double sync_idle_s_ = 0.5;
+  std::mutex sync_mutex_;
+  double bus_time_s_ = 0.0;
+  std::array<bool, can::kAxisCount> commanded_since_sync_{};
+  ros::WallTime last_sync_wall_;
+  ros::WallTimer sync_idle_timer_;
   ros::WallTimer diag_timer_;
   diagnostic_updater::Updater updater_;
   // Counters at the previous diagnostics update, for frame rates.

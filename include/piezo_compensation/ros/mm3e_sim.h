@@ -1,6 +1,7 @@
 // The mm3e_sim node: a simulated MM3E controller on the same CAN protocol (can::DeviceCore backed by
 // sim::ManipulatorSimulator), over SocketCAN or UDP. Publishes <axis>/true_position for evaluation and, with
-// ~publish_clock, /clock at ~time_scale × real time so a demo runs faster than real time (docs/driver.md).
+// ~publish_clock, /clock at ~time_scale × real time so a demo runs faster than real time, or (~sync_mode) one
+// period per SYNC frame from the driver, as fast as the host asks (docs/driver.md, docs/recorder.md).
 #pragma once
 
 #include <ros/ros.h>
@@ -26,6 +27,9 @@ class SimNode {
 
  private:
   void run();
+  void run_synchronous();
+  void step_once(double t_s);  // one device sample at simulated time t_s (caller holds mutex_)
+  void publish_clock(double t_s);
   bool on_bus_off(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool on_garbage(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   void send_all(const std::vector<can_frame>& frames);
@@ -34,6 +38,9 @@ class SimNode {
   std::string frame_id_;
   double time_scale_ = 1.0;
   bool publish_clock_ = false;
+  bool sync_mode_ = false;  // ~sync_mode: sample on the driver's SYNC frames, not on a clock
+  std::uint32_t sequence_ = 0;
+  std::uint64_t syncs_ = 0;
   double clock_rate_hz_ = 200.0;
   double fault_silence_s_ = 1.0;
   std::unique_ptr<sim::ManipulatorSimulator> simulator_;

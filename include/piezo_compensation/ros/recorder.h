@@ -42,12 +42,6 @@ struct RecorderOptions {
   double progress_period_s = 10.0;      // ~progress_period_s: wall time between progress log lines
   double approach_timeout_s = 30.0;     // ~approach_timeout_s: wall time to reach the first sample's voltages
   std::uint64_t stop_after_samples = 0; // ~stop_after_samples: stop like Ctrl-C after this many (0 = never)
-  // ~publish_clock: lock-step with a simulated device on /use_sim_time: the recorder owns /clock and moves it to
-  // the device's next sample instant only after the sample's commands went out, so no device sample passes
-  // unrecorded (needs the device's <axis>/true_position for its sample instants; never with real hardware).
-  bool publish_clock = false;
-  double lockstep_settle_s = 0.001;     // ~lockstep_settle_s: [s, wall] first wait for a command to reach the
-                                        // device before its sample instant (adapts up to 50 ms on late commands)
 
   // Throws std::invalid_argument naming the parameter.
   static RecorderOptions from_params(const ros::NodeHandle& pnh);
@@ -81,8 +75,6 @@ class Recorder {
   std::uint64_t skipped_device_samples() const { return skipped_device_samples_; }
   // Rows whose simulated true position was not the reading's own (late or missing) and took the newest before it.
   std::uint64_t substituted_truths() const { return substituted_truths_; }
-  // Lock-step: the settle wait in force at the end [s, wall].
-  double lockstep_settle_s() const { return settle_s_; }
   // Reads `parameters_yaml` of a marker back into protocol, seed, rate, params, sample count and time base.
   static void parse_spec(const std::string& yaml, RecorderOptions& options, std::uint64_t& total, double& t0_s);
 
@@ -94,8 +86,8 @@ class Recorder {
     analysis::SequenceTracker tracker;
     std::deque<piezo_compensation::AxisVoltage> voltages;    // recent, matched by sequence
     std::deque<piezo_compensation::EncoderPosition> truths;  // recent, matched by sequence
-    std::deque<piezo_compensation::EncoderPosition> encoders;  // recent (lock-step only)
-    std::optional<piezo_compensation::EncoderPosition> pending;  // first encoder reading after the command
+    std::deque<piezo_compensation::EncoderPosition> readings;  // recent valid readings, matched by sequence
+    std::optional<piezo_compensation::EncoderPosition> pending;  // this axis' reading of the row's device sample
     double commanded_v = 0.0;
   };
 
@@ -104,14 +96,12 @@ class Recorder {
   void on_truth(std::size_t axis, const piezo_compensation::EncoderPosition::ConstPtr& msg);
   void on_watchdog(const ros::WallTimerEvent&);
   bool data_ready_to_start();    // kWaiting: data (and the truth, where there is one) on every axis
-  // lock-step (~publish_clock)
-  void lockstep_try_step();      // all data of the device's newest sample are here: handle them
-  void lockstep_advance();       // commands are out: move the clock to the device's next sample instant
-  void lockstep_publish_full();
-  void publish_clock(double t_s);
-  void on_kick(const ros::WallTimerEvent&);
   void send_sample();            // commands of sample next_
   void send_sample_unchecked();
+  void publish_commands(const protocols::ProtocolSample& s);  // every axis; the next row is a later sample
+  void row_ready();              // pending holds one device sample: approach_step or complete_sample
+  void approach_step();          // before recording: has the driver reached the first sample's voltages?
+  void assemble_row();           // every axis has a reading of one device sample after the command → complete_sample
   void complete_sample();        // all axes have a reading: write the row or wait for the next reading
   void write_marker(const protocols::ProtocolSample& s);
   void publish_progress(bool log);
@@ -137,17 +127,13 @@ class Recorder {
   std::uint64_t late_commands_ = 0, skipped_device_samples_ = 0, substituted_truths_ = 0;
   bool truth_checked_ = false, with_truth_ = false, waiting_truth_ = false, truth_wait_expired_ = false;
   // lock-step state
-  ros::Publisher clock_pub_;
-  ros::WallTimer settle_timer_, kick_timer_;
-  double clock_s_ = 0.0, device_instant_s_ = 0.0, settle_s_ = 0.0;
-  bool lockstep_ = false, device_instant_known_ = false, awaiting_step_ = false;
-  int lockstep_steps_ = 0, two_steps_left_ = 0;
-  std::uint64_t good_streak_ = 0;
-  std::optional<std::uint32_t> last_step_sequence_;
   std::optional<std::uint32_t> last_row_sequence_;
+  // device samples before this one were taken before the current command (controller sequence)
+  std::uint32_t row_floor_sequence_ = 0;
+  bool has_row_floor_ = false;
   std::optional<protocols::ProtocolSample> last_marker_;
   using Clock = std::chrono::steady_clock;
-  Clock::time_point full_published_wall_, last_encoder_wall_, started_wall_, approach_started_, last_progress_log_, last_progress_pub_;
+  Clock::time_point last_encoder_wall_, started_wall_, approach_started_, last_progress_log_, last_progress_pub_;
   std::deque<std::pair<Clock::time_point, std::uint64_t>> rate_window_;  // for the ETA
   analysis::RecordingSummary summary_;
 };

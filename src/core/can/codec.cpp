@@ -34,7 +34,7 @@ const char* to_string(DecodeError error) {
 
 namespace {
 
-constexpr std::uint8_t kVoltageDlc = 8, kEncoderDlc = 8, kCommandDlc = 8, kHeartbeatDlc = 4;
+constexpr std::uint8_t kVoltageDlc = 8, kEncoderDlc = 8, kCommandDlc = 8, kHeartbeatDlc = 4, kSyncDlc = 1;
 
 std::string hex(std::uint32_t v) {
   char b[16];
@@ -112,6 +112,7 @@ std::uint32_t Codec::encoder_id(int axis) const {
   return config_.encoder_function_id + config_.base_node_id + axis * config_.node_id_stride;
 }
 std::uint32_t Codec::heartbeat_id() const { return config_.heartbeat_function_id + config_.base_node_id; }
+std::uint32_t Codec::sync_id() const { return config_.sync_function_id + config_.base_node_id; }
 
 namespace {
 can_frame make_frame(std::uint32_t id, bool extended, std::uint8_t dlc) {
@@ -164,6 +165,12 @@ can_frame Codec::encode(const Heartbeat& m) const {
   return f;
 }
 
+can_frame Codec::encode(const SyncFrame& m) const {
+  can_frame f = make_frame(sync_id(), config_.extended_ids, kSyncDlc);
+  f.data[0] = m.counter;
+  return f;
+}
+
 can_frame Codec::encode(const BusError& m) {
   can_frame f;
   std::memset(&f, 0, sizeof f);
@@ -198,7 +205,7 @@ DecodeResult Codec::decode(const can_frame& f) const noexcept {
     const bool extended = f.can_id & CAN_EFF_FLAG;
     const std::uint32_t id = extended ? (f.can_id & CAN_EFF_MASK) : (f.can_id & CAN_SFF_MASK);
     // Identify the frame type first, so a frame of another node is "unknown", not "malformed".
-    enum { kNoMatch, kCmd, kVolt, kEnc, kHb } type = kNoMatch;
+    enum { kNoMatch, kCmd, kVolt, kEnc, kHb, kSync } type = kNoMatch;
     int axis = -1;
     for (int a = 0; a < kAxisCount && type == kNoMatch; ++a) {
       if (id == command_id(a)) type = kCmd, axis = a;
@@ -206,6 +213,7 @@ DecodeResult Codec::decode(const can_frame& f) const noexcept {
       else if (id == encoder_id(a)) type = kEnc, axis = a;
     }
     if (type == kNoMatch && id == heartbeat_id()) type = kHb;
+    if (type == kNoMatch && id == sync_id()) type = kSync;
     if (type == kNoMatch) return fail(DecodeError::kUnknownId, "identifier " + hex(id) + " is not this device's");
     if (extended != config_.extended_ids)
       return fail(DecodeError::kWrongIdFormat, "identifier " + hex(id) + (extended ? " is 29-bit" : " is 11-bit") +
@@ -213,7 +221,7 @@ DecodeResult Codec::decode(const can_frame& f) const noexcept {
                                                    (config_.extended_ids ? "29-bit" : "11-bit") + " identifiers");
     if (f.can_id & CAN_RTR_FLAG)
       return fail(DecodeError::kRemoteFrame, "remote (RTR) frame " + hex(id) + ": the protocol has none");
-    const std::uint8_t expected = type == kHb ? kHeartbeatDlc : 8;
+    const std::uint8_t expected = type == kHb ? kHeartbeatDlc : type == kSync ? kSyncDlc : 8;
     if (f.can_dlc != expected)
       return fail(DecodeError::kBadLength, "frame " + hex(id) + " has DLC " + std::to_string(f.can_dlc) +
                                                " (expected " + std::to_string(expected) + ")");
@@ -260,6 +268,12 @@ DecodeResult Codec::decode(const can_frame& f) const noexcept {
         r.message_value = m;
         return r;
       }
+      case kSync: {
+        SyncFrame m;
+        m.counter = f.data[0];
+        r.message_value = m;
+        return r;
+      }
       case kNoMatch: break;
     }
     return fail(DecodeError::kUnknownId, "identifier " + hex(id) + " is not this device's");
@@ -287,6 +301,7 @@ std::vector<can_filter> Codec::device_filters() const {
   const canid_t mask = (config_.extended_ids ? CAN_EFF_MASK : CAN_SFF_MASK) | CAN_EFF_FLAG | CAN_RTR_FLAG;
   std::vector<can_filter> out;
   for (int a = 0; a < kAxisCount; ++a) out.push_back({command_id(a) | format, mask});
+  out.push_back({sync_id() | format, mask});
   return out;
 }
 

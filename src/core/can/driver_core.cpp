@@ -191,6 +191,24 @@ void DriverCore::tick(double now_s) {
   flush(events);
 }
 
+bool DriverCore::sync() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (!transport_->is_open() || bus_.state == BusState::kBusOff) return false;
+  try {
+    if (!transport_->send(codec_.encode(SyncFrame{sync_counter_}))) {
+      ++bus_.send_failures;
+      return false;
+    }
+  } catch (const TransportError& e) {
+    ++bus_.send_failures;
+    bus_.last_error = e.what();  // the receive thread reconnects
+    return false;
+  }
+  ++sync_counter_;
+  ++bus_.syncs_sent;
+  return true;
+}
+
 void DriverCore::halt() {
   std::lock_guard<std::mutex> lock(mutex_);
   halted_ = true;

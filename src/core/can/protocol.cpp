@@ -36,15 +36,15 @@ void validate(const ProtocolConfig& c) {
   require(1000.0 / c.voltage_lsb_v < 2147483647.0, "voltage_lsb_v is too small: ±1000 V must fit an int32");
   const std::uint32_t last_node = c.base_node_id + (kAxisCount - 1) * c.node_id_stride;
   const std::uint32_t functions[] = {c.command_function_id, c.voltage_function_id, c.encoder_function_id,
-                                     c.heartbeat_function_id};
+                                     c.heartbeat_function_id, c.sync_function_id};
   const char* names[] = {"command_function_id", "voltage_function_id", "encoder_function_id",
-                         "heartbeat_function_id"};
-  for (int f = 0; f < 4; ++f)
+                         "heartbeat_function_id", "sync_function_id"};
+  for (int f = 0; f < 5; ++f)
     require(functions[f] + last_node <= max_id, std::string(names[f]) + " + node IDs exceed the " +
                                                     (c.extended_ids ? "29" : "11") + "-bit identifier range");
   // Every identifier must be unique, or the codec could not tell frames apart.
-  std::uint32_t ids[3 * kAxisCount + 1];
-  std::string owners[3 * kAxisCount + 1];
+  std::uint32_t ids[3 * kAxisCount + 2];
+  std::string owners[3 * kAxisCount + 2];
   int n = 0;
   for (int f = 0; f < 3; ++f)
     for (int a = 0; a < kAxisCount; ++a) {
@@ -53,6 +53,8 @@ void validate(const ProtocolConfig& c) {
     }
   owners[n] = names[3];
   ids[n++] = c.heartbeat_function_id + c.base_node_id;
+  owners[n] = names[4];
+  ids[n++] = c.sync_function_id + c.base_node_id;
   for (int i = 0; i < n; ++i)
     for (int j = i + 1; j < n; ++j)
       if (ids[i] == ids[j]) {
@@ -94,6 +96,7 @@ ProtocolConfig protocol_from_yaml(const YAML::Node& node) {
   get_u32("voltage_function_id", c.voltage_function_id);
   get_u32("encoder_function_id", c.encoder_function_id);
   get_u32("heartbeat_function_id", c.heartbeat_function_id);
+  get_u32("sync_function_id", c.sync_function_id);
   if (node["extended_ids"]) {
     try {
       c.extended_ids = node["extended_ids"].as<bool>();
