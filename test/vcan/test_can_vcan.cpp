@@ -236,6 +236,51 @@ TEST(Vcan, CandumpSeesTheCommandsTheDriverWrites) {
   EXPECT_EQ(n, 3);
 }
 
+TEST(Vcan, SyncFollowsItsSetPointsOnTheWire) {
+  // synchronous mode (lock-step with the simulated device): each SYNC is written after that sample's set point
+  Seen seen;
+  DriverCore driver(driver_config(), socketcan(), seen.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.bus_status().state != BusState::kDisconnected; }, 5s));
+  std::remove("candump_sync.log");
+  ASSERT_EQ(sh("(candump -L -n 4 vcan0,212:7FF,090:7FF > candump_sync.log &) ; sleep 1"), 0);
+  ASSERT_EQ(sh("cansend vcan0 192#A086010001000000"), 0);  // axis c reports 10 V: the slew start point
+  ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }, 5s));
+  double t = 100.0;  // bus time: one period per SYNC
+  driver.tick(t);
+  for (int k = 1; k <= 2; ++k) {
+    t += 0.1;
+    driver.command(2, 10.0 + k, t, t);
+    ASSERT_TRUE(driver.sync());
+  }
+  ASSERT_TRUE(wait_for([&] {
+    std::ifstream f("candump_sync.log");
+    int lines = 0;
+    for (std::string l; std::getline(f, l);) ++lines;
+    return lines >= 4;
+  }, 10s));
+  std::ifstream f("candump_sync.log");
+  const Codec codec(protocol());
+  int n = 0;
+  for (std::string line; std::getline(f, line); ++n) {
+    std::istringstream s(line);
+    std::string stamp, iface, frame;
+    s >> stamp >> iface >> frame;
+    const DecodeResult r = codec.decode(from_candump(frame));
+    ASSERT_TRUE(r.ok()) << line << ": " << r.message;
+    if (n % 2 == 0) {
+      const auto* c = std::get_if<CommandFrame>(&r.message_value);
+      ASSERT_NE(c, nullptr) << "frame " << n << " should be a set point: " << line;
+      EXPECT_NEAR(c->voltage_v, 11.0 + n / 2, 1e-3);
+    } else {
+      const auto* y = std::get_if<SyncFrame>(&r.message_value);
+      ASSERT_NE(y, nullptr) << "frame " << n << " should be the SYNC after it: " << line;
+      EXPECT_EQ(y->counter, n / 2);
+    }
+  }
+  EXPECT_EQ(n, 4);
+}
+
 TEST(Vcan, InterfaceDownAndErrorFramesAreSurvived) {
   Device device;
   Seen seen;
