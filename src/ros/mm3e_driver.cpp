@@ -1,5 +1,6 @@
 #include "piezo_compensation/ros/mm3e_driver.h"
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 
@@ -42,6 +43,10 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   stamp_with_receive_time_ = param_bool(pnh_, "stamp_with_receive_time", true);
   sync_mode_ = param_bool(pnh_, "sync_mode", false);
   sync_idle_s_ = param_double(pnh_, "sync_idle_s", 0.5, 0.001, 60.0);
+  if (sync_mode_ && 1.25 * sync_idle_s_ >= config.silence_reconnect_s)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
+                                " s: an idle device would be silent longer than silence_reconnect_s = " +
+                                std::to_string(config.silence_reconnect_s) + " s and be reconnected over and over");
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;
@@ -100,7 +105,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   core_->start();
   if (sync_mode_) {
     last_sync_wall_ = ros::WallTime::now();
-    sync_idle_timer_ = nh_.createWallTimer(ros::WallDuration(sync_idle_s_ / 2), [this](const ros::WallTimerEvent&) {
+    sync_idle_timer_ = nh_.createWallTimer(ros::WallDuration(sync_idle_s_ / 4), [this](const ros::WallTimerEvent&) {
       check_commanders();
       std::lock_guard<std::mutex> lock(sync_mutex_);
       if ((ros::WallTime::now() - last_sync_wall_).toSec() >= sync_idle_s_) sync_locked();
@@ -251,7 +256,8 @@ void DriverNode::diagnose_bus(diagnostic_updater::DiagnosticStatusWrapper& stat)
   }
   if (b.heartbeat_seen && b.device_state != can::DeviceState::kOperational && b.state == can::BusState::kActive)
     stat.mergeSummary(DiagnosticStatus::WARN, std::string("device ") + can::to_string(b.device_state));
-  if (b.state == can::BusState::kActive &&
+  // in synchronous mode the heartbeat period is simulated time: an idle device sends one every 11 SYNCs or so
+  if (b.state == can::BusState::kActive && !sync_mode_ &&
       (!b.heartbeat_seen || b.heartbeat_age_s > 3.0 * heartbeat_period_s_))
     stat.mergeSummary(DiagnosticStatus::WARN, "no heartbeat from the controller");
   stat.add("state", can::to_string(b.state));
@@ -288,7 +294,7 @@ void DriverNode::diagnose_axis(int i, diagnostic_updater::DiagnosticStatusWrappe
   stat.summary(DiagnosticStatus::OK, "ok");
   if (s.encoder_age_s < 0)
     stat.mergeSummary(DiagnosticStatus::WARN, "no encoder frame yet");
-  else if (s.encoder_age_s > encoder_timeout_s_)
+  else if (s.encoder_age_s > (sync_mode_ ? std::max(encoder_timeout_s_, 2.0 * sync_idle_s_) : encoder_timeout_s_))
     stat.mergeSummary(DiagnosticStatus::ERROR, "encoder silent");
   if (!s.encoder_valid) stat.mergeSummary(DiagnosticStatus::ERROR, "encoder reading flagged invalid");
   if (s.amplifier_fault) stat.mergeSummary(DiagnosticStatus::ERROR, "amplifier fault");

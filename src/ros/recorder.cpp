@@ -289,9 +289,25 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
     return;
   }
   last_encoder_wall_ = Clock::now();
+  const auto arrival = ax.tracker.add(msg->sequence);
+  if (arrival == analysis::SequenceTracker::Arrival::kRestart ||
+      (has_row_floor_ && static_cast<std::int32_t>(msg->sequence - row_floor_sequence_) < -1000)) {
+    // the controller restarted its counter (or the driver reconnected after a wrap): what is held belongs to
+    // the old numbering and would never pair with the new readings
+    ROS_WARN("recorder: axis %s: controller sequence restarted at %u; pairing starts again", ax.name.c_str(),
+             msg->sequence);
+    has_row_floor_ = false;
+    last_row_sequence_.reset();
+    for (auto& a : axes_) {
+      a.readings.clear();
+      a.voltages.clear();
+      a.truths.clear();
+      a.pending.reset();
+    }
+    waiting_truth_ = truth_wait_expired_ = false;
+  }
   ax.readings.push_back(*msg);
   if (ax.readings.size() > 32) ax.readings.pop_front();
-  const auto arrival = ax.tracker.add(msg->sequence);
   if (arrival == analysis::SequenceTracker::Arrival::kGap || arrival == analysis::SequenceTracker::Arrival::kLate ||
       arrival == analysis::SequenceTracker::Arrival::kDuplicate)
     ROS_WARN_THROTTLE(5.0, "recorder: axis %s encoder sequence %u arrived %s", ax.name.c_str(), msg->sequence,
@@ -328,13 +344,12 @@ void Recorder::row_ready() {
 void Recorder::approach_step() {
   // the driver slew-limits: let it reach the first sample's voltages before recording starts; one command per
   // device sample, so the driver's command watchdog never holds half-way
-  bool reached = true;
-  for (const auto& ax : axes_) {
-    const auto it = std::find_if(ax.voltages.rbegin(), ax.voltages.rend(),
-                                 [&](const auto& v) { return v.sequence == ax.pending->sequence; });
-    if (it == ax.voltages.rend()) return;  // its voltage report is on its way (on_voltage comes back here)
-    if (!(std::fabs(it->voltage - ax.commanded_v) <= options_.voltage_tolerance_v)) reached = false;
-  }
+  std::vector<const piezo_compensation::AxisVoltage*> volts;
+  const VoltageMatch match = match_voltages(volts);
+  if (match == VoltageMatch::kWaiting) return;  // a report is on its way (on_voltage comes back here)
+  bool reached = match == VoltageMatch::kAll;   // a lost report: judge by the next sample
+  for (std::size_t k = 0; k < axes_.size() && reached; ++k)
+    if (!(std::fabs(volts[k]->voltage - axes_[k].commanded_v) <= options_.voltage_tolerance_v)) reached = false;
   const double waited_s = std::chrono::duration<double>(Clock::now() - approach_started_).count();
   if (!reached && waited_s < options_.approach_timeout_s) {
     publish_commands(protocol_->at(next_));
@@ -423,35 +438,44 @@ void Recorder::write_marker(const protocols::ProtocolSample& s) {
            m.phase.c_str());
 }
 
-void Recorder::complete_sample() {
-  // each axis' applied voltage: the report with the reading's sequence number (the controller numbers both)
-  std::vector<const piezo_compensation::AxisVoltage*> volts(axes_.size(), nullptr);
-  bool all_matched = true, applied = true;
+Recorder::VoltageMatch Recorder::match_voltages(std::vector<const piezo_compensation::AxisVoltage*>& volts) const {
+  // each axis' applied voltage: the report with the reading's sequence number (the controller numbers both).
+  // Reports travel on their own topic: wait for them unless a later one shows this one was lost.
+  volts.assign(axes_.size(), nullptr);
+  VoltageMatch result = VoltageMatch::kAll;
   for (std::size_t k = 0; k < axes_.size(); ++k) {
     const auto& ax = axes_[k];
-    for (auto it = ax.voltages.rbegin(); it != ax.voltages.rend(); ++it)
-      if (it->sequence == ax.pending->sequence) {
+    const std::uint32_t seq = ax.pending->sequence;
+    bool later = false;
+    for (auto it = ax.voltages.rbegin(); it != ax.voltages.rend(); ++it) {
+      if (it->sequence == seq) {
         volts[k] = &*it;
         break;
       }
-    if (!volts[k]) {
-      all_matched = false;
-      if (!ax.voltages.empty()) volts[k] = &ax.voltages.back();
+      if (static_cast<std::int32_t>(it->sequence - seq) > 0) later = true;
     }
-    if (!volts[k] || !(std::fabs(volts[k]->voltage - ax.commanded_v) <= options_.voltage_tolerance_v)) applied = false;
+    if (volts[k]) continue;
+    if (!later) return VoltageMatch::kWaiting;
+    result = VoltageMatch::kLost;
+    volts[k] = &ax.voltages.back();
   }
-  if (!all_matched && waited_samples_ == 0 && !applied) {
-    // the voltage report of this reading may still be on its way: wait once for it (on_voltage retries)
-    waited_samples_ = -1;
-    return;
-  }
-  if (waited_samples_ < 0) waited_samples_ = 0;
+  return result;
+}
+
+void Recorder::complete_sample() {
+  std::vector<const piezo_compensation::AxisVoltage*> volts;
+  if (match_voltages(volts) == VoltageMatch::kWaiting) return;
+  bool applied = true;
+  for (std::size_t k = 0; k < axes_.size(); ++k)
+    if (!(std::fabs(volts[k]->voltage - axes_[k].commanded_v) <= options_.voltage_tolerance_v)) applied = false;
   if (!applied && waited_samples_ < options_.max_wait_samples) {
     // the command had not reached the piezo when this reading was taken: use the next one
     ++waited_samples_;
     row_floor_sequence_ = axes_.front().pending->sequence + 1;
     has_row_floor_ = true;
-    for (auto& ax : axes_) ax.pending.reset();
+    // the same command again: a device in synchronous mode takes its next sample on it (on hardware it only
+    // refreshes the driver's watchdog)
+    publish_commands(protocol_->at(next_));
     return;
   }
   if (with_truth_ && !truth_wait_expired_) {

@@ -319,6 +319,7 @@ TEST(Driver, InvalidParametersAreNamed) {
       {"protocol/byte_order", XmlRpc::XmlRpcValue("middle")},
       {"protocol/voltage_lsb_v", XmlRpc::XmlRpcValue(0.0)},
       {"protocol/encoder_function_id", XmlRpc::XmlRpcValue(0x180)},  // collides with the voltage reports
+      {"protocol/sync_function_id", XmlRpc::XmlRpcValue(0x180)},     // SYNC on axis a's voltage report id
   };
   int k = 0;
   for (const auto& [param, value] : cases) {
@@ -334,6 +335,32 @@ TEST(Driver, InvalidParametersAreNamed) {
     } catch (const std::invalid_argument& e) {
       const std::string leaf = param.substr(param.rfind('/') + 1);
       EXPECT_NE(std::string(e.what()).find(leaf), std::string::npos) << param << ": " << e.what();
+    }
+  }
+  // Synchronous mode: an idle SYNC interval the silence watchdog would take for a dead device.
+  {
+    ros::NodeHandle pnh("/bad_params/driver_sync");
+    pnh.setParam("transport", "udp");
+    pnh.setParam("udp_local_port", 47990);
+    pnh.setParam("udp_remote_port", 47991);
+    pnh.setParam("sync_mode", true);
+    pnh.setParam("sync_idle_s", 5.0);
+    try {
+      piezo::mm3e::DriverNode node(ros::NodeHandle("/bad_params"), pnh);
+      ADD_FAILURE() << "sync_idle_s 5 s with silence_reconnect_s 2 s accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("sync_idle_s"), std::string::npos) << e.what();
+    }
+  }
+  {
+    ros::NodeHandle spnh("/bad_params/sim_sync");
+    spnh.setParam("transport", "udp");
+    spnh.setParam("sync_mode", true);  // without publish_clock: nobody would move simulated time
+    try {
+      piezo::mm3e::SimNode node(ros::NodeHandle("/bad_params"), spnh);
+      ADD_FAILURE() << "sync_mode without publish_clock accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("sync_mode"), std::string::npos) << e.what();
     }
   }
   // The simulated device too, including its own rule: a time scale needs the device to own /clock.

@@ -102,6 +102,9 @@ class Recorder {
   void row_ready();              // pending holds one device sample: approach_step or complete_sample
   void approach_step();          // before recording: has the driver reached the first sample's voltages?
   void assemble_row();           // every axis has a reading of one device sample after the command → complete_sample
+  enum class VoltageMatch { kAll, kLost, kWaiting };
+  // the voltage report of each axis' pending reading (kLost: a later report shows one was lost; the newest is used)
+  VoltageMatch match_voltages(std::vector<const piezo_compensation::AxisVoltage*>& volts) const;
   void complete_sample();        // all axes have a reading: write the row or wait for the next reading
   void write_marker(const protocols::ProtocolSample& s);
   void publish_progress(bool log);
