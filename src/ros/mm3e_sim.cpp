@@ -5,7 +5,6 @@
 
 #include <chrono>
 #include <cmath>
-#include <variant>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ros/mm3e_params.h"
@@ -196,16 +195,11 @@ void SimNode::run_synchronous() {
     }
     std::lock_guard<std::mutex> lock(mutex_);
     if (in.empty()) publish_clock(sim_now_s);  // for nodes that start while nobody asks for samples
-    for (const auto& rf : in) {
-      const can::DecodeResult r = device_->codec().decode(rf.frame);
-      if (r.ok() && std::holds_alternative<can::SyncFrame>(r.message_value)) {
+    for (const auto& rf : in)
+      if (device_->handle(rf.frame) == can::DeviceCore::Handled::kSync) {
         sim_now_s += period_s;
         step_once(sim_now_s);
-        ++syncs_;
-      } else {
-        device_->handle(rf.frame);
       }
-    }
   }
 }
 

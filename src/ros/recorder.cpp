@@ -291,12 +291,12 @@ void Recorder::on_encoder(std::size_t k, const piezo_compensation::EncoderPositi
   last_encoder_wall_ = Clock::now();
   const auto arrival = ax.tracker.add(msg->sequence);
   if (arrival == analysis::SequenceTracker::Arrival::kRestart ||
-      (has_row_floor_ && static_cast<std::int32_t>(msg->sequence - row_floor_sequence_) < -1000)) {
+      (row_floor_sequence_ && static_cast<std::int32_t>(msg->sequence - *row_floor_sequence_) < -1000)) {
     // the controller restarted its counter (or the driver reconnected after a wrap): what is held belongs to
     // the old numbering and would never pair with the new readings
     ROS_WARN("recorder: axis %s: controller sequence restarted at %u; pairing starts again", ax.name.c_str(),
              msg->sequence);
-    has_row_floor_ = false;
+    row_floor_sequence_.reset();
     last_row_sequence_.reset();
     for (auto& a : axes_) {
       a.readings.clear();
@@ -372,7 +372,7 @@ void Recorder::assemble_row() {
   if (std::any_of(axes_.begin(), axes_.end(), [](const AxisIo& a) { return a.pending.has_value(); })) return;
   for (const auto& candidate : axes_.front().readings) {
     const std::uint32_t s = candidate.sequence;
-    if (has_row_floor_ && static_cast<std::int32_t>(s - row_floor_sequence_) < 0) continue;
+    if (row_floor_sequence_ && static_cast<std::int32_t>(s - *row_floor_sequence_) < 0) continue;
     bool everywhere = true;
     for (const auto& ax : axes_)
       everywhere = everywhere && std::any_of(ax.readings.begin(), ax.readings.end(),
@@ -398,10 +398,8 @@ void Recorder::publish_commands(const protocols::ProtocolSample& s) {
   // readings already here were taken before this command: the next row starts after the newest of them
   for (const auto& ax : axes_)
     for (const auto& m : ax.readings)
-      if (!has_row_floor_ || static_cast<std::int32_t>(m.sequence + 1 - row_floor_sequence_) > 0) {
+      if (!row_floor_sequence_ || static_cast<std::int32_t>(m.sequence + 1 - *row_floor_sequence_) > 0)
         row_floor_sequence_ = m.sequence + 1;
-        has_row_floor_ = true;
-      }
   const ros::Time now = ros::Time::now();
   for (auto& ax : axes_) {
     ax.commanded_v = s.voltage_v[axis_index(ax.name)];
@@ -471,10 +469,8 @@ void Recorder::complete_sample() {
   if (!applied && waited_samples_ < options_.max_wait_samples) {
     // the command had not reached the piezo when this reading was taken: use the next one
     ++waited_samples_;
-    row_floor_sequence_ = axes_.front().pending->sequence + 1;
-    has_row_floor_ = true;
-    // the same command again: a device in synchronous mode takes its next sample on it (on hardware it only
-    // refreshes the driver's watchdog)
+    // the same command again (the next row starts after this reading, as after any command): a device in
+    // synchronous mode takes its next sample on it (on hardware it only refreshes the driver's watchdog)
     publish_commands(protocol_->at(next_));
     return;
   }

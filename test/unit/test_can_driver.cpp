@@ -11,7 +11,6 @@
 #include <cstring>
 #include <mutex>
 #include <thread>
-#include <variant>
 
 #include "piezo_compensation/can/device_core.h"
 #include "piezo_compensation/can/driver_core.h"
@@ -80,14 +79,11 @@ class Device {
       std::vector<ReceivedFrame> in;
       transport_->receive(in, 2);
       std::lock_guard<std::mutex> lock(mutex_);
-      for (const auto& rf : in) {
-        const DecodeResult r = core_.codec().decode(rf.frame);
-        if (r.ok() && std::holds_alternative<SyncFrame>(r.message_value)) {
+      for (const auto& rf : in)
+        if (core_.handle(rf.frame) == DeviceCore::Handled::kSync) {
           ++syncs_;
           voltages_at_sync_ = core_.voltages_v();
         }
-        core_.handle(rf.frame);
-      }
       if (std::chrono::steady_clock::now() >= next) {
         next += 10ms;
         const auto out = core_.step();

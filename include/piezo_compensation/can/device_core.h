@@ -27,8 +27,10 @@ class DeviceCore {
  public:
   DeviceCore(const DeviceConfig& config, Plant plant);
 
-  // A frame from the bus. Returns true when it was a valid command for this device.
-  bool handle(const can_frame& frame);
+  // What a frame from the bus was for this device. A command is applied (unless the controller is halted); a
+  // SYNC (synchronous mode) asks the caller to step() now; anything else is ignored (malformed ones counted).
+  enum class Handled { kIgnored, kCommand, kSync };
+  Handled handle(const can_frame& frame);
 
   struct Output {
     std::vector<can_frame> frames;  // per axis a voltage report and an encoder reading, plus a heartbeat when due

@@ -40,7 +40,6 @@ class SimNode {
   bool publish_clock_ = false;
   bool sync_mode_ = false;  // ~sync_mode: sample on the driver's SYNC frames, not on a clock
   std::uint32_t sequence_ = 0;
-  std::uint64_t syncs_ = 0;
   double clock_rate_hz_ = 200.0;
   double fault_silence_s_ = 1.0;
   std::unique_ptr<sim::ManipulatorSimulator> simulator_;

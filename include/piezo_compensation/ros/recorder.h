@@ -129,11 +129,9 @@ class Recorder {
   int waited_samples_ = 0;
   std::uint64_t late_commands_ = 0, skipped_device_samples_ = 0, substituted_truths_ = 0;
   bool truth_checked_ = false, with_truth_ = false, waiting_truth_ = false, truth_wait_expired_ = false;
-  // lock-step state
-  std::optional<std::uint32_t> last_row_sequence_;
+  std::optional<std::uint32_t> last_row_sequence_;  // controller sequence of the last recorded row
   // device samples before this one were taken before the current command (controller sequence)
-  std::uint32_t row_floor_sequence_ = 0;
-  bool has_row_floor_ = false;
+  std::optional<std::uint32_t> row_floor_sequence_;
   std::optional<protocols::ProtocolSample> last_marker_;
   using Clock = std::chrono::steady_clock;
   Clock::time_point last_encoder_wall_, started_wall_, approach_started_, last_progress_log_, last_progress_pub_;

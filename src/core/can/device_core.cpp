@@ -13,18 +13,20 @@ DeviceCore::DeviceCore(const DeviceConfig& config, Plant plant)
     voltages_v_[i] = std::clamp(config_.initial_voltage_v[i], config_.min_voltage_v, config_.max_voltage_v);
 }
 
-bool DeviceCore::handle(const can_frame& frame) {
+DeviceCore::Handled DeviceCore::handle(const can_frame& frame) {
   const DecodeResult r = codec_.decode(frame);
   if (!r.ok()) {
     if (r.error != DecodeError::kUnknownId) ++rejected_;
-    return false;
+    return Handled::kIgnored;
   }
+  if (std::holds_alternative<SyncFrame>(r.message_value)) return Handled::kSync;
   const auto* c = std::get_if<CommandFrame>(&r.message_value);
-  if (!c) return false;
+  if (!c) return Handled::kIgnored;
   ++commands_;
-  if (state_ != DeviceState::kOperational) return true;  // a halted or faulted controller keeps its output
+  // a halted or faulted controller keeps its output
+  if (state_ != DeviceState::kOperational) return Handled::kCommand;
   voltages_v_[c->axis] = std::clamp(c->voltage_v, config_.min_voltage_v, config_.max_voltage_v);
-  return true;
+  return Handled::kCommand;
 }
 
 DeviceCore::Output DeviceCore::step() {
