@@ -98,7 +98,7 @@ can::ProtocolConfig read_protocol(const ros::NodeHandle& pnh) {
   c.extended_ids = param_bool(p, "extended_ids", c.extended_ids);
   c.byte_order = param_string(p, "byte_order", "little", {"little", "big"}) == "big" ? can::ByteOrder::kBig
                                                                                     : can::ByteOrder::kLittle;
-  c.voltage_lsb_v = param_double(p, "voltage_lsb_v", c.voltage_lsb_v, 1e-9, 1.0);
+  c.voltage_lsb_v = param_double(p, "voltage_lsb_v", c.voltage_lsb_v, 1e-9, 0.01);
   c.position_lsb_m = param_double(p, "position_lsb_m", c.position_lsb_m, 1e-15, 1e-3);
   c.encoder_rate_hz = param_double(p, "encoder_rate_hz", c.encoder_rate_hz, 0.01, 10000.0);
   c.heartbeat_period_s = param_double(p, "heartbeat_period_s", c.heartbeat_period_s, 0.001, 3600.0);
