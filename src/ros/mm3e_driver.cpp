@@ -35,6 +35,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   lim.command_timeout_s = param_double(pnh_, "command_timeout_s", 0.5, 1e-3, 3600.0);
   lim.max_step_dt_s = param_double(pnh_, "max_step_dt_s", 0.1, 1e-4, can::kStepDtCeilingS);
   lim.max_frame_step_v = param_double(pnh_, "max_frame_step_v", 5.0, 1e-3, can::kFrameStepCeilingV);
+  lim.max_unconfirmed_v = param_double(pnh_, "max_unconfirmed_v", 10.0, lim.max_frame_step_v, 2 * can::kFrameStepCeilingV);
   lim.max_stamp_ahead_s = param_double(pnh_, "max_stamp_ahead_s", 0.5, 1e-3, 60.0);
   lim.report_tolerance_v = param_double(pnh_, "report_tolerance_v", 0.5, 1e-3, 10.0);
   lim.report_lag_s = param_double(pnh_, "report_lag_s", 0.1, 1e-3, 10.0);

@@ -18,10 +18,13 @@ LimiterConfig config() {
   c.max_step_dt_s = 0.1;
   return c;
 }
-// One output step whose frame is written.
+// One output step whose frame is written and which a following device reports back at once.
 std::optional<double> send(CommandLimiter& l, double t) {
   const auto v = l.step(t);
-  if (v) l.sent(*v, t);
+  if (v) {
+    l.sent(*v, t);
+    l.on_reported_voltage(*v, t);
+  }
   return v;
 }
 // Runs the ramp in 10 ms steps from t0 for `seconds`, returning the largest jump between outputs.
@@ -151,6 +154,7 @@ TEST(CanLimiter, StartOutsideTheLimitsRampsInAtTheSlewRate) {
     EXPECT_LT(*v, last);  // only inwards, never further out than the device already is
     EXPECT_TRUE(l.sendable(*v));
     l.sent(*v, t);
+    l.on_reported_voltage(*v, t);
     last = *v;
   }
   EXPECT_GE(frames, 15);
@@ -213,6 +217,23 @@ TEST(CanLimiter, ReportsAwayFromTheCommandedValuePauseThenTrip) {
   const auto v = send(l, 0.13);
   ASSERT_TRUE(v.has_value());
   EXPECT_NEAR(*v, -7.0 + 100.0 * (0.13 - 0.08), 1e-9);  // one slew step (since the last step) from the report
+}
+
+TEST(CanLimiter, TheRampWaitsForTheDeviceToConfirm) {
+  CommandLimiter l(config());
+  l.on_reported_voltage(0.0, 0.0);
+  l.step(0.0);
+  l.command(30.0, 0.0);
+  for (int k = 1; k <= 30; ++k) {  // frames written, no report comes back
+    const double t = 0.01 * k;
+    l.command(30.0, t);
+    if (const auto v = l.step(t)) l.sent(*v, t);
+  }
+  EXPECT_DOUBLE_EQ(l.applied_v(), l.config().max_unconfirmed_v);  // stopped ahead of the baseline by that much
+  l.on_reported_voltage(l.applied_v(), 0.31);  // the device confirms
+  const auto v = l.step(0.32);
+  ASSERT_TRUE(v.has_value());
+  EXPECT_GT(*v, l.config().max_unconfirmed_v);
 }
 
 TEST(CanLimiter, AReportThatLagsTheRampStillMatches) {

@@ -6,7 +6,8 @@
 // What the device really has is the reference: the applied voltage is the last value whose frame was written
 // (step() only proposes, sent() accepts), and every fresh voltage report is checked against the values written
 // within report_lag_s. A report that matches none of them pauses the ramp; report_mismatch_count in a row trip
-// a device fault that holds the axis until clear_fault(), and the reports become the baseline again.
+// a device fault that holds the axis until clear_fault(), and the reports become the baseline again. The ramp
+// never runs more than max_unconfirmed_v ahead of the last report that matched (or the baseline).
 #pragma once
 
 #include <cstdint>
@@ -30,6 +31,9 @@ struct LimiterConfig {
   double command_timeout_s = 0.5;     // no command for this long → hold the applied voltage
   double max_step_dt_s = 0.1;         // longest interval one output step may cover (bounds a single jump)
   double max_frame_step_v = 5.0;      // [V] hard cap on the change one frame may carry, whatever the clock did
+  // [V] how far the set point may run ahead of the device's last report that matched. Bounds what a device
+  // that silently ignores set points for a while (and then takes the next) can see: 2 × this + tolerance.
+  double max_unconfirmed_v = 10.0;
   double max_stamp_ahead_s = 0.5;     // [s] a command stamped further ahead of now is refused
   double report_tolerance_v = 0.5;    // [V] a report this far from every recently written value does not match
   double report_lag_s = 0.1;          // [s] written values a report may still show (transport + sample delay)
@@ -103,6 +107,7 @@ class CommandLimiter {
   bool has_applied_ = false;
   bool sent_once_ = false;   // a frame was written since the last baseline
   double applied_v_ = 0.0;   // last voltage written (or reported, before the first frame)
+  double confirmed_v_ = 0.0; // last report that matched (or the baseline)
   double target_v_ = 0.0;
   double last_step_s_ = 0.0;
   bool has_step_time_ = false;

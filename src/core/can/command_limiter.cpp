@@ -24,6 +24,9 @@ void validate(const LimiterConfig& c) {
   if (!in(c.max_frame_step_v, 0.0, kFrameStepCeilingV))
     throw std::invalid_argument("max_frame_step_v must be in (0, " +
                                 std::to_string(static_cast<int>(kFrameStepCeilingV)) + "] V");
+  if (!in(c.max_unconfirmed_v, 0.0, 2 * kFrameStepCeilingV) || c.max_unconfirmed_v < c.max_frame_step_v)
+    throw std::invalid_argument("max_unconfirmed_v must be in [max_frame_step_v, " +
+                                std::to_string(static_cast<int>(2 * kFrameStepCeilingV)) + "] V");
   if (!in(c.max_stamp_ahead_s, 0.0, 60.0)) throw std::invalid_argument("max_stamp_ahead_s must be in (0, 60] s");
   if (!in(c.report_tolerance_v, 0.0, 10.0)) throw std::invalid_argument("report_tolerance_v must be in (0, 10] V");
   if (!in(c.report_lag_s, 0.0, 10.0)) throw std::invalid_argument("report_lag_s must be in (0, 10] s");
@@ -49,6 +52,7 @@ void CommandLimiter::take_baseline(double voltage_v, double now_s) {
   if (!has_applied_ || held() || !has_command_ || timed_out_) target_v_ = voltage_v;
   has_applied_ = true;
   applied_v_ = voltage_v;
+  confirmed_v_ = voltage_v;
   mismatches_ = 0;
   written_.clear();
   written_.emplace_back(now_s, voltage_v);
@@ -74,6 +78,7 @@ void CommandLimiter::on_reported_voltage(double voltage_v, double now_s) {
   prune(now_s);
   if (matches_written(voltage_v)) {
     mismatches_ = 0;
+    confirmed_v_ = voltage_v;
     return;
   }
   ++mismatch_total_;
@@ -117,8 +122,11 @@ std::optional<double> CommandLimiter::step(double now_s) {
   if (!has_applied_ || held() || paused() || target_v_ == applied_v_) return std::nullopt;
   const double max_delta = std::min(config_.slew_rate_v_per_s * dt, config_.max_frame_step_v);
   // The target is always inside the limits, so from a baseline outside them this ramps in.
-  const double next = applied_v_ + std::clamp(target_v_ - applied_v_, -max_delta, max_delta);
-  if (next == applied_v_ || !sendable(next)) return std::nullopt;
+  double next = applied_v_ + std::clamp(target_v_ - applied_v_, -max_delta, max_delta);
+  // Not further ahead of what the device confirmed; this only shortens the step, never reverses it.
+  if (next > applied_v_) next = std::min(next, confirmed_v_ + config_.max_unconfirmed_v);
+  else next = std::max(next, confirmed_v_ - config_.max_unconfirmed_v);
+  if ((target_v_ > applied_v_) != (next > applied_v_) || next == applied_v_ || !sendable(next)) return std::nullopt;
   return next;
 }
 

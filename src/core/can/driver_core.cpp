@@ -180,7 +180,7 @@ CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s, dou
       ++a.status.rejected_no_link;
       return CommandOutcome::kRejectedHeld;
     } else {
-      outcome = a.limiter.command(voltage_v, std::isfinite(command_time_s) ? command_time_s : now_s);
+      outcome = a.limiter.command(voltage_v, now_s, command_time_s);
     }
     switch (outcome) {
       case CommandOutcome::kRejectedNonFinite: ++a.status.rejected_non_finite; break;
