@@ -145,8 +145,14 @@ Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(
     const auto found = ros_io::scan_recording(options_.out, topic(options_.axes.front(), "encoder"),
                                               join(ns_, "protocol_phase"));
     for (const auto& f : found.set_aside)
-      ROS_WARN("recorder: %s was open when the last session died (no index); its samples are recorded again",
+      ROS_WARN("recorder: %s was open or torn when the last session died (no index); its samples are recorded again",
                f.c_str());
+    if (!found.set_aside.empty())
+      ROS_WARN("recorder: resume drops %llu bytes in %zu unreadable chunk(s)",
+               static_cast<unsigned long long>(found.set_aside_bytes), found.set_aside.size());
+    if (found.duplicates > 0)
+      ROS_WARN("recorder: %llu samples were both in %s and in its chunks (a merge cut short): kept once",
+               static_cast<unsigned long long>(found.duplicates), options_.out.c_str());
     if (found.found && found.samples > 0) {
       const std::string wanted = options_.protocol;
       parse_spec(found.parameters_yaml, options_, total_, t0_s_);
