@@ -1,87 +1,29 @@
 #include "piezo_compensation/ros/mm3e_params.h"
 
+#include "piezo_compensation/ros/params.h"
+
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
 
 namespace piezo::mm3e {
 
-namespace {
-
-std::string resolved(const ros::NodeHandle& nh, const std::string& name) { return nh.resolveName(name); }
-
-bool fetch(const ros::NodeHandle& nh, const std::string& name, XmlRpc::XmlRpcValue& value) {
-  return nh.hasParam(name) && nh.getParam(name, value);
-}
-
-template <typename T>
-std::string str(T v) {
-  std::ostringstream s;
-  s << v;
-  return s.str();
-}
-
-}  // namespace
-
+// The typed, ranged reads are the shared parameter layer's (ros/params.h); these keep the driver's call sites.
 double param_double(const ros::NodeHandle& nh, const std::string& name, double fallback, double min, double max) {
-  XmlRpc::XmlRpcValue v;
-  double out = fallback;
-  if (fetch(nh, name, v)) {
-    if (v.getType() == XmlRpc::XmlRpcValue::TypeDouble)
-      out = static_cast<double>(v);
-    else if (v.getType() == XmlRpc::XmlRpcValue::TypeInt)
-      out = static_cast<int>(v);
-    else
-      throw std::invalid_argument("parameter " + resolved(nh, name) + " must be a number");
-  }
-  if (!std::isfinite(out) || out < min || out > max)
-    throw std::invalid_argument("parameter " + resolved(nh, name) + " = " + str(out) + " is outside [" + str(min) +
-                                ", " + str(max) + "]");
-  return out;
+  return params::ParamReader(nh).number(name, fallback, min, max);
 }
 
 int param_int(const ros::NodeHandle& nh, const std::string& name, int fallback, int min, int max) {
-  XmlRpc::XmlRpcValue v;
-  int out = fallback;
-  if (fetch(nh, name, v)) {
-    if (v.getType() != XmlRpc::XmlRpcValue::TypeInt)
-      throw std::invalid_argument("parameter " + resolved(nh, name) + " must be an integer");
-    out = static_cast<int>(v);
-  }
-  if (out < min || out > max)
-    throw std::invalid_argument("parameter " + resolved(nh, name) + " = " + str(out) + " is outside [" + str(min) +
-                                ", " + str(max) + "]");
-  return out;
+  return params::ParamReader(nh).integer(name, fallback, min, max);
 }
 
 bool param_bool(const ros::NodeHandle& nh, const std::string& name, bool fallback) {
-  XmlRpc::XmlRpcValue v;
-  if (!fetch(nh, name, v)) return fallback;
-  if (v.getType() != XmlRpc::XmlRpcValue::TypeBoolean)
-    throw std::invalid_argument("parameter " + resolved(nh, name) + " must be true or false");
-  return static_cast<bool>(v);
+  return params::ParamReader(nh).flag(name, fallback);
 }
 
 std::string param_string(const ros::NodeHandle& nh, const std::string& name, const std::string& fallback,
                          const std::vector<std::string>& allowed) {
-  XmlRpc::XmlRpcValue v;
-  std::string out = fallback;
-  if (fetch(nh, name, v)) {
-    if (v.getType() != XmlRpc::XmlRpcValue::TypeString)
-      throw std::invalid_argument("parameter " + resolved(nh, name) + " must be a string");
-    out = static_cast<std::string>(v);
-  }
-  if (!allowed.empty()) {
-    bool ok = false;
-    std::string list;
-    for (const auto& a : allowed) {
-      ok |= a == out;
-      list += (list.empty() ? "" : ", ") + a;
-    }
-    if (!ok)
-      throw std::invalid_argument("parameter " + resolved(nh, name) + " = \"" + out + "\" must be one of: " + list);
-  }
-  return out;
+  return params::ParamReader(nh).text(name, fallback, allowed);
 }
 
 can::ProtocolConfig read_protocol(const ros::NodeHandle& pnh) {

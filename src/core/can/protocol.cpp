@@ -9,11 +9,7 @@
 
 namespace piezo::can {
 
-int axis_index(const std::string& name) {
-  for (int i = 0; i < kAxisCount; ++i)
-    if (name == kAxisNames[i]) return i;
-  return -1;
-}
+int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
 
 namespace {
 
