@@ -1,2 +1,4 @@
 # Any-piezo checks (issue 11): noise floor from the data, model selection, sanity gates, the stage test matrix.
 piezo_unit_test(test_analysis_noise_floor test/unit/test_analysis_noise_floor.cpp)
+piezo_unit_test(test_analysis_model_selection test/unit/test_analysis_model_selection.cpp)
+piezo_unit_test(test_stage_matrix test/unit/test_stage_matrix.cpp)

@@ -5,13 +5,12 @@
 
 #include "args.h"
 #include "command.h"
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/training/fit_common.h"
-#include "piezo_compensation/training/lasso.h"
 #include "piezo_compensation/util/progress_bar.h"
 
 namespace piezo::cli {
@@ -22,12 +21,16 @@ int run(int argc, char** argv) {
   for (const auto& k : models::model_kind_names()) kinds += (kinds.empty() ? "" : ", ") + k;
   Args args("fit", "Fit a model of one axis on a data file (CSV or bag) and write the model file (YAML).\n"
                    "The validation part (--validation FILE or the last 1 − split of --data, held out by time) gives the\n"
-                   "validation metrics stored in the file. Kinds: " + kinds);
+                   "validation metrics stored in the file. A fit that fails a sanity gate (free-run validation error\n"
+                   "not finite or above 25 % of the position range, parameters far outside what the data supports)\n"
+                   "is refused with one error. Kinds: auto (fit the candidates, keep the best free-run), " + kinds);
   args.required("data", "FILE", "training data (CSV or bag)")
       .option("validation", "FILE", "separate validation data (else --split is used)")
       .option("split", "FRACTION", "training fraction of --data when no --validation is given", "0.8")
       .option("axis", "a|b|c", "axis to model", "c")
-      .required("model", "KIND", "model kind")
+      .required("model", "KIND", "model kind, or auto: linear on lasso features, pi and every pi_creep_* kind, scored\n"
+                "free-run on the validation part; the table is printed and stored in the file")
+      .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm, kan)", "", true)
       .option("features", "SET", "study | candidates | physics | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
       .option("time-budget-s", "S", "stop tuning/training after S seconds (0 = none)", "0")
@@ -41,8 +44,9 @@ int run(int argc, char** argv) {
   if (!args.parse(argc, argv)) return 0;
   const std::string axis = args.str("axis");
   const std::string kind = args.str("model");
-  const models::ModelKind& mk = models::model_kind(kind);
-  if (!mk.fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
+  const bool auto_kind = kind == "auto";
+  if (!auto_kind && !models::model_kind(kind).fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
+  if (auto_kind && args.has("features")) throw UsageError("fit: --features does not apply to --model auto");
 
   io::Dataset all = ros_io::read_data(args.str("data"));
   all.axis(axis);  // clear error if the axis is missing
@@ -91,57 +95,63 @@ int run(int argc, char** argv) {
   req.threads = static_cast<int>(args.integer("threads"));
   req.progress = [&](double done, double total, const std::string& what) { bar.update(done, total, what); };
 
-  if (args.has("features")) {
-    const std::string set = args.str("features");
-    if (set == "lasso") {
-      const auto sel = training::run_lasso(features::candidate_features(), train, axis, {}, req.progress);
-      const features::FeatureSpec chosen = training::select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
-      const std::string report = training::lasso_report(sel.spec, sel.path);
-      if (args.has("lasso-report")) {
-        std::ofstream f(args.str("lasso-report"));
-        if (!f) throw std::runtime_error(args.str("lasso-report") + ": cannot open for writing");
-        f << report;
+  // With --split the model runs through the training part first, so the validation part starts with the real
+  // history (as live); a separate --validation file starts from rest.
+  const io::Dataset& score_data = split_at ? all : val;
+  models::ModelPtr model;
+  if (auto_kind) {
+    analysis::SelectionRequest sr;
+    sr.train = &train;
+    sr.validation = req.validation;
+    sr.score_data = &score_data;
+    sr.score_from = split_at;
+    sr.axis = axis;
+    sr.candidates = analysis::default_candidates(args.list("auto-extra"));
+    sr.time_budget_s = req.time_budget_s;
+    sr.seed = req.seed;
+    sr.threads = req.threads;
+    sr.progress = req.progress;
+    if (!req.validation) throw UsageError("fit: --model auto needs validation data (--split < 1 or --validation)");
+    analysis::Selection sel = analysis::select_model(sr);
+    bar.finish();
+    std::cout << analysis::selection_table(sel) << "\n";
+    model = std::move(sel.model);
+  } else {
+    if (args.has("features")) {
+      const std::string set = args.str("features");
+      if (set == "lasso") {
+        std::string report;
+        std::size_t kept = 0;
+        const YAML::Node o = analysis::lasso_linear_options(train, axis, req.progress, &report, &kept);
+        if (args.has("lasso-report")) {
+          std::ofstream f(args.str("lasso-report"));
+          if (!f) throw std::runtime_error(args.str("lasso-report") + ": cannot open for writing");
+          f << report;
+        }
+        std::cerr << "\nlasso kept " << kept << " of " << features::candidate_features().size()
+                  << " candidate features (λ_1se)\n";
+        options["features"] = o["features"];
+      } else {
+        features::named_features(set);  // validates the name
+        options["features"] = set;
       }
-      std::cerr << "\nlasso kept " << chosen.size() << " of " << sel.spec.size() << " candidate features (λ_1se)\n";
-      features::FeatureSpec raw = chosen;
-      raw.mean.clear();
-      raw.scale.clear();
-      options["features"] = raw.to_yaml();
+    }
+    req.options = options;
+    model = models::model_kind(kind).fit(req);
+    if (!model) throw std::runtime_error("fit: kind '" + kind + "' returned no model");
+    model->meta.axis = axis;
+    model->meta.sample_rate_hz = train.sample_rate_hz();
+    bar.finish();
+    const analysis::DataScale scale = analysis::data_scale(train, axis);
+    if (req.validation) {
+      const analysis::ValidationScore score = analysis::score_validation(*model, score_data, split_at, axis);
+      analysis::check_fit_sanity(*model, &score, scale);
+      analysis::store_validation(score, *model);
     } else {
-      features::named_features(set);  // validates the name
-      options["features"] = set;
+      analysis::check_fit_sanity(*model, nullptr, scale);
     }
   }
-  req.options = options;
-
-  models::ModelPtr model = mk.fit(req);
-  if (!model) throw std::runtime_error("fit: kind '" + kind + "' returned no model");
-  model->meta.axis = axis;
-  model->meta.sample_rate_hz = train.sample_rate_hz();
   if (model->meta.training_source.empty()) model->meta.training_source = args.str("data");
-  bar.finish();
-
-  if (req.validation) {
-    // Held out by time. With --split the model runs through the training part first, so the validation part
-    // starts with the real history (as live); a separate --validation file starts from rest.
-    const io::Dataset& vd = split_at ? all : val;
-    std::vector<char> mask(vd.size(), 1), hold = analysis::hold_mask(vd);
-    for (std::size_t i = 0; i < split_at; ++i) mask[i] = hold[i] = 0;
-    const auto p = analysis::predict_series(*model, vd, axis);
-    const auto& ax = vd.axis(axis);
-    auto put = [&](const std::string& key, const analysis::ErrorStats& s) {
-      if (s.valid()) model->meta.validation[key] = s.mae_nm;
-    };
-    put("one_step_mae_nm", analysis::error_stats(p.one_step, ax.position_nm, mask));
-    put("free_run_mae_nm", analysis::error_stats(p.free_run, ax.position_nm, mask));
-    if (ax.has_truth()) {
-      put("one_step_mae_vs_truth_nm", analysis::error_stats(p.one_step, ax.true_position_nm, mask));
-      put("free_run_mae_vs_truth_nm", analysis::error_stats(p.free_run, ax.true_position_nm, mask));
-      put("hold_free_run_mae_vs_truth_nm", analysis::error_stats(p.free_run, ax.true_position_nm, hold));
-    }
-    put("hold_free_run_mae_nm", analysis::error_stats(p.free_run, ax.position_nm, hold));
-    model->meta.validation["validation_samples"] = static_cast<double>(val.size());
-  }
   models::save_model(args.str("out"), *model);
   std::cout << "wrote " << args.str("out") << ": kind " << model->kind() << ", " << model->num_parameters()
             << " parameters, trained on " << train.size() << " samples";

@@ -9,6 +9,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
@@ -140,7 +141,7 @@ int run(int argc, char** argv) {
       .option("data", "FILE", "one data file split by time instead of --train/--test")
       .option("split", "FRACTION", "with --data: the first FRACTION is TRAIN", "0.7")
       .option("axis", "NAME", "axis to model", "c")
-      .required("model", "KIND|FILE", "model kind to fit on TRAIN, or a model file to start from")
+      .required("model", "KIND|FILE", "model kind to fit on TRAIN, auto (choose by validation), or a model file")
       .option("set", "KEY=VALUE", "hyperparameter of the fitted kind", "", true)
       .option("mode", "MODE", "free-run or one-step", "free-run")
       .option("families", "LIST", "comma-separated effect families to consider (default all)")
@@ -197,9 +198,25 @@ int run(int argc, char** argv) {
   const std::string model_arg = args.str("model");
   models::ModelPtr base;
   models::FitRequest req;
-  const YAML::Node fit_options = parse_sets(args.list("set"));
+  YAML::Node fit_options = parse_sets(args.list("set"));
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
-  if (fs::exists(model_arg)) {
+  std::string fitted_kind = model_arg, selection_md;  // auto: the chosen kind, refitted while backfitting
+  if (model_arg == "auto") {
+    const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
+    analysis::SelectionRequest sr;
+    sr.train = &fit_part;
+    sr.validation = &val_part;
+    sr.score_data = &train;
+    sr.score_from = n_fit;
+    sr.axis = axis;
+    sr.seed = o.seed;
+    analysis::Selection sel = analysis::select_model(sr);
+    selection_md = analysis::selection_table(sel);
+    std::cerr << "residual: model choice\n" << selection_md;
+    fitted_kind = sel.table[sel.best].candidate.kind;
+    if (sel.table[sel.best].candidate.options) fit_options = sel.table[sel.best].candidate.options;
+    base = std::move(sel.model);
+  } else if (fs::exists(model_arg)) {
     base = models::load_model(model_arg);
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");
     models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : args.str("train"));
@@ -215,9 +232,12 @@ int run(int argc, char** argv) {
     std::cerr << "residual: fitting " << model_arg << " on " << fit_part.size() << " TRAIN rows\n";
     base = kind.fit(req);
   }
+  // Gate: a base model the data does not support is refused before any tracing.
+  const analysis::ValidationScore base_score = analysis::score_validation(*base, train, n_fit, axis);
+  analysis::check_fit_sanity(*base, &base_score, analysis::data_scale(train.slice(0, n_fit), axis));
   // Backfitting: the base is refitted with the same kind and options after each added effect. A loaded model
   // file keeps its weights unless --refit-base asks to refit its kind with default options.
-  const std::string refit_kind = fs::exists(model_arg) ? (args.flag("refit-base") ? base->kind() : "") : model_arg;
+  const std::string refit_kind = fs::exists(model_arg) ? (args.flag("refit-base") ? base->kind() : "") : fitted_kind;
   if (!refit_kind.empty()) {
     if (!models::model_kind(refit_kind).fit) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
     o.refit_base = [&, refit_kind](const io::Dataset& fit_part, const io::Dataset& val_part) {
@@ -235,6 +255,7 @@ int run(int argc, char** argv) {
 
   const fs::path out = args.str("out");
   fs::create_directories(out);
+  if (!selection_md.empty()) std::ofstream(out / "model_choice.md") << "# Base model choice\n\n" << selection_md;
   const auto& meas = test.axis(axis).position_nm;
   {
     std::ofstream f(out / "predictions.csv");

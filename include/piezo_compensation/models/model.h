@@ -25,6 +25,7 @@ struct ModelMeta {
   std::string training_source;                 // file(s) it was fitted on
   std::map<std::string, double> validation;    // e.g. {"one_step_mae_nm": 17.1, "free_run_mae_nm": 6.2}
   std::string created_utc;
+  YAML::Node selection;                        // `--model auto`: the candidates' scores and the choice (or null)
 };
 
 class Model {

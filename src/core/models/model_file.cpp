@@ -74,6 +74,7 @@ YAML::Node model_to_file_yaml(const Model& m) {
   YAML::Node val(YAML::NodeType::Map);
   for (const auto& [k, v] : m.meta.validation) val[k] = v;
   root["validation"] = val;
+  if (m.meta.selection && !m.meta.selection.IsNull()) root["selection"] = m.meta.selection;
   root["num_parameters"] = static_cast<unsigned long>(m.num_parameters());
   root["model"] = m.to_yaml();
   return root;
@@ -137,6 +138,10 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
           throw top_err("validation." + kv.first.as<std::string>(), "expected a number");
         }
       }
+    }
+    if (const YAML::Node s = root["selection"]) {
+      if (!s.IsMap()) throw top_err("selection", "expected a mapping");
+      m->meta.selection = YAML::Clone(s);
     }
     return m;
   } catch (const ModelFileError&) {

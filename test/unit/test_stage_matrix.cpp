@@ -1,0 +1,107 @@
+// The model test matrix of issue 11: every kind on every simulated stage (three stages × PI-like/Preisach
+// hysteresis × without/with creep, config/stages/*.yaml), fitted on the first 80 % and run free on the rest.
+// The stage settings build the data only; the fits see the data set alone. Prints the matrix (docs/models.md).
+// Set PIEZO_STAGE_MATRIX_FULL=1 for the MM3E stages' full 7.5 h (the default run uses 2 h to stay fast).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <map>
+#include <set>
+
+#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/sim/stage.h"
+
+using namespace piezo;
+
+namespace {
+
+const char* kStages[] = {"lowvolt", "stack150", "mm3e"};
+const char* kPhysics[] = {"pi", "pi_creep", "preisach", "preisach_creep"};
+const std::vector<std::string> kNeural = {"dense", "lstm", "kan"};
+
+// Cells known to fail the 10 % criterion today, with the reason; the test checks they still fail (so the list
+// is kept true) and that every other cell passes.
+const std::map<std::string, std::string> kKnownFailing = {
+};
+
+}  // namespace
+
+TEST(StageMatrix, EveryKindHoldsOnEveryStage) {
+  const bool full = std::getenv("PIEZO_STAGE_MATRIX_FULL") != nullptr;
+  std::string md = "| stage | noise floor σ [nm] (MAE) | range [nm] |";
+  std::vector<std::string> labels;
+  for (const auto& c : analysis::default_candidates(kNeural)) labels.push_back(c.label);
+  for (const auto& l : labels) md += " " + l + " |";
+  md += " auto |\n|---|---|---|";
+  for (std::size_t k = 0; k <= labels.size(); ++k) md += "---|";
+  md += "\n";
+  std::set<std::string> failing;
+  for (const char* st : kStages)
+    for (const char* ph : kPhysics) {
+      const std::string name = std::string(st) + "_" + ph;
+      SCOPED_TRACE(name);
+      const auto stage = sim::load_stage(std::string(PIEZO_SOURCE_DIR) + "/config/stages/" + name + ".yaml");
+      const double duration_s = std::string(st) == "mm3e" && !full ? 7200.0 : 0.0;
+      const io::Dataset all = sim::simulate_stage(stage, 21, duration_s);
+      const std::size_t cut = all.size() * 4 / 5;
+      const io::Dataset train = all.slice(0, cut), val = all.slice(cut, all.size());
+      analysis::SelectionRequest rq;
+      rq.train = &train;
+      rq.validation = &val;
+      rq.score_data = &all;
+      rq.score_from = cut;
+      rq.axis = "c";
+      rq.candidates = analysis::default_candidates(kNeural);
+      rq.time_budget_s = 3.0;  // the neural kinds: small budgets keep the matrix fast
+      rq.seed = 3;
+      analysis::Selection sel;
+      try {
+        sel = analysis::select_model(rq);
+      } catch (const analysis::FitRejected& e) {
+        ADD_FAILURE() << e.what();
+        continue;
+      }
+      const auto floor = analysis::estimate_noise_floor(val, "c");
+      const double range = sel.scale.position_range_nm;
+      char buf[160];
+      std::snprintf(buf, sizeof buf, "| %s | %.3g (%.3g) | %.4g |", name.c_str(), floor.sigma_nm, floor.floor_mae_nm,
+                    range);
+      md += buf;
+      const std::size_t n_default = analysis::default_candidates().size();
+      double best_all = INFINITY, best_auto = INFINITY;
+      for (std::size_t k = 0; k < sel.table.size(); ++k) {
+        const auto& r = sel.table[k];
+        const bool scored = r.score.finite && r.score.free_run.valid();
+        const double mae = scored ? r.score.free_run.mae_nm : INFINITY;
+        const bool ok = r.refused.empty() && mae < 0.10 * range;
+        const std::string cell = name + "/" + r.candidate.label;
+        if (!ok) failing.insert(cell);
+        if (scored)
+          std::snprintf(buf, sizeof buf, " %.4g (%.2f %%)%s |", mae, 100.0 * mae / range,
+                        r.refused.empty() ? (ok ? "" : " **>10 %**") : " **refused**");
+        else
+          std::snprintf(buf, sizeof buf, " **refused** |");
+        md += buf;
+        if (r.refused.empty()) {
+          best_all = std::min(best_all, mae);
+          if (k < n_default) best_auto = std::min(best_auto, mae);
+        }
+        if (!ok && !kKnownFailing.count(cell)) ADD_FAILURE() << cell << ": " << (r.refused.empty() ? "free-run MAE " + std::to_string(mae) + " nm ≥ 10 % of " + std::to_string(range) + " nm" : r.refused);
+      }
+      std::snprintf(buf, sizeof buf, " %.4g (%.2f %%) |\n", best_auto, 100.0 * best_auto / range);
+      md += buf;
+      // auto (linear on lasso features, pi, pi_creep_*) within 10 % of the best kind, neural ones included.
+      const std::string cell = name + "/auto";
+      if (!(best_auto <= 1.10 * best_all)) {
+        failing.insert(cell);
+        if (!kKnownFailing.count(cell))
+          ADD_FAILURE() << cell << ": auto " << best_auto << " nm, best kind " << best_all << " nm";
+      }
+    }
+  for (const auto& [cell, why] : kKnownFailing)
+    EXPECT_TRUE(failing.count(cell)) << cell << " now passes: remove it from kKnownFailing (" << why << ")";
+  std::printf("\nFree-run validation MAE [nm] (%% of the position range) per kind and stage%s:\n\n%s\n",
+              full ? "" : " (MM3E stages: 2 h)", md.c_str());
+}
