@@ -88,10 +88,10 @@ TEST(FitGates, CancellingWeightsAreRefused) {
 }
 
 TEST(FitGates, TimeConstantTheDataCannotSeeIsRefused) {
-  // 200 s of data, a creep mode at 1e5 s.
+  // 150 s of training data, a creep mode at 1e5 s.
   const std::string m = gate_message(FakeModel(100.0, 0.0, params("{creep: {tau_max_s: 100000}}")));
   EXPECT_TRUE(has(m, "model.creep.tau_max_s")) << m;
-  EXPECT_TRUE(has(m, "training data lasts 200 s")) << m;
+  EXPECT_TRUE(has(m, "training data lasts 150 s")) << m;
   EXPECT_THROW(analysis::check_fit_sanity(FakeModel(100.0, 0.0, params("{creep: {tau_max_s: 100000}}")), nullptr,
                                           analysis::data_scale(ramp_data(), "c")),
                analysis::FitRejected);

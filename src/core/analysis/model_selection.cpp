@@ -116,7 +116,7 @@ void store_validation(const ValidationScore& s, models::Model& model) {
 }
 
 std::string sanity_problem(const models::Model& model, const ValidationScore* score, const DataScale& scale) {
-  const std::string who = "fit refused: kind " + model.kind() + ": ";
+  const std::string who = "kind " + model.kind() + " refused: ";
   const double range = scale.position_range_nm;
   if (score) {
     if (!score->finite || !score->free_run.valid() || !std::isfinite(score->free_run.mae_nm))
@@ -137,7 +137,7 @@ std::string sanity_problem(const models::Model& model, const ValidationScore* sc
     if (!problem.empty()) return;
     if (!std::isfinite(v)) {
       problem = who + "parameter " + path + " is not finite; likely cause: a numerically unstable fit";
-    } else if (ends_with(key, "_nm") && std::fabs(v) > 10.0 * size_nm) {
+    } else if (ends_with(key, "_nm") && !ends_with(key, "_per_nm") && std::fabs(v) > 10.0 * size_nm) {
       problem = who + "parameter " + path + " = " + fmt(v) + " nm is " + fmt(std::fabs(v) / std::max(range, 1e-9)) +
                 " times the data's position range (" + fmt(range) +
                 " nm): large cancelling terms; likely cause: positions in other units than nm, or too short a "
@@ -224,7 +224,7 @@ Selection select_model(const SelectionRequest& rq) {
       r.score = score_validation(*m, *rq.score_data, rq.score_from, rq.axis);
       r.refused = sanity_problem(*m, &r.score, sel.scale);
     } catch (const std::exception& e) {
-      r.refused = "fit refused: kind " + r.candidate.kind + ": the fit failed: " + e.what();
+      r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
     }
     r.fit_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     if (r.refused.empty() && r.score.free_run.mae_nm < best_mae) {
