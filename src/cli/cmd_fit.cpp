@@ -100,12 +100,7 @@ int run(int argc, char** argv) {
   const io::Dataset& score_data = split_at ? all : val;
   models::ModelPtr model;
   if (auto_kind) {
-    analysis::SelectionRequest sr;
-    sr.train = &train;
-    sr.validation = req.validation;
-    sr.score_data = &score_data;
-    sr.score_from = split_at;
-    sr.axis = axis;
+    analysis::SelectionRequest sr = analysis::selection_request(train, req.validation, score_data, split_at, axis);
     sr.candidates = analysis::default_candidates(args.list("auto-extra"));
     sr.time_budget_s = req.time_budget_s;
     sr.seed = req.seed;

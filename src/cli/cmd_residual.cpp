@@ -203,12 +203,7 @@ int run(int argc, char** argv) {
   std::string fitted_kind = model_arg, selection_md;  // auto: the chosen kind, refitted while backfitting
   if (model_arg == "auto") {
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
-    analysis::SelectionRequest sr;
-    sr.train = &fit_part;
-    sr.validation = &val_part;
-    sr.score_data = &train;
-    sr.score_from = n_fit;
-    sr.axis = axis;
+    analysis::SelectionRequest sr = analysis::selection_request(fit_part, &val_part, train, n_fit, axis);
     sr.seed = o.seed;
     analysis::Selection sel = analysis::select_model(sr);
     selection_md = analysis::selection_table(sel);

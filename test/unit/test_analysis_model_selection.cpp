@@ -103,12 +103,7 @@ TEST(ModelSelection, AutoKeepsTheBestCandidateOnAnotherStage) {
   const io::Dataset all = sim::simulate_stage(stage, 11, 25.0);
   const std::size_t cut = all.size() * 4 / 5;
   const io::Dataset train = all.slice(0, cut), val = all.slice(cut, all.size());
-  analysis::SelectionRequest rq;
-  rq.train = &train;
-  rq.validation = &val;
-  rq.score_data = &all;
-  rq.score_from = cut;
-  rq.axis = "c";
+  analysis::SelectionRequest rq = analysis::selection_request(train, &val, all, cut, "c");
   const analysis::Selection sel = analysis::select_model(rq);
   ASSERT_TRUE(sel.model);
   const auto cands = analysis::default_candidates();

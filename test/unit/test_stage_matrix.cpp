@@ -79,12 +79,7 @@ TEST(StageMatrix, EveryKindHoldsOnEveryStage) {
       const io::Dataset all = sim::simulate_stage(stage, 21, duration_s);
       const std::size_t cut = all.size() * 4 / 5;
       const io::Dataset train = all.slice(0, cut), val = all.slice(cut, all.size());
-      analysis::SelectionRequest rq;
-      rq.train = &train;
-      rq.validation = &val;
-      rq.score_data = &all;
-      rq.score_from = cut;
-      rq.axis = "c";
+      analysis::SelectionRequest rq = analysis::selection_request(train, &val, all, cut, "c");
       rq.candidates = analysis::default_candidates(kNeural);
       rq.time_budget_s = 3.0;  // the neural kinds: small budgets keep the matrix fast
       rq.seed = 3;

@@ -82,6 +82,11 @@ struct SelectionRequest {
   models::ProgressFn progress;
 };
 
+// A request for a split by time: fit on `train`, hand `validation` (may be null) to the fits, score `score_data`
+// from `score_from`; default candidates.
+SelectionRequest selection_request(const io::Dataset& train, const io::Dataset* validation,
+                                   const io::Dataset& score_data, std::size_t score_from, const std::string& axis);
+
 struct CandidateResult {
   ModelCandidate candidate;
   ValidationScore score;

@@ -190,6 +190,17 @@ std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& e
   return c;
 }
 
+SelectionRequest selection_request(const io::Dataset& train, const io::Dataset* validation,
+                                   const io::Dataset& score_data, std::size_t score_from, const std::string& axis) {
+  SelectionRequest rq;
+  rq.train = &train;
+  rq.validation = validation;
+  rq.score_data = &score_data;
+  rq.score_from = score_from;
+  rq.axis = axis;
+  return rq;
+}
+
 Selection select_model(const SelectionRequest& rq) {
   if (!rq.train || !rq.score_data) throw std::invalid_argument("model selection: no training or validation data");
   if (rq.score_data->size() <= rq.score_from)
