@@ -10,6 +10,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "piezo_compensation/util/child_process.h"
 
 namespace fs = std::filesystem;
 
@@ -50,11 +51,11 @@ int run(int argc, char** argv) {
     for (const auto& want : args.positional()) selected |= name.find(want) != std::string::npos;
     if (!selected) continue;
     std::cout << "=== " << name << " ===" << std::endl;
-    const std::string cmd = "'" + p.string() + "'" +
-                            (name.rfind("bench_", 0) == 0 ? " --benchmark_min_time=" + args.str("min-time") : "");
-    const int rc = std::system(cmd.c_str());
-    if (rc != 0) {
-      std::cerr << "bench: " << name << " failed (status " << rc << ")\n";
+    std::vector<std::string> argv{p.string()};
+    if (name.rfind("bench_", 0) == 0) argv.push_back("--benchmark_min_time=" + args.str("min-time"));
+    const util::ChildResult r = util::run_process(argv);
+    if (!r.ok()) {
+      std::cerr << "bench: " << name << " failed (" << r.error << ")\n";
       ++failures;
     }
   }
