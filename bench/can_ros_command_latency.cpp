@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -97,7 +98,7 @@ int main(int argc, char** argv) {
   p.setParam("transport", "udp");
   p.setParam("udp_local_port", drv_port);
   p.setParam("udp_remote_port", dev_port);
-  p.setParam("slew_rate_v_per_s", 1e6);   // every command is one frame: the slew limit must not split steps
+  p.setParam("slew_rate_v_per_s", 2000.0);  // every command (a 0.1 mV step) is one frame
   p.setParam("command_timeout_s", 1.0);
   p.setParam("silence_reconnect_s", 3600.0);
   const pid_t driver_pid = spawn({driver_bin.string(), "__name:=mm3e_driver", "__ns:=/latency"}, log_dir + "/driver.log");
@@ -118,9 +119,12 @@ int main(int argc, char** argv) {
   std::thread receiver([&] {
     std::vector<ReceivedFrame> in;
     auto next_report = std::chrono::steady_clock::now();
+    std::array<double, kAxisCount> reported{};
+    std::uint32_t seq = 0;
     while (!done) {
-      if (std::chrono::steady_clock::now() >= next_report) {  // a live controller: baseline and no silence
-        for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, 0.0, 0, false}));
+      if (std::chrono::steady_clock::now() >= next_report) {  // a live controller: what it was last commanded
+        for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, reported[a], seq, false}));
+        ++seq;
         next_report += std::chrono::milliseconds(50);
       }
       in.clear();
@@ -132,6 +136,7 @@ int main(int argc, char** argv) {
         const auto* c = std::get_if<CommandFrame>(&r.message_value);
         if (!c) continue;
         ++frames;
+        reported[c->axis] = c->voltage_v;
         auto it = sent_at.find(static_cast<std::int32_t>(std::lround(c->voltage_v / 1e-4)));
         if (it == sent_at.end()) continue;
         latency_us.push_back((rf.receive_time_s - it->second) * 1e6);
@@ -156,7 +161,7 @@ int main(int argc, char** argv) {
   // Warm-up: wait for the connection and for the driver to act on commands at all.
   bool ready = false;
   for (int i = 0; i < 300 && !ready; ++i) {
-    if (pub.getNumSubscribers() > 0) publish(-500000 + i);
+    if (pub.getNumSubscribers() > 0) publish(-350000 - 300 + i);  // within max_unconfirmed_v of the −35 V start
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
     ready = frames > 0;
   }
