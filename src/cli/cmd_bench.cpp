@@ -7,6 +7,8 @@
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>
+#include <string>
+#include <vector>
 
 #include "args.h"
 #include "command.h"
@@ -15,6 +17,22 @@ namespace fs = std::filesystem;
 
 namespace piezo::cli {
 namespace {
+
+// Runs a program with an argument vector (no shell) and returns its exit status (-1 if it could not start).
+int run_program(const std::vector<std::string>& args) {
+  const pid_t pid = fork();
+  if (pid < 0) return -1;
+  if (pid == 0) {
+    std::vector<char*> argv;
+    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+    argv.push_back(nullptr);
+    execv(argv[0], argv.data());
+    _exit(127);
+  }
+  int status = 0;
+  if (waitpid(pid, &status, 0) != pid) return -1;
+  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+}
 
 fs::path bench_dir() {
   // The CLI lives in <devel>/lib/piezo_compensation/; benchmarks in its bench/ subfolder.
@@ -28,6 +46,10 @@ int run(int argc, char** argv) {
                      "NAME selects programs whose name contains it (e.g. `piezo bench simulator`).");
   args.option("list", "", "list the available programs and exit");
   args.option("min-time", "S", "minimum time per benchmark [s] (Google Benchmark --benchmark_min_time)", "0.5");
+  args.option("soak", "MINUTES",
+              "run only the soak test for MINUTES: 3 simulated manipulators through driver + predictor at 1 kHz per "
+              "axis (docs/driver.md)", "");
+  args.option("soak-window", "MINUTES", "soak: report window", "10");
   if (!args.parse(argc, argv)) return 0;
   const fs::path dir = bench_dir();
   std::vector<fs::path> programs;
@@ -43,16 +65,20 @@ int run(int argc, char** argv) {
     for (const auto& p : programs) std::cout << p.filename().string() << "\n";
     return 0;
   }
+  if (!args.str("soak").empty()) {
+    const fs::path soak = dir / "can_soak";
+    return run_program({soak.string(), "--minutes", args.str("soak"), "--window-minutes", args.str("soak-window")});
+  }
   int failures = 0;
   for (const auto& p : programs) {
     const std::string name = p.filename().string();
-    bool selected = args.positional().empty();
+    bool selected = args.positional().empty() && name != "can_soak";  // the soak runs for minutes: --soak
     for (const auto& want : args.positional()) selected |= name.find(want) != std::string::npos;
     if (!selected) continue;
     std::cout << "=== " << name << " ===" << std::endl;
-    const std::string cmd = "'" + p.string() + "'" +
-                            (name.rfind("bench_", 0) == 0 ? " --benchmark_min_time=" + args.str("min-time") : "");
-    const int rc = std::system(cmd.c_str());
+    std::vector<std::string> cmd{p.string()};
+    if (name.rfind("bench_", 0) == 0) cmd.push_back("--benchmark_min_time=" + args.str("min-time"));
+    const int rc = run_program(cmd);
     if (rc != 0) {
       std::cerr << "bench: " << name << " failed (status " << rc << ")\n";
       ++failures;
