@@ -122,12 +122,17 @@ void check_bag_records(const std::string& path) {
   if (!in) return;  // rosbag's open says what is wrong
   in.seekg(0, std::ios::end);
   const std::uint64_t file_size = static_cast<std::uint64_t>(in.tellg());
+  in.seekg(0);
+  std::uint64_t offset = 0;  // of the stream: sequential reads keep its buffer (a plan bag has millions of records)
   auto read = [&](std::uint64_t at, std::size_t n) {
     std::string b(n, '\0');
-    in.clear();
-    in.seekg(static_cast<std::streamoff>(at));
+    if (at != offset) {
+      in.clear();
+      in.seekg(static_cast<std::streamoff>(at));
+    }
     in.read(b.data(), static_cast<std::streamsize>(n));
     if (static_cast<std::size_t>(in.gcount()) != n) throw io::DataError(path + ": read error at byte " + std::to_string(at));
+    offset = at + n;
     return b;
   };
   auto u32 = [](const std::string& b, std::size_t at) {
