@@ -55,6 +55,14 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +
                                 std::to_string(config.silence_reconnect_s) + " s and be reconnected over and over");
+  if (sync_mode_) {
+    // one frame per SYNC, time counted in samples: the cap per frame is the slew step of one sample
+    lim.lockstep = true;
+    const double per_sample_v = lim.slew_rate_v_per_s / config.protocol.encoder_rate_hz;
+    lim.max_frame_step_v = std::max(lim.max_frame_step_v, std::min(per_sample_v, 2 * can::kVoltageCeilingV));
+    lim.max_unconfirmed_v = std::max(lim.max_unconfirmed_v, 2 * lim.max_frame_step_v);
+    lim.max_step_dt_s = std::max(lim.max_step_dt_s, 1.0 / config.protocol.encoder_rate_hz);
+  }
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;
