@@ -30,6 +30,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "child_process.h"
 #include "latency_histogram.h"
 #include "piezo_compensation/IntendedMotion.h"
 #include "piezo_compensation/VoltageCommand.h"
@@ -38,39 +39,14 @@
 
 using namespace piezo::can;
 namespace fs = std::filesystem;
+using piezo::bench::spawn;
+using piezo::bench::stop;
 using piezo::bench::wall_s;
 
 namespace {
 
 constexpr int kManipulators = 3;
 
-pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
-  const pid_t pid = fork();
-  if (pid == 0) {
-    setpgid(0, 0);
-    if (FILE* f = std::fopen(log.c_str(), "w")) {
-      dup2(fileno(f), 1);
-      dup2(fileno(f), 2);
-    }
-    std::vector<char*> argv;
-    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-    argv.push_back(nullptr);
-    execvp(argv[0], argv.data());
-    _exit(127);
-  }
-  return pid;
-}
-
-void stop(pid_t pid) {
-  if (pid <= 0) return;
-  kill(pid, SIGINT);
-  for (int i = 0; i < 50; ++i) {
-    if (waitpid(pid, nullptr, WNOHANG) == pid) return;
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  kill(pid, SIGKILL);
-  waitpid(pid, nullptr, 0);
-}
 
 double rss_mb(pid_t pid) {
   std::ifstream in("/proc/" + std::to_string(pid) + "/status");
@@ -122,20 +98,10 @@ int main(int argc, char** argv) {
     }
   const std::string model = std::string(PIEZO_SOURCE_DIR) + "/test/rostest/pi_creep_model_c.yaml";
   const int base = 21000 + static_cast<int>(getpid() % 4000) * 8;
-  setenv("ROS_MASTER_URI", ("http://127.0.0.1:" + std::to_string(base)).c_str(), 1);
-  setenv("ROS_IP", "127.0.0.1", 1);
-  unsetenv("ROS_HOSTNAME");
   const std::string log_dir = fs::temp_directory_path() / ("can_soak_" + std::to_string(getpid()));
   fs::create_directories(log_dir);
-  setenv("ROS_LOG_DIR", log_dir.c_str(), 1);
-  const pid_t master_pid = spawn({"rosmaster", "--core", "-p", std::to_string(base)}, log_dir + "/rosmaster.log");
-  ros::init(argc, argv, "can_soak", ros::init_options::NoSigintHandler | ros::init_options::AnonymousName);
-  for (int i = 0; i < 100 && !ros::master::check(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  if (!ros::master::check()) {
-    std::fprintf(stderr, "can_soak: rosmaster did not start (log in %s)\n", log_dir.c_str());
-    stop(master_pid);
-    return 1;
-  }
+  const pid_t master_pid = piezo::bench::start_private_master("can_soak", base, log_dir, argc, argv);
+  if (master_pid < 0) return 1;
 
   // Per manipulator: driver + predictor processes, the simulated controller here.
   const Codec codec{ProtocolConfig{}};

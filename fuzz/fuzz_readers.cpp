@@ -4,9 +4,6 @@
 // models::ModelFileError, std::invalid_argument); anything else escaping, a sanitizer report, a huge
 // allocation (-malloc_limit_mb) or a hang is a finding. The input is handed over as a file (memfd), as the
 // readers take paths.
-#include <sys/mman.h>
-#include <unistd.h>
-
 #include <cstdint>
 #include <cstdio>
 #include <cstdlib>
@@ -15,6 +12,7 @@
 #include <string>
 
 #include "piezo_compensation/can/protocol.h"
+#include "fuzz_input.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model_file.h"
 
@@ -39,14 +37,9 @@ Reader reader() {
 
 extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size) {
   const Reader r = reader();
-  const int fd = memfd_create("fuzz_input", 0);
-  if (fd < 0) return 0;
-  for (std::size_t done = 0; done < size;) {
-    const ssize_t n = write(fd, data + done, size - done);
-    if (n <= 0) break;
-    done += static_cast<std::size_t>(n);
-  }
-  const std::string path = "/proc/self/fd/" + std::to_string(fd);
+  const piezo::fuzz::InputFile input(data, size);
+  if (!input.ok()) return 0;
+  const std::string path = input.path();
   try {
     switch (r) {
       case Reader::kCsv: {
@@ -74,6 +67,5 @@ extern "C" int LLVMFuzzerTestOneInput(const std::uint8_t* data, std::size_t size
       std::abort();
     }
   }
-  close(fd);
   return 0;
 }
