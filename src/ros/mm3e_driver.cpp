@@ -39,7 +39,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   lim.max_unconfirmed_v = r.number("max_unconfirmed_v", 10.0, lim.max_frame_step_v, 2 * can::kFrameStepCeilingV);
   lim.max_stamp_ahead_s = r.number("max_stamp_ahead_s", 0.5, 1e-3, 60.0);
   lim.report_tolerance_v = r.number("report_tolerance_v", 0.5, 1e-3, 10.0);
-  lim.report_lag_s = r.number("report_lag_s", 0.1, 1e-3, 10.0);
+  lim.report_lag_s = r.number("report_lag_s", 0.5, 1e-3, 10.0);
   lim.report_mismatch_count = r.integer("report_mismatch_count", 3, 1, 100);
   config.encoder_timeout_s = r.number("encoder_timeout_s", 0.5, 1e-3, 3600.0);
   config.silence_reconnect_s = r.number("silence_reconnect_s", 2.0, 1e-3, 3600.0);
