@@ -55,7 +55,8 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
     } catch (const YAML::Exception&) {
       throw top_err("sample_rate_hz", "expected a number");
     }
-    if (!(rate > 0) || !std::isfinite(rate)) throw top_err("sample_rate_hz", "must be > 0");
+    // Kinds size buffers and time constants from the rate: bounded so a file cannot ask for gigabytes.
+    if (!(rate > 0) || !(rate <= 1e6)) throw top_err("sample_rate_hz", "must be in (0, 1e6] Hz");
     if (!root["model"].IsMap()) throw top_err("model", "expected a mapping");
     const ModelKind& mk = model_kind(kind);  // throws listing known kinds
     if (!mk.load) throw top_err("kind", "'" + kind + "' cannot be loaded");
