@@ -39,7 +39,7 @@ int run(int argc, char** argv) {
             "Protocols: " + names + ".\nEffects: " + effects + ".");
   args.required("protocol", "NAME", "protocol to run")
       .required("out", "FILE", "output file: .bag or .csv")
-      .option("duration", "S", "length [s]: sets random_walk's duration_s, truncates the other protocols")
+      .option("duration", "T", "length (30, 90min, 26h): sets random_walk's duration_s, truncates the other protocols")
       .option("seed", "N", "seed for the protocol and the simulator", "1")
       .option("effect", "NAME", "switch on an extra effect", "", true)
       .option("config", "YAML", "simulator parameters (default: built-in = config/simulator.yaml)")
@@ -59,7 +59,7 @@ int run(int argc, char** argv) {
                                                   : YAML::Node();
   double duration_s = -1.0;
   if (args.has("duration")) {
-    duration_s = args.num("duration");
+    duration_s = args.seconds("duration");
     if (!(duration_s > 0.0) || !std::isfinite(duration_s)) throw UsageError("simulate: --duration must be > 0");
     if (name == "random_walk") params["duration_s"] = duration_s;
   }
