@@ -27,7 +27,7 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis (default: the models' axis)")
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
               "test data's holds, analysis/noise_floor.h)")
-      .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
+      .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -46,7 +46,7 @@ int run(int argc, char** argv) {
   analysis::EvalContext ctx;
   ctx.test_path = args.str("data");
   ctx.creep_path = args.str("creep");
-  ctx.warmup_s = args.num("warmup-s");
+  ctx.warmup_s = args.seconds("warmup-s");
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
   try {
