@@ -9,6 +9,7 @@
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/util/progress_bar.h"
@@ -33,7 +34,7 @@ int run(int argc, char** argv) {
       .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm, kan)", "", true)
       .option("features", "SET", "study | candidates | physics | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
-      .option("time-budget-s", "S", "stop tuning/training after S seconds (0 = none)", "0")
+      .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")
       .option("set", "KEY=VALUE", "kind option (YAML value, e.g. method=lasso, thresholds_v=[0,10,20])", "", true)
       .option("options", "FILE.yaml", "kind options from a YAML mapping (--set overrides)")
       .option("seed", "N", "random seed", "1")
@@ -45,7 +46,7 @@ int run(int argc, char** argv) {
   const std::string axis = args.str("axis");
   const std::string kind = args.str("model");
   const bool auto_kind = kind == "auto";
-  if (!auto_kind && !models::model_kind(kind).fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
+  if (!auto_kind && !training::fitter(kind)) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
   if (auto_kind && args.has("features")) throw UsageError("fit: --features does not apply to --model auto");
 
   io::Dataset all = ros_io::read_data(args.str("data"));
@@ -85,12 +86,12 @@ int run(int argc, char** argv) {
   }
 
   util::ProgressBar bar(std::cerr, "steps", !args.flag("quiet"));
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &train;
   req.validation = val.empty() ? nullptr : &val;
   req.axis = axis;
   req.tune_trials = static_cast<int>(args.integer("tune"));
-  req.time_budget_s = args.num("time-budget-s");
+  req.time_budget_s = args.seconds("time-budget-s");
   req.seed = static_cast<std::uint64_t>(args.integer("seed"));
   req.threads = static_cast<int>(args.integer("threads"));
   req.progress = [&](double done, double total, const std::string& what) { bar.update(done, total, what); };
@@ -132,7 +133,7 @@ int run(int argc, char** argv) {
       }
     }
     req.options = options;
-    model = models::model_kind(kind).fit(req);
+    model = training::fit_model(kind, req);
     if (!model) throw std::runtime_error("fit: kind '" + kind + "' returned no model");
     model->meta.axis = axis;
     model->meta.sample_rate_hz = train.sample_rate_hz();

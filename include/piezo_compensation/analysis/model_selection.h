@@ -12,6 +12,7 @@
 #include "piezo_compensation/analysis/metrics.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fit_request.h"
 
 namespace piezo::analysis {
 
@@ -56,7 +57,7 @@ void check_fit_sanity(const models::Model& model, const ValidationScore* score, 
 
 // Options for `linear` on the lasso-selected candidate features (λ_1se survivors), as `piezo fit --features
 // lasso` makes them; `report` (optional) receives the lasso report.
-YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const models::ProgressFn& progress,
+YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const training::ProgressFn& progress,
                                 std::string* report = nullptr, std::size_t* kept = nullptr);
 
 struct ModelCandidate {
@@ -79,7 +80,7 @@ struct SelectionRequest {
   double time_budget_s = 0.0;               // per candidate (neural kinds)
   std::uint64_t seed = 1;
   int threads = 2;
-  models::ProgressFn progress;
+  training::ProgressFn progress;
 };
 
 // A request for a split by time: fit on `train`, hand `validation` (may be null) to the fits, score `score_data`

@@ -8,6 +8,7 @@
 
 #include "piezo_compensation/analysis/evaluation.h"
 #include "piezo_compensation/features/feature_specs.h"
+#include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/training/lasso.h"
 
 namespace piezo::analysis {
@@ -163,7 +164,7 @@ void check_fit_sanity(const models::Model& model, const ValidationScore* score, 
   if (!p.empty()) throw FitRejected(p);
 }
 
-YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const models::ProgressFn& progress,
+YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const training::ProgressFn& progress,
                                 std::string* report, std::size_t* kept) {
   const auto sel = training::run_lasso(features::candidate_features(), train, axis, {}, progress);
   features::FeatureSpec chosen = training::select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
@@ -216,10 +217,10 @@ Selection select_model(const SelectionRequest& rq) {
     const auto t0 = std::chrono::steady_clock::now();
     models::ModelPtr m;
     try {
-      const models::ModelKind& mk = models::model_kind(r.candidate.kind);
-      if (!mk.fit) throw std::runtime_error("kind cannot be fitted on its own");
+      const training::FitFn& fit = training::fitter(r.candidate.kind);
+      if (!fit) throw std::runtime_error("kind cannot be fitted on its own");
       if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
-      models::FitRequest fr;
+      training::FitRequest fr;
       fr.train = rq.train;
       fr.validation = rq.validation;
       fr.axis = rq.axis;
@@ -227,7 +228,7 @@ Selection select_model(const SelectionRequest& rq) {
       fr.time_budget_s = rq.time_budget_s;
       fr.seed = rq.seed;
       fr.threads = rq.threads;
-      m = mk.fit(fr);
+      m = fit(fr);
       if (!m) throw std::runtime_error("the fit returned no model");
       m->meta.axis = rq.axis;
       m->meta.sample_rate_hz = rq.train->sample_rate_hz();
