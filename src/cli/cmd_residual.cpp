@@ -91,15 +91,17 @@ std::vector<double> explaining_variable(const models::AugmentedModel& m, std::si
   const models::EffectTerm target = all[term_index];
   // Same stream as the model (other terms keep their weights, so position terms see the corrected position).
   models::EffectTermStream stream(all, test.sample_rate_hz(), m.offset_nm());
-  const auto cols = analysis::resolve_inputs(stream.column_signals(), test);
+  models::InputResolver cols(test, stream.column_signals(), axis);
   models::ModelPtr base = m.base().clone();
-  const std::vector<double> xb = analysis::run_model(*base, test, axis, mode);
+  models::StreamOptions so;
+  so.mode = mode;
+  const std::vector<double> xb = models::stream_model(*base, test, axis, so).prediction;
   const auto& ax = test.axis(axis);
   std::size_t first = 0;
   for (std::size_t i = 0; i < term_index; ++i) first += all[i].num_regressors();
-  std::vector<double> out(test.size()), buf(stream.num_regressors()), colv(cols.size());
+  std::vector<double> out(test.size()), buf(stream.num_regressors()), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < test.size(); ++i) {
-    for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+    cols.fill(i, colv.data());
     stream.raw(ax.voltage_v[i], xb[i], colv.data(), buf.data());
     const double* z = buf.data() + first;
     if (target.type == "sincos") {

@@ -6,6 +6,7 @@
 
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/models/augmented_model.h"
+#include "piezo_compensation/models/model_stream.h"
 #include "test_residual_common.h"
 
 namespace pm = piezo::models;
@@ -86,26 +87,26 @@ TEST(ResidualAugmented, RoundTripCloneAndStreamingEqualsFreshRun) {
   pm::AugmentedModel m(base->clone(), {t1, t2, t3, t4}, 7.0, 11.0);
   EXPECT_EQ(m.aux_inputs(), (std::vector<std::string>{"temperature_c", "time_s", "a_voltage_v"}));
 
-  const std::vector<double> p1 = pa::run_model(m, d, "c", pa::PredictionMode::kFreeRun);
+  const std::vector<double> p1 = pm::stream_model(m, d, "c").prediction;
   const YAML::Node node = YAML::Load(YAML::Dump(m.to_yaml()));
   pm::ModelPtr loaded = pm::model_kind("augmented").load(node);
-  const std::vector<double> p2 = pa::run_model(*loaded, d, "c", pa::PredictionMode::kFreeRun);
+  const std::vector<double> p2 = pm::stream_model(*loaded, d, "c").prediction;
   ASSERT_EQ(p1.size(), p2.size());
   double worst = 0;
   for (std::size_t i = 0; i < p1.size(); ++i) worst = std::max(worst, std::fabs(p1[i] - p2[i]));
   EXPECT_LT(worst, 1e-6);
   // The correction really contributes (the model is not the base).
   auto b2 = base->clone();
-  const std::vector<double> pb = pa::run_model(*b2, d, "c", pa::PredictionMode::kFreeRun);
+  const std::vector<double> pb = pm::stream_model(*b2, d, "c").prediction;
   EXPECT_GT(std::fabs(p1[100] - pb[100]), 1.0);
 
   // A clone taken half-way continues exactly like the original.
-  const auto cols = pa::resolve_inputs(m.aux_inputs(), d);
+  pm::InputResolver cols(d, m.aux_inputs(), "c");
   m.reset(d.axis("c").voltage_v[0], d.axis("c").position_nm[0]);
   std::unique_ptr<pm::Model> half;
   std::vector<double> aux(cols.size());
   for (std::size_t i = 0; i < 2000; ++i) {
-    for (std::size_t j = 0; j < cols.size(); ++j) aux[j] = (*cols[j])[i];
+    cols.fill(i, aux.data());
     const pm::ModelInput in{d.axis("c").voltage_v[i], aux.data()};
     if (i == 1000) half = m.clone();
     if (i >= 1000) {
@@ -147,10 +148,11 @@ TEST(ResidualAugmented, BrokenNodesGiveOneClearError) {
 
 TEST(ResidualAugmented, PositionsAndTruthAreNeverInputs) {
   const piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kNone, 0.05, 2);
-  EXPECT_THROW(pa::resolve_inputs({"c_true_position_nm"}, d), piezo::io::DataError);
-  EXPECT_THROW(pa::resolve_inputs({"a_position_nm"}, d), piezo::io::DataError);
-  EXPECT_THROW(pa::resolve_inputs({"pressure_pa"}, d), piezo::io::DataError);
-  EXPECT_EQ(pa::resolve_inputs({"a_voltage_v", "time_s", "temperature_c"}, d).size(), 3u);
+  EXPECT_THROW(pm::InputResolver(d, {"c_true_position_nm"}, "c"), piezo::io::DataError);
+  EXPECT_THROW(pm::InputResolver(d, {"a_true_position_nm"}, "c"), piezo::io::DataError);
+  EXPECT_THROW(pm::InputResolver(d, {"c_position_nm"}, "c"), piezo::io::DataError);
+  EXPECT_THROW(pm::InputResolver(d, {"pressure_pa"}, "c"), piezo::io::DataError);
+  EXPECT_EQ(pm::InputResolver(d, {"a_voltage_v", "time_s", "temperature_c", "a_position_nm"}, "c").size(), 4u);
 }
 
 TEST(ResidualAugmented, WarmStartContinuesTheStreamAcrossATimeSplit) {
@@ -163,8 +165,10 @@ TEST(ResidualAugmented, WarmStartContinuesTheStreamAcrossATimeSplit) {
   EXPECT_FALSE(pa::continues_in_time(b, a));
   auto m = piezo::test::LowpassLinearModel::fit(d, "c", d.size());
   auto m2 = m->clone();
-  const auto whole = pa::run_model(*m, d, "c", pa::PredictionMode::kFreeRun);
-  const auto tail = pa::run_model_after(*m2, a, b, "c", pa::PredictionMode::kFreeRun);
+  const auto whole = pm::stream_model(*m, d, "c").prediction;
+  pm::StreamOptions so;
+  so.warmup = &a;
+  const auto tail = pm::stream_model(*m2, b, "c", so).prediction;
   ASSERT_EQ(tail.size(), b.size());
   for (std::size_t i = 0; i < tail.size(); i += 97) EXPECT_DOUBLE_EQ(tail[i], whole[k + i]);
 }

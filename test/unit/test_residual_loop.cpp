@@ -34,8 +34,8 @@ Outcome run(Planted p, std::uint64_t seed) {
   const piezo::io::Dataset clean = piezo::test::synthetic(Planted::kNone, hours, seed);
   const piezo::io::Dataset ctrain = clean.slice(0, n_train), ctest = clean.slice(n_train, clean.size());
   auto cbase = piezo::test::LowpassLinearModel::fit(ctrain, "c", n_fit);
-  const auto pred = pa::run_model(*cbase, ctest, "c", pa::PredictionMode::kFreeRun);
-  out.clean_mae_nm = pa::error_stats(ctest.axis("c").position_nm, pred).mae_nm;
+  const auto pred = piezo::models::stream_model(*cbase, ctest, "c").prediction;
+  out.clean_mae_nm = pa::error_stats(pred, ctest.axis("c").position_nm).mae_nm;
   return out;
 }
 

@@ -64,8 +64,8 @@ double clean_mae() {
   static const double mae = [] {
     const Split s = split(simulate(""));
     const auto base = fit_base(s.train, options());
-    const auto pred = pa::run_model_after(*base, s.train, s.test, "c", pa::PredictionMode::kFreeRun);
-    return pa::error_stats(s.test.axis("c").position_nm, pred).mae_nm;
+    const auto pred = [&] { piezo::models::StreamOptions so; so.warmup = &s.train; return piezo::models::stream_model(*base, s.test, "c", so).prediction; }();
+    return pa::error_stats(pred, s.test.axis("c").position_nm).mae_nm;
   }();
   return mae;
 }

@@ -24,9 +24,14 @@ std::vector<Hold> find_holds(const io::Dataset& data, double min_duration_s = 0.
 
 struct SeriesPrediction {
   std::vector<double> one_step, free_run;
+  std::size_t first_scored = 0;                            // first row after the anchor window (0 without)
+  double one_step_offset_nm = 0.0, free_run_offset_nm = 0.0;  // anchor offsets (0 without)
 };
-// Both modes from a fresh clone reset at the first sample (rest at V_0, D_0). Throws on NaN predictions.
-SeriesPrediction predict_series(const models::Model& model, const io::Dataset& data, const std::string& axis);
+// Both modes through models::stream_model from a fresh clone reset at the first sample (rest at V_0, D_0).
+// anchor_s > 0: the first anchor_s seconds of measurement fix each mode's offset (see models::StreamOptions).
+// Throws on a non-finite one-step prediction; a diverging free-run is kept finite.
+SeriesPrediction predict_series(const models::Model& model, const io::Dataset& data, const std::string& axis,
+                                double anchor_s = 0.0);
 
 struct ModeMetrics {
   ErrorStats vs_measured, vs_truth;  // vs_truth invalid when the data has no truth
@@ -55,6 +60,7 @@ struct ModelEvaluation {
 struct EvalOptions {
   std::string axis = "c";
   double warmup_s = 0.0;        // samples of the test data before this are not scored (history unknown to the model)
+  double anchor_s = 0.0;        // > 0: the first anchor_s seconds of measurement fix the offset; scored after them
   double final_window_s = 5.0;  // study: final position averaged over the last 5 s of each hold
   // Held out by time within one continuous recording (e.g. the plan: 2 = test, 3…17 = creep scenarios): the
   // model runs over the whole file, as it would live, and only these segments are scored. Empty = all.

@@ -10,36 +10,22 @@
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/analysis/metrics.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/model_stream.h"
 
 namespace piezo::analysis {
 
 // The effect families, in report order.
 const std::vector<std::string>& residual_family_names();
 
-enum class PredictionMode { kFreeRun, kOneStep };
-PredictionMode parse_prediction_mode(const std::string& s);  // "free-run"/"free_run" or "one-step"/"one_step"
+// Runs of a model over data go through models::stream_model (models/model_stream.h), inputs through
+// models::InputResolver: the one path and the one resolver.
+using models::PredictionMode;
+using models::parse_prediction_mode;
 
-struct ErrorStats {
-  double mae_nm = 0.0, rms_nm = 0.0, max_nm = 0.0;
-  std::size_t n = 0;
-};
-ErrorStats error_stats(const std::vector<double>& reference, const std::vector<double>& predicted);
-
-// Names a model reads through ModelInput::aux, resolved against a data set: auxiliary columns, "time_s", and
-// other axes' voltage columns "<axis>_voltage_v". Positions and truth are refused. Throws io::DataError naming
-// the first missing or forbidden column.
-std::vector<const std::vector<double>*> resolve_inputs(const std::vector<std::string>& names, const io::Dataset& data);
-
-// Streams `model` over the data set's `axis`: reset at row 0 with the first voltage and measured position, then
-// per row predict, then commit the measurement (one-step) or the model's own prediction (free-run).
-std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode);
-// Same, but first streams `warmup` (reset at its row 0), then continues into `data` without a reset, as a
-// feedforward that kept running would. Returns predictions for `data` only.
-std::vector<double> run_model_after(models::Model& model, const io::Dataset& warmup, const io::Dataset& data,
-                                    const std::string& axis, PredictionMode mode);
 // True when `next` starts one sample period after `prev` ends (a time split of one recording).
 bool continues_in_time(const io::Dataset& prev, const io::Dataset& next);
 
@@ -100,6 +86,8 @@ struct ResidualOptions {
   // When TEST continues TRAIN in time, TEST predictions run on from TRAIN instead of restarting from a reset
   // (a reset "rested at the first measured position" is wrong while creep from the past is still going on).
   bool warm_start = true;
+  // > 0: the first anchor_s seconds of TEST's measurement fix the prediction offset; TEST is scored after them.
+  double anchor_s = 0.0;
 };
 
 struct ResidualResult {
@@ -107,6 +95,8 @@ struct ResidualResult {
   ErrorStats before_test_truth, after_test_truth;  // n = 0 without truth
   ErrorStats before_validation, after_validation;
   bool warm_started = false;  // TEST predictions continued from TRAIN (see ResidualOptions::warm_start)
+  std::size_t test_first_scored = 0;  // first TEST row scored (after the anchor window; 0 without one)
+  std::vector<char> test_mask;        // TEST rows scored
   std::vector<FoundEffect> effects;        // in the order added
   std::vector<FamilyScore> final_ranking;  // the last round (nothing significant or limit reached)
   std::vector<double> test_pred_before, test_pred_after;

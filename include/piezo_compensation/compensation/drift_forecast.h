@@ -20,7 +20,9 @@ struct DriftForecast {
 };
 
 // Does not change `model`: the state is cloned. Horizons are rounded to whole samples at `sample_rate_hz`.
-// `aux` (values of Model::aux_inputs(), or null) is held constant over the forecast like the voltage.
+// `aux` (values of Model::aux_inputs() at the next sample, or null) is held constant over the forecast like the
+// voltage, except "time_s", which advances one sample period per step. Equal to models::stream_model over a
+// data set that holds voltage and inputs (tested in test_eval_stream).
 DriftForecast forecast_drift(const models::Model& model, double hold_voltage_v, const std::vector<double>& horizons_s,
                              double sample_rate_hz, const double* aux = nullptr);
 

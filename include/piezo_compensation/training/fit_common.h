@@ -12,18 +12,15 @@
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/training/fit_request.h"
 
 namespace piezo::training {
 
-// The aux columns a model reads, gathered per sample into ModelInput::aux order.
-class AuxRows {
+// The aux columns a feature spec reads, per sample in ModelInput::aux order: the one resolver of models/.
+class AuxRows : public models::InputResolver {
  public:
-  AuxRows(const io::Dataset& data, const std::vector<std::string>& names);  // throws DataError naming a missing column
-  const double* at(std::size_t i);  // nullptr when no aux signal is used
- private:
-  std::vector<const std::vector<double>*> cols_;
-  std::vector<double> row_;
+  AuxRows(const io::Dataset& data, const std::vector<std::string>& names) : models::InputResolver(data, names, "") {}
 };
 
 // Streams `spec` over data[begin, end) of one axis in one-step mode (positions committed are the measured

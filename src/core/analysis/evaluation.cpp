@@ -6,7 +6,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/protocols/protocol.h"
-#include "piezo_compensation/training/fit_common.h"
+#include "piezo_compensation/models/model_stream.h"
 
 namespace piezo::analysis {
 
@@ -35,34 +35,29 @@ std::vector<Hold> find_holds(const io::Dataset& d, double min_duration_s) {
   return out;
 }
 
-SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d, const std::string& axis) {
-  const io::AxisSeries& ax = d.axis(axis);
+SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d, const std::string& axis,
+                                double anchor_s) {
   SeriesPrediction p;
   if (d.empty()) return p;
-  p.one_step.resize(d.size());
-  p.free_run.resize(d.size());
+  models::StreamOptions so;
+  so.anchor_s = anchor_s;
+  so.mode = models::PredictionMode::kOneStep;
   auto one = model.clone();
-  one->reset(ax.voltage_v[0], ax.position_nm[0]);
-  training::AuxRows aux(d, model.aux_inputs());
-  const bool same = !model.uses_position_history();
-  std::unique_ptr<models::Model> free = same ? nullptr : model.clone();
-  if (free) free->reset(ax.voltage_v[0], ax.position_nm[0]);
-  for (std::size_t i = 0; i < d.size(); ++i) {
-    const models::ModelInput in{ax.voltage_v[i], aux.at(i)};
-    const double y = one->predict(in);
-    if (!std::isfinite(y))
-      throw std::runtime_error("model '" + model.kind() + "' predicted a non-finite position at sample " + std::to_string(i));
-    p.one_step[i] = y;
-    one->commit(in, ax.position_nm[i]);
-    if (free) {
-      const double f = free->predict(in);
-      // A diverging free-run is a result, not an error: keep it finite so that metrics stay defined.
-      p.free_run[i] = std::isfinite(f) ? f : (f > 0 ? 1e12 : -1e12);
-      free->commit(in, p.free_run[i]);
-    } else {
-      p.free_run[i] = y;  // no position history: the two modes are the same computation
-    }
+  const models::StreamResult r1 = models::stream_model(*one, d, axis, so);
+  p.one_step = r1.prediction;
+  p.first_scored = r1.first_scored;
+  p.one_step_offset_nm = r1.anchor_offset_nm;
+  if (!model.uses_position_history()) {
+    p.free_run = p.one_step;  // no position history: the two modes are the same computation
+    p.free_run_offset_nm = p.one_step_offset_nm;
+    return p;
   }
+  so.mode = models::PredictionMode::kFreeRun;
+  so.keep_diverging = true;  // a diverging free-run is a result, not an error
+  auto free = model.clone();
+  const models::StreamResult r2 = models::stream_model(*free, d, axis, so);
+  p.free_run = r2.prediction;
+  p.free_run_offset_nm = r2.anchor_offset_nm;
   return p;
 }
 
@@ -136,15 +131,20 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   ev.kind = model.kind();
   ev.num_parameters = model.num_parameters();
   ev.uses_positions = model.uses_position_history();
-  ev.test = predict_series(model, test, opt.axis);
-  ev.hysteresis = metrics(ev.test, test.axis(opt.axis), hysteresis_mask(test, opt.warmup_s, opt.test_segments));
+  ev.test = predict_series(model, test, opt.axis, opt.anchor_s);
+  auto after_anchor = [](std::vector<char> m, std::size_t first) {
+    for (std::size_t i = 0; i < first && i < m.size(); ++i) m[i] = 0;
+    return m;
+  };
+  ev.hysteresis = metrics(ev.test, test.axis(opt.axis),
+                          after_anchor(hysteresis_mask(test, opt.warmup_s, opt.test_segments), ev.test.first_scored));
   const io::Dataset& cd = creep ? *creep : test;
-  ev.creep_pred = creep ? predict_series(model, *creep, opt.axis) : ev.test;
+  ev.creep_pred = creep ? predict_series(model, *creep, opt.axis, opt.anchor_s) : ev.test;
   const io::AxisSeries& cax = cd.axis(opt.axis);
-  ev.creep = metrics(ev.creep_pred, cax, hold_mask(cd, opt.creep_segments));
+  ev.creep = metrics(ev.creep_pred, cax, after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.first_scored));
   const double rate = cd.size() > 1 ? cd.sample_rate_hz() : 1.0;
   for (const auto& h : find_holds(cd)) {
-    if (!in_segments(cd, h.begin, opt.creep_segments)) continue;
+    if (!in_segments(cd, h.begin, opt.creep_segments) || h.end <= ev.creep_pred.first_scored) continue;
     const std::size_t w = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(opt.final_window_s * rate)));
     const std::size_t b = h.end > h.begin + w ? h.end - w : h.begin;
     FinalDeviation f;

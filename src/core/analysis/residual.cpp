@@ -22,90 +22,13 @@ const std::vector<std::string>& residual_family_names() {
   return names;
 }
 
-PredictionMode parse_prediction_mode(const std::string& s) {
-  if (s == "free-run" || s == "free_run") return PredictionMode::kFreeRun;
-  if (s == "one-step" || s == "one_step") return PredictionMode::kOneStep;
-  throw std::invalid_argument("unknown prediction mode '" + s + "' (free-run or one-step)");
-}
-
-ErrorStats error_stats(const std::vector<double>& ref, const std::vector<double>& pred) {
-  if (ref.size() != pred.size()) throw std::invalid_argument("error_stats: size mismatch");
-  ErrorStats e;
-  e.n = ref.size();
-  if (e.n == 0) return e;
-  double sa = 0, s2 = 0;
-  for (std::size_t i = 0; i < ref.size(); ++i) {
-    const double d = std::fabs(ref[i] - pred[i]);
-    sa += d;
-    s2 += d * d;
-    e.max_nm = std::max(e.max_nm, d);
-  }
-  e.mae_nm = sa / static_cast<double>(e.n);
-  e.rms_nm = std::sqrt(s2 / static_cast<double>(e.n));
-  return e;
-}
-
-std::vector<const std::vector<double>*> resolve_inputs(const std::vector<std::string>& names, const io::Dataset& data) {
-  std::vector<const std::vector<double>*> cols;
-  for (const auto& name : names) {
-    const std::string where = data.source.empty() ? std::string("data") : data.source;
-    if (name == models::kSignalTime) {
-      cols.push_back(&data.time_s);
-      continue;
-    }
-    if (const io::AuxSignal* a = data.find_aux(name)) {
-      cols.push_back(&a->values);
-      continue;
-    }
-    const io::AxisSeries* found = nullptr;
-    for (const auto& ax : data.axes) {
-      if (name == io::true_position_column(ax.name) || name == io::position_column(ax.name))
-        throw io::DataError(where + ": column " + name + " is a position and cannot be a model input");
-      if (name == io::voltage_column(ax.name)) found = &ax;
-    }
-    if (!found) throw io::DataError(where + ": the model needs column " + name + ", which the data does not have");
-    cols.push_back(&found->voltage_v);
-  }
-  return cols;
-}
-
 namespace {
-void stream_rows(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode,
-                 std::vector<double>& pred) {
-  const io::AxisSeries& ax = data.axis(axis);
-  const auto cols = resolve_inputs(model.aux_inputs(), data);
-  pred.assign(data.size(), 0.0);
-  std::vector<double> aux(cols.size());
-  for (std::size_t i = 0; i < data.size(); ++i) {
-    for (std::size_t j = 0; j < cols.size(); ++j) aux[j] = (*cols[j])[i];
-    const models::ModelInput in{ax.voltage_v[i], aux.empty() ? nullptr : aux.data()};
-    pred[i] = model.predict(in);
-    if (!std::isfinite(pred[i]))
-      throw std::runtime_error("model '" + model.kind() + "' predicted a non-finite position at row " + std::to_string(i + 1));
-    model.commit(in, mode == PredictionMode::kOneStep ? ax.position_nm[i] : pred[i]);
-  }
+std::vector<double> run_model(models::Model& m, const io::Dataset& d, const std::string& axis, PredictionMode mode) {
+  models::StreamOptions so;
+  so.mode = mode;
+  return models::stream_model(m, d, axis, so).prediction;
 }
 }  // namespace
-
-std::vector<double> run_model(models::Model& model, const io::Dataset& data, const std::string& axis, PredictionMode mode) {
-  std::vector<double> pred;
-  if (data.empty()) return pred;
-  const io::AxisSeries& ax = data.axis(axis);
-  model.reset(ax.voltage_v[0], ax.position_nm[0]);
-  stream_rows(model, data, axis, mode, pred);
-  return pred;
-}
-
-std::vector<double> run_model_after(models::Model& model, const io::Dataset& warmup, const io::Dataset& data,
-                                    const std::string& axis, PredictionMode mode) {
-  if (warmup.empty()) return run_model(model, data, axis, mode);
-  std::vector<double> pred;
-  const io::AxisSeries& ax = warmup.axis(axis);
-  model.reset(ax.voltage_v[0], ax.position_nm[0]);
-  stream_rows(model, warmup, axis, mode, pred);
-  stream_rows(model, data, axis, mode, pred);
-  return pred;
-}
 
 bool continues_in_time(const io::Dataset& prev, const io::Dataset& next) {
   if (prev.size() < 2 || next.empty()) return false;
@@ -152,13 +75,13 @@ std::vector<double> regressors(const Context& c, const std::vector<EffectTerm>& 
                                            [](std::size_t s, const EffectTerm& t) { return s + t.num_regressors(); });
   for (const auto& t : terms) all.push_back(t);
   EffectTermStream stream(all, c.fs, reads_position(terms) ? offset : 0.0);
-  const auto cols = resolve_inputs(stream.column_signals(), *c.data);
+  models::InputResolver cols(*c.data, stream.column_signals(), c.axis);
   const std::size_t k_all = stream.num_regressors(), k = k_all - skip;
   k_out = k;
   const std::size_t n = c.x_base.size();
-  std::vector<double> Z(n * k), buf(k_all), colv(cols.size());
+  std::vector<double> Z(n * k), buf(k_all), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < n; ++i) {
-    for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+    cols.fill(i, colv.data());
     stream.raw(c.voltage[i], c.x_base[i], colv.data(), buf.data());
     std::copy(buf.begin() + static_cast<long>(skip), buf.end(), Z.begin() + static_cast<long>(i * k));
     stream.commit(c.voltage[i], c.x_base[i], colv.data());
@@ -178,11 +101,11 @@ void fit_terms(const Context& c, std::vector<EffectTerm>& terms, double& offset,
   }
   for (int pass = 0; pass < passes; ++pass) {
     EffectTermStream stream(terms, c.fs, offset);
-    const auto cols = resolve_inputs(stream.column_signals(), *c.data);
+    models::InputResolver cols(*c.data, stream.column_signals(), c.axis);
     const std::size_t k = stream.num_regressors();
-    std::vector<double> Z(n * k), colv(cols.size());
+    std::vector<double> Z(n * k), colv(std::max<std::size_t>(1, cols.size()));
     for (std::size_t i = 0; i < n; ++i) {
-      for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+      cols.fill(i, colv.data());
       stream.raw(c.voltage[i], c.x_base[i], colv.data(), Z.data() + i * k);
       stream.commit(c.voltage[i], c.x_base[i], colv.data());
     }
@@ -223,10 +146,10 @@ void fit_terms(const Context& c, std::vector<EffectTerm>& terms, double& offset,
 // correction; in one-step the base is committed with measurement − correction, a second-order difference).
 std::vector<double> corrected(const Context& c, const std::vector<EffectTerm>& terms, double offset) {
   EffectTermStream stream(terms, c.fs, offset);
-  const auto cols = resolve_inputs(stream.column_signals(), *c.data);
-  std::vector<double> out(c.x_base.size()), colv(cols.size());
+  models::InputResolver cols(*c.data, stream.column_signals(), c.axis);
+  std::vector<double> out(c.x_base.size()), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < out.size(); ++i) {
-    for (std::size_t j = 0; j < cols.size(); ++j) colv[j] = (*cols[j])[i];
+    cols.fill(i, colv.data());
     out[i] = c.x_base[i] + stream.correction(c.voltage[i], c.x_base[i], colv.data());
     stream.commit(c.voltage[i], c.x_base[i], colv.data());
   }
@@ -488,15 +411,23 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
 
   ResidualResult res;
   res.warm_started = o.warm_start && continues_in_time(train, test);
+  models::StreamOptions test_run;
+  test_run.mode = o.mode;
+  test_run.warmup = res.warm_started ? &train : nullptr;
+  test_run.anchor_s = o.anchor_s;
   auto run_test = [&](models::Model& m) {
-    return res.warm_started ? run_model_after(m, train, test, o.axis, o.mode) : run_model(m, test, o.axis, o.mode);
+    const models::StreamResult r = models::stream_model(m, test, o.axis, test_run);
+    res.test_first_scored = r.first_scored;
+    return r.prediction;
   };
   {
     models::ModelPtr b = base.clone();
     res.test_pred_before = run_test(*b);
   }
-  res.before_test = error_stats(meas_test, res.test_pred_before);
-  if (!truth_test.empty()) res.before_test_truth = error_stats(truth_test, res.test_pred_before);
+  res.test_mask.assign(test.size(), 1);
+  for (std::size_t i = 0; i < res.test_first_scored && i < test.size(); ++i) res.test_mask[i] = 0;
+  res.before_test = error_stats(res.test_pred_before, meas_test, res.test_mask);
+  if (!truth_test.empty()) res.before_test_truth = error_stats(res.test_pred_before, truth_test, res.test_mask);
 
   models::ModelPtr cur_base = base.clone();  // refitted by backfitting when options.refit_base is set
   std::vector<EffectTerm> terms;           // accepted, fitted on all of TRAIN
@@ -583,9 +514,9 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     e.ranking = ranking;
     models::AugmentedModel m(cur_base->clone(), terms, offset, fs);
     const std::vector<double> pt = run_test(m);
-    e.test_after = error_stats(meas_test, pt);
+    e.test_after = error_stats(pt, meas_test, res.test_mask);
     e.test_prediction = pt;
-    if (!truth_test.empty()) e.test_after_truth = error_stats(truth_test, pt);
+    if (!truth_test.empty()) e.test_after_truth = error_stats(pt, truth_test, res.test_mask);
     log("added " + e.family + ": TEST MAE " + std::to_string(e.test_after.mae_nm) + " nm");
     res.effects.push_back(std::move(e));
     if (step + 1 == o.max_effects) res.final_ranking = ranking;
@@ -599,8 +530,8 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   }
   auto model = std::make_unique<models::AugmentedModel>(cur_base->clone(), terms, offset, fs);
   res.test_pred_after = run_test(*model);
-  res.after_test = error_stats(meas_test, res.test_pred_after);
-  if (!truth_test.empty()) res.after_test_truth = error_stats(truth_test, res.test_pred_after);
+  res.after_test = error_stats(res.test_pred_after, meas_test, res.test_mask);
+  if (!truth_test.empty()) res.after_test_truth = error_stats(res.test_pred_after, truth_test, res.test_mask);
   {
     const std::vector<double> p = corrected(c, terms, offset);
     std::vector<double> r(n);

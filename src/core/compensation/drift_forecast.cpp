@@ -34,7 +34,17 @@ DriftForecast forecast_drift(const models::Model& model, double hold_voltage_v, 
   }
 
   std::unique_ptr<models::Model> m = model.clone();
-  const models::ModelInput in{hold_voltage_v, aux};
+  // Inputs are held like the voltage, except time, which runs on (a time-drift or time-gain term must see it).
+  const std::vector<std::string> names = model.aux_inputs();
+  std::vector<double> held(aux ? names.size() : 0);
+  if (aux) std::copy(aux, aux + names.size(), held.begin());
+  std::vector<std::size_t> clocks;
+  for (std::size_t k = 0; k < held.size(); ++k)
+    if (names[k] == "time_s") clocks.push_back(k);
+  const models::ModelInput in{hold_voltage_v, held.empty() ? nullptr : held.data()};
+  auto tick = [&] {
+    for (std::size_t k : clocks) held[k] += 1.0 / sample_rate_hz;
+  };
   // Step 0 is the next sample: the voltage change itself; the drift is what follows it.
   double p = m->predict(in);
   m->commit(in, p);
@@ -43,6 +53,7 @@ DriftForecast forecast_drift(const models::Model& model, double hold_voltage_v, 
     return f;
   }
   f.start_position_nm = p;
+  tick();
   std::vector<std::size_t> order(steps.size());
   for (std::size_t i = 0; i < order.size(); ++i) order[i] = i;
   std::sort(order.begin(), order.end(), [&](std::size_t x, std::size_t y) { return steps[x] < steps[y]; });
@@ -51,6 +62,7 @@ DriftForecast forecast_drift(const models::Model& model, double hold_voltage_v, 
   while (next < order.size()) {
     p = m->predict(in);
     m->commit(in, p);
+    tick();
     ++n;
     if (!std::isfinite(p)) {
       std::ostringstream s;

@@ -11,22 +11,6 @@
 
 namespace piezo::training {
 
-AuxRows::AuxRows(const io::Dataset& data, const std::vector<std::string>& names) {
-  for (const auto& n : names) {
-    const io::AuxSignal* s = data.find_aux(n);
-    if (!s) throw io::DataError((data.source.empty() ? std::string("data") : data.source) + ": missing aux column '" + n +
-                                "' that the model reads");
-    cols_.push_back(&s->values);
-  }
-  row_.resize(names.size());
-}
-
-const double* AuxRows::at(std::size_t i) {
-  if (cols_.empty()) return nullptr;
-  for (std::size_t k = 0; k < cols_.size(); ++k) row_[k] = (*cols_[k])[i];
-  return row_.data();
-}
-
 void for_each_sample(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis,
                      const std::function<void(std::size_t, const double*, double)>& fn, std::size_t begin,
                      std::size_t end) {

@@ -1,0 +1,88 @@
+// The one path that runs a model over a data set, and the one resolver that maps a model's inputs to the data.
+// Fit validation, `piezo eval`, `piezo residual`, the drift forecast and the predictor use these (or are tested
+// equal to them sample by sample). Lives in models/ so that training, compensation and analysis can all use it.
+#pragma once
+
+#include <cstddef>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::models {
+
+enum class PredictionMode { kFreeRun, kOneStep };
+PredictionMode parse_prediction_mode(const std::string& s);  // "free-run"/"free_run" or "one-step"/"one_step"
+const char* prediction_mode_name(PredictionMode m);          // "free-run" or "one-step"
+
+// What one name in Model::aux_inputs() reads. The live predictor maps the same kinds to topics.
+struct InputSource {
+  enum class Kind {
+    kTime,          // "time_s": the data's time column (live: the clock the model file names)
+    kAux,           // an auxiliary column, e.g. "temperature_c"
+    kAxisVoltage,   // "<axis>_voltage_v": an axis' applied voltage at this sample
+    kAxisPosition,  // "<axis>_position_nm" of ANOTHER axis: its measured position at the previous sample (the
+                    // latest reading known before this sample's; row 0 reads row 0)
+  };
+  Kind kind = Kind::kAux;
+  std::string name;  // as in aux_inputs()
+  std::string axis;  // for the axis kinds
+};
+
+// Classifies `name` for a model of `own_axis`. Throws io::DataError for what can never be an input: any
+// "<axis>_true_position_nm" (ground truth) and the own axis' "<axis>_position_nm" (the target itself).
+// `axis_names` are the axes that exist (a name "<x>_voltage_v" with x not among them is an aux column).
+InputSource classify_input(const std::string& name, const std::string& own_axis,
+                           const std::vector<std::string>& axis_names);
+
+// Resolves a model's input names against a data set once, then gives each row's values in aux_inputs() order.
+class InputResolver {
+ public:
+  // Throws io::DataError naming the data source and the first missing or forbidden column.
+  InputResolver(const io::Dataset& data, const std::vector<std::string>& names, const std::string& own_axis);
+  std::size_t size() const { return cols_.size(); }
+  const std::vector<InputSource>& sources() const { return sources_; }
+  // Values at row i (nullptr when the model reads no inputs). Valid until the next call.
+  const double* at(std::size_t i);
+  void fill(std::size_t i, double* out) const;
+
+ private:
+  std::vector<InputSource> sources_;
+  std::vector<const std::vector<double>*> cols_;
+  std::vector<char> lagged_;
+  std::vector<double> row_;
+};
+
+struct StreamOptions {
+  PredictionMode mode = PredictionMode::kFreeRun;
+  // Initial state: reset (rest at the first voltage and measured position) at the first row streamed.
+  // false = continue from the model's current state (it must have been reset or streamed before).
+  bool reset = true;
+  // Streamed first (reset at its row 0 when `reset`), then `data` continues without a reset, as a model that
+  // kept running would. Only `data`'s predictions are returned.
+  const io::Dataset* warmup = nullptr;
+  // > 0: the measured positions of the first anchor_s seconds of `data` fix a constant offset (mean of measured −
+  // predicted there), added to every returned prediction; scoring starts after them (StreamResult::first_scored).
+  double anchor_s = 0.0;
+  // Free-run only: a diverging prediction is kept finite (±1e12 nm) instead of throwing, so metrics stay
+  // defined (evaluation reports a diverging model; the residual loop refuses one).
+  bool keep_diverging = false;
+};
+
+struct StreamResult {
+  std::vector<double> prediction;  // per row of `data` [nm], offset included
+  double anchor_offset_nm = 0.0;   // 0 without an anchor
+  std::size_t first_scored = 0;    // first row after the anchor window (0 without one)
+  bool anchored = false;
+};
+
+// Per row: predict with the row's voltage and inputs, then commit the measured position (one-step) or the
+// model's own prediction (free-run). Throws std::runtime_error naming the row on a non-finite prediction (see
+// keep_diverging), io::DataError on missing columns.
+StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o = {});
+
+// Mask of the rows scored after an anchor: 0 for rows < first_scored (sized data.size()).
+std::vector<char> scored_mask(const StreamResult& r, std::size_t n);
+
+}  // namespace piezo::models

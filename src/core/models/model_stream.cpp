@@ -1,0 +1,147 @@
+#include "piezo_compensation/models/model_stream.h"
+
+#include <algorithm>
+#include <cmath>
+#include <stdexcept>
+
+namespace piezo::models {
+
+PredictionMode parse_prediction_mode(const std::string& s) {
+  if (s == "free-run" || s == "free_run") return PredictionMode::kFreeRun;
+  if (s == "one-step" || s == "one_step") return PredictionMode::kOneStep;
+  throw std::invalid_argument("unknown prediction mode '" + s + "' (free-run or one-step)");
+}
+
+const char* prediction_mode_name(PredictionMode m) { return m == PredictionMode::kOneStep ? "one-step" : "free-run"; }
+
+namespace {
+bool ends_with(const std::string& s, const std::string& suffix) {
+  return s.size() > suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+std::string where(const io::Dataset& d) { return d.source.empty() ? std::string("data") : d.source; }
+}  // namespace
+
+InputSource classify_input(const std::string& name, const std::string& own_axis, const std::vector<std::string>& axis_names) {
+  InputSource s;
+  s.name = name;
+  if (name == "time_s") {
+    s.kind = InputSource::Kind::kTime;
+    return s;
+  }
+  for (const auto& ax : axis_names) {
+    if (name == io::true_position_column(ax))
+      throw io::DataError("column " + name + " is the true position and is never a model input");
+    if (name == io::position_column(ax)) {
+      if (ax == own_axis) throw io::DataError("column " + name + " is the modelled axis' own position and cannot be a model input");
+      s.kind = InputSource::Kind::kAxisPosition;
+      s.axis = ax;
+      return s;
+    }
+    if (name == io::voltage_column(ax)) {
+      s.kind = InputSource::Kind::kAxisVoltage;
+      s.axis = ax;
+      return s;
+    }
+  }
+  if (ends_with(name, "_true_position_nm")) throw io::DataError("column " + name + " is a true position and is never a model input");
+  s.kind = InputSource::Kind::kAux;
+  return s;
+}
+
+InputResolver::InputResolver(const io::Dataset& data, const std::vector<std::string>& names, const std::string& own_axis) {
+  std::vector<std::string> axis_names;
+  for (const auto& ax : data.axes) axis_names.push_back(ax.name);
+  for (const auto& name : names) {
+    InputSource s;
+    try {
+      s = classify_input(name, own_axis, axis_names);
+    } catch (const io::DataError& e) {
+      throw io::DataError(where(data) + ": " + e.what());
+    }
+    const std::vector<double>* col = nullptr;
+    switch (s.kind) {
+      case InputSource::Kind::kTime: col = &data.time_s; break;
+      case InputSource::Kind::kAxisVoltage: col = &data.axis(s.axis).voltage_v; break;
+      case InputSource::Kind::kAxisPosition: col = &data.axis(s.axis).position_nm; break;
+      case InputSource::Kind::kAux:
+        if (const io::AuxSignal* a = data.find_aux(name)) col = &a->values;
+        break;
+    }
+    if (!col) throw io::DataError(where(data) + ": the model reads column " + name + ", which the data does not have");
+    sources_.push_back(s);
+    cols_.push_back(col);
+    lagged_.push_back(s.kind == InputSource::Kind::kAxisPosition);
+  }
+  row_.resize(cols_.size());
+}
+
+void InputResolver::fill(std::size_t i, double* out) const {
+  for (std::size_t k = 0; k < cols_.size(); ++k) out[k] = (*cols_[k])[lagged_[k] && i > 0 ? i - 1 : i];
+}
+
+const double* InputResolver::at(std::size_t i) {
+  if (cols_.empty()) return nullptr;
+  fill(i, row_.data());
+  return row_.data();
+}
+
+namespace {
+void stream_rows(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o,
+                 std::vector<double>* pred) {
+  const io::AxisSeries& ax = data.axis(axis);
+  InputResolver inputs(data, model.aux_inputs(), axis);
+  const bool free_run = o.mode == PredictionMode::kFreeRun;
+  if (pred) pred->assign(data.size(), 0.0);
+  for (std::size_t i = 0; i < data.size(); ++i) {
+    const ModelInput in{ax.voltage_v[i], inputs.at(i)};
+    double y = model.predict(in);
+    if (!std::isfinite(y)) {
+      if (!(free_run && o.keep_diverging))
+        throw std::runtime_error("model '" + model.kind() + "' predicted a non-finite position at row " +
+                                 std::to_string(i + 1) + (data.source.empty() ? "" : " of " + data.source));
+      y = y > 0 ? 1e12 : -1e12;
+    }
+    if (pred) (*pred)[i] = y;
+    model.commit(in, free_run ? y : ax.position_nm[i]);
+  }
+}
+}  // namespace
+
+StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o) {
+  StreamResult r;
+  if (!(o.anchor_s >= 0) || !std::isfinite(o.anchor_s)) throw std::invalid_argument("anchor must be a finite time ≥ 0 s");
+  const io::Dataset* first = o.warmup && !o.warmup->empty() ? o.warmup : &data;
+  if (first->empty()) return r;
+  if (o.reset) {
+    const io::AxisSeries& ax = first->axis(axis);
+    model.reset(ax.voltage_v[0], ax.position_nm[0]);
+  }
+  if (first != &data) stream_rows(model, *first, axis, o, nullptr);
+  stream_rows(model, data, axis, o, &r.prediction);
+  if (o.anchor_s > 0 && !data.empty()) {
+    const auto& meas = data.axis(axis).position_nm;
+    const double t0 = data.time_s[0];
+    std::size_t k = 0;
+    double s = 0;
+    while (k < data.size() && data.time_s[k] - t0 < o.anchor_s) {
+      s += meas[k] - r.prediction[k];
+      ++k;
+    }
+    if (k == 0) k = 1, s = meas[0] - r.prediction[0];
+    if (k >= data.size()) throw io::DataError(where(data) + ": the anchor of " + std::to_string(o.anchor_s) +
+                                              " s covers the whole data set; nothing is left to score");
+    r.anchor_offset_nm = s / static_cast<double>(k);
+    r.first_scored = k;
+    r.anchored = true;
+    for (double& p : r.prediction) p += r.anchor_offset_nm;
+  }
+  return r;
+}
+
+std::vector<char> scored_mask(const StreamResult& r, std::size_t n) {
+  std::vector<char> m(n, 1);
+  std::fill(m.begin(), m.begin() + static_cast<long>(std::min(n, r.first_scored)), 0);
+  return m;
+}
+
+}  // namespace piezo::models
