@@ -9,6 +9,11 @@
 //   fractional: b·s^−α by its integral form s^−α = (sin πα/π)∫ τ^α/(τs+1) dlnτ over τ ∈ [τ_min, τ_max]
 //               (a multi-mode approximation with finite memory): g_j = b·(sin πα/π)·τ_j^α·Δlnτ;
 //               step response ≈ b·ΔV·t^α/Γ(1+α) for τ_min ≪ t ≪ τ_max.
+//   prony:      Σ_j g_j·LP_{τ_j}(V or H), τ_j log-spaced on [τ_min, τ_max] (modes_per_decade), g_j ≥ 0 each: a
+//               generalised Kelvin–Voigt spectrum. Log, LTI and fractional creep are particular non-negative
+//               weight profiles on such a grid; spectra none of them fits are covered too.
+// Sizes are bounded (kMaxCreepModes modes, kMaxModesPerDecade per decade, kMaxCreepDecades decades) so a model
+// file cannot ask for an unbounded state.
 #pragma once
 
 #include <string>
@@ -16,7 +21,8 @@
 
 namespace piezo::models {
 
-enum class CreepKind { kNone, kLog, kLti, kFractional };
+enum class CreepKind { kNone, kLog, kLti, kFractional, kProny };
+constexpr int kMaxCreepModes = 120, kMaxModesPerDecade = 12, kMaxCreepDecades = 10;
 std::string creep_kind_name(CreepKind k);  // "pi", "pi_creep_log", ...
 CreepKind creep_kind_from_name(const std::string& kind);  // throws for other names
 
@@ -28,18 +34,23 @@ struct CreepParams {
   // log
   double gamma_nm_per_v = 0, t1_s = 1;
   int decades = 5, modes_per_decade = 3;
-  // fractional
+  // fractional (tau_min_s, tau_max_s, modes_per_decade also place the prony grid)
   double alpha = 0.5, b_nm_per_v = 0, tau_min_s = 1, tau_max_s = 1e5;
-  // lti (also the expanded modes of the others)
+  // lti (also the expanded modes of the others; prony: gains_nm_per_v on the grid, taus_s unused)
   std::vector<double> taus_s, gains_nm_per_v;
 
   // The modes (time constants and gains) this law streams.
   void modes(std::vector<double>& taus_s_out, std::vector<double>& gains_out) const;
   // Unit-gain basis for the linear coefficients: the law is Σ_k θ_k Σ_j basis[k][j]·LP_{τ_j}.
-  // log: θ = {γ}; fractional: θ = {b}; lti: θ = gains (basis = identity).
+  // log: θ = {γ}; fractional: θ = {b}; lti, prony: θ = gains (basis = identity).
   void basis(std::vector<double>& taus_s_out, std::vector<std::vector<double>>& basis_out) const;
   void set_coefficients(const std::vector<double>& theta);
   std::size_t num_coefficients() const;
+  // Throws a clear error when decades, modes_per_decade or the mode count exceed the bounds above.
+  void check_sizes() const;
 };
+
+// The log-spaced prony grid τ_min·10^(j/m), j = 0..round(m·log10(τ_max/τ_min)).
+std::vector<double> log_tau_grid(double tau_min_s, double tau_max_s, int modes_per_decade);
 
 }  // namespace piezo::models

@@ -29,8 +29,10 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request);
 // options: method (ols|ridge|lasso), ridge_lambda, lasso_choice (1se|min), folds, features (see fit_common.h).
 models::ModelPtr fit_linear(const FitRequest& req);
 
-// options: n_play (12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti start values),
-// t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s, min_slope_fraction.
+// options: n_play (by validation, else 12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti
+// start values), t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s (clamped
+// to [2 samples, training duration]), creep_input (auto|voltage|hysteresis), hold_weight (auto|off|factor),
+// min_slope_fraction. Kinds pi, pi_creep_log, pi_creep_lti, pi_creep_fractional, pi_creep_prony.
 models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind);
 
 // Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]

@@ -90,6 +90,7 @@ std::size_t PiCreepModel::num_parameters() const {
   std::size_t n = w_.size() + 1;
   if (creep_.kind == CreepKind::kLti) n += 2 * creep_.taus_s.size();
   if (creep_.kind == CreepKind::kLog || creep_.kind == CreepKind::kFractional) n += 2;
+  if (creep_.kind == CreepKind::kProny) n += creep_.gains_nm_per_v.size();
   return n;
 }
 
@@ -114,6 +115,12 @@ YAML::Node PiCreepModel::to_yaml() const {
         c["tau_min_s"] = creep_.tau_min_s;
         c["tau_max_s"] = creep_.tau_max_s;
         c["modes_per_decade"] = creep_.modes_per_decade;
+        break;
+      case CreepKind::kProny:
+        c["tau_min_s"] = creep_.tau_min_s;
+        c["tau_max_s"] = creep_.tau_max_s;
+        c["modes_per_decade"] = creep_.modes_per_decade;
+        c["mode_gains"] = yaml_list(creep_.gains_nm_per_v);  // per mode on the grid; nm/V, or nm/nm on H
         break;
       case CreepKind::kLti: {
         c["taus_s"] = yaml_list(creep_.taus_s);
@@ -165,13 +172,25 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
         cp.tau_min_s = yaml_number(c, "tau_min_s");
         cp.tau_max_s = yaml_number(c, "tau_max_s");
         cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+      } else if (c["mode_gains"]) {
+        cp.kind = CreepKind::kProny;
+        cp.tau_min_s = yaml_number(c, "tau_min_s");
+        cp.tau_max_s = yaml_number(c, "tau_max_s");
+        cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+        const auto grid = log_tau_grid(cp.tau_min_s, cp.tau_max_s, cp.modes_per_decade);
+        if (grid.size() > static_cast<std::size_t>(kMaxCreepModes))
+          throw std::runtime_error("model.creep: the prony grid has " + std::to_string(grid.size()) +
+                                   " modes (at most " + std::to_string(kMaxCreepModes) + ")");
+        cp.gains_nm_per_v = yaml_numbers(c, "mode_gains", static_cast<long>(grid.size()));
       } else if (c["taus_s"]) {
         cp.kind = CreepKind::kLti;
         cp.taus_s = yaml_numbers(c, "taus_s");
         cp.gains_nm_per_v = yaml_numbers(c, "gains_nm_per_v", static_cast<long>(cp.taus_s.size()));
       } else {
-        throw std::runtime_error("model.creep: expected gamma_nm_per_v (log), alpha (fractional) or taus_s (lti)");
+        throw std::runtime_error(
+            "model.creep: expected gamma_nm_per_v (log), alpha (fractional), mode_gains (prony) or taus_s (lti)");
       }
+      cp.check_sizes();
     } catch (const std::runtime_error& e) {
       std::string msg = e.what();
       if (msg.rfind("model.", 0) == 0) msg = "model.creep." + msg.substr(6);
@@ -183,6 +202,7 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
                              (expected == CreepKind::kNone      ? std::string("no creep key")
                               : expected == CreepKind::kLog     ? std::string("gamma_nm_per_v, t1_s, ...")
                               : expected == CreepKind::kLti     ? std::string("taus_s, gains_nm_per_v")
+                              : expected == CreepKind::kProny   ? std::string("mode_gains, tau_min_s, ...")
                                                                 : std::string("alpha, b_nm_per_v, ...")));
   return std::make_unique<PiCreepModel>(r, w, b, cp, rate);
 }

@@ -34,6 +34,8 @@ std::map<std::string, ModelKind> built_in_kinds() {
       {"pi_creep_lti", "PI hysteresis + LTI creep (n spring–damper pairs)", &PiCreepModel::load, &export_c99_pi},
       {"pi_creep_fractional", "PI hysteresis + fractional-order creep (multi-mode s^-alpha)", &PiCreepModel::load,
        &export_c99_pi},
+      {"pi_creep_prony", "PI hysteresis + creep spectrum (non-negative first-order modes on a log tau grid)",
+       &PiCreepModel::load, &export_c99_pi},
       {"dense", "dense network (depth × width, leaky ReLU) on the feature vector, trained with Adam/RMSprop/SGD",
        [](const YAML::Node& node) -> ModelPtr { return DenseModel::from_yaml(node); },
        export_of<DenseModel>("dense")},

@@ -8,6 +8,7 @@
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/fitters.h"
+#include "piezo_compensation/io/dataset.h"
 
 namespace piezo::training {
 
@@ -81,6 +82,7 @@ struct FitData {
   const std::vector<double>* y;
   double rate;
   bool initial_state_terms = true;
+  const std::vector<double>* weight = nullptr;  // per-sample weight (hold weighting); null = all 1
 };
 
 struct EvalResult {
@@ -89,33 +91,36 @@ struct EvalResult {
   double b = 0;
 };
 
-// Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
+// Weighted Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
 // Extra columns a_j^(t+1) for the poles in `init` absorb the unknown initial state of slow modes: a recording
 // never starts from the rest the model's reset assumes, and without them the first hours bias the creep fit.
 training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::function<double(std::size_t, double*)>& row,
-                                const std::vector<double>& init = {}) {
+                                const std::vector<double>& init = {}, const std::vector<double>* weight = nullptr) {
   const std::size_t P = P0 + init.size();
   std::vector<double> e(init);
   training::GramStats g(P);
   constexpr std::size_t kChunk = 2048;
   Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor> X(kChunk, P);
-  Eigen::VectorXd yc(kChunk);
+  Eigen::VectorXd yc(kChunk), wc(kChunk);
   std::size_t fill = 0;
   auto flush = [&]() {
     if (!fill) return;
     auto Xc = X.topRows(fill);
     auto yy = yc.head(fill);
-    g.n += double(fill);
-    g.sy += yy.sum();
-    g.syy += yy.squaredNorm();
-    g.sx += Xc.colwise().sum().transpose();
-    g.sxy.noalias() += Xc.transpose() * yy;
-    g.sxx.selfadjointView<Eigen::Lower>().rankUpdate(Xc.transpose());
+    auto ww = wc.head(fill);
+    g.n += ww.sum();
+    g.sy += ww.dot(yy);
+    g.syy += (ww.array() * yy.array().square()).sum();
+    g.sx.noalias() += Xc.transpose() * ww;
+    g.sxy.noalias() += Xc.transpose() * (ww.array() * yy.array()).matrix();
+    const Eigen::MatrixXd Xs = ww.array().sqrt().matrix().asDiagonal() * Xc;
+    g.sxx.selfadjointView<Eigen::Lower>().rankUpdate(Xs.transpose());
     fill = 0;
   };
   for (std::size_t t = 0; t < N; ++t) {
     double* x = X.row(fill).data();
     yc(fill) = row(t, x);
+    wc(fill) = weight ? (*weight)[t] : 1.0;
     for (std::size_t j = 0; j < e.size(); ++j) {
       x[P0 + j] = e[j];
       e[j] *= init[j];
@@ -128,6 +133,8 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
 }
 
 // Least squares on the Gram sums; columns flagged constrained stay ≥ 0, column 0 ≥ min_w0 when constrained.
+// Solved on unit-diagonal (Jacobi-scaled) normal equations with a small ridge, so volts, nanometres and slow
+// near-collinear mode columns do not set the conditioning, and no pair of columns can cancel at huge values.
 EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, double min_w0) {
   const std::size_t used = constrained.size();
   constrained.resize(static_cast<std::size_t>(g.sx.size()), false);  // initial-state columns are free
@@ -135,7 +142,12 @@ EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, do
   Eigen::VectorXd c = g.centered_xy();
   const double shift = constrained[0] ? min_w0 : 0.0;
   c -= shift * G.col(0);  // w_0 = min_w0 + w_0' with w_0' ≥ 0 keeps the inverse well defined
-  Eigen::VectorXd x = nnls_gram(G, c, constrained);
+  const Eigen::Index P = G.rows();
+  Eigen::VectorXd s(P);
+  for (Eigen::Index j = 0; j < P; ++j) s(j) = G(j, j) > 0 ? 1.0 / std::sqrt(G(j, j)) : 1.0;
+  Eigen::MatrixXd Gs = s.asDiagonal() * G * s.asDiagonal();
+  Gs.diagonal().array() += 1e-9;
+  Eigen::VectorXd x = s.asDiagonal() * nnls_gram(Gs, s.asDiagonal() * c, constrained);
   x(0) += shift;
   EvalResult res;
   res.b = g.mean_y() - g.mean_x().dot(x);
@@ -161,6 +173,9 @@ std::vector<double> init_poles(const std::vector<double>& taus, const FitData& d
   return out;
 }
 
+// Creep coefficients with a physical sign: the prony spectrum's weights (creep follows its input).
+bool signed_creep(const CreepParams& cp) { return cp.kind == CreepKind::kProny; }
+
 // Creep on the voltage: play outputs and creep basis columns, all weights at once (play weights ≥ 0).
 EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepParams& cp, double min_w0) {
   std::vector<double> taus;
@@ -180,8 +195,8 @@ EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepP
       x[np + k] = s;
     }
     return (*d.y)[t];
-  }, init_poles(taus, d));
-  std::vector<bool> constrained(np + nk, false);
+  }, init_poles(taus, d), d.weight);
+  std::vector<bool> constrained(np + nk, signed_creep(cp));
   for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
   EvalResult res = solve(g, constrained, min_w0);
   res.w.assign(res.theta.begin(), res.theta.begin() + np);
@@ -215,8 +230,10 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& r, c
       x[1 + k] = s;
     }
     return (*d.y)[t];
-  }, init_poles(taus, d));
-  EvalResult res = solve(g, std::vector<bool>(nk + 1, false), 0.0);
+  }, init_poles(taus, d), d.weight);
+  std::vector<bool> constrained(nk + 1, signed_creep(cp));
+  constrained[0] = false;
+  EvalResult res = solve(g, constrained, 0.0);
   const double scale = res.theta[0] > 1e-6 ? res.theta[0] : 1.0;  // a non-positive scale would break invertibility
   res.w = w;
   for (double& x : res.w) x *= scale;
@@ -246,13 +263,12 @@ EvalResult evaluate_w_given_creep_on_h(const FitData& d, const std::vector<doubl
       x[i] = s;
     }
     return (*d.y)[t];
-  }, init_poles(taus, d));
+  }, init_poles(taus, d), d.weight);
   EvalResult res = solve(g, std::vector<bool>(np, true), min_w0);
   res.w = res.theta;
   res.theta.clear();
   return res;
 }
-
 // Golden-section minimisation of f on [lo, hi].
 template <class F>
 double golden(F&& f, double lo, double hi, int iters) {
@@ -286,34 +302,94 @@ double search_1d(F&& f, double lo, double hi, int grid, int iters) {
   return golden(f, std::max(lo, best - step), std::min(hi, best + step), iters);
 }
 
-}  // namespace
+// Protocol phase code of a hold (protocols::Phase::kHold; io stores the integer).
+constexpr int kHoldPhase = 1;
 
-namespace {
-double cp_pairs_hint(const YAML::Node& o) {
-  if (o && o["taus_s"] && o["taus_s"].IsSequence()) return double(o["taus_s"].size());
-  return double(training::option_int(o, "n_pairs", 2));
+// Hold samples: the phase markers where present, else runs of constant voltage of at least max(2 s, 20 samples)
+// (tolerance 1e-4 of the voltage span, so a read-back with a few LSB of noise still counts).
+std::vector<char> hold_mask(const io::Dataset& data, const io::AxisSeries& ax) {
+  const std::size_t N = ax.voltage_v.size();
+  std::vector<char> m(N, 0);
+  if (data.phase.size() == N) {
+    for (std::size_t t = 0; t < N; ++t) m[t] = data.phase[t] == kHoldPhase;
+    return m;
+  }
+  const auto [mn, mx] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
+  const double tol = 1e-4 * std::max(1e-12, *mx - *mn);
+  const std::size_t min_len = std::max<std::size_t>(20, static_cast<std::size_t>(2.0 * data.sample_rate_hz()));
+  std::size_t start = 0;
+  for (std::size_t t = 1; t <= N; ++t)
+    if (t == N || std::abs(ax.voltage_v[t] - ax.voltage_v[start]) > tol) {
+      if (t - start >= min_len) std::fill(m.begin() + start + 1, m.begin() + t, 1);  // first sample is the move
+      start = t;
+    }
+  return m;
 }
+
+struct Score {
+  double all = INFINITY, hold = NAN, walk = NAN;
+};
+
+// Free-run MAE against the measurement on the validation part, the model having run over the training part
+// first (the validation part continues it in time), split into hold and walk samples.
+Score validation_score(const PiCreepModel& fitted, const io::AxisSeries& train, const io::AxisSeries& val,
+                       const std::vector<char>& val_hold) {
+  PiCreepModel m = fitted;
+  m.reset(train.voltage_v[0], train.position_nm[0]);
+  ModelInput in;
+  for (double v : train.voltage_v) {
+    in.voltage_v = v;
+    m.commit(in, 0.0);
+  }
+  double s[2] = {0, 0};
+  std::size_t n[2] = {0, 0};
+  for (std::size_t t = 0; t < val.voltage_v.size(); ++t) {
+    in.voltage_v = val.voltage_v[t];
+    const double e = std::abs(m.predict(in) - val.position_nm[t]);
+    m.commit(in, 0.0);
+    const int k = val_hold[t] ? 1 : 0;
+    s[k] += e, ++n[k];
+  }
+  Score sc;
+  sc.all = (n[0] + n[1]) ? (s[0] + s[1]) / double(n[0] + n[1]) : INFINITY;
+  if (!std::isfinite(sc.all)) sc.all = INFINITY;
+  if (n[1]) sc.hold = s[1] / n[1];
+  if (n[0]) sc.walk = s[0] / n[0];
+  return sc;
+}
+
+std::vector<double> thresholds_for(const std::vector<double>& v, int n) {
+  const auto [mn, mx] = std::minmax_element(v.begin(), v.end());
+  const double half_range = std::max(1e-6, 0.5 * (*mx - *mn));
+  std::vector<double> r;
+  for (int i = 0; i < n; ++i) r.push_back(half_range * i / n);
+  return r;
+}
+
 }  // namespace
 
+// Scale-free by construction: thresholds from the data's own voltage span, normal equations solved on unit
+// diagonal, creep time constants only where the data can identify them (≥ 2 samples, ≤ the training duration).
+// With a validation part, the number of play operators, the creep input (V or H) and hold weighting are chosen by
+// free-run validation error, unless given as options.
 models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
   using namespace training;
   if (!req.train) throw std::runtime_error("PI fit: no training data");
   const io::AxisSeries& ax = req.train->axis(req.axis);
   if (ax.voltage_v.size() < 10) throw std::runtime_error("PI fit: need at least 10 samples");
-  FitData d{&ax.voltage_v, &ax.position_nm, req.train->sample_rate_hz()};
+  const double rate = req.train->sample_rate_hz();
+  FitData d{&ax.voltage_v, &ax.position_nm, rate};
   const YAML::Node& o = req.options;
   d.initial_state_terms = option_str(o, "initial_state_terms", "true") != "false";
+  const io::AxisSeries* val = nullptr;
+  if (req.validation && req.validation->has_axis(req.axis) && req.validation->axis(req.axis).voltage_v.size() >= 10)
+    val = &req.validation->axis(req.axis);
+  const std::vector<char> val_hold = val ? hold_mask(*req.validation, *val) : std::vector<char>();
 
-  std::vector<double> r;
-  if (o && o["thresholds_v"]) {
-    r = yaml_numbers(o, "thresholds_v");
-  } else {
-    const int n = option_int(o, "n_play", 12);
-    if (n < 1 || n > 200) throw std::runtime_error("option 'n_play': expected 1..200");
-    const auto [mn, mx] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
-    const double half_range = std::max(1e-6, 0.5 * (*mx - *mn));
-    for (int i = 0; i < n; ++i) r.push_back(half_range * i / n);
-  }
+  // What the data can identify: no mode faster than two samples, none slower than the recording.
+  const double tau_lo = 2.0 / rate, tau_hi = std::max(2.0 * tau_lo, ax.voltage_v.size() / rate);
+  auto clamp_tau = [&](double t) { return std::min(tau_hi, std::max(tau_lo, t)); };
+
   // Smallest allowed initial slope: a fraction of the overall voltage→position slope.
   double min_w0 = 0;
   {
@@ -329,107 +405,223 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
     if (cvv > 0 && cvy > 0) min_w0 = option_num(o, "min_slope_fraction", 0.01) * cvy / cvv;
   }
 
-  CreepParams cp;
-  cp.kind = kind;
-  cp.decades = option_int(o, "decades", 5);
-  cp.modes_per_decade = option_int(o, "modes_per_decade", kind == CreepKind::kFractional ? 2 : 3);
-  cp.tau_min_s = option_num(o, "tau_min_s", 1.0);
-  cp.tau_max_s = option_num(o, "tau_max_s", 1e5);
+  CreepParams cp0;
+  cp0.kind = kind;
+  cp0.decades = option_int(o, "decades", 5);
+  cp0.modes_per_decade = option_int(o, "modes_per_decade", kind == CreepKind::kLog ? 3 : 2);
+  cp0.tau_min_s = clamp_tau(option_num(o, "tau_min_s", kind == CreepKind::kProny ? tau_lo : 1.0));
+  cp0.tau_max_s = clamp_tau(option_num(o, "tau_max_s", tau_hi));
+  if (kind == CreepKind::kFractional && !(cp0.tau_max_s > cp0.tau_min_s)) cp0.tau_min_s = tau_lo;
+  if (kind == CreepKind::kLog) {
+    cp0.t1_s = clamp_tau(option_num(o, "t1_s", 1.0));
+    cp0.decades = std::max(1, std::min(cp0.decades, static_cast<int>(std::floor(std::log10(tau_hi / tau_lo)))));
+  }
+  cp0.check_sizes();
+  // Keeps the log law's slowest mode inside the data for a given t1.
+  auto log_decades = [&](double t1) {
+    return std::max(1, std::min(cp0.decades, static_cast<int>(std::floor(std::log10(tau_hi / t1) + 1e-9))));
+  };
   int evals = 0;
   double total = 1;
   auto report = [&](const char* what) {
     ++evals;
     if (req.progress) req.progress(std::min<double>(evals, total), total, what);
   };
-  // Searches the law's nonlinear parameters (t1, α or the τ_j) for the least SSE of `sse_fn`.
-  const bool fixed = o && (o["t1_s"] || o["alpha"] || (o["taus_s"] && o["fix_taus"]));
-  auto search = [&](const std::function<double(const CreepParams&)>& sse_fn, bool refine_only) {
-  auto sse_of = [&](const CreepParams& c) {
-    report("PI + creep fit");
-    return sse_fn(c);
-  };
-  switch (kind) {
-    case CreepKind::kNone: break;
-    case CreepKind::kLog:
-      if (o && o["t1_s"]) {
-        cp.t1_s = option_num(o, "t1_s", 1.0);
-      } else {
-        const double cur = std::log10(cp.t1_s);
-        cp.t1_s = std::pow(10.0, search_1d([&](double lg) { CreepParams c = cp; c.t1_s = std::pow(10.0, lg); return sse_of(c); },
-                                           refine_only ? cur - 0.3 : -1.0, refine_only ? cur + 0.3 : 2.5, refine_only ? 5 : 15, 12));
-      }
-      break;
-    case CreepKind::kFractional:
-      if (o && o["alpha"]) {
-        cp.alpha = option_num(o, "alpha", 0.5);
-      } else {
-        const double cur = cp.alpha;
-        cp.alpha = search_1d([&](double al) { CreepParams c = cp; c.alpha = al; return sse_of(c); },
-                             refine_only ? std::max(0.02, cur - 0.1) : 0.03, refine_only ? std::min(0.98, cur + 0.1) : 0.97,
-                             refine_only ? 5 : 19, 12);
-      }
-      break;
-    case CreepKind::kLti: {
-      if (refine_only) {
-      } else if (o && o["taus_s"]) {
-        cp.taus_s = yaml_numbers(o, "taus_s");
-      } else {
-        const int n = option_int(o, "n_pairs", 2);
-        if (n < 1 || n > 6) throw std::runtime_error("option 'n_pairs': expected 1..6");
-        for (int j = 0; j < n; ++j) cp.taus_s.push_back(std::pow(10.0, 1.0 + 3.0 * (j + 0.5) / n));
-      }
-      if (cp.gains_nm_per_v.size() != cp.taus_s.size()) cp.gains_nm_per_v.assign(cp.taus_s.size(), 0.0);
-      const int rounds = refine_only ? 1 : option_int(o, "search_rounds", 3);
-      const double lo = std::log10(2.0 / d.rate), hi = 5.0;
-      for (int round = refine_only ? 1 : 0; round < (refine_only ? 2 : rounds) && !(o && o["taus_s"] && o["fix_taus"]); ++round)
-        for (std::size_t j = 0; j < cp.taus_s.size(); ++j) {
-          auto f = [&](double lg) { CreepParams c = cp; c.taus_s[j] = std::pow(10.0, lg); return sse_of(c); };
-          const double cur = std::log10(cp.taus_s[j]);
-          // First round scans the whole range; later rounds refine around the current value.
-          const double a = round == 0 ? lo : std::max(lo, cur - 0.5), b = round == 0 ? hi : std::min(hi, cur + 0.5);
-          cp.taus_s[j] = std::pow(10.0, search_1d(f, a, b, 11, 10));
-        }
-      std::sort(cp.taus_s.begin(), cp.taus_s.end());
-      break;
-    }
-  }
-  };
-  (void)fixed;
 
-  const std::string input = option_str(o, "creep_input", "hysteresis");
-  if (input != "voltage" && input != "hysteresis")
-    throw std::runtime_error("option 'creep_input': expected voltage or hysteresis, got '" + input + "'");
-  const int iters = kind == CreepKind::kNone || input == "voltage" ? 0 : option_int(o, "alternations", 6);
-  const double per_search = kind == CreepKind::kNone ? 0 : kind == CreepKind::kLti ? 21.0 * cp_pairs_hint(o) : 17;
-  total = per_search * (kind == CreepKind::kLti ? 3 : 1.8) + iters * (per_search + 2) + 1;
-  // Creep on the voltage: weights and creep coefficients are jointly linear.
-  search([&](const CreepParams& c) { return evaluate(d, r, c, min_w0).sse; }, false);
-  EvalResult best = evaluate(d, r, cp, min_w0);
-  cp.set_coefficients(best.theta);
-  if (iters > 0) {
-    // Creep on H is bilinear (w and g): alternate the two linear problems, refining the law's nonlinear
-    // parameters once, starting from the voltage-input solution.
-    cp.on_hysteresis = true;
-    std::vector<double> w = best.w;
-    // Voltage-input gains are in nm/V; as gains on H they are about (nm/V)/(Σw) nm/nm.
-    double sum_w = 0;
-    for (double x : w) sum_w += x;
-    std::vector<double> theta = best.theta;
-    for (double& t : theta) t /= std::max(1e-12, sum_w);
-    cp.set_coefficients(theta);
-    for (int it = 0; it < iters; ++it) {
-      search([&](const CreepParams& c) { return evaluate_creep_on_h(d, r, w, c).sse; }, true);
-      EvalResult cr = evaluate_creep_on_h(d, r, w, cp);
-      report("PI + creep fit");
-      cp.set_coefficients(cr.theta);
-      w = cr.w;
-      best = evaluate_w_given_creep_on_h(d, r, cp, min_w0);
-      report("PI + creep fit");
-      w = best.w;
+  // One fit for given thresholds, creep input and sample weights (the former single-path fit).
+  // With on_h, the voltage-input model it starts from is handed out through v_model (auto input costs nothing extra).
+  auto fit_with = [&](const std::vector<double>& r, bool on_h, const std::vector<double>* weight,
+                      std::unique_ptr<PiCreepModel>* v_model = nullptr) {
+    FitData dd = d;
+    dd.weight = weight;
+    CreepParams cp = cp0;
+    // Searches the law's nonlinear parameters (t1, α or the τ_j) for the least SSE of `sse_fn`.
+    auto search = [&](const std::function<double(const CreepParams&)>& sse_fn, bool refine_only) {
+      auto sse_of = [&](const CreepParams& c) {
+        report("PI + creep fit");
+        return sse_fn(c);
+      };
+      switch (kind) {
+        case CreepKind::kNone:
+        case CreepKind::kProny: break;  // linear in its weights: nothing to search
+        case CreepKind::kLog:
+          if (!(o && o["t1_s"])) {
+            const double cur = std::log10(cp.t1_s), lo = std::log10(tau_lo), hi = std::log10(tau_hi) - 1.0;
+            if (hi > lo) {
+              cp.t1_s = std::pow(10.0, search_1d([&](double lg) {
+                                   CreepParams c = cp;
+                                   c.t1_s = std::pow(10.0, lg);
+                                   c.decades = log_decades(c.t1_s);
+                                   return sse_of(c);
+                                 },
+                                 refine_only ? std::max(lo, cur - 0.3) : lo, refine_only ? std::min(hi, cur + 0.3) : hi,
+                                 refine_only ? 5 : 15, 12));
+              cp.decades = log_decades(cp.t1_s);
+            }
+          }
+          break;
+        case CreepKind::kFractional:
+          if (o && o["alpha"]) {
+            cp.alpha = option_num(o, "alpha", 0.5);
+          } else {
+            const double cur = cp.alpha;
+            cp.alpha = search_1d([&](double al) { CreepParams c = cp; c.alpha = al; return sse_of(c); },
+                                 refine_only ? std::max(0.02, cur - 0.1) : 0.03, refine_only ? std::min(0.98, cur + 0.1) : 0.97,
+                                 refine_only ? 5 : 19, 12);
+          }
+          break;
+        case CreepKind::kLti: {
+          if (refine_only) {
+          } else if (o && o["taus_s"]) {
+            cp.taus_s = yaml_numbers(o, "taus_s");
+            for (double& t : cp.taus_s) t = clamp_tau(t);
+          } else {
+            const int n = option_int(o, "n_pairs", 2);
+            if (n < 1 || n > 6) throw std::runtime_error("option 'n_pairs': expected 1..6");
+            const double lo = std::log10(tau_lo), hi = std::log10(tau_hi);
+            for (int j = 0; j < n; ++j) cp.taus_s.push_back(std::pow(10.0, lo + (hi - lo) * (j + 0.5) / n));
+          }
+          if (cp.gains_nm_per_v.size() != cp.taus_s.size()) cp.gains_nm_per_v.assign(cp.taus_s.size(), 0.0);
+          const int rounds = refine_only ? 1 : option_int(o, "search_rounds", 3);
+          const double lo = std::log10(tau_lo), hi = std::log10(tau_hi);
+          for (int round = refine_only ? 1 : 0; round < (refine_only ? 2 : rounds) && !(o && o["taus_s"] && o["fix_taus"]); ++round)
+            for (std::size_t j = 0; j < cp.taus_s.size(); ++j) {
+              auto f = [&](double lg) { CreepParams c = cp; c.taus_s[j] = std::pow(10.0, lg); return sse_of(c); };
+              const double cur = std::log10(cp.taus_s[j]);
+              // First round scans the whole range; later rounds refine around the current value.
+              const double a = round == 0 ? lo : std::max(lo, cur - 0.5), b = round == 0 ? hi : std::min(hi, cur + 0.5);
+              cp.taus_s[j] = std::pow(10.0, search_1d(f, a, b, 11, 10));
+            }
+          std::sort(cp.taus_s.begin(), cp.taus_s.end());
+          break;
+        }
+      }
+    };
+    // Creep on the voltage: weights and creep coefficients are jointly linear.
+    search([&](const CreepParams& c) { return evaluate(dd, r, c, min_w0).sse; }, false);
+    EvalResult best = evaluate(dd, r, cp, min_w0);
+    cp.set_coefficients(best.theta);
+    if (v_model) *v_model = std::make_unique<PiCreepModel>(r, best.w, best.b, cp, rate);
+    const int iters = kind == CreepKind::kNone || !on_h ? 0 : option_int(o, "alternations", 6);
+    if (iters > 0) {
+      // Creep on H is bilinear (w and g): alternate the two linear problems, refining the law's nonlinear
+      // parameters once, starting from the voltage-input solution.
+      cp.on_hysteresis = true;
+      std::vector<double> w = best.w;
+      // Voltage-input gains are in nm/V; as gains on H they are about (nm/V)/(Σw) nm/nm.
+      double sum_w = 0;
+      for (double x : w) sum_w += x;
+      std::vector<double> theta = best.theta;
+      for (double& t : theta) t /= std::max(1e-12, sum_w);
+      cp.set_coefficients(theta);
+      for (int it = 0; it < iters; ++it) {
+        search([&](const CreepParams& c) { return evaluate_creep_on_h(dd, r, w, c).sse; }, true);
+        EvalResult cr = evaluate_creep_on_h(dd, r, w, cp);
+        report("PI + creep fit");
+        cp.set_coefficients(cr.theta);
+        w = cr.w;
+        best = evaluate_w_given_creep_on_h(dd, r, cp, min_w0);
+        report("PI + creep fit");
+        w = best.w;
+      }
     }
+    return std::make_unique<PiCreepModel>(r, best.w, best.b, cp, rate);
+  };
+
+  const std::string input = option_str(o, "creep_input", val && kind != CreepKind::kNone ? "auto" : "hysteresis");
+  if (input != "voltage" && input != "hysteresis" && input != "auto")
+    throw std::runtime_error("option 'creep_input': expected voltage, hysteresis or auto, got '" + input + "'");
+  const double per_search = kind == CreepKind::kNone || kind == CreepKind::kProny ? 1
+                            : kind == CreepKind::kLti ? 21.0 * option_int(o, "n_pairs", 2) : 17;
+  total = (per_search * 3 + 6 * (per_search + 2)) * (val ? 2 : 1) + 8;
+
+  // Thresholds: given, or n_play given, or chosen by the plain PI's validation error (fewest within 1 %).
+  std::vector<double> r;
+  double chosen_n = 0;
+  if (o && o["thresholds_v"]) {
+    r = yaml_numbers(o, "thresholds_v");
+  } else if ((o && o["n_play"]) || !val) {
+    const int n = option_int(o, "n_play", 12);
+    if (n < 1 || n > 200) throw std::runtime_error("option 'n_play': expected 1..200");
+    r = thresholds_for(ax.voltage_v, n);
+  } else {
+    // Proxy for every creep kind: PI + a prony spectrum on the voltage (one linear solve per candidate), so the
+    // choice is not blurred by creep the plain PI cannot follow.
+    CreepParams proxy;
+    if (kind != CreepKind::kNone) {
+      proxy.kind = CreepKind::kProny;
+      proxy.tau_min_s = tau_lo;
+      proxy.tau_max_s = tau_hi;
+      proxy.modes_per_decade = 1;
+    }
+    std::vector<std::pair<int, double>> tried;
+    for (int n : {4, 6, 8, 12, 16, 24, 32}) {
+      if (static_cast<std::size_t>(n) * 20 > ax.voltage_v.size()) break;
+      const auto rn = thresholds_for(ax.voltage_v, n);
+      const EvalResult e = evaluate(d, rn, proxy, min_w0);
+      report("PI thresholds");
+      CreepParams c = proxy;
+      c.set_coefficients(e.theta);
+      tried.emplace_back(n, validation_score(PiCreepModel(rn, e.w, e.b, c, rate), ax, *val, val_hold).all);
+    }
+    if (tried.empty()) tried.emplace_back(4, 0.0);
+    double best = INFINITY;
+    for (const auto& t : tried) best = std::min(best, t.second);
+    for (const auto& t : tried)
+      if (t.second <= 1.002 * best) {
+        chosen_n = t.first;
+        break;
+      }
+    r = thresholds_for(ax.voltage_v, static_cast<int>(chosen_n));
   }
-  auto m = std::make_unique<PiCreepModel>(r, best.w, best.b, cp, d.rate);
+
+  // Creep input by validation (auto), else as given.
+  std::unique_ptr<PiCreepModel> m;
+  Score score;
+  if (input == "auto") {
+    std::unique_ptr<PiCreepModel> mv;
+    auto mh = fit_with(r, true, nullptr, &mv);
+    const Score sv = validation_score(*mv, ax, *val, val_hold), sh = validation_score(*mh, ax, *val, val_hold);
+    const bool use_h = !(sv.all < sh.all);
+    m = use_h ? std::move(mh) : std::move(mv);
+    score = use_h ? sh : sv;
+  } else {
+    m = fit_with(r, input == "hysteresis", nullptr);
+    if (val) score = validation_score(*m, ax, *val, val_hold);
+  }
+
+  // Hold weighting: holds get the weight of the walk samples in total (capped at 10×), kept only when validation
+  // shows the holds improve and the walk error does not grow by more than 5 %.
+  const std::string hw = option_str(o, "hold_weight", "auto");
+  double factor = 1.0;
+  const std::vector<char> train_hold = hold_mask(*req.train, ax);
+  const double n_hold = double(std::count(train_hold.begin(), train_hold.end(), 1));
+  const double n_walk = double(train_hold.size()) - n_hold;
+  if (hw == "auto") {
+    if (val && n_hold > 0 && n_walk > 0) factor = std::min(10.0, std::max(1.0, n_walk / n_hold));
+  } else if (hw != "off") {
+    factor = option_num(o, "hold_weight", 1.0);
+    if (!(factor >= 1.0 && factor <= 1000.0))
+      throw std::runtime_error("option 'hold_weight': expected auto, off or a number in [1, 1000]");
+  }
+  double used_factor = 1.0;
+  if (factor > 1.0 && kind != CreepKind::kNone && n_hold > 0) {
+    std::vector<double> weight(train_hold.size());
+    for (std::size_t t = 0; t < weight.size(); ++t) weight[t] = train_hold[t] ? factor : 1.0;
+    auto mw = fit_with(r, m->creep().on_hysteresis, &weight);
+    bool keep = hw != "auto";
+    if (!keep) {
+      const Score sw = validation_score(*mw, ax, *val, val_hold);
+      keep = std::isfinite(sw.hold) && std::isfinite(score.hold) && sw.hold < score.hold &&
+             !(sw.walk > 1.05 * score.walk);
+    }
+    if (keep) m = std::move(mw), used_factor = factor;
+  }
+
   m->meta = make_meta(req);
+  m->meta.validation["fit_hold_weight"] = used_factor;
+  m->meta.validation["fit_play_operators"] = static_cast<double>(r.size());
+  if (kind != CreepKind::kNone) m->meta.validation["fit_creep_on_hysteresis"] = m->creep().on_hysteresis ? 1 : 0;
   return m;
 }
 
