@@ -25,6 +25,7 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis (default: the models' axis)")
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band", "20.79")
       .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
+      .option("anchor-s", "S", "the first S seconds of measured position fix each model's offset; scored after them", "0")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -45,8 +46,11 @@ int run(int argc, char** argv) {
   ctx.creep_path = args.str("creep");
   ctx.noise_sigma_nm = args.num("noise-sigma-nm");
   ctx.warmup_s = args.num("warmup-s");
+  ctx.anchor_s = args.num("anchor-s");
+  if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
+  eo.anchor_s = ctx.anchor_s;
   try {
     if (args.has("test-segments")) eo.test_segments = analysis::parse_segments(args.str("test-segments"));
     if (args.has("creep-segments")) eo.creep_segments = analysis::parse_segments(args.str("creep-segments"));
