@@ -102,6 +102,7 @@ class AugmentedModel : public Model {
   const Model& base() const { return *base_; }
   const std::vector<EffectTerm>& terms() const { return stream_.terms(); }
   double offset_nm() const { return stream_.offset_nm(); }
+  double sample_rate_hz() const { return sample_rate_hz_; }
   // Base prediction and correction for the current sample (for reports and tests).
   double base_prediction(const ModelInput& in) const;
 

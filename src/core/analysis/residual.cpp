@@ -232,8 +232,9 @@ FamilyCandidates candidates(const std::string& family, const Context& c, const s
       if (sigs.empty()) fc.note = "no other axis in the data";
     } else {
       sigs = c.aux_names;
-      lags = {0.0, 10.0, 60.0};
-      taus = {0.0, 30.0, 300.0};
+      // Thermal paths are slow: delays up to minutes, low-passes up to ~20 min.
+      lags = {0.0, 15.0, 45.0, 120.0};
+      taus = {0.0, 30.0, 100.0, 300.0, 1000.0};
       if (sigs.empty()) fc.note = "no auxiliary column in the data";
     }
     for (const auto& sig : sigs) {

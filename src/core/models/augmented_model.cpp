@@ -5,6 +5,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/models/c_export.h"
 #include "piezo_compensation/models/registry.h"
 
 namespace piezo::models {
@@ -439,6 +440,6 @@ ModelPtr AugmentedModel::from_yaml(const YAML::Node& n) {
 PIEZO_REGISTER_MODEL_KIND(ModelKind{"augmented",
                                     "a base model plus effect terms found by `piezo residual` (load only; fit with `piezo residual`)",
                                     [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); },
-                                    nullptr, nullptr});
+                                    nullptr, export_c99_augmented});
 
 }  // namespace piezo::models
