@@ -7,6 +7,7 @@
 #include "args.h"
 #include "command.h"
 #include "piezo_compensation/analysis/eval_report.h"
+#include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/util/progress_bar.h"
@@ -23,7 +24,8 @@ int run(int argc, char** argv) {
       .required("data", "FILE", "test data (CSV or bag)")
       .option("creep", "FILE", "creep data with hold phases (else the holds in --data)")
       .option("axis", "a|b|c", "axis (default: the models' axis)")
-      .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band", "20.79")
+      .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
+              "test data's holds, analysis/noise_floor.h)")
       .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
       .option("anchor-s", "S", "the first S seconds of measured position fix each model's offset; scored after them", "0")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
@@ -44,7 +46,6 @@ int run(int argc, char** argv) {
   analysis::EvalContext ctx;
   ctx.test_path = args.str("data");
   ctx.creep_path = args.str("creep");
-  ctx.noise_sigma_nm = args.num("noise-sigma-nm");
   ctx.warmup_s = args.num("warmup-s");
   ctx.anchor_s = args.num("anchor-s");
   if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
@@ -71,6 +72,11 @@ int run(int argc, char** argv) {
   }
   eo.axis = ctx.axis;
   const io::AxisSeries& ax = test.axis(ctx.axis);
+  const analysis::NoiseFloor noise = args.has("noise-sigma-nm")
+                                         ? analysis::noise_floor_from_sigma(args.num("noise-sigma-nm"))
+                                         : analysis::estimate_noise_floor(test, ctx.axis);
+  ctx.noise_sigma_nm = noise.sigma_nm;
+  std::cout << "noise floor: " << noise.describe() << "\n";
   if (ax.has_truth()) ctx.measured_sigma_nm = analysis::noise_sigma_nm(ax.position_nm, ax.true_position_nm);
 
   util::ProgressBar bar(std::cerr, "models");

@@ -20,6 +20,7 @@
 #include "piezo_compensation/IntendedMotion.h"
 #include "piezo_compensation/Prediction.h"
 #include "piezo_compensation/compensation/ideal_line.h"
+#include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/predictor.h"
 
@@ -235,12 +236,10 @@ class Demo {
 
  private:
   void on_truth(const piezo_compensation::EncoderPosition::ConstPtr& m) {
-    truth_by_seq_[m->sequence] = m->position * 1e9;
-    pair(m->sequence);
+    for (const auto& p : pairer_.add_truth(m->sequence, m->position * 1e9, m->header.stamp.toSec())) on_sample(p);
   }
   void on_voltage(const piezo_compensation::AxisVoltage::ConstPtr& m) {
-    volt_by_seq_[m->sequence] = m->voltage;
-    pair(m->sequence);
+    for (const auto& p : pairer_.add_voltage(m->sequence, m->voltage, m->header.stamp.toSec())) on_sample(p);
   }
   // Voltages the predictor sent for the hold intent: the hold starts when one of them is applied.
   void on_prediction(const piezo_compensation::Prediction::ConstPtr& m) {
@@ -251,20 +250,14 @@ class Demo {
     hold_sent_v_.push_back(m->compensation_active ? m->corrected_voltage : m->commanded_voltage);
   }
   void on_encoder(const piezo_compensation::EncoderPosition::ConstPtr& m) {
-    enc_by_seq_[m->sequence] = {m->header.stamp.toSec(), m->position * 1e9};
-    pair(m->sequence);
+    for (const auto& p : pairer_.add_reading(m->sequence, m->position * 1e9, m->valid, m->header.stamp.toSec()))
+      on_sample(p);
   }
-  // One complete sample: record it against the intent that was in force over its step, send the next intent.
-  void pair(std::uint32_t seq) {
-    auto t = truth_by_seq_.find(seq);
-    auto e = enc_by_seq_.find(seq);
-    auto v = volt_by_seq_.find(seq);
-    if (t == truth_by_seq_.end() || e == enc_by_seq_.end() || v == volt_by_seq_.end()) return;
-    const double true_nm = t->second, enc_nm = e->second.second, applied_v = v->second;
-    truth_by_seq_.erase(truth_by_seq_.begin(), std::next(t));
-    enc_by_seq_.erase(enc_by_seq_.begin(), std::next(e));
-    volt_by_seq_.erase(volt_by_seq_.begin(), std::next(v));
-    if (next_ > 0 && next_ <= steps_.size()) {
+  // One complete sample (paired by the one rule, io/sequence_pairer.h): record it against the intent that was in
+  // force over its step, send the next intent. A sample without a reading advances the scenario unrecorded.
+  void on_sample(const piezo::io::PairedSample& p) {
+    const double true_nm = p.truth_nm, enc_nm = p.position_nm, applied_v = p.voltage_v;
+    if (next_ > 0 && next_ <= steps_.size() && p.measured && std::isfinite(true_nm)) {
       Step s = steps_[next_ - 1];
       if (s.phase == "hold") {
         // The hold (and its drift) starts at the first sample that has the hold's command applied; before
@@ -316,13 +309,15 @@ class Demo {
   std::map<std::pair<int, int>, bool> hold_started_, forced_;
   std::map<std::pair<int, int>, int> hold_delay_;
   std::vector<double> hold_sent_v_;
-  std::map<std::uint32_t, double> volt_by_seq_;
   piezo::compensation::IdealLine line_;
   std::vector<Step> steps_;
   std::size_t next_ = 0;
   std::vector<Row> rows_;
-  std::map<std::uint32_t, double> truth_by_seq_;
-  std::map<std::uint32_t, std::pair<double, double>> enc_by_seq_;
+  piezo::io::SequencePairer pairer_{[] {
+    piezo::io::PairerOptions o;
+    o.with_truth = true;
+    return o;
+  }()};
   ros::Publisher intended_;
   ros::Subscriber encoder_, truth_, voltage_, prediction_;
   ros::ServiceClient switch_;

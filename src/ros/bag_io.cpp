@@ -9,10 +9,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 #include <set>
 #include <sstream>
 
+#include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
 
@@ -45,26 +47,11 @@ struct Sample {
   bool valid = true;
 };
 
-// Messages of one topic, sorted by stamp, with a sequence index.
+// Messages of one topic, sorted by stamp.
 struct Series {
   std::vector<Sample> samples;
-  // (sequence, index) sorted by sequence; a sorted vector, not a map: a 41 h plan has 14.6 M messages and a
-  // map node costs ~4× the entry
-  std::vector<std::pair<std::uint32_t, std::uint32_t>> by_seq;
   void index() {
     std::stable_sort(samples.begin(), samples.end(), [](const Sample& a, const Sample& b) { return a.t < b.t; });
-    by_seq.resize(samples.size());
-    for (std::size_t i = 0; i < samples.size(); ++i) by_seq[i] = {samples[i].seq, static_cast<std::uint32_t>(i)};
-    // stable: among repeated sequence numbers the earliest message stays first, as before
-    std::stable_sort(by_seq.begin(), by_seq.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
-  }
-  // By sequence number when that message is within one period of t, else the latest at or before t.
-  const Sample* match(std::uint32_t seq, double t, double period_s) const {
-    auto it = std::lower_bound(by_seq.begin(), by_seq.end(), seq,
-                               [](const auto& e, std::uint32_t s) { return e.first < s; });
-    if (it != by_seq.end() && it->first == seq && std::fabs(samples[it->second].t - t) <= period_s)
-      return &samples[it->second];
-    return latest(t, period_s);
   }
   const Sample* latest(double t, double period_s) const {
     auto it = std::upper_bound(samples.begin(), samples.end(), t + 1e-9,
@@ -75,6 +62,63 @@ struct Series {
     return nullptr;
   }
 };
+
+// One axis' paired samples (in sequence order), indexed by sequence for the join across axes.
+struct Paired {
+  std::vector<io::PairedSample> samples;
+  std::vector<std::pair<std::uint32_t, std::uint32_t>> by_seq;  // (sequence, index), sorted
+  std::uint64_t dropped = 0;
+  // By sequence number when that sample is within one period of t, else the latest reading at or before t.
+  const io::PairedSample* match(std::uint32_t seq, double t, double period_s) const {
+    auto it = std::lower_bound(by_seq.begin(), by_seq.end(), seq,
+                               [](const auto& e, std::uint32_t s) { return e.first < s; });
+    for (; it != by_seq.end() && it->first == seq; ++it)
+      if (std::fabs(samples[it->second].stamp_s - t) <= period_s) return &samples[it->second];
+    const io::PairedSample* best = nullptr;
+    for (const auto& p : samples) {  // rare: only when another axis lost this reading
+      if (p.reading_lost) continue;
+      if (p.stamp_s <= t + 1e-9) best = &p;
+      else if (!best && p.stamp_s - t <= period_s) return &p;
+    }
+    return best;
+  }
+};
+
+Paired pair_axis(const Series& voltage, const Series& encoder, const Series& truth, bool with_truth) {
+  io::PairerOptions o;
+  o.with_truth = with_truth;
+  io::SequencePairer pairer(o);
+  Paired out;
+  out.samples.reserve(encoder.samples.size());
+  const auto take = [&](std::vector<io::PairedSample>&& ps) {
+    for (auto& p : ps) out.samples.push_back(p);
+  };
+  // merge the three streams by stamp; on equal stamps the reports go before the reading
+  std::size_t iv = 0, ie = 0, it = 0;
+  const double inf = std::numeric_limits<double>::infinity();
+  while (ie < encoder.samples.size() || iv < voltage.samples.size() || (with_truth && it < truth.samples.size())) {
+    const double tv = iv < voltage.samples.size() ? voltage.samples[iv].t : inf;
+    const double tt = with_truth && it < truth.samples.size() ? truth.samples[it].t : inf;
+    const double te = ie < encoder.samples.size() ? encoder.samples[ie].t : inf;
+    if (tv <= tt && tv <= te) {
+      const Sample& s = voltage.samples[iv++];
+      take(pairer.add_voltage(s.seq, s.value, s.t));
+    } else if (tt <= te) {
+      const Sample& s = truth.samples[it++];
+      take(pairer.add_truth(s.seq, s.value, s.t));
+    } else {
+      const Sample& s = encoder.samples[ie++];
+      take(pairer.add_reading(s.seq, s.value, s.valid, s.t));
+    }
+  }
+  take(pairer.flush());
+  out.dropped = pairer.counters().dropped_samples;
+  out.by_seq.resize(out.samples.size());
+  for (std::size_t i = 0; i < out.samples.size(); ++i)
+    out.by_seq[i] = {out.samples[i].sequence, static_cast<std::uint32_t>(i)};
+  std::stable_sort(out.by_seq.begin(), out.by_seq.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
+  return out;
+}
 
 std::string row_col(const std::string& path, std::size_t row, const std::string& col) {
   std::ostringstream os;
@@ -188,47 +232,62 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   for (auto& kv : aux) kv.second.index();
   std::stable_sort(markers.begin(), markers.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
 
-  const Series& rows = encoder[first];
-  const std::size_t n = rows.samples.size();
+  // Each axis' voltage, reading and truth paired by the one rule the live nodes use (io/sequence_pairer.h),
+  // fed in receive order as the predictor would have seen them.
+  Paired paired[3];
+  for (int k = 0; k < 3; ++k) {
+    if (!has_topic[k][1]) continue;
+    paired[k] = pair_axis(voltage[k], encoder[k], truth[k], has_topic[k][2]);
+    voltage[k] = Series(), encoder[k] = Series(), truth[k] = Series();  // free what the pairing consumed
+  }
+
+  // rows: the first axis' samples that have a reading (lost readings have no row)
+  std::vector<std::uint32_t> row_of;
+  for (std::uint32_t i = 0; i < paired[first].samples.size(); ++i)
+    if (!paired[first].samples[i].reading_lost) row_of.push_back(i);
+  const std::size_t n = row_of.size();
+  const auto row_t = [&](std::size_t i) { return paired[first].samples[row_of[i]].stamp_s; };
   double period = 1.0;
-  if (n >= 2) period = (rows.samples.back().t - rows.samples.front().t) / static_cast<double>(n - 1);
+  if (n >= 2) period = (row_t(n - 1) - row_t(0)) / static_cast<double>(n - 1);
   if (!(period > 0.0)) period = 1.0;
 
   io::Dataset d;
   d.source = path;
   d.time_s.resize(n);
-  for (std::size_t i = 0; i < n; ++i) d.time_s[i] = rows.samples[i].t;
+  for (std::size_t i = 0; i < n; ++i) d.time_s[i] = row_t(i);
   for (int k = 0; k < 3; ++k) {
     if (!has_topic[k][1]) continue;
     auto& ax = d.add_axis(kAxes[k]);
     const bool with_truth = has_topic[k][2];
     if (with_truth) ax.true_position_nm.resize(n);
+    const Paired& pk = paired[k];
     for (std::size_t i = 0; i < n; ++i) {
-      const Sample& row = rows.samples[i];
-      const Sample* e = k == first ? &row : encoder[k].match(row.seq, row.t, period);
+      const io::PairedSample& row = paired[first].samples[row_of[i]];
+      const io::PairedSample* e = k == first ? &row : pk.match(row.sequence, row.stamp_s, period);
       if (!e) throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) + "no encoder message at t=" +
-                                  std::to_string(row.t) + " s");
-      if (!e->valid)
-        throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) + "encoder reading flagged invalid");
-      const Sample* v = voltage[k].match(row.seq, row.t, period);
-      if (!v) throw io::DataError(row_col(path, i, io::voltage_column(kAxes[k])) + "no voltage message at or before t=" +
-                                  std::to_string(row.t) + " s");
-      ax.position_nm[i] = e->value;
-      ax.voltage_v[i] = v->value;
+                                  std::to_string(row.stamp_s) + " s");
+      if (!e->measured)
+        throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) +
+                            (e->reading_lost ? "encoder reading lost" : "encoder reading flagged invalid"));
+      ax.position_nm[i] = e->position_nm;
+      ax.voltage_v[i] = e->voltage_v;
       if (with_truth) {
-        const Sample* tr = truth[k].match(row.seq, row.t, period);
-        if (!tr) throw io::DataError(row_col(path, i, io::true_position_column(kAxes[k])) + "no message at t=" +
-                                     std::to_string(row.t) + " s");
-        ax.true_position_nm[i] = tr->value;
+        if (!std::isfinite(e->truth_nm))
+          throw io::DataError(row_col(path, i, io::true_position_column(kAxes[k])) + "no message at or before t=" +
+                              std::to_string(row.stamp_s) + " s");
+        ax.true_position_nm[i] = e->truth_nm;
       }
     }
+    if (pk.dropped > 0)
+      throw io::DataError(path + ": axis " + kAxes[k] + ": " + std::to_string(pk.dropped) +
+                          " encoder reading(s) with no voltage message at or before them");
   }
   for (const auto& kv : aux) {
     io::AuxSignal s{kv.first, std::vector<double>(n)};
     for (std::size_t i = 0; i < n; ++i) {
-      const Sample* x = kv.second.latest(rows.samples[i].t, period);
+      const Sample* x = kv.second.latest(row_t(i), period);
       if (!x) throw io::DataError(row_col(path, i, kv.first) + "no aux message at or before t=" +
-                                  std::to_string(rows.samples[i].t) + " s");
+                                  std::to_string(row_t(i)) + " s");
       s.values[i] = x->value;
     }
     d.aux.push_back(std::move(s));
@@ -236,11 +295,11 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   if (!markers.empty()) {
     d.segment.resize(n);
     d.phase.resize(n);
-    if (markers.front().first - rows.samples.front().t > period)
+    if (markers.front().first - row_t(0) > period)
       throw io::DataError(row_col(path, 0, "phase") + "the first protocol_phase marker comes after the first sample");
     std::size_t m = 0;
     for (std::size_t i = 0; i < n; ++i) {
-      while (m + 1 < markers.size() && markers[m + 1].first <= rows.samples[i].t + 1e-9) ++m;
+      while (m + 1 < markers.size() && markers[m + 1].first <= row_t(i) + 1e-9) ++m;
       d.segment[i] = markers[m].second.first;
       d.phase[i] = markers[m].second.second;
     }

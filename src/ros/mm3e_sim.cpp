@@ -76,6 +76,8 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
   bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
   garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
+  restart_srv_ = pnh_.advertiseService("inject_restart", &SimNode::on_restart, this);
+  stuck_srv_ = pnh_.advertiseService("inject_stuck_amplifier", &SimNode::on_stuck, this);
   ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
                                              << " Hz, "
                                              << (sync_mode_ ? std::string("synchronous: one sample per SYNC")
@@ -217,6 +219,26 @@ bool SimNode::on_bus_off(std_srvs::Trigger::Request&, std_srvs::Trigger::Respons
   silent_until_wall_s_ = wall_now_s() + fault_silence_s_;
   res.success = true;
   res.message = "bus-off error frame sent; silent for " + std::to_string(fault_silence_s_) + " s";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::on_restart(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  device_->restart();
+  res.success = true;
+  res.message = "controller restarted: every axis at its power-up voltage, report counter from 0, boot state for " +
+                std::to_string(can::DeviceCore::kBootSamples) + " samples";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (int i = 0; i < can::kAxisCount; ++i) device_->set_stuck(i, req.data);
+  res.success = true;
+  res.message = req.data ? "amplifiers stuck: every axis keeps its present output and ignores set points"
+                         : "amplifiers released";
   ROS_WARN_STREAM("mm3e_sim: " << res.message);
   return true;
 }

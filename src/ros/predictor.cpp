@@ -157,48 +157,25 @@ void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model
 
 std::vector<PredictorAxis::Output> PredictorAxis::on_voltage(const AxisVoltage& msg, bool compensate,
                                                             const ros::Time& now) {
-  std::vector<Output> outs;
   if (!std::isfinite(msg.voltage)) {
     ++rejected_;
     last_status_ = "non-finite applied voltage ignored";
-    return outs;
+    return {};
   }
-  applied_v_ = msg.voltage;
-  have_voltage_ = true;
-  voltages_[msg.sequence] = msg.voltage;
-  if (voltages_.size() > 64) voltages_.erase(voltages_.begin());
-  drain(outs, compensate, now);
-  return outs;
+  return complete(pairer_.add_voltage(msg.sequence, msg.voltage, msg.header.stamp.toSec()), compensate, now);
 }
 
 std::vector<PredictorAxis::Output> PredictorAxis::on_encoder(const EncoderPosition& msg, bool compensate,
                                                             const ros::Time& now) {
-  std::vector<Output> outs;
-  pending_.push_back(msg);
-  drain(outs, compensate, now);
-  return outs;
+  return complete(pairer_.add_reading(msg.sequence, msg.position * kNmPerM, msg.valid, msg.header.stamp.toSec()),
+                  compensate, now);
 }
 
-void PredictorAxis::drain(std::vector<Output>& outs, bool compensate, const ros::Time& now) {
-  while (!pending_.empty()) {
-    const EncoderPosition& e = pending_.front();
-    auto it = voltages_.find(e.sequence);
-    double v;
-    if (it != voltages_.end()) {
-      v = it->second;
-    } else if (pending_.size() > kMaxPending) {
-      // Its voltage is lost: take the latest one reported for an earlier sample (the axis held it).
-      auto prev = voltages_.lower_bound(e.sequence);
-      v = prev != voltages_.begin() ? std::prev(prev)->second : (have_voltage_ ? applied_v_ : 0.0);
-    } else {
-      return;
-    }
-    const std::uint32_t seq = e.sequence;
-    outs.push_back(process(e, v, compensate, now));
-    pending_.pop_front();
-    // Older voltages are no longer needed (this one stays: it stands in for a lost next one).
-    voltages_.erase(voltages_.begin(), voltages_.lower_bound(seq));
-  }
+std::vector<PredictorAxis::Output> PredictorAxis::complete(const std::vector<io::PairedSample>& samples,
+                                                          bool compensate, const ros::Time& now) {
+  std::vector<Output> outs;
+  for (const auto& p : samples) outs.push_back(process(p, compensate, now));
+  return outs;
 }
 
 bool PredictorAxis::on_intended(const IntendedMotion& msg, std::string& error) {
@@ -227,25 +204,25 @@ bool PredictorAxis::command_now(bool compensate, VoltageCommand& out, const ros:
   return true;
 }
 
-PredictorAxis::Output PredictorAxis::process(const EncoderPosition& msg, double applied, bool compensate,
-                                             const ros::Time& now) {
+PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, bool compensate, const ros::Time& now) {
   Output out;
   ++encoder_messages_;
-  const bool valid = msg.valid && std::isfinite(msg.position);
+  const double applied = sample.voltage_v;
+  const bool valid = sample.measured;
   if (valid) {
-    measured_nm_ = msg.position * kNmPerM;
+    measured_nm_ = sample.position_nm;
     have_measured_ = true;
   }
-  const compensation::SampleUpdate u = comp_->on_sample(applied, valid ? msg.position * kNmPerM : std::nan(""), valid);
+  const compensation::SampleUpdate u = comp_->on_sample(applied, valid ? sample.position_nm : std::nan(""), valid);
   predicted_nm_ = u.predicted_nm;
   hold_v_ = applied;
 
   Prediction& p = out.prediction;
-  p.header.stamp = msg.header.stamp.isZero() ? now : msg.header.stamp;
+  p.header.stamp = sample.stamp_s > 0.0 ? ros::Time(sample.stamp_s) : now;
   p.header.frame_id = s_.frame_prefix + "base";
   p.axis = axis_;
   p.model = model_name_;
-  p.measured_position = valid ? msg.position : std::nan("");
+  p.measured_position = valid ? sample.position_nm / kNmPerM : std::nan("");
   p.predicted_position = u.predicted_nm / kNmPerM;
   p.drift_horizons = s_.drift_horizons_s;
 
@@ -572,6 +549,11 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   st.add("compensation", compensation_ ? "on" : "off");
   st.add("encoder messages", l.encoder_messages());
   st.add("rejected messages", l.rejected_messages());
+  // pairing under the one rule (io/sequence_pairer.h)
+  st.add("lost voltage reports", l.pairing().lost_voltages);
+  st.add("lost encoder readings", l.pairing().lost_readings);
+  st.add("late encoder readings", l.pairing().late_readings);
+  st.add("controller restarts", l.pairing().restarts);
   st.add("prediction failures", l.compensator().prediction_failures());
   st.add("command fallbacks", l.compensator().command_fallbacks());
   st.add("last fallback reason", l.last_status());

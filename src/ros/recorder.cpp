@@ -12,6 +12,7 @@
 #include "piezo_compensation/ProtocolPhase.h"
 #include "piezo_compensation/RecorderProgress.h"
 #include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/ros/data_file.h"
 
 namespace fs = std::filesystem;
@@ -19,6 +20,8 @@ namespace fs = std::filesystem;
 namespace piezo::ros_nodes {
 
 namespace {
+
+const auto by_sequence = [](const auto& msg) { return msg.sequence; };
 
 YAML::Node to_yaml(const XmlRpc::XmlRpcValue& v) {
   XmlRpc::XmlRpcValue x = v;  // the accessors are non-const
@@ -145,8 +148,14 @@ Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(
     const auto found = ros_io::scan_recording(options_.out, topic(options_.axes.front(), "encoder"),
                                               join(ns_, "protocol_phase"));
     for (const auto& f : found.set_aside)
-      ROS_WARN("recorder: %s was open when the last session died (no index); its samples are recorded again",
+      ROS_WARN("recorder: %s was open or torn when the last session died (no index); its samples are recorded again",
                f.c_str());
+    if (!found.set_aside.empty())
+      ROS_WARN("recorder: resume drops %llu bytes in %zu unreadable chunk(s)",
+               static_cast<unsigned long long>(found.set_aside_bytes), found.set_aside.size());
+    if (found.duplicates > 0)
+      ROS_WARN("recorder: %llu samples were both in %s and in its chunks (a merge cut short): kept once",
+               static_cast<unsigned long long>(found.duplicates), options_.out.c_str());
     if (found.found && found.samples > 0) {
       const std::string wanted = options_.protocol;
       parse_spec(found.parameters_yaml, options_, total_, t0_s_);
@@ -443,19 +452,12 @@ Recorder::VoltageMatch Recorder::match_voltages(std::vector<const piezo_compensa
   VoltageMatch result = VoltageMatch::kAll;
   for (std::size_t k = 0; k < axes_.size(); ++k) {
     const auto& ax = axes_[k];
-    const std::uint32_t seq = ax.pending->sequence;
-    bool later = false;
-    for (auto it = ax.voltages.rbegin(); it != ax.voltages.rend(); ++it) {
-      if (it->sequence == seq) {
-        volts[k] = &*it;
-        break;
-      }
-      if (static_cast<std::int32_t>(it->sequence - seq) > 0) later = true;
-    }
-    if (volts[k]) continue;
-    if (!later) return VoltageMatch::kWaiting;
+    // the one pairing rule (io/sequence_pairer.h)
+    const io::ReportMatch m = io::match_report(ax.voltages, ax.pending->sequence, false, by_sequence, &volts[k]);
+    if (m == io::ReportMatch::kFound) continue;
+    if (m == io::ReportMatch::kWaiting) return VoltageMatch::kWaiting;
     result = VoltageMatch::kLost;
-    volts[k] = &ax.voltages.back();
+    if (!volts[k]) volts[k] = &ax.voltages.back();
   }
   return result;
 }
@@ -476,12 +478,13 @@ void Recorder::complete_sample() {
   }
   if (with_truth_ && !truth_wait_expired_) {
     // the simulator publishes its truth directly, the reading comes through the driver: either may be first
-    for (const auto& ax : axes_)
-      if (std::none_of(ax.truths.begin(), ax.truths.end(),
-                       [&](const auto& t) { return t.sequence == ax.pending->sequence; })) {
+    for (const auto& ax : axes_) {
+      const piezo_compensation::EncoderPosition* t = nullptr;
+      if (io::match_report(ax.truths, ax.pending->sequence, false, by_sequence, &t) == io::ReportMatch::kWaiting) {
         waiting_truth_ = true;
         return;
       }
+    }
   }
   waiting_truth_ = truth_wait_expired_ = false;
   if (!applied) ++late_commands_;
@@ -514,23 +517,12 @@ void Recorder::complete_sample() {
         bag_->write(topic(ax.name, "voltage"), stamp, v);
       }
       const piezo_compensation::EncoderPosition* truth = nullptr;
-      if (with_truth_) {
-        for (auto it = ax.truths.rbegin(); it != ax.truths.rend(); ++it)
-          if (it->sequence == ax.pending->sequence) {
-            truth = &*it;
-            break;
-          }
-        // evaluation only: a late or lost truth message must not cost the row (every row needs one for the
-        // reader): take the newest one before the reading, and count it
-        if (!truth && !ax.truths.empty()) {
-          ++substituted_truths_;
-          truth = &ax.truths.back();
-          for (auto it = ax.truths.rbegin(); it != ax.truths.rend(); ++it)
-            if (static_cast<std::int32_t>(ax.pending->sequence - it->sequence) > 0) {
-              truth = &*it;
-              break;
-            }
-        }
+      // evaluation only: a late or lost truth message must not cost the row (every row needs one for the
+      // reader): the one pairing rule takes the newest one before the reading, and it is counted
+      if (with_truth_ && !ax.truths.empty() &&
+          io::match_report(ax.truths, ax.pending->sequence, true, by_sequence, &truth) != io::ReportMatch::kFound) {
+        ++substituted_truths_;
+        if (!truth) truth = &ax.truths.back();
       }
       if (truth) {
         piezo_compensation::EncoderPosition t = *truth;

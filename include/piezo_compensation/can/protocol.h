@@ -7,14 +7,16 @@
 #include <cstdint>
 #include <string>
 
+#include "piezo_compensation/io/axes.h"
+
 namespace YAML {
 class Node;
 }
 
 namespace piezo::can {
 
-constexpr int kAxisCount = 3;
-constexpr std::array<const char*, kAxisCount> kAxisNames{"a", "b", "c"};
+using io::kAxisCount;   // the axes are named once, in io/axes.h
+using io::kAxisNames;
 
 // Returns 0..2 for "a".."c", -1 otherwise.
 int axis_index(const std::string& name);

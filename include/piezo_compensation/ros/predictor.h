@@ -24,6 +24,7 @@
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/compensation/axis_compensator.h"
 #include "piezo_compensation/compensation/drift_forecast.h"
+#include "piezo_compensation/io/sequence_pairer.h"
 
 namespace diagnostic_updater {
 class Updater;
@@ -88,9 +89,8 @@ class PredictorAxis {
                 const std::string& model_error = "");
 
   struct Output;
-  // Voltage and encoder of one sample carry the same sequence number; a sample is processed when both are
-  // in, whatever order they arrive in. An encoder sample whose voltage has not come after kMaxPending later
-  // encoder samples is processed with the latest earlier voltage. Each call returns the samples it completed.
+  // Voltage and encoder of one sample are paired by sequence number under the one pairing rule
+  // (io/sequence_pairer.h: lost, late and reordered frames, restarts). Each call returns the samples it completed.
   std::vector<Output> on_voltage(const AxisVoltage& msg, bool compensate, const ros::Time& now);
   std::vector<Output> on_encoder(const EncoderPosition& msg, bool compensate, const ros::Time& now);
   // Returns false (with `error`) when the intent is malformed; it is then ignored.
@@ -121,21 +121,19 @@ class PredictorAxis {
   const std::string& last_status() const { return last_status_; }
   std::size_t encoder_messages() const { return encoder_messages_; }
   std::size_t rejected_messages() const { return rejected_; }
+  const io::PairerCounters& pairing() const { return pairer_.counters(); }
   bool fallback_now() const { return fallback_now_; }
 
  private:
   // One complete sample: advance the model, compute the command. `compensate` is the node's switch.
-  Output process(const EncoderPosition& msg, double applied_v, bool compensate, const ros::Time& now);
+  Output process(const io::PairedSample& sample, bool compensate, const ros::Time& now);
+  std::vector<Output> complete(const std::vector<io::PairedSample>& samples, bool compensate, const ros::Time& now);
 
   std::string axis_, model_name_;
   std::unique_ptr<compensation::AxisCompensator> comp_;
   const PredictorSettings& s_;
-  double applied_v_ = 0.0;
-  static constexpr std::size_t kMaxPending = 3;
-  void drain(std::vector<Output>& outs, bool compensate, const ros::Time& now);
-  std::map<std::uint32_t, double> voltages_;   // recent applied voltages by sequence
-  bool have_voltage_ = false, have_measured_ = false;
-  std::deque<EncoderPosition> pending_;
+  io::SequencePairer pairer_;
+  bool have_measured_ = false;
   double measured_nm_ = std::nan(""), predicted_nm_ = std::nan(""), intended_nm_ = std::nan("");
   double hold_v_ = 0.0;
   compensation::DriftForecast forecast_;

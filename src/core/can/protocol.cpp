@@ -9,11 +9,7 @@
 
 namespace piezo::can {
 
-int axis_index(const std::string& name) {
-  for (int i = 0; i < kAxisCount; ++i)
-    if (name == kAxisNames[i]) return i;
-  return -1;
-}
+int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
 
 namespace {
 
@@ -26,7 +22,9 @@ void require(bool ok, const std::string& what) {
 void validate(const ProtocolConfig& c) {
   const std::uint32_t max_id = c.extended_ids ? CAN_EFF_MASK : 0x7FFu;
   require(c.node_id_stride >= 1, "node_id_stride must be >= 1");
-  require(std::isfinite(c.voltage_lsb_v) && c.voltage_lsb_v > 0, "voltage_lsb_v must be a finite value > 0");
+  // Coarser than 10 mV and a rounded set point could differ from the slew-limited one by more than the ramp.
+  require(std::isfinite(c.voltage_lsb_v) && c.voltage_lsb_v > 0 && c.voltage_lsb_v <= 0.01,
+          "voltage_lsb_v must be in (0, 0.01] V");
   require(std::isfinite(c.position_lsb_m) && c.position_lsb_m > 0, "position_lsb_m must be a finite value > 0");
   require(std::isfinite(c.encoder_rate_hz) && c.encoder_rate_hz > 0 && c.encoder_rate_hz <= 10000,
           "encoder_rate_hz must be in (0, 10000]");
