@@ -4,10 +4,12 @@
 // end within 10 % of (d), the same stage without the effect, in free-run MAE against the truth; (d) gets nothing.
 // A gain driven by a signal that is not in the file must end in "not explained" with the size of what is left.
 // The gains are applied to the simulated truth about its rest position at 0 V (what a stroke change scales).
+// Also (issue 12): the creep protocol on the same independent physics with no extra effect adds nothing.
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <cstdlib>
+#include <filesystem>
 #include <iostream>
 #include <random>
 
@@ -16,6 +18,7 @@
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/simulator_config.h"
+#include "piezo_compensation/sim/stage.h"
 
 namespace pa = piezo::analysis;
 
@@ -23,13 +26,19 @@ namespace {
 constexpr double kHours = 6.0;  // first 70 % TRAIN, the rest TEST (as in the issue)
 constexpr std::uint64_t kSeed = 21;
 
+std::string stage_file(const std::string& name) {
+  return (std::filesystem::path(PIEZO_SOURCE_DIR) / "config" / "stages" / name).string();
+}
+
+// The package's default simulated stage (PI hysteresis + multi-mode creep; the base is PI + LTI creep), random
+// walk on all axes. On the Preisach stage (config/stages/mm3e_preisach_creep.yaml) the PI + LTI base itself
+// misses by 258 nm free-run on TEST, so gain tests there measure the base, not the loop; see the report.
 piezo::io::Dataset stage() {
   static const piezo::io::Dataset d = [] {
     YAML::Node p;
     p["duration_s"] = kHours * 3600.0;
     const auto proto = piezo::protocols::make_protocol("random_walk", p, 11.0, kSeed);
-    piezo::sim::SimulatorConfig cfg = piezo::sim::default_simulator_config();
-    piezo::sim::ManipulatorSimulator sim(cfg, kSeed);
+    piezo::sim::ManipulatorSimulator sim(piezo::sim::default_simulator_config(), kSeed);
     return sim.run(proto->program());
   }();
   return d;
@@ -88,6 +97,7 @@ piezo::io::Dataset with_gain(Gain kind) {
 pa::ResidualOptions options() {
   pa::ResidualOptions o;
   o.axis = "c";
+  o.permutations = 20;  // half the default: these runs are long
   if (std::getenv("PIEZO_RESIDUAL_VERBOSE")) o.log = [](const std::string& s) { std::cerr << s << "\n"; };
   return o;
 }
@@ -123,30 +133,50 @@ void print(const char* name, const pa::ResidualResult& r) {
             << r.remainder.structure_nm << " nm (σ " << r.remainder.noise_sigma_nm << " nm)\n";
 }
 
-double clean_truth_mae() {
-  static const double mae = [] {
-    const pa::ResidualResult r = trace(Gain::kNone);
-    print("(d) no effect", r);
-    EXPECT_TRUE(r.effects.empty()) << "(d): added " << r.effects.front().family;
-    return r.after_test_truth.mae_nm;
+// Each added effect must earn ≥ 2 % of TEST MAE against the truth: a real gap of the base, not a false find.
+void expect_each_step_gains(const char* name, const pa::ResidualResult& r) {
+  double prev = r.before_test_truth.mae_nm;
+  for (const auto& e : r.effects) {
+    EXPECT_GE(1.0 - e.test_after_truth.mae_nm / prev, 0.02) << name << ": added " << e.family << " for < 2 % TEST MAE";
+    prev = e.test_after_truth.mae_nm;
+  }
+}
+
+const pa::ResidualResult& clean() {
+  static const pa::ResidualResult r = [] {
+    pa::ResidualResult res = trace(Gain::kNone);
+    print("(d) no effect", res);
+    return res;
   }();
-  return mae;
+  return r;
 }
 
 void expect_gain(Gain kind, const char* name, const std::string& family, const std::string& signal) {
   const pa::ResidualResult r = trace(kind);
   print(name, r);
-  const double clean = clean_truth_mae();
-  ASSERT_EQ(r.effects.size(), 1u) << name << ": expected exactly one effect";
-  EXPECT_EQ(r.effects[0].family, family) << name;
-  // The other axis' voltage and position carry the same information (its position follows its voltage):
-  // either names the right cause, axis a.
-  if (!signal.empty()) EXPECT_EQ(r.effects[0].labels.at("signal").rfind(signal, 0), 0u) << name << ": " << r.effects[0].labels.at("signal");
-  EXPECT_LT(r.after_test_truth.mae_nm, 1.10 * clean) << name << ": before " << r.before_test_truth.mae_nm << " nm";
+  const pa::ResidualResult& d = clean();
+  std::size_t gains = 0;
+  for (const auto& e : r.effects) {
+    if (pa::is_gain_family(e.family)) {
+      ++gains;
+      EXPECT_EQ(e.family, family) << name;
+      // The other axis' voltage and position carry the same information (its position follows its voltage):
+      // either names the right cause, axis a.
+      if (!signal.empty()) EXPECT_EQ(e.labels.at("signal").rfind(signal, 0), 0u) << name << ": " << e.labels.at("signal");
+    } else {
+      ADD_FAILURE() << name << ": added " << e.family << " besides the gain";
+    }
+  }
+  EXPECT_EQ(gains, 1u) << name << ": expected exactly one gain effect";
+  expect_each_step_gains(name, r);
+  EXPECT_LT(r.after_test_truth.mae_nm, 1.10 * d.after_test_truth.mae_nm) << name << ": before " << r.before_test_truth.mae_nm << " nm";
 }
 }  // namespace
 
-TEST(ResidualGain, NoEffectAddsNothing) { clean_truth_mae(); }
+TEST(ResidualGain, NoEffectAddsNothing) {
+  const pa::ResidualResult& r = clean();
+  EXPECT_TRUE(r.effects.empty()) << "(d): added " << r.effects.front().family;
+}
 TEST(ResidualGain, StrokeGainDrivenByALaggedTemperatureColumn) {
   expect_gain(Gain::kTemperature, "(a) temperature gain", "aux_gain", "temperature_c");
 }
@@ -160,4 +190,22 @@ TEST(ResidualGain, GainFromASignalNotInTheFileIsNotExplained) {
   EXPECT_FALSE(r.remainder.explained);
   EXPECT_GT(r.remainder.structure_nm, 2.0);
   ASSERT_FALSE(r.remainder.correlates.empty());
+}
+
+TEST(ResidualGain, CreepProtocolOnIndependentPhysicsAddsNothing) {
+  // Preisach + 5-mode creep spectrum, 4 × (30-min random sequence, 30-min hold); no extra effect.
+  const piezo::sim::StageConfig st = piezo::sim::load_stage(stage_file("mm3e_preisach_creep_protocol.yaml"));
+  const piezo::io::Dataset d = piezo::sim::simulate_stage(st, kSeed + 1, 4 * 3600.0);
+  const std::size_t cut = d.size() * 2 / 3;
+  const piezo::io::Dataset train = d.slice(0, cut), test = d.slice(cut, d.size());
+  pa::ResidualOptions o = options();
+  o.refit_base = [](const piezo::io::Dataset& fit, const piezo::io::Dataset& val) { return fit_base(fit, val); };
+  const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
+  const auto base = fit_base(train.slice(0, n_fit), train.slice(n_fit, train.size()));
+  const pa::ResidualResult r = pa::trace_residual(*base, train, test, o);
+  print("creep protocol, no effect", r);
+  for (const auto& e : r.effects) EXPECT_TRUE(pa::is_operating_point_family(e.family)) << "added " << e.family;
+  expect_each_step_gains("creep protocol", r);
+  for (const auto& s : r.final_ranking)
+    if (s.family == "periodic_disturbance" || s.family == "position_periodic") EXPECT_FALSE(s.significant) << s.family << ": " << s.note;
 }

@@ -108,7 +108,8 @@ struct ResidualOptions {
 // What is left after the last accepted effect, tested against the noise floor estimated from the data.
 struct Remainder {
   bool explained = true;       // false: structure above the floor remains ("not explained")
-  double noise_sigma_nm = 0;   // encoder noise σ estimated from the residual's sample-to-sample differences
+  double noise_sigma_nm = 0;   // reading noise σ estimated from the data (analysis/noise_floor.h)
+  std::string noise_floor;     // how (NoiseFloor::describe())
   double structure_nm = 0;     // RMS of the slow part above what the noise alone gives [nm]
   double p_value = 1.0;        // block means against white noise of that σ
   double block_s = 0;          // block length of the test

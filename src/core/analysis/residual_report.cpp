@@ -245,7 +245,8 @@ void write_residual_report(const std::string& dir, const ResidualReportContext& 
     j.end_array();
     const Remainder& r = res.remainder;
     j.key("remainder").begin_object().kv("explained", r.explained).kv("noise_sigma_nm", r.noise_sigma_nm);
-    j.kv("noise_floor_mae_nm", noise_floor_mae_nm(r.noise_sigma_nm)).kv("structure_nm", r.structure_nm);
+    j.kv("noise_floor_mae_nm", noise_floor_mae_nm(r.noise_sigma_nm)).kv("noise_floor", r.noise_floor);
+    j.kv("structure_nm", r.structure_nm);
     j.kv("p_value", r.p_value).kv("block_s", r.block_s).kv("blocks", r.blocks);
     j.key("correlates").begin_array();
     for (std::size_t k = 0; k < r.correlates.size() && k < 8; ++k)
@@ -281,9 +282,7 @@ void write_residual_report(const std::string& dir, const ResidualReportContext& 
     f << "| **after** | **" << res.after_test.mae_nm << "** | **" << res.after_test.rms_nm << "** | **" << res.after_test.max_nm << "** |";
     if (truth) f << " **" << res.after_test_truth.mae_nm << "** |";
     const Remainder& rem = res.remainder;
-    f << "\n\nEncoder noise estimated from the data (TEST residual's sample-to-sample differences): σ ≈ "
-      << num(rem.noise_sigma_nm) << " nm, so a perfect predictor scores MAE ≈ σ·√(2/π) = "
-      << num(noise_floor_mae_nm(rem.noise_sigma_nm)) << " nm against the raw measurement.\n\n";
+    f << "\n\nNoise floor estimated from the TEST data: " << rem.noise_floor << ".\n\n";
     if (holds) {
       f << "## Holds (TEST): MAE inside the holds and end-of-hold error [nm]\n\n"
         << "End-of-hold error: prediction − reference, means over the last 5 s of each of the " << hs.before.end_error_nm.size()

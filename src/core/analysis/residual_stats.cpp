@@ -6,6 +6,7 @@
 #include <numeric>
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/analysis/residual.h"
 
 namespace piezo::analysis {
@@ -259,14 +260,15 @@ Remainder assess_remainder(const std::vector<double>& residual, const std::vecto
   if (position.size() != n || data.size() != n || (!mask.empty() && mask.size() != n))
     throw std::invalid_argument("assess_remainder: sizes differ");
   auto use = [&](std::size_t i) { return mask.empty() || mask[i]; };
-  // σ from sample-to-sample differences (robust: MAD), which the slow structure hardly touches.
-  std::vector<double> d;
-  for (std::size_t i = 1; i < n; ++i)
-    if (use(i) && use(i - 1)) d.push_back(residual[i] - residual[i - 1]);
-  if (d.size() < 20) return out;
-  const double md = median_of(d);
-  for (double& x : d) x = std::fabs(x - md);
-  out.noise_sigma_nm = 1.4826 * median_of(d) / std::sqrt(2.0);
+  // σ from the data (analysis/noise_floor.h: second differences in holds, else of this residual).
+  {
+    std::size_t used = 0;
+    for (std::size_t i = 0; i < n; ++i) used += use(i);
+    if (used < 20) return out;
+    const NoiseFloor nf = estimate_noise_floor(data, axis, &position);
+    out.noise_sigma_nm = nf.sigma_nm;
+    out.noise_floor = nf.describe();
+  }
   const double fs = data.sample_rate_hz();
   const std::size_t B = std::max<std::size_t>(2, static_cast<std::size_t>(std::lround(block_s * fs)));
   out.block_s = static_cast<double>(B) / fs;
