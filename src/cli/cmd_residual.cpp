@@ -12,7 +12,7 @@
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/analysis/residual_report.h"
 #include "piezo_compensation/models/model_file.h"
-#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/ros/data_file.h"
 
 namespace fs = std::filesystem;
@@ -102,7 +102,7 @@ int run(int argc, char** argv) {
   // Base model: a file, or a kind fitted on TRAIN's first part (the rest validates it).
   const std::string model_arg = args.str("model");
   models::ModelPtr base;
-  models::FitRequest req;
+  training::FitRequest req;
   const YAML::Node fit_options = parse_sets(args.list("set"));
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   if (fs::exists(model_arg)) {
@@ -110,8 +110,8 @@ int run(int argc, char** argv) {
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");
     models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : args.str("train"));
   } else {
-    const models::ModelKind& kind = models::model_kind(model_arg);
-    if (!kind.fit) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
+    const training::FitFn& fit = training::fitter(model_arg);
+    if (!fit) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
     req.train = &fit_part;
     req.validation = &val_part;
@@ -119,21 +119,21 @@ int run(int argc, char** argv) {
     req.options = fit_options;
     req.seed = o.seed;
     std::cerr << "residual: fitting " << model_arg << " on " << fit_part.size() << " TRAIN rows\n";
-    base = kind.fit(req);
+    base = fit(req);
   }
   // Backfitting: the base is refitted with the same kind and options after each added effect. A loaded model
   // file keeps its weights unless --refit-base asks to refit its kind with default options.
   const std::string refit_kind = fs::exists(model_arg) ? (args.flag("refit-base") ? base->kind() : "") : model_arg;
   if (!refit_kind.empty()) {
-    if (!models::model_kind(refit_kind).fit) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
+    if (!training::fitter(refit_kind)) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
     o.refit_base = [&, refit_kind](const io::Dataset& fit_part, const io::Dataset& val_part) {
-      models::FitRequest r;
+      training::FitRequest r;
       r.train = &fit_part;
       r.validation = &val_part;
       r.axis = axis;
       r.options = fs::exists(model_arg) ? YAML::Node(YAML::NodeType::Map) : fit_options;
       r.seed = o.seed;
-      return models::model_kind(refit_kind).fit(r);
+      return training::fit_model(refit_kind, r);
     };
   }
 

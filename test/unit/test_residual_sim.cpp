@@ -11,6 +11,9 @@
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/simulator_config.h"
+#include "piezo_compensation/training/fitters.h"
+
+#include "test_residual_common.h"
 
 namespace pa = piezo::analysis;
 
@@ -50,13 +53,7 @@ piezo::models::ModelPtr fit_base(const piezo::io::Dataset& train, const pa::Resi
 }
 
 piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val) {
-  piezo::models::FitRequest req;
-  req.train = &fit;
-  req.validation = &val;
-  req.axis = "c";
-  // A fast physics base (PI hysteresis + LTI creep); PIEZO_RESIDUAL_BASE=<kind> tries another.
-  const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
-  return piezo::models::model_kind(kind ? kind : "pi_creep_lti").fit(req);
+  return piezo::test::fit_physics_base(fit, val);
 }
 
 double clean_mae() {

@@ -195,27 +195,20 @@ void write_residual_report(const std::string& dir, const ResidualReportContext& 
     j.begin_object().kv("axis", axis).kv("mode", ctx.mode).kv("base_model", ctx.base_kind).kv("base_choice", ctx.base_choice);
     j.kv("train_rows", train.size()).kv("test_rows", test.size()).kv("warm_start", res.warm_started);
     j.kv("anchor_s", res.anchor_s).kv("test_first_scored_row", res.test_first_scored);
-    j.key("before");
-    json_stats(j, res.before_test);
-    j.key("after");
-    json_stats(j, res.after_test);
-    if (truth) {
-      j.key("before_vs_truth");
-      json_stats(j, res.before_test_truth);
-      j.key("after_vs_truth");
-      json_stats(j, res.after_test_truth);
+    const std::pair<const char*, const ErrorStats*> stats[] = {
+        {"before", &res.before_test}, {"after", &res.after_test}, {"before_vs_truth", &res.before_test_truth},
+        {"after_vs_truth", &res.after_test_truth}};
+    const std::pair<const char*, const HoldErrors*> hold_stats[] = {
+        {"before", &hs.before}, {"after", &hs.after}, {"before_vs_truth", &hs.before_truth}, {"after_vs_truth", &hs.after_truth}};
+    for (std::size_t k = 0; k < (truth ? 4u : 2u); ++k) {
+      j.key(stats[k].first);
+      json_stats(j, *stats[k].second);
     }
     if (holds) {
       j.key("holds").begin_object();
-      j.key("before");
-      json_holds(j, hs.before);
-      j.key("after");
-      json_holds(j, hs.after);
-      if (truth) {
-        j.key("before_vs_truth");
-        json_holds(j, hs.before_truth);
-        j.key("after_vs_truth");
-        json_holds(j, hs.after_truth);
+      for (std::size_t k = 0; k < (truth ? 4u : 2u); ++k) {
+        j.key(hold_stats[k].first);
+        json_holds(j, *hold_stats[k].second);
       }
       j.end_object();
     }

@@ -5,7 +5,6 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/models/c_export.h"
 #include "piezo_compensation/models/registry.h"
 
 namespace piezo::models {
@@ -436,10 +435,5 @@ ModelPtr AugmentedModel::from_yaml(const YAML::Node& n) {
   if (!(fs > 0)) throw std::runtime_error("augmented model: sample_rate_hz must be > 0");
   return std::make_unique<AugmentedModel>(std::move(base), std::move(terms), off, fs);
 }
-
-PIEZO_REGISTER_MODEL_KIND(ModelKind{"augmented",
-                                    "a base model plus effect terms found by `piezo residual` (load only; fit with `piezo residual`)",
-                                    [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); },
-                                    nullptr, export_c99_augmented});
 
 }  // namespace piezo::models

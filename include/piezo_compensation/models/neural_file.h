@@ -1,0 +1,56 @@
+// What the neural kinds' model files share: the target standardisation with its output rails, the common
+// header of the `model:` node (kind, rate, feature spec, target, hyperparameters), and typed YAML field readers.
+#pragma once
+
+#include <Eigen/Dense>
+#include <yaml-cpp/yaml.h>
+
+#include <limits>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/features/feature_stream.h"
+
+namespace piezo::models {
+
+// Position standardisation of a network's output: position_nm = mean_nm + scale_nm · z, held to the rails.
+struct TargetScale {
+  double mean_nm = 0.0;
+  double scale_nm = 1.0;
+  // Output rails: the training range widened by half its span each side. Networks extrapolate without bound;
+  // fed back in free-run they can run away to ±inf, so outputs are held to physically plausible values.
+  double output_min_nm = -std::numeric_limits<double>::infinity();
+  double output_max_nm = std::numeric_limits<double>::infinity();
+  double to_nm(double z) const {
+    const double y = mean_nm + scale_nm * z;
+    return y < output_min_nm ? output_min_nm : (y > output_max_nm ? output_max_nm : y);
+  }
+  double to_z(double nm) const { return (nm - mean_nm) / scale_nm; }
+  YAML::Node to_yaml() const;
+  static TargetScale from_yaml(const YAML::Node& node, const std::string& what);  // rails optional
+  std::string c99_expression(const std::string& z) const;  // to_nm in C
+};
+// Throws naming `what` and the offending key when node has a key outside `allowed`.
+void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what);
+// Required finite scalar / vector under key.
+double yaml_double(const YAML::Node& node, const std::string& key, const std::string& what);
+// Required integer in [low, high] under key.
+int yaml_int(const YAML::Node& node, const std::string& key, const std::string& what, int low, int high);
+std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
+                                 std::size_t expected_size);
+YAML::Node flow_sequence(const Eigen::VectorXd& values);
+
+// What every neural kind's model-file node shares, read and checked in one place: the kind, the sample rate, the
+// feature spec, the target scale and the hyperparameters map (keys checked against `hyperparameter_keys`).
+// `extra_keys` are the kind's own further top-level keys (e.g. KAN's "grids"). Errors name "<kind> model".
+struct NeuralFileHeader {
+  double sample_rate_hz = 0.0;
+  features::FeatureSpec spec;
+  TargetScale target;
+  YAML::Node hyperparameters;
+};
+NeuralFileHeader read_neural_file_header(const YAML::Node& node, const std::string& kind,
+                                         const std::vector<std::string>& hyperparameter_keys,
+                                         const std::vector<std::string>& extra_keys = {});
+
+}  // namespace piezo::models
