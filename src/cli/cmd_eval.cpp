@@ -6,6 +6,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "plot_script.h"
 #include "piezo_compensation/analysis/eval_report.h"
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
@@ -26,8 +27,8 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis (default: the models' axis)")
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
               "test data's holds, analysis/noise_floor.h)")
-      .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
-      .option("anchor-s", "S", "the first S seconds of measured position fix each model's offset; scored after them", "0")
+      .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
+      .option("anchor-s", "T", "the first T of measured position fix each model's offset; scored after them", "0")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -46,8 +47,8 @@ int run(int argc, char** argv) {
   analysis::EvalContext ctx;
   ctx.test_path = args.str("data");
   ctx.creep_path = args.str("creep");
-  ctx.warmup_s = args.num("warmup-s");
-  ctx.anchor_s = args.num("anchor-s");
+  ctx.warmup_s = args.seconds("warmup-s");
+  ctx.anchor_s = args.seconds("anchor-s");
   if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
@@ -93,12 +94,7 @@ int run(int argc, char** argv) {
   bar.finish();
   analysis::write_eval_report(out.string(), ctx, evals, test, creep.empty() ? nullptr : &creep);
   std::cout << analysis::eval_markdown(ctx, evals).substr(0, std::string::npos);
-  if (!args.flag("no-plots")) {
-    const char* src = std::getenv("PIEZO_SOURCE_DIR");
-    const fs::path script = fs::path(src ? src : ".") / "scripts/plotting/eval_plots.py";
-    const std::string cmd = "/usr/bin/python3 '" + script.string() + "' '" + out.string() + "'";
-    if (std::system(cmd.c_str()) != 0) std::cerr << "eval: plotting failed (" << cmd << "); the reports are written\n";
-  }
+  if (!args.flag("no-plots")) run_plot_script("eval", "eval_plots.py", {out.string()});
   std::cout << "\nwrote " << (out / "report.md").string() << ", report.json and plots\n";
   return 0;
 }

@@ -31,7 +31,7 @@ int run(int argc, char** argv) {
       .required("model", "KIND", "model kind")
       .option("features", "SET", "study | candidates | physics | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
-      .option("time-budget-s", "S", "stop tuning/training after S seconds (0 = none)", "0")
+      .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")
       .option("set", "KEY=VALUE", "kind option (YAML value, e.g. method=lasso, thresholds_v=[0,10,20])", "", true)
       .option("options", "FILE.yaml", "kind options from a YAML mapping (--set overrides)")
       .option("seed", "N", "random seed", "1")
@@ -87,7 +87,7 @@ int run(int argc, char** argv) {
   req.validation = val.empty() ? nullptr : &val;
   req.axis = axis;
   req.tune_trials = static_cast<int>(args.integer("tune"));
-  req.time_budget_s = args.num("time-budget-s");
+  req.time_budget_s = args.seconds("time-budget-s");
   req.seed = static_cast<std::uint64_t>(args.integer("seed"));
   req.threads = static_cast<int>(args.integer("threads"));
   req.progress = [&](double done, double total, const std::string& what) { bar.update(done, total, what); };

@@ -9,6 +9,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "plot_script.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/analysis/residual_report.h"
 #include "piezo_compensation/models/model_file.h"
@@ -149,12 +150,7 @@ int run(int argc, char** argv) {
   analysis::write_residual_report(out.string(), ctx, res, train, test, o.mode);
   std::cout << "residual: " << analysis::residual_summary(res) << "\n";
 
-  if (!args.flag("no-plots")) {
-    const char* src = std::getenv("PIEZO_SOURCE_DIR");
-    const fs::path script = fs::path(src ? src : ".") / "scripts/plotting/residual_plots.py";
-    const std::string cmd = "/usr/bin/python3 '" + script.string() + "' '" + out.string() + "'";
-    if (std::system(cmd.c_str()) != 0) std::cerr << "residual: plotting failed (" << cmd << "); the reports are written\n";
-  }
+  if (!args.flag("no-plots")) run_plot_script("residual", "residual_plots.py", {out.string()});
   std::cout << "residual: wrote " << (out / "report.md").string() << "\n";
   return 0;
 }

@@ -42,7 +42,7 @@ int run(int argc, char** argv) {
               "--duration, --seed and --effect still apply, the other options must not be given")
       .option("protocol", "NAME", "protocol to run (required without --stage)")
       .required("out", "FILE", "output file: .bag or .csv")
-      .option("duration", "S", "length [s]: sets random_walk's duration_s, truncates the other protocols")
+      .option("duration", "T", "length (30, 90min, 26h): sets random_walk's duration_s, truncates the other protocols")
       .option("seed", "N", "seed for the protocol and the simulator", "1")
       .option("effect", "NAME", "switch on an extra effect", "", true)
       .option("config", "YAML", "simulator parameters (default: built-in = config/simulator.yaml)")
@@ -54,7 +54,7 @@ int run(int argc, char** argv) {
   const auto seed = static_cast<std::uint64_t>(seed_l);
   double duration_s = -1.0;
   if (args.has("duration")) {
-    duration_s = args.num("duration");
+    duration_s = args.seconds("duration");
     if (!(duration_s > 0.0) || !std::isfinite(duration_s)) throw UsageError("simulate: --duration must be > 0");
   }
   const std::string out = args.str("out");

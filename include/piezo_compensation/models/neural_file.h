@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "piezo_compensation/features/feature_stream.h"
+#include "piezo_compensation/models/yaml_fields.h"
 
 namespace piezo::models {
 
@@ -27,22 +28,12 @@ struct TargetScale {
   }
   double to_z(double nm) const { return (nm - mean_nm) / scale_nm; }
   YAML::Node to_yaml() const;
-  static TargetScale from_yaml(const YAML::Node& node, const std::string& what);  // rails optional
+  static TargetScale from_yaml(const YAML::Node& node, const std::string& where);  // rails optional
   std::string c99_expression(const std::string& z) const;  // to_nm in C
 };
-// Throws naming `what` and the offending key when node has a key outside `allowed`.
-void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what);
-// Required finite scalar / vector under key.
-double yaml_double(const YAML::Node& node, const std::string& key, const std::string& what);
-// Required integer in [low, high] under key.
-int yaml_int(const YAML::Node& node, const std::string& key, const std::string& what, int low, int high);
-std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
-                                 std::size_t expected_size);
-YAML::Node flow_sequence(const Eigen::VectorXd& values);
-
 // What every neural kind's model-file node shares, read and checked in one place: the kind, the sample rate, the
 // feature spec, the target scale and the hyperparameters map (keys checked against `hyperparameter_keys`).
-// `extra_keys` are the kind's own further top-level keys (e.g. KAN's "grids"). Errors name "<kind> model".
+// `extra_keys` are the kind's own further top-level keys (e.g. KAN's "grids"). Errors name the path ("model.target.scale_nm").
 struct NeuralFileHeader {
   double sample_rate_hz = 0.0;
   features::FeatureSpec spec;

@@ -13,6 +13,7 @@
 #include <functional>
 #include <limits>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "piezo_compensation/features/feature_stream.h"
@@ -35,6 +36,30 @@ class Objective {
   // params into *grad (sized to params).
   virtual double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
                           Eigen::VectorXd* grad) const = 0;
+};
+
+// Objective over the columns of a feature matrix (units = samples) for a network with
+// loss_grad(params, x, y, grad) on a batch of columns (the dense network and the KAN).
+template <typename Net>
+class ColumnObjective : public Objective {
+ public:
+  ColumnObjective(const Net& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
+  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
+  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
+                  Eigen::VectorXd* grad) const override {
+    Eigen::MatrixXd xb(x_.rows(), static_cast<Eigen::Index>(n));
+    Eigen::VectorXd yb(static_cast<Eigen::Index>(n));
+    for (std::size_t i = 0; i < n; ++i) {
+      xb.col(static_cast<Eigen::Index>(i)) = x_.col(static_cast<Eigen::Index>(units[i]));
+      yb[static_cast<Eigen::Index>(i)] = y_[static_cast<Eigen::Index>(units[i])];
+    }
+    return net_.loss_grad(params, xb, yb, grad);
+  }
+
+ private:
+  const Net& net_;
+  const Eigen::MatrixXd& x_;
+  const Eigen::VectorXd& y_;
 };
 
 struct TrainerConfig {
@@ -104,6 +129,15 @@ PreparedData prepare_data(const FitRequest& request);
 
 // Trainer settings from the request and its options (optimizer, learning_rate, epochs, batch_size, patience).
 TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int default_batch_size);
+
+// What every neural fit records in the model file's `training:` node, in this order: optimizer, learning_rate,
+// the batch size under `batch_key`, `extra` (the kind's own entries), epochs_run, best_epoch, stopped_early,
+// validation_rmse_nm, train_seconds. Also stores validation_rmse_nm in m.meta.validation.
+YAML::Node record_training(models::Model& m, const TrainerConfig& cfg, const TrainResult& r, double target_scale_nm,
+                           const std::string& batch_key,
+                           const std::vector<std::pair<std::string, YAML::Node>>& extra = {});
+// m.meta from the request (make_meta), keeping the validation figures the fit stored.
+void set_fit_meta(models::Model& m, const FitRequest& request);
 
 // Option keys every neural kind accepts (besides its own architecture keys).
 std::vector<std::string> common_neural_option_keys();

@@ -154,12 +154,11 @@ YAML::Node DenseModel::to_yaml() const {
   n["hyperparameters"]["width"] = net_.shape().width;
   n["hyperparameters"]["leaky_slope"] = net_.shape().leaky_slope;
   if (training_info) n["training"] = training_info;
-  n["weights"] = flow_sequence(params_);
+  n["weights"] = yaml_list(params_);
   return n;
 }
 
 std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
-  const std::string what = "dense model";
   const NeuralFileHeader header = read_neural_file_header(node, "dense", {"depth", "width", "leaky_slope"});
   const double rate = header.sample_rate_hz;
   const features::FeatureSpec& spec = header.spec;
@@ -167,11 +166,11 @@ std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
   const YAML::Node h = header.hyperparameters;
   DenseShape shape;
   shape.inputs = static_cast<int>(spec.size());
-  shape.depth = yaml_int(h, "depth", what, 0, 16);
-  shape.width = yaml_int(h, "width", what, 1, 256);
-  shape.leaky_slope = yaml_double(h, "leaky_slope", what);
+  shape.depth = yaml_int(h, "depth", 0, 16, "model.hyperparameters");
+  shape.width = yaml_int(h, "width", 1, 256, "model.hyperparameters");
+  shape.leaky_slope = yaml_number(h, "leaky_slope", "model.hyperparameters");
   const DenseNet net(shape);
-  const std::vector<double> w = yaml_doubles(node, "weights", what, net.num_params());
+  const std::vector<double> w = yaml_numbers(node, "weights", static_cast<long>(net.num_params()));
   auto m = std::make_unique<DenseModel>(spec, rate, shape, Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())), target);
   if (node["training"]) m->training_info = node["training"];
   return m;

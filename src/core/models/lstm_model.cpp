@@ -4,11 +4,9 @@
 #include <random>
 #include <stdexcept>
 
-namespace piezo::models {
+#include "piezo_compensation/models/activations.h"
 
-namespace {
-double sigmoid(double z) { return 1.0 / (1.0 + std::exp(-z)); }
-}  // namespace
+namespace piezo::models {
 
 LstmNet::LstmNet(const LstmShape& shape) : shape_(shape) {
   if (shape.inputs < 1 || shape.inputs > 256) throw std::runtime_error("lstm: inputs must be in 1..256");
@@ -215,12 +213,11 @@ YAML::Node LstmModel::to_yaml() const {
   n["hyperparameters"]["hidden"] = net_.shape().hidden;
   n["hyperparameters"]["warmup"] = warmup_;
   if (training_info) n["training"] = training_info;
-  n["weights"] = flow_sequence(params_);
+  n["weights"] = yaml_list(params_);
   return n;
 }
 
 std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
-  const std::string what = "lstm model";
   const NeuralFileHeader header = read_neural_file_header(node, "lstm", {"layers", "hidden", "warmup"});
   const double rate = header.sample_rate_hz;
   const features::FeatureSpec& spec = header.spec;
@@ -228,11 +225,11 @@ std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
   const YAML::Node h = header.hyperparameters;
   LstmShape shape;
   shape.inputs = static_cast<int>(spec.size());
-  shape.layers = yaml_int(h, "layers", what, 1, 8);
-  shape.hidden = yaml_int(h, "hidden", what, 1, 256);
-  const int warmup = yaml_int(h, "warmup", what, 0, 100000);
+  shape.layers = yaml_int(h, "layers", 1, 8, "model.hyperparameters");
+  shape.hidden = yaml_int(h, "hidden", 1, 256, "model.hyperparameters");
+  const int warmup = yaml_int(h, "warmup", 0, 100000, "model.hyperparameters");
   const LstmNet net(shape);
-  const std::vector<double> w = yaml_doubles(node, "weights", what, net.num_params());
+  const std::vector<double> w = yaml_numbers(node, "weights", static_cast<long>(net.num_params()));
   auto m = std::make_unique<LstmModel>(spec, rate, shape,
                                        Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())),
                                        target, warmup);

@@ -15,6 +15,16 @@ namespace piezo::models {
 
 namespace {
 
+// C export of a kind whose model class M has export_c99(prefix).
+template <typename M>
+std::function<std::string(const Model&, const std::string&)> export_of(const std::string& kind) {
+  return [kind](const Model& m, const std::string& prefix) {
+    const auto* k = dynamic_cast<const M*>(&m);
+    if (!k) throw std::runtime_error("export: not a " + kind + " model");
+    return k->export_c99(prefix);
+  };
+}
+
 // Every built-in kind. A new kind adds one entry here (and its fitter in training/fitters.cpp).
 std::map<std::string, ModelKind> built_in_kinds() {
   const std::vector<ModelKind> list = {
@@ -26,20 +36,12 @@ std::map<std::string, ModelKind> built_in_kinds() {
        &export_c99_pi},
       {"dense", "dense network (depth × width, leaky ReLU) on the feature vector, trained with Adam/RMSprop/SGD",
        [](const YAML::Node& node) -> ModelPtr { return DenseModel::from_yaml(node); },
-       [](const Model& m, const std::string& prefix) {
-         const auto* d = dynamic_cast<const DenseModel*>(&m);
-         if (!d) throw std::runtime_error("export: not a dense model");
-         return d->export_c99(prefix);
-       }},
+       export_of<DenseModel>("dense")},
       {"lstm", "LSTM (layers × hidden, linear head) over the feature vector, truncated BPTT",
        [](const YAML::Node& node) -> ModelPtr { return LstmModel::from_yaml(node); }, nullptr},
       {"kan", "Kolmogorov–Arnold network (B-spline + SiLU edges, grid updates), edges printable as formulas",
        [](const YAML::Node& node) -> ModelPtr { return KanModel::from_yaml(node); },
-       [](const Model& m, const std::string& prefix) {
-         const auto* k = dynamic_cast<const KanModel*>(&m);
-         if (!k) throw std::runtime_error("export: not a kan model");
-         return k->export_c99(prefix);
-       }},
+       export_of<KanModel>("kan")},
       {"augmented",
        "a base model plus effect terms found by `piezo residual` (load only; fit with `piezo residual`)",
        [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); }, &export_c99_augmented},

@@ -12,34 +12,7 @@ namespace piezo::training {
 
 using namespace models;  // the fit code names the model's classes as models/ does
 
-namespace {
-
-// Objective over the columns of a feature matrix (units = samples).
-class DenseObjective : public Objective {
- public:
-  DenseObjective(const DenseNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
-  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
-  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                  Eigen::VectorXd* grad) const override;
-
- private:
-  const DenseNet& net_;
-  const Eigen::MatrixXd& x_;
-  const Eigen::VectorXd& y_;
-};
-
-double DenseObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                                Eigen::VectorXd* grad) const {
-  Eigen::MatrixXd xb(x_.rows(), static_cast<Eigen::Index>(n));
-  Eigen::VectorXd yb(static_cast<Eigen::Index>(n));
-  for (std::size_t i = 0; i < n; ++i) {
-    xb.col(static_cast<Eigen::Index>(i)) = x_.col(static_cast<Eigen::Index>(units[i]));
-    yb[static_cast<Eigen::Index>(i)] = y_[static_cast<Eigen::Index>(units[i])];
-  }
-  return net_.loss_grad(params, xb, yb, grad);
-}
-
-}  // namespace
+using DenseObjective = ColumnObjective<DenseNet>;
 
 namespace {
 
@@ -56,17 +29,7 @@ DenseTrial train_dense(const training::PreparedData& data, const DenseShape& sha
   DenseTrial t;
   t.validation_mse = r.best_validation_mse;
   t.model = std::make_unique<DenseModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target);
-  YAML::Node info;
-  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
-  info["learning_rate"] = cfg.optimizer.learning_rate;
-  info["batch_size"] = cfg.batch_size;
-  info["epochs_run"] = r.epochs_run;
-  info["best_epoch"] = r.best_epoch;
-  info["stopped_early"] = r.stopped_early;
-  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  info["train_seconds"] = r.seconds;
-  t.model->training_info = info;
-  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  t.model->training_info = record_training(*t.model, cfg, r, data.target.scale_nm, "batch_size");
   return t;
 }
 
@@ -75,7 +38,7 @@ DenseTrial train_dense(const training::PreparedData& data, const DenseShape& sha
 std::unique_ptr<models::DenseModel> fit_dense(const FitRequest& request) {
   std::vector<std::string> keys = training::common_neural_option_keys();
   for (const char* k : {"depth", "width", "leaky_slope"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "dense options");
+  if (request.options && request.options.IsMap()) check_keys(request.options, keys, "dense options");
   const training::PreparedData data = training::prepare_data(request);
   DenseShape shape;
   shape.inputs = static_cast<int>(data.spec.size());
@@ -84,9 +47,7 @@ std::unique_ptr<models::DenseModel> fit_dense(const FitRequest& request) {
   shape.leaky_slope = training::option_num(request.options, "leaky_slope", 0.01);
   training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
   auto finish = [&request](std::unique_ptr<DenseModel> m) {
-    const auto validation = m->meta.validation;
-    m->meta = training::make_meta(request);
-    m->meta.validation = validation;
+    set_fit_meta(*m, request);
     return m;
   };
   if (request.tune_trials <= 0) return finish(train_dense(data, shape, cfg).model);

@@ -12,33 +12,7 @@ namespace piezo::training {
 
 using namespace models;  // the fit code names the model's classes as models/ does
 
-namespace {
-
-class KanObjective : public Objective {
- public:
-  KanObjective(const KanNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
-  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
-  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                  Eigen::VectorXd* grad) const override;
-
- private:
-  const KanNet& net_;
-  const Eigen::MatrixXd& x_;
-  const Eigen::VectorXd& y_;
-};
-
-double KanObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                              Eigen::VectorXd* grad) const {
-  Eigen::MatrixXd xb(x_.rows(), static_cast<Eigen::Index>(n));
-  Eigen::VectorXd yb(static_cast<Eigen::Index>(n));
-  for (std::size_t i = 0; i < n; ++i) {
-    xb.col(static_cast<Eigen::Index>(i)) = x_.col(static_cast<Eigen::Index>(units[i]));
-    yb[static_cast<Eigen::Index>(i)] = y_[static_cast<Eigen::Index>(units[i])];
-  }
-  return net_.loss_grad(params, xb, yb, grad);
-}
-
-}  // namespace
+using KanObjective = ColumnObjective<KanNet>;
 
 namespace {
 
@@ -64,18 +38,8 @@ KanTrial train_kan(const training::PreparedData& data, const KanShape& shape, in
   KanTrial t;
   t.validation_mse = r.best_validation_mse;
   t.model = std::make_unique<KanModel>(data.spec, data.sample_rate_hz, net, r.params, data.target);
-  YAML::Node info;
-  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
-  info["learning_rate"] = cfg.optimizer.learning_rate;
-  info["batch_size"] = cfg.batch_size;
-  info["grid_updates"] = grid_updates;
-  info["epochs_run"] = r.epochs_run;
-  info["best_epoch"] = r.best_epoch;
-  info["stopped_early"] = r.stopped_early;
-  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  info["train_seconds"] = r.seconds;
-  t.model->training_info = info;
-  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  t.model->training_info =
+      record_training(*t.model, cfg, r, data.target.scale_nm, "batch_size", {{"grid_updates", YAML::Node(grid_updates)}});
   return t;
 }
 
@@ -84,7 +48,7 @@ KanTrial train_kan(const training::PreparedData& data, const KanShape& shape, in
 std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request) {
   std::vector<std::string> keys = training::common_neural_option_keys();
   for (const char* k : {"width", "hidden_layers", "grid", "order", "grid_updates"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "kan options");
+  if (request.options && request.options.IsMap()) check_keys(request.options, keys, "kan options");
   const training::PreparedData data = training::prepare_data(request);
   const int width = training::option_int(request.options, "width", 4);
   const int hidden_layers = training::option_int(request.options, "hidden_layers", 1);
@@ -104,9 +68,7 @@ std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request) {
   training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
   if (!request.options || !request.options["learning_rate"]) cfg.optimizer.learning_rate = 3e-3;
   auto finish = [&request](std::unique_ptr<KanModel> m) {
-    const auto validation = m->meta.validation;
-    m->meta = training::make_meta(request);
-    m->meta.validation = validation;
+    set_fit_meta(*m, request);
     // The interpretable form travels with the model file (one line per edge).
     YAML::Node lines(YAML::NodeType::Sequence);
     std::istringstream text(m->formulas());

@@ -74,18 +74,8 @@ LstmTrial train_lstm(const training::PreparedData& data, const LstmShape& shape,
   LstmTrial t;
   t.validation_mse = r.best_validation_mse;
   t.model = std::make_unique<LstmModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target, warmup);
-  YAML::Node info;
-  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
-  info["learning_rate"] = cfg.optimizer.learning_rate;
-  info["batch_size_sequences"] = cfg.batch_size;
-  info["seq_len"] = seq_len;
-  info["epochs_run"] = r.epochs_run;
-  info["best_epoch"] = r.best_epoch;
-  info["stopped_early"] = r.stopped_early;
-  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  info["train_seconds"] = r.seconds;
-  t.model->training_info = info;
-  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
+  t.model->training_info =
+      record_training(*t.model, cfg, r, data.target.scale_nm, "batch_size_sequences", {{"seq_len", YAML::Node(seq_len)}});
   return t;
 }
 
@@ -94,7 +84,7 @@ LstmTrial train_lstm(const training::PreparedData& data, const LstmShape& shape,
 std::unique_ptr<models::LstmModel> fit_lstm(const FitRequest& request) {
   std::vector<std::string> keys = training::common_neural_option_keys();
   for (const char* k : {"layers", "hidden", "seq_len", "warmup"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "lstm options");
+  if (request.options && request.options.IsMap()) check_keys(request.options, keys, "lstm options");
   const training::PreparedData data = training::prepare_data(request);
   LstmShape shape;
   shape.inputs = static_cast<int>(data.spec.size());
@@ -105,9 +95,7 @@ std::unique_ptr<models::LstmModel> fit_lstm(const FitRequest& request) {
   training::TrainerConfig cfg = training::trainer_config(request, 45, 32);
   if (!request.options || !request.options["grad_clip_norm"]) cfg.grad_clip_norm = 1.0;  // BPTT: avoid blow-ups
   auto finish = [&request](std::unique_ptr<LstmModel> m) {
-    const auto validation = m->meta.validation;
-    m->meta = training::make_meta(request);
-    m->meta.validation = validation;
+    set_fit_meta(*m, request);
     return m;
   };
   if (request.tune_trials <= 0) return finish(train_lstm(data, shape, seq_len, warmup, cfg).model);

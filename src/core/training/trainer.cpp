@@ -275,6 +275,29 @@ TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int 
   return c;
 }
 
+YAML::Node record_training(models::Model& m, const TrainerConfig& cfg, const TrainResult& r, double target_scale_nm,
+                           const std::string& batch_key,
+                           const std::vector<std::pair<std::string, YAML::Node>>& extra) {
+  YAML::Node info;
+  info["optimizer"] = optimizer_name(cfg.optimizer.kind);
+  info["learning_rate"] = cfg.optimizer.learning_rate;
+  info[batch_key] = cfg.batch_size;
+  for (const auto& [key, value] : extra) info[key] = value;
+  info["epochs_run"] = r.epochs_run;
+  info["best_epoch"] = r.best_epoch;
+  info["stopped_early"] = r.stopped_early;
+  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * target_scale_nm;
+  info["train_seconds"] = r.seconds;
+  m.meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * target_scale_nm;
+  return info;
+}
+
+void set_fit_meta(models::Model& m, const FitRequest& request) {
+  const auto validation = m.meta.validation;
+  m.meta = make_meta(request);
+  m.meta.validation = validation;
+}
+
 std::vector<std::string> common_neural_option_keys() {
   return {"features", "optimizer", "learning_rate", "epochs", "batch_size", "patience", "grad_clip_norm",
           "validation_fraction", "tune_epochs"};
