@@ -57,7 +57,10 @@ def main(out):
     ax.bar(range(len(steps)), steps, color=["tab:red"] + ["tab:blue"] * (len(steps) - 1))
     for i, v in enumerate(steps):
         ax.text(i, v, "%.1f" % v, ha="center", va="bottom")
-    ax.axhline(16.6, color="k", ls="--", lw=1, label="noise floor σ√(2/π) = 16.6 nm")
+    floor = report["remainder"]["noise_floor_mae_nm"]
+    if floor is not None:
+        ax.axhline(floor, color="k", ls="--", lw=1,
+                   label="noise floor σ√(2/π) = %.1f nm (σ from the data)" % floor)
     ax.set_xticks(range(len(steps)))
     ax.set_xticklabels(labels, rotation=15)
     ax.set_ylabel("TEST MAE [nm]")
@@ -71,7 +74,8 @@ def main(out):
     names = [n for n in ex if n.startswith("effect")]
     for i, name in enumerate(names):
         x = ex[name]
-        label = report["explaining_variables"][i] if i < len(report["explaining_variables"]) else name
+        effects = report["effects"]
+        label = effects[i]["explaining_variable"] if i < len(effects) else name
         prior = before if i == 0 else ex["residual_step%d_nm" % i]
         fig, axes = plt.subplots(1, 2, figsize=(11, 4), sharey=True)
         step = max(1, len(x) // 6000)

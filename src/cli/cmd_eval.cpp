@@ -28,6 +28,7 @@ int run(int argc, char** argv) {
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
               "test data's holds, analysis/noise_floor.h)")
       .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
+      .option("anchor-s", "T", "the first T of measured position fix each model's offset; scored after them", "0")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -47,8 +48,11 @@ int run(int argc, char** argv) {
   ctx.test_path = args.str("data");
   ctx.creep_path = args.str("creep");
   ctx.warmup_s = args.seconds("warmup-s");
+  ctx.anchor_s = args.seconds("anchor-s");
+  if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
+  eo.anchor_s = ctx.anchor_s;
   try {
     if (args.has("test-segments")) eo.test_segments = analysis::parse_segments(args.str("test-segments"));
     if (args.has("creep-segments")) eo.creep_segments = analysis::parse_segments(args.str("creep-segments"));

@@ -4,6 +4,7 @@
 
 #include <Eigen/Dense>
 #include <cmath>
+#include <cstdlib>
 #include <memory>
 #include <random>
 #include <string>
@@ -11,6 +12,7 @@
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 
 namespace piezo::test {
 
@@ -63,6 +65,16 @@ class LowpassLinearModel : public models::Model {
   double alpha_ = 0.0;
   double lp_ = 0.0;
 };
+
+// A fast physics base for the simulator tests (PI hysteresis + LTI creep); PIEZO_RESIDUAL_BASE=<kind> tries another.
+inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val) {
+  training::FitRequest req;
+  req.train = &fit;
+  req.validation = &val;
+  req.axis = "c";
+  const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
+  return training::fit_model(kind ? kind : "pi_creep_lti", req);
+}
 
 inline void register_test_kind() {
   static const bool done = [] {

@@ -13,6 +13,8 @@
 #include "piezo_compensation/sim/simulator_config.h"
 #include "piezo_compensation/training/fitters.h"
 
+#include "test_residual_common.h"
+
 namespace pa = piezo::analysis;
 
 namespace {
@@ -51,13 +53,7 @@ piezo::models::ModelPtr fit_base(const piezo::io::Dataset& train, const pa::Resi
 }
 
 piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val) {
-  piezo::training::FitRequest req;
-  req.train = &fit;
-  req.validation = &val;
-  req.axis = "c";
-  // A fast physics base (PI hysteresis + LTI creep); PIEZO_RESIDUAL_BASE=<kind> tries another.
-  const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
-  return piezo::training::fit_model(kind ? kind : "pi_creep_lti", req);
+  return piezo::test::fit_physics_base(fit, val);
 }
 
 double clean_mae() {

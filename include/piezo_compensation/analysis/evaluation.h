@@ -47,6 +47,17 @@ struct FinalDeviation {
   double measured_nm = NAN, truth_nm = NAN, one_step_nm = NAN, free_run_nm = NAN;
 };
 
+// Errors inside holds, reported apart from the rest: MAE over hold samples, and each hold's end-of-hold error
+// (prediction − reference, both averaged over the hold's last `window_s`).
+struct HoldErrors {
+  ErrorStats in_holds;              // over the hold samples where mask != 0
+  std::vector<double> end_error_nm; // per hold (holds ending before the mask starts are skipped)
+  double end_max_abs_nm = NAN, end_mean_abs_nm = NAN;
+  bool valid() const { return !end_error_nm.empty(); }
+};
+HoldErrors hold_errors(const std::vector<double>& predicted, const std::vector<double>& reference, const io::Dataset& data,
+                       const std::vector<char>& mask = {}, double window_s = 5.0);
+
 struct ModelEvaluation {
   std::string name, kind;
   std::size_t num_parameters = 0;
@@ -54,6 +65,7 @@ struct ModelEvaluation {
   SetMetrics hysteresis;  // test data outside holds (random walk / sweeps), after the warm-up
   SetMetrics creep;       // hold samples of the creep data
   std::vector<FinalDeviation> finals;
+  HoldErrors holds_free_run, holds_free_run_truth;  // free-run in the creep data's holds, vs measured / vs truth
   SeriesPrediction test, creep_pred;
 };
 

@@ -20,6 +20,11 @@ namespace piezo::analysis {
 
 // The effect families, in report order.
 const std::vector<std::string>& residual_family_names();
+// Gain families scale the base output (or the voltage) by 1 + f(signal): time_gain, cross_axis_gain, aux_gain.
+bool is_gain_family(const std::string& family);
+// Families whose regressors are functions of the operating point (voltage, position) rather than of a
+// physical signal; they must win by a clear margin (ResidualOptions::operating_point_margin).
+bool is_operating_point_family(const std::string& family);
 
 // Runs of a model over data go through models::stream_model (models/model_stream.h), inputs through
 // models::InputResolver: the one path and the one resolver.
@@ -47,7 +52,10 @@ struct FamilyScore {
   double p_value = 1.0;         // against the noise floor (see docs/closing-the-loop.md)
   bool significant = false;
   double validation_gain = 0.0; // relative validation-MAE improvement when added (0 if not tried)
+  double hold_validation_gain = 0.0;  // the same inside holds (0 without holds)
+  std::size_t parameters = 0;   // fitted weights of the best variant
   std::size_t variants = 0;     // how many parameter variants were searched
+  std::string verdict;          // "kept", or why it was not (competing explanation, hold guard, too small)
 };
 
 // One accepted effect with its fitted parameters.
@@ -58,6 +66,8 @@ struct FoundEffect {
   double explained_variance = 0.0;
   double p_value = 1.0;
   double validation_gain = 0.0;
+  double hold_validation_gain = 0.0;
+  std::vector<FamilyScore> competitors;       // other families that also validated, with why they lost
   ErrorStats test_after;                      // TEST error after adding this effect (and the ones before)
   ErrorStats test_after_truth;                // against the true position when the data has it (n = 0 otherwise)
   std::vector<FamilyScore> ranking;           // all families at this step, best first
@@ -74,6 +84,11 @@ struct ResidualOptions {
   double min_explained_variance = 0.01;
   double min_validation_gain = 0.03;   // an effect must cut the validation MAE by this fraction to be added
   int max_effects = 5;
+  // A family whose regressors depend on the operating point (voltage_nonlinearity, position_periodic,
+  // rate_dependent, missing_memory) replaces one that names a physical signal only with validation gain ≥
+  // margin × the other's + min_validation_gain.
+  double operating_point_margin = 1.5;
+  double hold_tolerance = 0.005;       // an effect may not raise the validation MAE inside holds by more than this
   std::size_t max_score_samples = 24000;  // statistics on a decimated grid (the residual is strongly autocorrelated)
   std::vector<std::string> families;   // empty = all
   std::uint64_t seed = 1;
@@ -90,15 +105,35 @@ struct ResidualOptions {
   double anchor_s = 0.0;
 };
 
+// What is left after the last accepted effect, tested against the noise floor estimated from the data.
+struct Remainder {
+  bool explained = true;       // false: structure above the floor remains ("not explained")
+  double noise_sigma_nm = 0;   // reading noise σ estimated from the data (analysis/noise_floor.h)
+  std::string noise_floor;     // how (NoiseFloor::describe())
+  double structure_nm = 0;     // RMS of the slow part above what the noise alone gives [nm]
+  double p_value = 1.0;        // block means against white noise of that σ
+  double block_s = 0;          // block length of the test
+  std::size_t blocks = 0;
+  std::vector<std::pair<std::string, double>> correlates;  // signals and products by |correlation|, top first
+};
+// residual = measured − prediction; position = the prediction; rows with mask[i] == 0 are left out (empty =
+// all). Block means over block_s seconds against white noise of the σ estimated from the data (χ², p < alpha
+// = structure); correlates: every signal the model could read and the products position × each aux signal,
+// position × time, position × other axes' signals.
+Remainder assess_remainder(const std::vector<double>& residual, const std::vector<double>& position, const io::Dataset& data,
+                           const std::string& axis, const std::vector<char>& mask, double alpha, double block_s = 30.0);
+
 struct ResidualResult {
   ErrorStats before_test, after_test;
   ErrorStats before_test_truth, after_test_truth;  // n = 0 without truth
   ErrorStats before_validation, after_validation;
   bool warm_started = false;  // TEST predictions continued from TRAIN (see ResidualOptions::warm_start)
+  double anchor_s = 0.0;              // ResidualOptions::anchor_s as used
   std::size_t test_first_scored = 0;  // first TEST row scored (after the anchor window; 0 without one)
   std::vector<char> test_mask;        // TEST rows scored
   std::vector<FoundEffect> effects;        // in the order added
   std::vector<FamilyScore> final_ranking;  // the last round (nothing significant or limit reached)
+  Remainder remainder;                     // TEST residual after all effects
   std::vector<double> test_pred_before, test_pred_after;
   models::ModelPtr model;                  // the augmented model (base + terms), fitted on TRAIN
 };
@@ -119,12 +154,13 @@ CvScore cv_explained_variance(const std::vector<double>& r, const std::vector<do
                               const std::vector<std::size_t>& shifts);
 
 // Strongest periodic component of r against a variable u (time or position): searches frequencies (cycles per
-// unit of u) in [f_min, f_max], refines the peak and tests it against the local spectral background
-// (periodogram ordinates ≈ exponential; Bonferroni over the frequencies searched).
+// unit of u) in [f_min, f_max], refines the peak and tests it against a red-noise background: on a uniform
+// grid the periodogram divided by the AR(1) spectrum fitted to r, then the median of that over [f/2, 2f]
+// around the peak (periodogram ordinates ≈ exponential; Bonferroni over the frequencies searched).
 struct PeriodicPeak {
   double frequency = 0.0;   // cycles per unit of u
   double amplitude = 0.0;   // of r's sinusoid at that frequency [unit of r]
-  double power_ratio = 0.0; // peak power / local background mean
+  double power_ratio = 0.0; // peak power / red-noise background mean
   double p_value = 1.0;
   std::size_t searched = 0;
 };

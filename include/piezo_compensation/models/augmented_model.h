@@ -28,6 +28,9 @@ struct EffectTerm {
   // "sincos"          [sin(2π y/period), cos(2π y/period)]   y = lag_L(s); period in the signal's unit
   // "rate"            [d, |d|, sign(d)·d²], each low-passed τ d = s_t − s_{t−1}
   // "powers"          [u², u³], u = (s − pre_center)/pre_scale
+  // "gain"            [(q − reference)·g]                    q = `scales` (base output or voltage), g below
+  // "gain_quadratic"  [(q − reference)·g, (q − reference)·g²], g = (lowpass_τ(lag_L(s)) − pre_center)/pre_scale
+  //                   a gain effect: the base output (or the voltage, to first order) scaled by 1 + f(signal)
   std::string type = "linear";
   std::string signal = kSignalVoltage;
   std::string family;              // effect family it was added for (report only)
@@ -35,7 +38,10 @@ struct EffectTerm {
   double time_constant_s = 0.0;    // 0 = no low-pass
   double threshold = 0.0;          // play threshold, in the signal's unit
   double period = 0.0;             // sincos period, in the signal's unit (s for time, nm for position)
-  double pre_center = 0.0, pre_scale = 1.0;  // powers only
+  double pre_center = 0.0, pre_scale = 1.0;  // powers and gains: centring of the signal
+  std::string scales = kSignalPosition;      // gains: what is scaled, "position" (base output) or "voltage"
+  double reference = 0.0;                    // gains: value of the scaled quantity the gain acts about
+  bool is_gain() const { return type == "gain" || type == "gain_quadratic"; }
   // Standardisation of each raw regressor (fitted on training data) and its weight [nm per standardised unit].
   std::vector<double> center, scale, weight;
 
@@ -96,6 +102,7 @@ class AugmentedModel : public Model {
   const Model& base() const { return *base_; }
   const std::vector<EffectTerm>& terms() const { return stream_.terms(); }
   double offset_nm() const { return stream_.offset_nm(); }
+  double sample_rate_hz() const { return sample_rate_hz_; }
   // Base prediction and correction for the current sample (for reports and tests).
   double base_prediction(const ModelInput& in) const;
 

@@ -59,7 +59,10 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
      << "- test data: `" << ctx.test_path << "` (hysteresis: samples outside creep holds"
      << (ctx.warmup_s > 0 ? ", after a " + f1(ctx.warmup_s) + " s warm-up" : std::string()) << ")\n"
      << "- creep data: `" << (ctx.creep_path.empty() ? ctx.test_path + " (its holds)" : ctx.creep_path)
-     << "` (creep: samples in holds, phase = hold)\n- axis " << ctx.axis << "\n";
+     << "` (creep: samples in holds, phase = hold)\n- axis " << ctx.axis << "\n"
+     << (ctx.anchor_s > 0 ? "- initial offset: anchored on the first " + f1(ctx.anchor_s) +
+                                " s of measured position (scored after them)\n"
+                          : std::string("- initial state: at rest at the first voltage and measured position (no anchor)\n"));
   auto seglist = [](const std::vector<int>& v) {
     std::string s;
     for (int k : v) s += (s.empty() ? "" : ",") + std::to_string(k);
@@ -92,6 +95,20 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
       os << "| " << e.name << " | " << set << " | " << cell(m->one_step.vs_measured) << " | " << cell(m->one_step.vs_truth)
          << " | " << cell(m->free_run.vs_measured) << " | " << cell(m->free_run.vs_truth) << " |\n";
 
+  if (!evals.empty() && evals[0].holds_free_run.valid()) {
+    os << "\n## Holds, free-run [nm]: MAE inside the holds, and the end-of-hold error (prediction − reference, "
+          "means over each hold's last " << f1(ctx.final_window_s) << " s)\n\n"
+       << "| model | hold MAE vs measured | hold MAE vs truth | end-of-hold error vs measured: max / mean abs | "
+          "vs truth: max / mean abs | holds |\n|---|---|---|---|---|---|\n";
+    auto endc = [](const HoldErrors& h) {
+      return h.valid() ? f1(h.end_max_abs_nm) + " / " + f1(h.end_mean_abs_nm) : std::string("–");
+    };
+    for (const auto& e : evals)
+      os << "| " << e.name << " | " << f1(e.holds_free_run.in_holds.mae_nm) << " | "
+         << (e.holds_free_run_truth.valid() ? f1(e.holds_free_run_truth.in_holds.mae_nm) : std::string("–")) << " | "
+         << endc(e.holds_free_run) << " | " << endc(e.holds_free_run_truth) << " | " << e.holds_free_run.end_error_nm.size()
+         << " |\n";
+  }
   if (!evals.empty() && !evals[0].finals.empty()) {
     os << "\n## Final position after each hold (mean of the last 5 s), deviation from the measurement [nm] (Fig. 14)\n\n"
        << "Encoder-noise band ±" << f1(ctx.noise_sigma_nm) << " nm (σ of one sample; the 5-s mean of the measurement itself "
@@ -141,7 +158,7 @@ void write_eval_report(const std::string& dir, const EvalContext& ctx, const std
     j.begin_object();
     j.kv("test_data", ctx.test_path).kv("creep_data", ctx.creep_path).kv("axis", ctx.axis);
     j.kv("noise_sigma_nm", ctx.noise_sigma_nm).kv("noise_floor_mae_nm", noise_floor_mae_nm(ctx.noise_sigma_nm));
-    j.kv("measured_sigma_nm", ctx.measured_sigma_nm).kv("warmup_s", ctx.warmup_s);
+    j.kv("measured_sigma_nm", ctx.measured_sigma_nm).kv("warmup_s", ctx.warmup_s).kv("anchor_s", ctx.anchor_s);
     j.key("models").begin_array();
     for (const auto& e : evals) {
       j.begin_object();
@@ -150,6 +167,14 @@ void write_eval_report(const std::string& dir, const EvalContext& ctx, const std
       json_set(j, e.hysteresis);
       j.key("creep");
       json_set(j, e.creep);
+      auto json_holds = [&](const char* k, const HoldErrors& h) {
+        j.key(k).begin_object();
+        j.kv("mae_nm", h.in_holds.mae_nm).kv("end_max_abs_nm", h.end_max_abs_nm).kv("end_mean_abs_nm", h.end_mean_abs_nm);
+        j.key("end_error_nm").array(h.end_error_nm);
+        j.end_object();
+      };
+      json_holds("holds_free_run_vs_measured", e.holds_free_run);
+      json_holds("holds_free_run_vs_truth", e.holds_free_run_truth);
       j.key("final_positions").begin_array();
       for (const auto& f : e.finals) {
         j.begin_object();

@@ -124,6 +124,31 @@ double mean_of(const std::vector<double>& v, std::size_t b, std::size_t e) {
 }
 }  // namespace
 
+HoldErrors hold_errors(const std::vector<double>& predicted, const std::vector<double>& reference, const io::Dataset& d,
+                       const std::vector<char>& mask, double window_s) {
+  HoldErrors h;
+  if (reference.empty()) return h;
+  std::vector<char> m = hold_mask(d);
+  for (std::size_t i = 0; i < m.size(); ++i) m[i] = m[i] && (mask.empty() || mask[i]);
+  h.in_holds = error_stats(predicted, reference, m);
+  const double rate = d.size() > 1 ? d.sample_rate_hz() : 1.0;
+  const std::size_t w = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(window_s * rate)));
+  double sum = 0, mx = 0;
+  for (const auto& hold : find_holds(d)) {
+    const std::size_t b = hold.end > hold.begin + w ? hold.end - w : hold.begin;
+    if (!m[hold.end - 1] || !m[b]) continue;
+    const double e = mean_of(predicted, b, hold.end) - mean_of(reference, b, hold.end);
+    h.end_error_nm.push_back(e);
+    sum += std::fabs(e);
+    mx = std::max(mx, std::fabs(e));
+  }
+  if (!h.end_error_nm.empty()) {
+    h.end_max_abs_nm = mx;
+    h.end_mean_abs_nm = sum / static_cast<double>(h.end_error_nm.size());
+  }
+  return h;
+}
+
 ModelEvaluation evaluate_model(const models::Model& model, const std::string& name, const io::Dataset& test,
                                const io::Dataset* creep, const EvalOptions& opt) {
   ModelEvaluation ev;
@@ -142,6 +167,12 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   ev.creep_pred = creep ? predict_series(model, *creep, opt.axis, opt.anchor_s) : ev.test;
   const io::AxisSeries& cax = cd.axis(opt.axis);
   ev.creep = metrics(ev.creep_pred, cax, after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.first_scored));
+  {
+    std::vector<char> m = hold_mask(cd, opt.creep_segments);
+    for (std::size_t i = 0; i < m.size() && i < ev.creep_pred.first_scored; ++i) m[i] = 0;
+    ev.holds_free_run = hold_errors(ev.creep_pred.free_run, cax.position_nm, cd, m, opt.final_window_s);
+    if (cax.has_truth()) ev.holds_free_run_truth = hold_errors(ev.creep_pred.free_run, cax.true_position_nm, cd, m, opt.final_window_s);
+  }
   const double rate = cd.size() > 1 ? cd.sample_rate_hz() : 1.0;
   for (const auto& h : find_holds(cd)) {
     if (!in_segments(cd, h.begin, opt.creep_segments) || h.end <= ev.creep_pred.first_scored) continue;

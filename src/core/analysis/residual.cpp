@@ -1,6 +1,8 @@
 // The residual loop: score every effect family on the current residual, add the best significant one, refit.
 #include "piezo_compensation/analysis/residual.h"
 
+#include "piezo_compensation/analysis/evaluation.h"
+
 #include <Eigen/Dense>
 #include <algorithm>
 #include <cmath>
@@ -16,10 +18,19 @@ using models::EffectTerm;
 using models::EffectTermStream;
 
 const std::vector<std::string>& residual_family_names() {
-  static const std::vector<std::string> names = {"time_drift",     "cross_axis",           "position_periodic",
-                                                 "rate_dependent", "aux_signal",           "periodic_disturbance",
-                                                 "missing_memory", "voltage_nonlinearity"};
+  static const std::vector<std::string> names = {
+      "time_drift",     "cross_axis", "position_periodic",    "rate_dependent", "aux_signal", "periodic_disturbance",
+      "missing_memory", "voltage_nonlinearity", "time_gain", "cross_axis_gain", "aux_gain"};
   return names;
+}
+
+bool is_gain_family(const std::string& family) {
+  return family == "time_gain" || family == "cross_axis_gain" || family == "aux_gain";
+}
+
+bool is_operating_point_family(const std::string& family) {
+  return family == "voltage_nonlinearity" || family == "position_periodic" || family == "rate_dependent" ||
+         family == "missing_memory";
 }
 
 namespace {
@@ -62,8 +73,9 @@ struct Context {
   std::string axis;
   double fs = 11.0;
   std::vector<double> voltage, measured, x_base;  // x_base: base model prediction per row
-  std::vector<std::string> other_axes;            // other axes' voltage column names
+  std::vector<std::string> other_axes;            // other axes' voltage and position column names
   std::vector<std::string> aux_names;             // auxiliary columns
+  double x_at_zero_v = 0.0;                       // base output at rest at 0 V: where a stroke gain acts about
 };
 
 // Raw regressors of `terms` over all rows (streamed from row 0). `fixed` terms (already weighted) run in the
@@ -206,6 +218,45 @@ FamilyCandidates candidates(const std::string& family, const Context& c, const s
       for (double lag : {0.0, 10.0, 60.0})
         for (double tau : {0.0, 30.0, 300.0})
           add({term(family, "linear", col, lag, tau)}, {{"lag_s", lag}, {"time_constant_s", tau}}, {{"signal", col}});
+  } else if (is_gain_family(family)) {
+    // The base output scaled by 1 + f(signal) (f linear here; quadratic and gain-on-voltage are tried at
+    // validation, see trace_residual). Signals as in the additive families, lags/low-passes chosen by the data.
+    std::vector<std::string> sigs;
+    std::vector<double> lags{0.0}, taus{0.0};
+    if (family == "time_gain") {
+      sigs = {models::kSignalTime};
+    } else if (family == "cross_axis_gain") {
+      sigs = c.other_axes;
+      lags = {0.0, 1.0, 5.0};
+      taus = {0.0, 10.0, 60.0};
+      if (sigs.empty()) fc.note = "no other axis in the data";
+    } else {
+      sigs = c.aux_names;
+      // Thermal paths are slow: delays up to minutes, low-passes up to ~20 min.
+      lags = {0.0, 15.0, 45.0, 120.0};
+      taus = {0.0, 30.0, 100.0, 300.0, 1000.0};
+      if (sigs.empty()) fc.note = "no auxiliary column in the data";
+    }
+    for (const auto& sig : sigs) {
+      models::InputResolver col(*c.data, {sig}, c.axis);
+      std::vector<double> sv(c.x_base.size());
+      for (std::size_t i = 0; i < sv.size(); ++i) col.fill(i, &sv[i]);
+      const double mu = mean_of(sv, 0, sv.size());
+      double var = 0;
+      for (double x : sv) var += (x - mu) * (x - mu);
+      const double sd = std::sqrt(var / static_cast<double>(std::max<std::size_t>(1, sv.size())));
+      if (!(sd > 0)) continue;
+      for (double lag : lags)
+        for (double tau : taus) {
+          EffectTerm t = term(family, "gain", sig, lag, tau);
+          t.scales = models::kSignalPosition;
+          t.reference = c.x_at_zero_v;
+          t.pre_center = mu;
+          t.pre_scale = sd;
+          add({t}, {{"lag_s", lag}, {"time_constant_s", tau}}, {{"signal", sig}, {"scales", "position"}});
+        }
+    }
+    if (fc.variants.empty() && fc.note.empty()) fc.note = "signal constant";
   } else if (family == "rate_dependent") {
     for (double tau : {0.0, 1.0, 5.0, 20.0, 60.0})
       add({term(family, "rate", models::kSignalVoltage, 0.0, tau)}, {{"time_constant_s", tau}});
@@ -241,8 +292,11 @@ FamilyCandidates candidates(const std::string& family, const Context& c, const s
       }
     }
     const double range = span_of(u);
-    // Time: at least 4 cycles in TRAIN up to 0.98·Nyquist. Position: 3 cycles over the range down to 30 nm.
-    const double f_min = in_time ? 4.0 / duration : 3.0 / std::max(range, 1e-9);
+    // Time: at least 8 full periods inside TRAIN (fewer cannot be told from slow structure such as creep the
+    // model misses), up to 0.98·Nyquist. Position: at least 4 full periods across the visited range (a smooth
+    // shape over the stroke is voltage_nonlinearity's or a gain's; a random walk traverses each period many
+    // times), down to 30 nm.
+    const double f_min = in_time ? 8.0 / duration : 4.0 / std::max(range, 1e-9);
     const double f_max = in_time ? 0.49 * c.fs : 1.0 / 30.0;
     if (f_max <= f_min) {
       fc.note = in_time ? "data too short" : "position range too small";
@@ -261,7 +315,7 @@ FamilyCandidates candidates(const std::string& family, const Context& c, const s
     else
       add({t}, {{"period_nm", period}, {"power_ratio", fc.peak.power_ratio}});
     std::ostringstream os;
-    os << "peak " << fc.peak.power_ratio << "× the local spectral background, " << fc.peak.searched << " frequencies searched";
+    os << "peak " << fc.peak.power_ratio << "× the red-noise background, " << fc.peak.searched << " frequencies searched";
     fc.note = os.str();
   } else {
     throw std::invalid_argument("unknown effect family '" + family + "'");
@@ -355,6 +409,14 @@ void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size
       e.parameters["gain_nm_per_v_step"] = w(0);
       e.parameters["gain_nm_per_abs_v_step"] = w(1);
       e.parameters["gain_nm_per_signed_v2_step"] = w(2);
+    } else if (t.is_gain()) {
+      // f(s) = w·g(s)/(q − ref) per unit of the centred signal: relative gain change per signal unit.
+      const std::string sig = t.signal == models::kSignalTime ? "per_h" : "per_unit";
+      const double k = t.signal == models::kSignalTime ? 3600.0 : 1.0;
+      e.parameters[pre + "gain_change_" + sig] = w(0) / t.pre_scale * k;
+      if (t.type == "gain_quadratic") e.parameters[pre + "gain_change_quadratic"] = t.weight[1] / t.scale[1];
+      e.labels["scales"] = t.scales;
+      e.labels["form"] = t.type == "gain" ? "linear" : "quadratic";
     } else if (t.type == "powers") {
       e.parameters["quadratic_nm"] = w(0);
       e.parameters["cubic_nm"] = w(1);
@@ -400,7 +462,18 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     c.x_base = run_model(*b, train, o.axis, o.mode);
   }
   for (const auto& other : train.axes)
-    if (other.name != o.axis && test.has_axis(other.name)) c.other_axes.push_back(io::voltage_column(other.name));
+    if (other.name != o.axis && test.has_axis(other.name)) {
+      c.other_axes.push_back(io::voltage_column(other.name));
+      c.other_axes.push_back(io::position_column(other.name));
+    }
+  {
+    // Inputs held at their first values: only the rest position at 0 V matters here.
+    models::ModelPtr b = base.clone();
+    b->reset(0.0, ax.position_nm[0]);
+    models::InputResolver in(train, b->aux_inputs(), o.axis);
+    c.x_at_zero_v = b->predict(models::ModelInput{0.0, in.at(0)});
+    if (!std::isfinite(c.x_at_zero_v)) c.x_at_zero_v = mean_of(c.x_base, 0, c.x_base.size());
+  }
   for (const auto& a : train.aux)
     if (test.find_aux(a.name)) c.aux_names.push_back(a.name);
 
@@ -411,6 +484,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
 
   ResidualResult res;
   res.warm_started = o.warm_start && continues_in_time(train, test);
+  res.anchor_s = o.anchor_s;
   models::StreamOptions test_run;
   test_run.mode = o.mode;
   test_run.warmup = res.warm_started ? &train : nullptr;
@@ -436,13 +510,27 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   std::mt19937_64 rng(o.seed);
   const auto& fams = o.families.empty() ? residual_family_names() : o.families;
 
-  auto val_mae = [&](std::vector<EffectTerm> t) {
+  // Validation: terms fitted on TRAIN's first part, scored on the rest; separately inside holds (the hold guard).
+  const std::vector<char> holds = hold_mask(train);
+  std::size_t n_val_hold = 0;
+  for (std::size_t i = n_fit; i < n; ++i) n_val_hold += holds[i] != 0;
+  struct Val {
+    double mae = 0, hold_mae = 0;
+  };
+  auto validate = [&](std::vector<EffectTerm> t) {
     double off = 0.0;
     fit_terms(c, t, off, 0, n_fit);
     const std::vector<double> pred = corrected(c, t, off);
-    std::vector<double> r(n);
-    for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - pred[i];
-    return mae_of(r, n_fit, n);
+    Val v;
+    double sh = 0;
+    for (std::size_t i = n_fit; i < n; ++i) {
+      const double e = std::fabs(c.measured[i] - pred[i]);
+      v.mae += e;
+      if (holds[i]) sh += e;
+    }
+    v.mae /= static_cast<double>(n - n_fit);
+    v.hold_mae = n_val_hold ? sh / static_cast<double>(n_val_hold) : 0.0;
+    return v;
   };
   {
     std::vector<double> r(n);
@@ -468,23 +556,86 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       if (a.available != b.available) return a.available;
       return a.explained_variance > b.explained_variance;
     });
-    const double mae_now = val_mae(terms);
-    FamilyScore* winner = nullptr;
+    const Val now = validate(terms);
+    // Every significant family is validated: competing explanations are compared on data they were not fitted on.
     for (auto& s : ranking) {
       if (!s.available || !s.significant) continue;
-      std::vector<EffectTerm> trial = terms;
-      for (const auto& t : s.best.terms) trial.push_back(t);
-      s.validation_gain = 1.0 - val_mae(trial) / mae_now;
-      log("  validation MAE gain of " + s.family + ": " + std::to_string(100.0 * s.validation_gain) + " %");
-      if (s.validation_gain >= o.min_validation_gain) {
-        winner = &s;
-        break;
+      auto score = [&](const Candidate& cand) {
+        std::vector<EffectTerm> trial = terms;
+        for (const auto& t : cand.terms) trial.push_back(t);
+        return validate(trial);
+      };
+      Val v = score(s.best);
+      if (is_gain_family(s.family)) {
+        // Gain on the output or (to first order) on the voltage; f linear or quadratic: chosen by validation,
+        // a quadratic must gain 1 % more than the linear form to be kept.
+        const Candidate base_cand = s.best;
+        for (const char* scales : {models::kSignalPosition, models::kSignalVoltage})
+          for (const char* form : {"gain", "gain_quadratic"}) {
+            Candidate alt = base_cand;
+            alt.terms[0].scales = scales;
+            alt.terms[0].type = form;
+            alt.terms[0].reference = std::string(scales) == models::kSignalVoltage ? 0.0 : c.x_at_zero_v;
+            alt.terms[0].center.clear(), alt.terms[0].scale.clear(), alt.terms[0].weight.clear();
+            if (alt.terms[0].scales == base_cand.terms[0].scales && alt.terms[0].type == base_cand.terms[0].type) continue;
+            const Val va = score(alt);
+            const double need = std::string(form) == "gain_quadratic" ? 0.99 : 1.0;
+            if (va.mae < need * v.mae) {
+              v = va;
+              s.best = alt;
+              s.best.labels["scales"] = scales;
+            }
+          }
+        s.best.labels["form"] = s.best.terms[0].type == "gain" ? "linear" : "quadratic";
       }
+      s.validation_gain = 1.0 - v.mae / now.mae;
+      s.hold_validation_gain = n_val_hold ? 1.0 - v.hold_mae / now.hold_mae : 0.0;
+      s.parameters = 0;
+      for (const auto& t : s.best.terms) s.parameters += t.num_regressors();
+      log("  validation MAE gain of " + s.family + ": " + std::to_string(100.0 * s.validation_gain) + " %" +
+          (n_val_hold ? ", in holds " + std::to_string(100.0 * s.hold_validation_gain) + " %" : ""));
     }
+    // Eligible: enough validation gain and, where the validation part has holds, no worse inside them.
+    FamilyScore* best_phys = nullptr;
+    FamilyScore* best_op = nullptr;
+    for (auto& s : ranking) {
+      if (!s.available || !s.significant) continue;
+      if (s.validation_gain < o.min_validation_gain) {
+        s.verdict = "validation gain below " + std::to_string(100.0 * o.min_validation_gain).substr(0, 4) + " %";
+        continue;
+      }
+      if (n_val_hold && s.hold_validation_gain < -o.hold_tolerance) {
+        s.verdict = "worsens the validation error inside holds";
+        continue;
+      }
+      FamilyScore*& slot = is_operating_point_family(s.family) ? best_op : best_phys;
+      if (!slot || s.validation_gain > slot->validation_gain) slot = &s;
+    }
+    FamilyScore* winner = best_phys;
+    if (best_op && (!best_phys || best_op->validation_gain >= o.operating_point_margin * best_phys->validation_gain +
+                                                                   o.min_validation_gain))
+      winner = best_op;
     if (!winner) {
       res.final_ranking = ranking;
       break;
     }
+    std::vector<FamilyScore> competitors;
+    for (auto& s : ranking) {
+      if (&s == winner || !s.available || !s.significant || !s.verdict.empty()) continue;
+      std::ostringstream why;
+      why.precision(3);
+      if (is_operating_point_family(s.family) && !is_operating_point_family(winner->family) &&
+          s.validation_gain >= winner->validation_gain)
+        why << "depends on the operating point and did not beat " << winner->family << " (" << 100 * winner->validation_gain
+            << " %) by the margin (needs ≥ " << 100 * (o.operating_point_margin * winner->validation_gain + o.min_validation_gain)
+            << " %)";
+      else
+        why << "validates worse than " << winner->family << ": " << 100 * s.validation_gain << " % vs "
+            << 100 * winner->validation_gain << " %";
+      s.verdict = why.str();
+      competitors.push_back(s);
+    }
+    winner->verdict = "kept";
     effect_first.push_back(terms.size());
     for (const auto& t : winner->best.terms) terms.push_back(t);
     fit_terms(c, terms, offset, 0, n);
@@ -512,6 +663,8 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     e.p_value = winner->p_value;
     e.validation_gain = winner->validation_gain;
     e.ranking = ranking;
+    e.competitors = competitors;
+    e.hold_validation_gain = winner->hold_validation_gain;
     models::AugmentedModel m(cur_base->clone(), terms, offset, fs);
     const std::vector<double> pt = run_test(m);
     e.test_after = error_stats(pt, meas_test, res.test_mask);
@@ -537,6 +690,18 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     std::vector<double> r(n);
     for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - p[i];
     res.after_validation.mae_nm = mae_of(r, n_fit, n);
+  }
+  {
+    std::vector<double> r(test.size());
+    for (std::size_t i = 0; i < r.size(); ++i) r[i] = meas_test[i] - res.test_pred_after[i];
+    res.remainder = assess_remainder(r, res.test_pred_after, test, o.axis, res.test_mask, o.alpha);
+    std::ostringstream os;
+    if (res.remainder.explained)
+      os << "what is left is at the noise floor (σ " << res.remainder.noise_sigma_nm << " nm estimated from the data)";
+    else
+      os << "not explained: " << res.remainder.structure_nm << " nm of slow structure above the noise floor (σ "
+         << res.remainder.noise_sigma_nm << " nm), top correlate " << res.remainder.correlates.front().first;
+    log(os.str());
   }
   res.model = std::move(model);
   return res;

@@ -47,9 +47,10 @@ std::vector<double> yaml_vec(const YAML::Node& n, const char* key) {
 
 std::size_t EffectTerm::num_regressors() const {
   if (type == "linear" || type == "play") return 1;
-  if (type == "sincos" || type == "powers") return 2;
+  if (type == "sincos" || type == "powers" || type == "gain_quadratic") return 2;
+  if (type == "gain") return 1;
   if (type == "rate") return 3;
-  throw std::runtime_error("augmented model term: unknown type '" + type + "' (linear, play, sincos, rate, powers)");
+  throw std::runtime_error("augmented model term: unknown type '" + type + "' (linear, play, sincos, rate, powers, gain, gain_quadratic)");
 }
 
 std::string EffectTerm::name() const {
@@ -59,6 +60,7 @@ std::string EffectTerm::name() const {
   if (type == "play") os << ", r=" << fmt(threshold);
   if (type == "sincos") os << ", period " << fmt(period) << (signal == kSignalTime ? " s" : signal == kSignalPosition ? " nm" : "");
   if (time_constant_s > 0) os << ", low-pass " << fmt(time_constant_s) << " s";
+  if (is_gain()) os << ", scales " << scales;
   os << ")";
   return os.str();
 }
@@ -74,6 +76,10 @@ YAML::Node EffectTerm::to_yaml() const {
   n["period"] = period;
   n["pre_center"] = pre_center;
   n["pre_scale"] = pre_scale;
+  if (is_gain()) {
+    n["scales"] = scales;
+    n["reference"] = reference;
+  }
   for (double c : center) n["center"].push_back(c);
   for (double s : scale) n["scale"].push_back(s);
   for (double w : weight) n["weight"].push_back(w);
@@ -84,7 +90,7 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
   if (!n.IsMap()) throw std::runtime_error("augmented model: a term is not a map");
   for (const auto& kv : n) {
     static const char* known[] = {"type", "signal", "family", "lag_s", "time_constant_s", "threshold", "period",
-                                  "pre_center", "pre_scale", "center", "scale", "weight"};
+                                  "pre_center", "pre_scale", "center", "scale", "weight", "scales", "reference"};
     const std::string k = kv.first.as<std::string>();
     if (std::find_if(std::begin(known), std::end(known), [&](const char* s) { return k == s; }) == std::end(known))
       throw std::runtime_error("augmented model term: unknown key '" + k + "'");
@@ -100,6 +106,8 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
   t.period = yaml_num(n, "period", 0.0);
   t.pre_center = yaml_num(n, "pre_center", 0.0);
   t.pre_scale = yaml_num(n, "pre_scale", 1.0);
+  if (n["scales"]) t.scales = n["scales"].as<std::string>();
+  t.reference = yaml_num(n, "reference", 0.0);
   t.center = yaml_vec(n, "center");
   t.scale = yaml_vec(n, "scale");
   t.weight = yaml_vec(n, "weight");
@@ -109,6 +117,8 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
   if (t.lag_s < 0 || t.time_constant_s < 0 || t.threshold < 0)
     throw std::runtime_error("augmented model term " + t.name() + ": lag_s, time_constant_s and threshold must be >= 0");
   if (t.type == "sincos" && !(t.period > 0)) throw std::runtime_error("augmented model term " + t.name() + ": period must be > 0");
+  if (t.is_gain() && t.scales != kSignalPosition && t.scales != kSignalVoltage)
+    throw std::runtime_error("augmented model term " + t.name() + ": 'scales' must be position or voltage");
   if (t.pre_scale == 0.0) throw std::runtime_error("augmented model term " + t.name() + ": pre_scale must be non-zero");
   for (double s : t.scale)
     if (s == 0.0) throw std::runtime_error("augmented model term " + t.name() + ": scale must be non-zero");
@@ -134,7 +144,8 @@ struct TermConst {
 
 // Evaluates one term for the current signal value s; writes the raw regressors and, if next != null, the
 // state after committing s.
-void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, double s, double* out, TermState* next) {
+void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, double s, double q, double* out,
+               TermState* next) {
   double lagged = s;
   if (c.lag > 0 && !st.fresh) lagged = st.ring[st.pos];
   auto lowpass = [&](int i, double x) {
@@ -158,6 +169,11 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
     const double d = st.fresh ? 0.0 : s - st.prev;
     const double raw[3] = {d, std::fabs(d), d * std::fabs(d)};
     for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = lowpass(i, raw[i]);
+  } else if (t.is_gain()) {
+    const double g = (lowpass(0, lagged) - t.pre_center) / t.pre_scale;
+    lp_new[0] = lowpass(0, lagged);
+    out[0] = (q - t.reference) * g;
+    if (t.type == "gain_quadratic") out[1] = (q - t.reference) * g * g;
   } else {  // powers
     const double u = (s - t.pre_center) / t.pre_scale;
     out[0] = u * u;
@@ -183,7 +199,7 @@ struct EffectTermStream::Impl {
   // One pass over all terms: raw regressors into out (may be null), returns the correction; commits if asked.
   // Non-position terms first, then position terms at the corrected position.
   double run(double v, double x_base, const double* cols, double* out, std::vector<TermState>* commit) const {
-    double local[3];
+    double local[3] = {0, 0, 0};
     double corr = offset_nm;
     for (int pass = 0; pass < 2; ++pass) {
       const double x_eff = x_base + corr;
@@ -193,9 +209,11 @@ struct EffectTermStream::Impl {
         if (pos != (pass == 1)) continue;
         const int c = consts[i].column;
         const double s = c >= 0 ? cols[c] : (pos ? x_eff : v);
+        // A gain scales the base output (not the corrected one, which would make it recursive) or the voltage.
+        const double q = t.scales == kSignalVoltage ? v : x_base;
         double* o = out ? out + first[i] : local;
         TermState next;
-        eval_term(t, consts[i], states[i], s, o, commit ? &next : nullptr);
+        eval_term(t, consts[i], states[i], s, q, o, commit ? &next : nullptr);
         if (commit) {
           TermState& st = (*commit)[i];
           const std::size_t lag = consts[i].lag;

@@ -1,11 +1,13 @@
 #include "piezo_compensation/models/c_export.h"
 
+#include <algorithm>
 #include <cctype>
 #include <cmath>
 #include <cstdio>
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/linear_model.h"
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/models/registry.h"
@@ -221,6 +223,111 @@ static double PFX_inverse(const PFX_state* st, double target_nm) {
 }
 )C";
 
+
+// Effect terms of an augmented model (mirrors models::EffectTermStream): term types 0 linear, 1 play,
+// 2 sincos, 3 rate, 4 powers, 5 gain, 6 gain_quadratic; signal -1 = voltage, -2 = corrected position,
+// >= 0 = index into aux; gains scale the base output (PFX_scales 0) or the voltage (1).
+const char* kAugmentedCode = R"C(
+typedef struct {
+  PFX_base_state base;
+  double ring[PFX_RING]; int pos[PFX_NT];
+  double lp[PFX_NT][3]; double play[PFX_NT]; double prev[PFX_NT]; int fresh[PFX_NT];
+} PFX_state;
+
+static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
+  int i;
+  (void)PFX_base_step;  /* the base's own step/inverse are not needed here */
+#ifdef PFX_base_HAS_INVERSE
+  (void)PFX_base_inverse;
+#endif
+  PFX_base_init(&st->base, voltage_v, position_nm);
+  for (i = 0; i < PFX_RING; ++i) st->ring[i] = 0.0;
+  for (i = 0; i < PFX_NT; ++i) {
+    st->pos[i] = 0; st->lp[i][0] = st->lp[i][1] = st->lp[i][2] = 0.0;
+    st->play[i] = 0.0; st->prev[i] = 0.0; st->fresh[i] = 1;
+  }
+}
+
+static double PFX_lowpass(const PFX_state* st, int t, int i, double x) {
+  if (PFX_alpha[t] <= 0.0) return x;
+  return PFX_alpha[t] * (st->fresh[t] ? x : st->lp[t][i]) + (1.0 - PFX_alpha[t]) * x;
+}
+
+/* Correction for the current sample; with commit != 0 the term states advance (each term reads only its own
+ * state before writing it). */
+static double PFX_run(PFX_state* st, double v, double x_base, const double* aux, int commit) {
+  double corr = PFX_offset_nm;
+  int pass, t, r;
+  for (pass = 0; pass < 2; ++pass) {
+    double x_eff = x_base + corr;
+    for (t = 0; t < PFX_NT; ++t) {
+      double s, lagged, q, o[3] = {0.0, 0.0, 0.0}, lpn[3] = {0.0, 0.0, 0.0}, playn = st->play[t];
+      int is_pos = PFX_signal[t] == -2;
+      if (is_pos != (pass == 1)) continue;
+      s = PFX_signal[t] >= 0 ? aux[PFX_signal[t]] : (is_pos ? x_eff : v);
+      lagged = (PFX_lag[t] > 0 && !st->fresh[t]) ? st->ring[PFX_ring0[t] + st->pos[t]] : s;
+      q = PFX_scales[t] ? v : x_base;
+      switch (PFX_type[t]) {
+        case 0: o[0] = lpn[0] = PFX_lowpass(st, t, 0, lagged); break;
+        case 1: {
+          double pr = st->fresh[t] ? lagged : st->play[t], lo = lagged - PFX_thr[t], hi = lagged + PFX_thr[t];
+          playn = pr < lo ? lo : (pr > hi ? hi : pr);
+          o[0] = lpn[0] = PFX_lowpass(st, t, 0, playn);
+          break;
+        }
+        case 2: o[0] = sin(6.283185307179586 * lagged / PFX_period[t]); o[1] = cos(6.283185307179586 * lagged / PFX_period[t]); break;
+        case 3: {
+          double d = st->fresh[t] ? 0.0 : s - st->prev[t], raw[3];
+          int i;
+          raw[0] = d; raw[1] = fabs(d); raw[2] = d * fabs(d);
+          for (i = 0; i < 3; ++i) o[i] = lpn[i] = PFX_lowpass(st, t, i, raw[i]);
+          break;
+        }
+        case 4: { double u = (s - PFX_pc[t]) / PFX_ps[t]; o[0] = u * u; o[1] = u * u * u; break; }
+        default: {
+          double f = PFX_lowpass(st, t, 0, lagged), g = (f - PFX_pc[t]) / PFX_ps[t];
+          lpn[0] = f;
+          o[0] = (q - PFX_ref[t]) * g;
+          if (PFX_type[t] == 6) o[1] = (q - PFX_ref[t]) * g * g;
+          break;
+        }
+      }
+      if (commit) {
+        int L = PFX_lag[t], i;
+        if (L > 0) {
+          if (st->fresh[t]) for (i = 0; i < L; ++i) st->ring[PFX_ring0[t] + i] = s;
+          st->ring[PFX_ring0[t] + st->pos[t]] = s;
+          st->pos[t] = (st->pos[t] + 1) % L;
+        }
+        for (i = 0; i < 3; ++i) st->lp[t][i] = lpn[i];
+        st->play[t] = playn; st->prev[t] = s; st->fresh[t] = 0;
+      }
+      for (r = 0; r < PFX_nreg[t]; ++r) corr += PFX_w[3 * t + r] * (o[r] - PFX_c[3 * t + r]) / PFX_sc[3 * t + r];
+    }
+  }
+  return corr;
+}
+
+/* aux: the values of PFX_AUX_NAMES at this sample, in that order (may be NULL when PFX_NAUX is 0). */
+static double PFX_predict(const PFX_state* st, double voltage_v, const double* aux) {
+  double x = PFX_base_predict(&st->base, voltage_v);
+  return x + PFX_run((PFX_state*)st, voltage_v, x, aux, 0);
+}
+
+static void PFX_commit(PFX_state* st, double voltage_v, double position_nm, const double* aux) {
+  double x = PFX_base_predict(&st->base, voltage_v);
+  double corr = PFX_run(st, voltage_v, x, aux, 0);
+  PFX_base_commit(&st->base, voltage_v, position_nm - corr);
+  PFX_run(st, voltage_v, x, aux, 1);
+}
+
+static double PFX_step(PFX_state* st, double voltage_v, double measured_nm, const double* aux) {
+  double y = PFX_predict(st, voltage_v, aux);
+  PFX_commit(st, voltage_v, isnan(measured_nm) ? y : measured_nm, aux);
+  return y;
+}
+)C";
+
 int type_code(const std::string& t) {
   static const char* names[] = {"voltage", "voltage_step", "step_sum", "exp_sum", "lowpass",
                                 "play", "stop", "play_lowpass", "lagged_position", "position_mean", "voltage_sq"};
@@ -292,6 +399,74 @@ std::string export_c99_pi(const Model& model, const std::string& prefix) {
   for (double t : m->mode_taus_s()) os << num(t) << " ";
   os << "*/\n" << table("double", "PFX_a", nums(m->mode_poles())) << table("double", "PFX_g", nums(m->mode_gains()));
   os << kPiCode << "\n#endif\n";
+  return replace_all(os.str(), "PFX_", prefix + "_");
+}
+
+std::string export_c99_augmented(const Model& model, const std::string& prefix) {
+  check_prefix(prefix);
+  const auto* m = dynamic_cast<const AugmentedModel*>(&model);
+  if (!m) throw std::runtime_error("C export: model of kind '" + model.kind() + "' is not an augmented model");
+  if (!m->base().aux_inputs().empty())
+    throw std::runtime_error("C export: the base of this augmented model reads auxiliary inputs, which cannot be exported");
+  const std::vector<std::string> aux = m->aux_inputs();
+  const double rate = m->sample_rate_hz();
+  std::vector<std::string> type, signal, lag, ring0, nreg, scales;
+  std::vector<double> alpha, thr, period, pc, ps, ref, c, sc, w;
+  long ring = 0;
+  static const char* names[] = {"linear", "play", "sincos", "rate", "powers", "gain", "gain_quadratic"};
+  for (const auto& t : m->terms()) {
+    int code = -1;
+    for (int i = 0; i < 7; ++i)
+      if (t.type == names[i]) code = i;
+    if (code < 0) throw std::runtime_error("C export: term type '" + t.type + "' is not supported");
+    type.push_back(std::to_string(code));
+    int sig = -1;
+    if (t.signal == kSignalPosition) sig = -2;
+    else if (t.signal != kSignalVoltage)
+      sig = static_cast<int>(std::find(aux.begin(), aux.end(), t.signal) - aux.begin());
+    signal.push_back(std::to_string(sig));
+    const long L = std::lround(t.lag_s * rate);
+    lag.push_back(std::to_string(L));
+    ring0.push_back(std::to_string(ring));
+    ring += L;
+    nreg.push_back(std::to_string(t.num_regressors()));
+    scales.push_back(t.scales == kSignalVoltage ? "1" : "0");
+    alpha.push_back(t.time_constant_s > 0 ? std::exp(-1.0 / (t.time_constant_s * rate)) : 0.0);
+    thr.push_back(t.threshold);
+    period.push_back(t.period > 0 ? t.period : 1.0);
+    pc.push_back(t.pre_center);
+    ps.push_back(t.pre_scale);
+    ref.push_back(t.reference);
+    for (std::size_t r = 0; r < 3; ++r) {
+      c.push_back(r < t.center.size() ? t.center[r] : 0.0);
+      sc.push_back(r < t.scale.size() ? t.scale[r] : 1.0);
+      w.push_back(r < t.weight.size() ? t.weight[r] : 0.0);
+    }
+  }
+  std::ostringstream os;
+  // The base model's own header first (prefix <p>_base), then the terms on top of it.
+  os << export_c99(m->base(), prefix + "_base") << "\n";
+  std::string hdr = header_open(prefix, model, "base model plus effect terms found by `piezo residual`");
+  os << hdr << "/* Terms:";
+  for (const auto& t : m->terms()) os << "\n *   " << t.name() << " [" << t.family << "]";
+  os << "\n * API: PFX_predict/commit/step take `aux`, the values of PFX_AUX_NAMES at the sample, in that order. */\n";
+  os << "#define PFX_NT " << std::max<std::size_t>(1, m->terms().size()) << "\n#define PFX_RING " << std::max<long>(1, ring)
+     << "\n#define PFX_NAUX " << aux.size() << "\n#define PFX_AUX_NAMES \"";
+  for (std::size_t i = 0; i < aux.size(); ++i) os << (i ? "," : "") << aux[i];
+  os << "\"\nstatic const double PFX_offset_nm = " << num(m->offset_nm()) << ";\n";
+  if (m->terms().empty()) {  // keep the tables valid C; no term runs
+    type = {"0"}, signal = {"-1"}, lag = {"0"}, ring0 = {"0"}, nreg = {"0"}, scales = {"0"};
+    alpha = {0}, thr = {0}, period = {1}, pc = {0}, ps = {1}, ref = {0}, c = {0, 0, 0}, sc = {1, 1, 1}, w = {0, 0, 0};
+  }
+  os << table("int", "PFX_type", type) << table("int", "PFX_signal", signal) << table("int", "PFX_lag", lag)
+     << table("int", "PFX_ring0", ring0) << table("int", "PFX_nreg", nreg) << table("int", "PFX_scales", scales)
+     << table("double", "PFX_alpha", nums(alpha)) << table("double", "PFX_thr", nums(thr))
+     << table("double", "PFX_period", nums(period)) << table("double", "PFX_pc", nums(pc))
+     << table("double", "PFX_ps", nums(ps)) << table("double", "PFX_ref", nums(ref)) << table("double", "PFX_c", nums(c))
+     << table("double", "PFX_sc", nums(sc)) << table("double", "PFX_w", nums(w));
+  std::string code = kAugmentedCode;
+  if (m->terms().empty()) code = replace_all(code, "for (t = 0; t < PFX_NT; ++t) {", "for (t = 0; t < 0; ++t) {");
+  os << code << "\n#endif\n";
   return replace_all(os.str(), "PFX_", prefix + "_");
 }
 

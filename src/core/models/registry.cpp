@@ -46,7 +46,7 @@ std::map<std::string, ModelKind> built_in_kinds() {
        export_of<KanModel>("kan")},
       {"augmented",
        "a base model plus effect terms found by `piezo residual` (load only; fit with `piezo residual`)",
-       [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); }, nullptr},
+       [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); }, &export_c99_augmented},
   };
   std::map<std::string, ModelKind> kinds;
   for (const ModelKind& k : list) kinds[k.name] = k;
