@@ -66,3 +66,10 @@ add_executable(can_ros_command_latency bench/can_ros_command_latency.cpp)
 target_link_libraries(can_ros_command_latency piezo_ros piezo_core ${catkin_LIBRARIES})
 add_dependencies(can_ros_command_latency ${PROJECT_NAME}_generate_messages_cpp mm3e_driver)
 set_target_properties(can_ros_command_latency PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
+# Soak: three simulated manipulators through driver + predictor processes at 1 kHz per axis for hours;
+# `scripts/piezo bench --soak MINUTES` (docs/driver.md has the figures). Not a ctest: it runs for minutes.
+add_executable(can_soak bench/can_soak.cpp)
+target_link_libraries(can_soak piezo_ros piezo_core ${catkin_LIBRARIES})
+target_compile_definitions(can_soak PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
+add_dependencies(can_soak ${PROJECT_NAME}_generate_messages_cpp mm3e_driver piezo_predictor)
+set_target_properties(can_soak PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)

@@ -6,6 +6,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "plot_script.h"
 #include "piezo_compensation/analysis/eval_report.h"
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
@@ -89,12 +90,7 @@ int run(int argc, char** argv) {
   bar.finish();
   analysis::write_eval_report(out.string(), ctx, evals, test, creep.empty() ? nullptr : &creep);
   std::cout << analysis::eval_markdown(ctx, evals).substr(0, std::string::npos);
-  if (!args.flag("no-plots")) {
-    const char* src = std::getenv("PIEZO_SOURCE_DIR");
-    const fs::path script = fs::path(src ? src : ".") / "scripts/plotting/eval_plots.py";
-    const std::string cmd = "/usr/bin/python3 '" + script.string() + "' '" + out.string() + "'";
-    if (std::system(cmd.c_str()) != 0) std::cerr << "eval: plotting failed (" << cmd << "); the reports are written\n";
-  }
+  if (!args.flag("no-plots")) run_plot_script("eval", "eval_plots.py", {out.string()});
   std::cout << "\nwrote " << (out / "report.md").string() << ", report.json and plots\n";
   return 0;
 }

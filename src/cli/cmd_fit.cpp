@@ -9,6 +9,7 @@
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/lasso.h"
@@ -41,8 +42,8 @@ int run(int argc, char** argv) {
   if (!args.parse(argc, argv)) return 0;
   const std::string axis = args.str("axis");
   const std::string kind = args.str("model");
-  const models::ModelKind& mk = models::model_kind(kind);
-  if (!mk.fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
+  const training::FitFn& fit = training::fitter(kind);
+  if (!fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
 
   io::Dataset all = ros_io::read_data(args.str("data"));
   all.axis(axis);  // clear error if the axis is missing
@@ -81,7 +82,7 @@ int run(int argc, char** argv) {
   }
 
   util::ProgressBar bar(std::cerr, "steps", !args.flag("quiet"));
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &train;
   req.validation = val.empty() ? nullptr : &val;
   req.axis = axis;
@@ -114,7 +115,7 @@ int run(int argc, char** argv) {
   }
   req.options = options;
 
-  models::ModelPtr model = mk.fit(req);
+  models::ModelPtr model = fit(req);
   if (!model) throw std::runtime_error("fit: kind '" + kind + "' returned no model");
   model->meta.axis = axis;
   model->meta.sample_rate_hz = train.sample_rate_hz();

@@ -39,7 +39,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   lim.max_unconfirmed_v = r.number("max_unconfirmed_v", 10.0, lim.max_frame_step_v, 2 * can::kFrameStepCeilingV);
   lim.max_stamp_ahead_s = r.number("max_stamp_ahead_s", 0.5, 1e-3, 60.0);
   lim.report_tolerance_v = r.number("report_tolerance_v", 0.5, 1e-3, 10.0);
-  lim.report_lag_s = r.number("report_lag_s", 0.1, 1e-3, 10.0);
+  lim.report_lag_s = r.number("report_lag_s", 0.5, 1e-3, 10.0);
   lim.report_mismatch_count = r.integer("report_mismatch_count", 3, 1, 100);
   config.encoder_timeout_s = r.number("encoder_timeout_s", 0.5, 1e-3, 3600.0);
   config.silence_reconnect_s = r.number("silence_reconnect_s", 2.0, 1e-3, 3600.0);
@@ -55,6 +55,14 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +
                                 std::to_string(config.silence_reconnect_s) + " s and be reconnected over and over");
+  if (sync_mode_) {
+    // one frame per SYNC, time counted in samples: the cap per frame is the slew step of one sample
+    lim.lockstep = true;
+    const double per_sample_v = lim.slew_rate_v_per_s / config.protocol.encoder_rate_hz;
+    lim.max_frame_step_v = std::max(lim.max_frame_step_v, std::min(per_sample_v, 2 * can::kVoltageCeilingV));
+    lim.max_unconfirmed_v = std::max(lim.max_unconfirmed_v, 2 * lim.max_frame_step_v);
+    lim.max_step_dt_s = std::max(lim.max_step_dt_s, 1.0 / config.protocol.encoder_rate_hz);
+  }
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;

@@ -274,8 +274,10 @@ void ChunkedBag::close_chunk() {
 
 void ChunkedBag::abandon() {
   if (!bag_) return;
-  // leak the open file as a killed process would: no close, no index (the OS closes the descriptor)
-  bag_.release();
+  // leave the open file as a killed process would: no close, no index. The object is kept (reachable, so
+  // LeakSanitizer does not count it) rather than destroyed, since its destructor would write the index.
+  static std::vector<std::unique_ptr<rosbag::Bag>> abandoned;
+  abandoned.push_back(std::move(bag_));
 }
 
 std::uint64_t ChunkedBag::finish() {

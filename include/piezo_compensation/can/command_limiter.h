@@ -36,8 +36,13 @@ struct LimiterConfig {
   double max_unconfirmed_v = 10.0;
   double max_stamp_ahead_s = 0.5;     // [s] a command stamped further ahead of now is refused
   double report_tolerance_v = 0.5;    // [V] a report this far from every recently written value does not match
-  double report_lag_s = 0.1;          // [s] written values a report may still show (transport + sample delay)
+  double report_lag_s = 0.5;          // [s] written values a report may still show (transport + sample delay,
+                                      // a loaded host: a shorter window made reports late by 0.1 s trip the axis)
   int report_mismatch_count = 3;      // reports in a row that do not match → device fault, axis held
+  // Synchronous mode on the simulated device (refused on SocketCAN): time is samples, one frame per sample, no
+  // stall can happen; max_frame_step_v and max_unconfirmed_v may then exceed their ceilings (the node sets them
+  // to the slew rate × one sample period).
+  bool lockstep = false;
 };
 
 // Throws std::invalid_argument naming the field.

@@ -21,10 +21,11 @@ void validate(const LimiterConfig& c) {
   if (!finite(c.command_timeout_s) || c.command_timeout_s <= 0)
     throw std::invalid_argument("command_timeout_s must be a finite value > 0");
   if (!in(c.max_step_dt_s, 0.0, kStepDtCeilingS)) throw std::invalid_argument("max_step_dt_s must be in (0, 1] s");
-  if (!in(c.max_frame_step_v, 0.0, kFrameStepCeilingV))
+  const double step_ceiling = c.lockstep ? 2 * kVoltageCeilingV : kFrameStepCeilingV;
+  if (!in(c.max_frame_step_v, 0.0, step_ceiling))
     throw std::invalid_argument("max_frame_step_v must be in (0, " +
                                 std::to_string(static_cast<int>(kFrameStepCeilingV)) + "] V");
-  if (!in(c.max_unconfirmed_v, 0.0, 2 * kFrameStepCeilingV) || c.max_unconfirmed_v < c.max_frame_step_v)
+  if (!in(c.max_unconfirmed_v, 0.0, 2 * step_ceiling) || c.max_unconfirmed_v < c.max_frame_step_v)
     throw std::invalid_argument("max_unconfirmed_v must be in [max_frame_step_v, " +
                                 std::to_string(static_cast<int>(2 * kFrameStepCeilingV)) + "] V");
   if (!in(c.max_stamp_ahead_s, 0.0, 60.0)) throw std::invalid_argument("max_stamp_ahead_s must be in (0, 60] s");

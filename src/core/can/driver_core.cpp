@@ -381,9 +381,8 @@ void DriverCore::poll_once(int timeout_ms) {
         a.status.voltage_dropped += u.dropped;
         a.status.voltage_out_of_order += u.out_of_order;
         a.status.amplifier_fault = v->fault;
-        // A repeated frame says nothing new. The first one after a (re)connect may be one that was held up on
-        // the way: the baseline waits for the next one in order.
-        if (!u.out_of_order && !u.first) {
+        // A repeated frame says nothing new.
+        if (!u.out_of_order) {
           a.status.reported_v = v->voltage_v;
           if (u.restarted) {
             char back[80];

@@ -103,7 +103,8 @@ ProtocolConfig protocol_from_yaml(const YAML::Node& node) {
     }
   }
   if (node["byte_order"]) {
-    const std::string order = node["byte_order"].as<std::string>();
+    if (!node["byte_order"].IsScalar()) throw std::invalid_argument("protocol.byte_order must be \"little\" or \"big\"");
+    const std::string order = node["byte_order"].Scalar();
     if (order == "little")
       c.byte_order = ByteOrder::kLittle;
     else if (order == "big")
@@ -126,7 +127,12 @@ ProtocolConfig load_protocol_config(const std::string& path) {
   } catch (const std::exception& e) {
     throw std::invalid_argument("cannot read protocol config " + path + ": " + e.what());
   }
-  return protocol_from_yaml(root["protocol"]);
+  if (!root.IsMap() && !root.IsNull()) throw std::invalid_argument(path + ": expected a map with a protocol: section");
+  try {
+    return protocol_from_yaml(root["protocol"]);
+  } catch (const YAML::Exception& e) {  // anything the field checks did not name
+    throw std::invalid_argument(path + ": protocol: " + e.what());
+  }
 }
 
 }  // namespace piezo::can
