@@ -64,12 +64,13 @@ TEST(DemoScenario, SawtoothScoresTheDeviationFromTheIdealLine) {
   EXPECT_EQ(run.rows().size(), run.steps());
   std::ostringstream csv;
   run.write_csv(csv);
-  EXPECT_EQ(std::count(csv.str().begin(), csv.str().end(), '\n'), static_cast<long>(run.steps()) + 1);
+  const std::string text = csv.str();
+  EXPECT_EQ(std::count(text.begin(), text.end(), '\n'), static_cast<long>(run.steps()) + 1);
 }
 
 TEST(DemoScenario, CreepMeasuresTheDriftOfEachHold) {
   CreepDemoOptions co;
-  co.history_s = 30.0;
+  co.history_s = 300.0;
   co.hold_s = 20.0;
   co.scenarios = {2, 1};
   DemoRun run("creep", co, kLine, 11.0);
