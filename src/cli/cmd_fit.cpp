@@ -119,6 +119,7 @@ int run(int argc, char** argv) {
   model->meta.axis = axis;
   model->meta.sample_rate_hz = train.sample_rate_hz();
   if (model->meta.training_source.empty()) model->meta.training_source = args.str("data");
+  model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
   bar.finish();
 
   if (req.validation) {

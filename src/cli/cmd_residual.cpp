@@ -272,6 +272,7 @@ int run(int argc, char** argv) {
       f << "\n";
     }
   }
+  res.model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
   models::save_model((out / "model.yaml").string(), *res.model);
 
   const bool truth = res.before_test_truth.n > 0;
