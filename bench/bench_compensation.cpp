@@ -10,6 +10,7 @@
 #include "piezo_compensation/compensation/inverse.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 
 using namespace piezo;
 
@@ -39,12 +40,12 @@ io::Dataset plant_data(std::size_t n) {
 models::ModelPtr fitted_linear() {
   static const io::Dataset train = plant_data(6000), val = plant_data(2000);
   for (const auto& k : models::model_kind_names())
-    if (k == "linear" && models::model_kind("linear").fit) {
-      models::FitRequest req;
+    if (k == "linear" && training::fitter("linear")) {
+      training::FitRequest req;
       req.train = &train;
       req.validation = &val;
       req.axis = "c";
-      models::ModelPtr m = models::model_kind("linear").fit(req);
+      models::ModelPtr m = training::fit_model("linear", req);
       m->reset(0.0, 0.0);
       return m;
     }

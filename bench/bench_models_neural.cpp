@@ -16,6 +16,7 @@
 #include "piezo_compensation/models/kan_model.h"
 #include "piezo_compensation/models/lstm_model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 
 using namespace piezo;
 
@@ -88,11 +89,11 @@ void run_fit(benchmark::State& state, const std::string& kind) {
   static const io::Dataset data = synthetic(train_samples(), 7);
   double epochs = 0, rmse = 0;
   for (auto _ : state) {
-    models::FitRequest req;
+    training::FitRequest req;
     req.train = &data;
     req.threads = 2;
     req.seed = 1;
-    const models::ModelPtr m = models::model_kind(kind).fit(req);
+    const models::ModelPtr m = training::fit_model(kind, req);
     const YAML::Node info = m->to_yaml()["training"];
     epochs = info["epochs_run"].as<double>();
     rmse = info["validation_rmse_nm"].as<double>();

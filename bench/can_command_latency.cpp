@@ -8,6 +8,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -59,8 +60,17 @@ int main(int argc, char** argv) {
     return make_udp_transport(o);
   }, {});
   driver.start();
+  // The controller's reports: what it was last commanded, counter running (the driver checks both).
+  std::mutex m;
+  std::array<double, kAxisCount> reported{};
+  std::uint32_t report_seq = 0;
+  auto report = [&] {
+    std::lock_guard<std::mutex> l(m);
+    for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, reported[a], report_seq, false}));
+    ++report_seq;
+  };
   for (int tries = 0; tries < 200 && !driver.axis_status(0).has_baseline; ++tries) {
-    for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, 0.0, 0, false}));
+    report();
     std::this_thread::sleep_for(std::chrono::milliseconds(10));
   }
   if (!driver.axis_status(0).has_baseline) {
@@ -72,14 +82,18 @@ int main(int argc, char** argv) {
   std::uint32_t counter = 0;
   for (int a = 0; a < kAxisCount; ++a) counter += driver.axis_status(a).frames_sent;
 
-  std::mutex m;
   std::map<std::uint32_t, double> sent_at;  // counter → wall time of command()
   std::vector<double> latency_us;
   std::atomic<bool> done{false};
   std::uint64_t unmatched = 0;
   std::thread receiver([&] {
     std::vector<ReceivedFrame> in;
+    auto next_report = std::chrono::steady_clock::now();
     while (!done) {
+      if (std::chrono::steady_clock::now() >= next_report) {
+        report();
+        next_report += std::chrono::milliseconds(50);
+      }
       in.clear();
       device->receive(in, 5);
       std::lock_guard<std::mutex> l(m);
@@ -88,6 +102,7 @@ int main(int argc, char** argv) {
         if (!r.ok()) continue;
         const auto* c = std::get_if<CommandFrame>(&r.message_value);
         if (!c) continue;
+        reported[c->axis] = c->voltage_v;
         auto it = sent_at.find(c->counter);
         if (it == sent_at.end()) {
           ++unmatched;

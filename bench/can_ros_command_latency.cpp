@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -21,6 +22,7 @@
 #include <unordered_map>
 #include <vector>
 
+#include "child_process.h"
 #include "latency_histogram.h"
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/can/codec.h"
@@ -28,37 +30,12 @@
 
 using namespace piezo::can;
 namespace fs = std::filesystem;
+using piezo::bench::spawn;
+using piezo::bench::stop;
 using piezo::bench::wall_s;
 
 namespace {
 
-pid_t spawn(const std::vector<std::string>& args, const std::string& log) {
-  const pid_t pid = fork();
-  if (pid == 0) {
-    setpgid(0, 0);
-    if (FILE* f = std::fopen(log.c_str(), "w")) {
-      dup2(fileno(f), 1);
-      dup2(fileno(f), 2);
-    }
-    std::vector<char*> argv;
-    for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-    argv.push_back(nullptr);
-    execvp(argv[0], argv.data());
-    _exit(127);
-  }
-  return pid;
-}
-
-void stop(pid_t pid) {
-  if (pid <= 0) return;
-  kill(pid, SIGINT);
-  for (int i = 0; i < 50; ++i) {
-    if (waitpid(pid, nullptr, WNOHANG) == pid) return;
-    std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  }
-  kill(pid, SIGKILL);
-  waitpid(pid, nullptr, 0);
-}
 
 }  // namespace
 
@@ -76,28 +53,16 @@ int main(int argc, char** argv) {
     return 1;
   }
   const int base = 20000 + static_cast<int>(getpid() % 9000) * 3;
-  const std::string master = "http://127.0.0.1:" + std::to_string(base);
-  setenv("ROS_MASTER_URI", master.c_str(), 1);
-  setenv("ROS_IP", "127.0.0.1", 1);
-  unsetenv("ROS_HOSTNAME");
   const std::string log_dir = fs::temp_directory_path() / ("can_ros_latency_" + std::to_string(getpid()));
   fs::create_directories(log_dir);
-  setenv("ROS_LOG_DIR", log_dir.c_str(), 1);
-  const pid_t master_pid = spawn({"rosmaster", "--core", "-p", std::to_string(base)}, log_dir + "/rosmaster.log");
-
-  ros::init(argc, argv, "can_ros_command_latency", ros::init_options::NoSigintHandler | ros::init_options::AnonymousName);
-  for (int i = 0; i < 100 && !ros::master::check(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(100));
-  if (!ros::master::check()) {
-    std::fprintf(stderr, "can_ros_command_latency: rosmaster did not start (log in %s)\n", log_dir.c_str());
-    stop(master_pid);
-    return 1;
-  }
+  const pid_t master_pid = piezo::bench::start_private_master("can_ros_command_latency", base, log_dir, argc, argv);
+  if (master_pid < 0) return 1;
   const int drv_port = base + 1, dev_port = base + 2;
   ros::NodeHandle p("/latency/mm3e_driver");
   p.setParam("transport", "udp");
   p.setParam("udp_local_port", drv_port);
   p.setParam("udp_remote_port", dev_port);
-  p.setParam("slew_rate_v_per_s", 1e6);   // every command is one frame: the slew limit must not split steps
+  p.setParam("slew_rate_v_per_s", 2000.0);  // every command (a 0.1 mV step) is one frame
   p.setParam("command_timeout_s", 1.0);
   p.setParam("silence_reconnect_s", 3600.0);
   const pid_t driver_pid = spawn({driver_bin.string(), "__name:=mm3e_driver", "__ns:=/latency"}, log_dir + "/driver.log");
@@ -118,9 +83,12 @@ int main(int argc, char** argv) {
   std::thread receiver([&] {
     std::vector<ReceivedFrame> in;
     auto next_report = std::chrono::steady_clock::now();
+    std::array<double, kAxisCount> reported{};
+    std::uint32_t seq = 0;
     while (!done) {
-      if (std::chrono::steady_clock::now() >= next_report) {  // a live controller: baseline and no silence
-        for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, 0.0, 0, false}));
+      if (std::chrono::steady_clock::now() >= next_report) {  // a live controller: what it was last commanded
+        for (int a = 0; a < kAxisCount; ++a) device->send(codec.encode(VoltageReport{a, reported[a], seq, false}));
+        ++seq;
         next_report += std::chrono::milliseconds(50);
       }
       in.clear();
@@ -132,6 +100,7 @@ int main(int argc, char** argv) {
         const auto* c = std::get_if<CommandFrame>(&r.message_value);
         if (!c) continue;
         ++frames;
+        reported[c->axis] = c->voltage_v;
         auto it = sent_at.find(static_cast<std::int32_t>(std::lround(c->voltage_v / 1e-4)));
         if (it == sent_at.end()) continue;
         latency_us.push_back((rf.receive_time_s - it->second) * 1e6);
@@ -156,7 +125,7 @@ int main(int argc, char** argv) {
   // Warm-up: wait for the connection and for the driver to act on commands at all.
   bool ready = false;
   for (int i = 0; i < 300 && !ready; ++i) {
-    if (pub.getNumSubscribers() > 0) publish(-500000 + i);
+    if (pub.getNumSubscribers() > 0) publish(-350000 - 300 + i);  // within max_unconfirmed_v of the −35 V start
     std::this_thread::sleep_for(std::chrono::milliseconds(50));
     ready = frames > 0;
   }

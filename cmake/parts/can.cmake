@@ -2,12 +2,14 @@
 piezo_unit_test(test_can_codec test/unit/test_can_codec.cpp)
 piezo_unit_test(test_can_limiter test/unit/test_can_limiter.cpp)
 piezo_unit_test(test_can_driver test/unit/test_can_driver.cpp)
+# 10^5 random steps of the command path (fixed seed); long mode: PIEZO_PROPERTY_STEPS=10000000
+piezo_unit_test(test_can_command_path test/unit/test_can_command_path.cpp)
 piezo_node(mm3e_driver src/nodes/mm3e_driver_node.cpp)
 piezo_node(mm3e_sim src/nodes/mm3e_sim_node.cpp)
 # One checker executable; each .test file is one safety behaviour and selects its case with --gtest_filter.
 piezo_rostest(test/rostest/driver_topics.test test/rostest/driver_rostest.cpp DEPENDS mm3e_driver mm3e_sim)
 if(CATKIN_ENABLE_TESTING)
-  foreach(behaviour command clamp slew nan timeout bus_fault commanders params)
+  foreach(behaviour command clamp slew nan timeout bus_fault commanders params restart stuck)
     add_rostest(test/rostest/driver_${behaviour}.test DEPENDENCIES driver_topics mm3e_driver mm3e_sim)
   endforeach()
 endif()
@@ -64,3 +66,10 @@ add_executable(can_ros_command_latency bench/can_ros_command_latency.cpp)
 target_link_libraries(can_ros_command_latency piezo_ros piezo_core ${catkin_LIBRARIES})
 add_dependencies(can_ros_command_latency ${PROJECT_NAME}_generate_messages_cpp mm3e_driver)
 set_target_properties(can_ros_command_latency PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
+# Soak: three simulated manipulators through driver + predictor processes at 1 kHz per axis for hours;
+# `scripts/piezo bench --soak MINUTES` (docs/driver.md has the figures). Not a ctest: it runs for minutes.
+add_executable(can_soak bench/can_soak.cpp)
+target_link_libraries(can_soak piezo_ros piezo_core ${catkin_LIBRARIES})
+target_compile_definitions(can_soak PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
+add_dependencies(can_soak ${PROJECT_NAME}_generate_messages_cpp mm3e_driver piezo_predictor)
+set_target_properties(can_soak PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)

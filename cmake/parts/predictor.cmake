@@ -12,8 +12,6 @@ set_target_properties(measure_predictor_node PROPERTIES
 piezo_rostest(test/rostest/predictor_fallback.test test/rostest/predictor_fallback.cpp DEPENDS piezo_predictor)
 piezo_rostest(test/rostest/predictor_live.test test/rostest/predictor_live.cpp DEPENDS piezo_predictor)
 piezo_node(piezo_demo src/nodes/piezo_demo_node.cpp)
-# `piezo plot` finds scripts/plotting/ here when PIEZO_SOURCE_DIR is not set (scripts/piezo sets it).
-target_compile_definitions(piezo PRIVATE PIEZO_SOURCE_DIR_FALLBACK="${CMAKE_CURRENT_SOURCE_DIR}")
 piezo_rostest(test/rostest/predictor_replay.test test/rostest/predictor_replay.cpp DEPENDS piezo_predictor)
 piezo_rostest(test/rostest/predictor_inputs.test test/rostest/predictor_inputs.cpp DEPENDS piezo_predictor)
 piezo_unit_test(test_compensation_watch test/unit/test_compensation_watch.cpp)

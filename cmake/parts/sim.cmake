@@ -1,6 +1,7 @@
 # sim/ and protocols/: the simulated MM3E, the data-collection protocols, bag I/O and `piezo simulate`.
 piezo_unit_test(test_sim_physics test/unit/test_sim_physics.cpp)
 piezo_unit_test(test_sim_effects test/unit/test_sim_effects.cpp)
+piezo_unit_test(test_sim_stages test/unit/test_sim_stages.cpp)
 piezo_unit_test(test_protocols_generators test/unit/test_protocols_generators.cpp)
 piezo_ros_unit_test(test_bag_io test/unit/test_bag_io.cpp)
 piezo_benchmark(bench_simulator bench/bench_simulator.cpp)
@@ -13,5 +14,8 @@ if(CATKIN_ENABLE_TESTING)
      $<TARGET_FILE:piezo> simulate --protocol noise --axes c --duration 30 --out $d/n.csv; \
      test $(wc -l < $d/n.csv) -eq 331; \
      ! $<TARGET_FILE:piezo> simulate --protocol nosuch --out $d/x.csv 2>/dev/null; \
+     $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/lowvolt_preisach_creep.yaml --duration 2 --out $d/st.csv; \
+     test $(wc -l < $d/st.csv) -eq 401; \
+     ! $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/mm3e_pi.yaml --protocol noise --out $d/x.csv 2>/dev/null; \
      rm -rf $d")
 endif()

@@ -1,6 +1,7 @@
 // A small declarative option parser for the CLI subcommands, with generated --help.
 #pragma once
 
+#include <cmath>
 #include <cstdlib>
 #include <iostream>
 #include <sstream>
@@ -87,6 +88,28 @@ class Args {
     double v = std::strtod(s.c_str(), &end);
     if (s.empty() || *end != '\0') throw UsageError(command_ + ": --" + name + " expects a number, got '" + s + "'");
     return v;
+  }
+  // A duration in seconds: plain seconds ("90", "1.5e3") or a number with a unit: s, min, h, d ("26h", "90min").
+  double seconds(const std::string& name) const {
+    const std::string s = str(name);
+    const double v = parse_duration_s(s);
+    if (!std::isfinite(v))
+      throw UsageError(command_ + ": --" + name + " expects a duration such as 30, 30s, 90min, 26h or 2d, got '" + s +
+                       "'");
+    return v;
+  }
+  // NaN when `s` is not a duration.
+  static double parse_duration_s(const std::string& s) {
+    const char* begin = s.c_str();
+    char* end = nullptr;
+    const double v = std::strtod(begin, &end);
+    if (s.empty() || end == begin || !std::isfinite(v)) return std::nan("");
+    const std::string unit(end);
+    if (unit.empty() || unit == "s") return v;
+    if (unit == "min") return v * 60.0;
+    if (unit == "h") return v * 3600.0;
+    if (unit == "d") return v * 86400.0;
+    return std::nan("");
   }
   long integer(const std::string& name) const {
     const std::string s = str(name);

@@ -6,7 +6,9 @@
 
 #include "args.h"
 #include "command.h"
+#include "plot_script.h"
 #include "piezo_compensation/analysis/eval_report.h"
+#include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/util/progress_bar.h"
@@ -23,8 +25,9 @@ int run(int argc, char** argv) {
       .required("data", "FILE", "test data (CSV or bag)")
       .option("creep", "FILE", "creep data with hold phases (else the holds in --data)")
       .option("axis", "a|b|c", "axis (default: the models' axis)")
-      .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band", "20.79")
-      .option("warmup-s", "S", "do not score the first S seconds of the test data", "0")
+      .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
+              "test data's holds, analysis/noise_floor.h)")
+      .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -43,8 +46,7 @@ int run(int argc, char** argv) {
   analysis::EvalContext ctx;
   ctx.test_path = args.str("data");
   ctx.creep_path = args.str("creep");
-  ctx.noise_sigma_nm = args.num("noise-sigma-nm");
-  ctx.warmup_s = args.num("warmup-s");
+  ctx.warmup_s = args.seconds("warmup-s");
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
   try {
@@ -67,6 +69,11 @@ int run(int argc, char** argv) {
   }
   eo.axis = ctx.axis;
   const io::AxisSeries& ax = test.axis(ctx.axis);
+  const analysis::NoiseFloor noise = args.has("noise-sigma-nm")
+                                         ? analysis::noise_floor_from_sigma(args.num("noise-sigma-nm"))
+                                         : analysis::estimate_noise_floor(test, ctx.axis);
+  ctx.noise_sigma_nm = noise.sigma_nm;
+  std::cout << "noise floor: " << noise.describe() << "\n";
   if (ax.has_truth()) ctx.measured_sigma_nm = analysis::noise_sigma_nm(ax.position_nm, ax.true_position_nm);
 
   util::ProgressBar bar(std::cerr, "models");
@@ -83,12 +90,7 @@ int run(int argc, char** argv) {
   bar.finish();
   analysis::write_eval_report(out.string(), ctx, evals, test, creep.empty() ? nullptr : &creep);
   std::cout << analysis::eval_markdown(ctx, evals).substr(0, std::string::npos);
-  if (!args.flag("no-plots")) {
-    const char* src = std::getenv("PIEZO_SOURCE_DIR");
-    const fs::path script = fs::path(src ? src : ".") / "scripts/plotting/eval_plots.py";
-    const std::string cmd = "/usr/bin/python3 '" + script.string() + "' '" + out.string() + "'";
-    if (std::system(cmd.c_str()) != 0) std::cerr << "eval: plotting failed (" << cmd << "); the reports are written\n";
-  }
+  if (!args.flag("no-plots")) run_plot_script("eval", "eval_plots.py", {out.string()});
   std::cout << "\nwrote " << (out / "report.md").string() << ", report.json and plots\n";
   return 0;
 }

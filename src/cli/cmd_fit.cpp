@@ -9,6 +9,7 @@
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/lasso.h"
@@ -30,7 +31,7 @@ int run(int argc, char** argv) {
       .required("model", "KIND", "model kind")
       .option("features", "SET", "study | candidates | physics | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
-      .option("time-budget-s", "S", "stop tuning/training after S seconds (0 = none)", "0")
+      .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")
       .option("set", "KEY=VALUE", "kind option (YAML value, e.g. method=lasso, thresholds_v=[0,10,20])", "", true)
       .option("options", "FILE.yaml", "kind options from a YAML mapping (--set overrides)")
       .option("seed", "N", "random seed", "1")
@@ -41,8 +42,8 @@ int run(int argc, char** argv) {
   if (!args.parse(argc, argv)) return 0;
   const std::string axis = args.str("axis");
   const std::string kind = args.str("model");
-  const models::ModelKind& mk = models::model_kind(kind);
-  if (!mk.fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
+  const training::FitFn& fit = training::fitter(kind);
+  if (!fit) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
 
   io::Dataset all = ros_io::read_data(args.str("data"));
   all.axis(axis);  // clear error if the axis is missing
@@ -81,12 +82,12 @@ int run(int argc, char** argv) {
   }
 
   util::ProgressBar bar(std::cerr, "steps", !args.flag("quiet"));
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &train;
   req.validation = val.empty() ? nullptr : &val;
   req.axis = axis;
   req.tune_trials = static_cast<int>(args.integer("tune"));
-  req.time_budget_s = args.num("time-budget-s");
+  req.time_budget_s = args.seconds("time-budget-s");
   req.seed = static_cast<std::uint64_t>(args.integer("seed"));
   req.threads = static_cast<int>(args.integer("threads"));
   req.progress = [&](double done, double total, const std::string& what) { bar.update(done, total, what); };
@@ -114,7 +115,7 @@ int run(int argc, char** argv) {
   }
   req.options = options;
 
-  models::ModelPtr model = mk.fit(req);
+  models::ModelPtr model = fit(req);
   if (!model) throw std::runtime_error("fit: kind '" + kind + "' returned no model");
   model->meta.axis = axis;
   model->meta.sample_rate_hz = train.sample_rate_hz();

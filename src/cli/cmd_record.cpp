@@ -130,7 +130,7 @@ int run(int argc, char** argv) {
             "(the simulator is replayed deterministically up to the last recorded sample).\n"
             "Protocols: noise, random_walk, sweep, creep, plan, sawtooth (parameters: config/protocols.yaml).");
   args.option("protocol", "NAME", "protocol to run (taken from FILE.record.yaml with --resume)")
-      .option("duration", "S", "record only the first S seconds of the protocol")
+      .option("duration", "T", "record only the first T of the protocol (30, 30s, 90min, 26h)")
       .option("seed", "N", "seed of protocol and simulator", "1")
       .option("effect", "NAME", "switch on an extra simulator effect", "", true)
       .option("params", "FILE.yaml", "protocol parameter overrides (a map, or a map keyed by protocol name)")
@@ -140,7 +140,7 @@ int run(int argc, char** argv) {
       .required("out", "FILE.bag|FILE.csv", "output data file")
       .option("resume", "", "continue an interrupted recording in --out")
       .option("force", "", "overwrite an existing --out")
-      .option("checkpoint", "S", "rewrite the output at least every S seconds of wall time", "60")
+      .option("checkpoint", "T", "rewrite the output at least every T of wall time (60, 5min)", "60")
       .option("quiet", "", "no progress lines");
   if (!args.parse(argc, argv)) return 0;
   const std::string out = args.str("out");
@@ -219,7 +219,7 @@ int run(int argc, char** argv) {
     spec.params = full["parameters"] && full["parameters"].IsMap() ? full["parameters"] : full;
     spec.samples = protocol->size();
     if (args.has("duration")) {
-      const double d = args.num("duration");
+      const double d = args.seconds("duration");
       if (!(d > 0.0)) throw UsageError("record: --duration must be > 0 s");
       spec.samples = std::min(spec.samples, static_cast<std::size_t>(std::llround(d * spec.rate_hz)));
     }
@@ -264,7 +264,7 @@ int run(int argc, char** argv) {
   std::signal(SIGINT, on_signal);
   std::signal(SIGTERM, on_signal);
   const std::size_t block = std::max<std::size_t>(1, static_cast<std::size_t>(600.0 * spec.rate_hz));  // 10 min
-  const double checkpoint_s = args.num("checkpoint");
+  const double checkpoint_s = args.seconds("checkpoint");
   using clock = std::chrono::steady_clock;
   const auto t_start = clock::now();
   auto t_checkpoint = t_start;

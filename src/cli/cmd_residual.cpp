@@ -9,10 +9,11 @@
 
 #include "args.h"
 #include "command.h"
+#include "plot_script.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
-#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/ros/data_file.h"
 
 namespace fs = std::filesystem;
@@ -196,7 +197,7 @@ int run(int argc, char** argv) {
   // Base model: a file, or a kind fitted on TRAIN's first part (the rest validates it).
   const std::string model_arg = args.str("model");
   models::ModelPtr base;
-  models::FitRequest req;
+  training::FitRequest req;
   const YAML::Node fit_options = parse_sets(args.list("set"));
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   if (fs::exists(model_arg)) {
@@ -204,8 +205,8 @@ int run(int argc, char** argv) {
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");
     models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : args.str("train"));
   } else {
-    const models::ModelKind& kind = models::model_kind(model_arg);
-    if (!kind.fit) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
+    const training::FitFn& fit = training::fitter(model_arg);
+    if (!fit) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
     req.train = &fit_part;
     req.validation = &val_part;
@@ -213,21 +214,21 @@ int run(int argc, char** argv) {
     req.options = fit_options;
     req.seed = o.seed;
     std::cerr << "residual: fitting " << model_arg << " on " << fit_part.size() << " TRAIN rows\n";
-    base = kind.fit(req);
+    base = fit(req);
   }
   // Backfitting: the base is refitted with the same kind and options after each added effect. A loaded model
   // file keeps its weights unless --refit-base asks to refit its kind with default options.
   const std::string refit_kind = fs::exists(model_arg) ? (args.flag("refit-base") ? base->kind() : "") : model_arg;
   if (!refit_kind.empty()) {
-    if (!models::model_kind(refit_kind).fit) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
+    if (!training::fitter(refit_kind)) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
     o.refit_base = [&, refit_kind](const io::Dataset& fit_part, const io::Dataset& val_part) {
-      models::FitRequest r;
+      training::FitRequest r;
       r.train = &fit_part;
       r.validation = &val_part;
       r.axis = axis;
       r.options = fs::exists(model_arg) ? YAML::Node(YAML::NodeType::Map) : fit_options;
       r.seed = o.seed;
-      return models::model_kind(refit_kind).fit(r);
+      return training::fit_model(refit_kind, r);
     };
   }
 
@@ -371,12 +372,7 @@ int run(int argc, char** argv) {
   for (const auto& e : res.effects) std::cout << " " << e.family;
   std::cout << "\n";
 
-  if (!args.flag("no-plots")) {
-    const char* src = std::getenv("PIEZO_SOURCE_DIR");
-    const fs::path script = fs::path(src ? src : ".") / "scripts/plotting/residual_plots.py";
-    const std::string cmd = "/usr/bin/python3 '" + script.string() + "' '" + out.string() + "'";
-    if (std::system(cmd.c_str()) != 0) std::cerr << "residual: plotting failed (" << cmd << "); the reports are written\n";
-  }
+  if (!args.flag("no-plots")) run_plot_script("residual", "residual_plots.py", {out.string()});
   std::cout << "residual: wrote " << (out / "report.md").string() << "\n";
   return 0;
 }

@@ -9,6 +9,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
+#include <functional>
 #include <limits>
 #include <map>
 #include <set>
@@ -155,7 +157,108 @@ boost::shared_ptr<Msg> instantiate(const rosbag::MessageInstance& m, const std::
   return p;
 }
 
+// rosbag trusts every length field it reads and allocates that much (a flipped bit asks for gigabytes, found by
+// fuzz/fuzz_bag.cpp). Before rosbag sees the file, walk its records (format 2.0: header length, header, data
+// length, data; inside uncompressed chunks the same) and refuse lengths that run past their container, and
+// declared chunk sizes beyond kMaxChunkBytes.
+void check_bag_records(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) return;  // rosbag's open says what is wrong
+  in.seekg(0, std::ios::end);
+  const std::uint64_t file_size = static_cast<std::uint64_t>(in.tellg());
+  in.seekg(0);
+  std::uint64_t offset = 0;  // of the stream: sequential reads keep its buffer (a plan bag has millions of records)
+  auto read = [&](std::uint64_t at, std::size_t n) {
+    std::string b(n, '\0');
+    if (at != offset) {
+      in.clear();
+      in.seekg(static_cast<std::streamoff>(at));
+    }
+    in.read(b.data(), static_cast<std::streamsize>(n));
+    if (static_cast<std::size_t>(in.gcount()) != n) throw io::DataError(path + ": read error at byte " + std::to_string(at));
+    offset = at + n;
+    return b;
+  };
+  auto u32 = [](const std::string& b, std::size_t at) {
+    std::uint32_t v = 0;
+    for (int i = 3; i >= 0; --i) v = (v << 8) | static_cast<unsigned char>(b[at + i]);
+    return std::uint64_t{v};
+  };
+  constexpr std::uint64_t kMaxChunkBytes = 256ull << 20, kMaxHeaderBytes = 1ull << 20;
+  auto bad = [&](std::uint64_t at, const std::string& what) {
+    return io::DataError(path + ": not a valid bag: record at byte " + std::to_string(at) + " " + what +
+                         " (a bag cut short may be fixed by `rosbag reindex`)");
+  };
+  // rosbag takes any first line it can scan as "#ROS... V<major>.<minor>"; the records start after it
+  const std::string head = read(0, static_cast<std::size_t>(std::min<std::uint64_t>(file_size, 4096)));
+  if (head.rfind("#ROS", 0) != 0) return;  // rosbag says what it is (or is not)
+  const auto newline = head.find('\n');
+  if (newline == std::string::npos || newline > 64) throw bad(0, "has no version line");
+  // rosbag copies fixed-size fields without checking their length
+  static const std::map<std::string, std::size_t> kFixed = {
+      {"op", 1},        {"index_pos", 8}, {"conn_count", 4}, {"chunk_count", 4}, {"conn", 4}, {"time", 8},
+      {"ver", 4},       {"chunk_pos", 8}, {"start_time", 8}, {"end_time", 8},    {"count", 4}, {"size", 4}};
+  // Where top-level records start, and the positions rosbag will seek to (index_pos of the file header,
+  // chunk_pos of the chunk infos): those must be record starts too.
+  std::set<std::uint64_t> starts;
+  std::vector<std::pair<std::uint64_t, std::uint64_t>> seeks;  // (record, position)
+  auto u64 = [](const std::string& b) {
+    std::uint64_t v = 0;
+    for (int i = 7; i >= 0; --i) v = (v << 8) | static_cast<unsigned char>(b[i]);
+    return v;
+  };
+  // Walks the records in [pos, end); throws on a length that runs past it.
+  std::function<void(std::uint64_t, std::uint64_t, int)> walk = [&](std::uint64_t pos, std::uint64_t end, int depth) {
+    while (pos < end) {
+      const std::uint64_t at = pos;
+      if (depth == 0) starts.insert(at);
+      if (end - pos < 4) throw bad(at, "is cut short");
+      const std::uint64_t header_len = u32(read(pos, 4), 0);
+      pos += 4;
+      if (header_len > end - pos || header_len > kMaxHeaderBytes)
+        throw bad(at, "claims a " + std::to_string(header_len) + "-byte header");
+      const std::string header = read(pos, header_len);
+      std::string op, compression;
+      std::uint64_t chunk_size = 0;
+      for (std::size_t f = 0; f < header.size();) {  // fields: length, "name=value"
+        if (header.size() - f < 4) throw bad(at, "has a field cut short");
+        const std::uint64_t len = u32(header, f);
+        f += 4;
+        if (len > header.size() - f) throw bad(at, "has a field longer than its header");
+        const std::string field = header.substr(f, len);
+        f += len;
+        const auto eq = field.find('=');
+        if (eq == std::string::npos) throw bad(at, "has a header field without '='");
+        const std::string name = field.substr(0, eq), value = field.substr(eq + 1);
+        const auto fixed = kFixed.find(name);
+        if (fixed != kFixed.end() && value.size() != fixed->second)
+          throw bad(at, "has a " + std::to_string(value.size()) + "-byte field " + name + " (expected " +
+                            std::to_string(fixed->second) + ")");
+        if (name == "op") op = value;
+        if (name == "compression") compression = value;
+        if (name == "size") chunk_size = u32(value, 0);
+        if (depth == 0 && (name == "index_pos" || name == "chunk_pos")) seeks.emplace_back(at, u64(value));
+      }
+      pos += header_len;
+      if (end - pos < 4) throw bad(at, "has no data length");
+      const std::uint64_t data_len = u32(read(pos, 4), 0);
+      pos += 4;
+      if (data_len > end - pos) throw bad(at, "claims " + std::to_string(data_len) + " bytes of data");
+      if (op == std::string(1, '\x05')) {  // chunk
+        if (chunk_size > kMaxChunkBytes) throw bad(at, "declares a chunk of " + std::to_string(chunk_size) + " bytes");
+        if (compression == "none" && depth == 0) walk(pos, pos + data_len, depth + 1);
+      }
+      pos += data_len;
+    }
+  };
+  walk(newline + 1, file_size, 0);
+  for (const auto& [at, target] : seeks)
+    if (target != file_size && !starts.count(target))
+      throw bad(at, "points at byte " + std::to_string(target) + ", which is not the start of a record");
+}
+
 io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
+  check_bag_records(path);
   rosbag::Bag bag;
   try {
     bag.open(path, rosbag::bagmode::Read);
@@ -310,7 +413,15 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
 
 }  // namespace
 
-io::Dataset read_bag(const std::string& path, const BagOptions& options) { return read_bag_impl(path, options); }
+io::Dataset read_bag(const std::string& path, const BagOptions& options) {
+  try {
+    return read_bag_impl(path, options);
+  } catch (const io::DataError&) {
+    throw;
+  } catch (const std::exception& e) {  // rosbag and message deserialisation errors on a damaged file
+    throw io::DataError(path + ": broken bag: " + e.what());
+  }
+}
 
 void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options) {
   data.validate();

@@ -23,38 +23,60 @@ std::string hex(std::uint32_t v) {
 }  // namespace
 
 DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh), updater_(nh, pnh) {
+  params::ParamReader r(pnh_);
   can::DriverConfig config;
-  config.protocol = read_protocol(pnh_);
+  config.protocol = read_protocol(r);
   auto& lim = config.limits;
-  lim.min_voltage_v = param_double(pnh_, "min_voltage_v", -80.0, -1000.0, 1000.0);
-  lim.max_voltage_v = param_double(pnh_, "max_voltage_v", 80.0, -1000.0, 1000.0);
+  // Ranges stop at the compile-time ceilings of can/command_limiter.h (docs/driver.md).
+  lim.min_voltage_v = r.number("min_voltage_v", -80.0, -can::kVoltageCeilingV, can::kVoltageCeilingV);
+  lim.max_voltage_v = r.number("max_voltage_v", 80.0, -can::kVoltageCeilingV, can::kVoltageCeilingV);
   if (lim.min_voltage_v >= lim.max_voltage_v)
     throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
-  lim.slew_rate_v_per_s = param_double(pnh_, "slew_rate_v_per_s", 200.0, 1e-6, 1e7);
-  lim.command_timeout_s = param_double(pnh_, "command_timeout_s", 0.5, 1e-3, 3600.0);
-  lim.max_step_dt_s = param_double(pnh_, "max_step_dt_s", 0.1, 1e-4, 10.0);
-  config.encoder_timeout_s = param_double(pnh_, "encoder_timeout_s", 0.5, 1e-3, 3600.0);
-  config.silence_reconnect_s = param_double(pnh_, "silence_reconnect_s", 2.0, 1e-3, 3600.0);
-  config.reconnect_min_s = param_double(pnh_, "reconnect_min_s", 0.1, 1e-3, 60.0);
-  config.reconnect_max_s = param_double(pnh_, "reconnect_max_s", 5.0, config.reconnect_min_s, 3600.0);
-  config.receive_poll_ms = param_int(pnh_, "receive_poll_ms", 20, 1, 1000);
-  const double output_rate_hz = param_double(pnh_, "output_rate_hz", 200.0, 1.0, 10000.0);
-  const double diagnostic_period_s = param_double(pnh_, "diagnostic_period_s", 1.0, 0.05, 60.0);
-  stamp_with_receive_time_ = param_bool(pnh_, "stamp_with_receive_time", true);
-  sync_mode_ = param_bool(pnh_, "sync_mode", false);
-  sync_idle_s_ = param_double(pnh_, "sync_idle_s", 0.5, 0.001, 60.0);
+  lim.slew_rate_v_per_s = r.number("slew_rate_v_per_s", 200.0, 1e-3, can::kSlewRateCeilingVPerS);
+  lim.command_timeout_s = r.number("command_timeout_s", 0.5, 1e-3, 3600.0);
+  lim.max_step_dt_s = r.number("max_step_dt_s", 0.1, 1e-4, can::kStepDtCeilingS);
+  lim.max_frame_step_v = r.number("max_frame_step_v", 5.0, 1e-3, can::kFrameStepCeilingV);
+  lim.max_unconfirmed_v = r.number("max_unconfirmed_v", 10.0, lim.max_frame_step_v, 2 * can::kFrameStepCeilingV);
+  lim.max_stamp_ahead_s = r.number("max_stamp_ahead_s", 0.5, 1e-3, 60.0);
+  lim.report_tolerance_v = r.number("report_tolerance_v", 0.5, 1e-3, 10.0);
+  lim.report_lag_s = r.number("report_lag_s", 0.5, 1e-3, 10.0);
+  lim.report_mismatch_count = r.integer("report_mismatch_count", 3, 1, 100);
+  config.encoder_timeout_s = r.number("encoder_timeout_s", 0.5, 1e-3, 3600.0);
+  config.silence_reconnect_s = r.number("silence_reconnect_s", 2.0, 1e-3, 3600.0);
+  config.reconnect_min_s = r.number("reconnect_min_s", 0.1, 1e-3, 60.0);
+  config.reconnect_max_s = r.number("reconnect_max_s", 5.0, config.reconnect_min_s, 3600.0);
+  config.receive_poll_ms = r.integer("receive_poll_ms", 20, 1, 1000);
+  const double output_rate_hz = r.number("output_rate_hz", 200.0, 1.0, 10000.0);
+  const double diagnostic_period_s = r.number("diagnostic_period_s", 1.0, 0.05, 60.0);
+  stamp_with_receive_time_ = r.flag("stamp_with_receive_time", true);
+  sync_mode_ = r.flag("sync_mode", false);
+  sync_idle_s_ = r.number("sync_idle_s", 0.5, 0.001, 60.0);
   if (sync_mode_ && 1.25 * sync_idle_s_ >= config.silence_reconnect_s)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +
                                 std::to_string(config.silence_reconnect_s) + " s and be reconnected over and over");
+  if (sync_mode_) {
+    // one frame per SYNC, time counted in samples: the cap per frame is the slew step of one sample
+    lim.lockstep = true;
+    const double per_sample_v = lim.slew_rate_v_per_s / config.protocol.encoder_rate_hz;
+    lim.max_frame_step_v = std::max(lim.max_frame_step_v, std::min(per_sample_v, 2 * can::kVoltageCeilingV));
+    lim.max_unconfirmed_v = std::max(lim.max_unconfirmed_v, 2 * lim.max_frame_step_v);
+    lim.max_step_dt_s = std::max(lim.max_step_dt_s, 1.0 / config.protocol.encoder_rate_hz);
+  }
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;
-  const TransportParams transport = read_transport(pnh_, 47100, 47101);
-  const std::string prefix = param_string(pnh_, "frame_prefix", "");
+  const TransportParams transport = read_transport(r, 47100, 47101);
+  // The real controller samples on its own clock: counting slew time in SYNCs would turn V/s into V/command.
+  if (sync_mode_ && transport.kind == "socketcan")
+    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
+                                " is for the simulated device over udp only; it is refused on socketcan (the slew "
+                                "limit would count commands, not seconds)");
+  const std::string prefix = r.text("frame_prefix", "");
   frame_id_ = prefix + "base";
-  std::string hardware_id = param_string(pnh_, "hardware_id", "");
+  std::string hardware_id = r.text("hardware_id", "");
   if (hardware_id.empty()) hardware_id = "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
+  r.warn_unknown("mm3e_driver");
 
   can::DriverCallbacks cb;
   cb.on_voltage = [this](const can::VoltageReport& v, std::uint32_t seq, double t) {
@@ -194,6 +216,7 @@ void DriverNode::on_command(int axis, const VoltageCommand::ConstPtr& msg) {
       break;
     case can::CommandOutcome::kRejectedHeld:
     case can::CommandOutcome::kRejectedNoBaseline:
+    case can::CommandOutcome::kRejectedFutureStamp:
       ROS_WARN_STREAM_THROTTLE(2.0, "mm3e_driver: axis " << can::kAxisNames[axis] << ": command "
                                                          << can::to_string(out));
       break;
@@ -229,7 +252,7 @@ bool DriverNode::on_halt(std_srvs::Trigger::Request&, std_srvs::Trigger::Respons
 bool DriverNode::on_recover(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
   core_->recover();
   res.success = true;
-  res.message = "recovering: halt cleared, transport reopening (state in diagnostics)";
+  res.message = "recovering: halt and device faults cleared, transport reopening (state in diagnostics)";
   ROS_INFO_STREAM("mm3e_driver: " << res.message);
   return true;
 }
@@ -298,6 +321,8 @@ void DriverNode::diagnose_axis(int i, diagnostic_updater::DiagnosticStatusWrappe
     stat.mergeSummary(DiagnosticStatus::ERROR, "encoder silent");
   if (!s.encoder_valid) stat.mergeSummary(DiagnosticStatus::ERROR, "encoder reading flagged invalid");
   if (s.amplifier_fault) stat.mergeSummary(DiagnosticStatus::ERROR, "amplifier fault");
+  if (s.device_fault) stat.mergeSummary(DiagnosticStatus::ERROR, s.fault);
+  if (s.paused && !s.device_fault) stat.mergeSummary(DiagnosticStatus::WARN, "report did not match: ramp paused");
   if (s.multiple_commanders) stat.mergeSummary(DiagnosticStatus::ERROR, "more than one commander: holding");
   if (s.halted) stat.mergeSummary(DiagnosticStatus::WARN, "halted");
   if (s.timed_out) stat.mergeSummary(DiagnosticStatus::WARN, "command timeout: holding");
@@ -320,6 +345,11 @@ void DriverNode::diagnose_axis(int i, diagnostic_updater::DiagnosticStatusWrappe
   stat.add("rejected held", s.rejected_held);
   stat.add("rejected no baseline", s.rejected_no_baseline);
   stat.add("rejected no link", s.rejected_no_link);
+  stat.add("rejected future stamp", s.rejected_future_stamp);
+  stat.add("frames refused by the transport", s.frames_refused);
+  stat.add("report mismatches", s.report_mismatches);
+  stat.add("device faults", s.device_faults);
+  stat.add("device fault", s.fault);
   stat.add("timeouts", s.timeouts);
   stat.add("timed out", s.timed_out);
   stat.add("halted", s.halted);

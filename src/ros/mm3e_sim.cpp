@@ -20,49 +20,44 @@ double wall_now_s() {
 }  // namespace
 
 SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
+  params::ParamReader r(pnh_);
   can::DeviceConfig config;
-  config.protocol = read_protocol(pnh_);
-  config.min_voltage_v = param_double(pnh_, "min_voltage_v", -80.0, -1000.0, 1000.0);
-  config.max_voltage_v = param_double(pnh_, "max_voltage_v", 80.0, -1000.0, 1000.0);
+  config.protocol = read_protocol(r);
+  config.min_voltage_v = r.number("min_voltage_v", -80.0, -1000.0, 1000.0);
+  config.max_voltage_v = r.number("max_voltage_v", 80.0, -1000.0, 1000.0);
   if (config.min_voltage_v >= config.max_voltage_v)
     throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
-  const double initial = param_double(pnh_, "initial_voltage_v", 0.0, config.min_voltage_v, config.max_voltage_v);
+  const double initial = r.number("initial_voltage_v", 0.0, config.min_voltage_v, config.max_voltage_v);
   config.initial_voltage_v = {initial, initial, initial};
-  time_scale_ = param_double(pnh_, "time_scale", 1.0, 0.01, 1000.0);
-  publish_clock_ = param_bool(pnh_, "publish_clock", false);
+  time_scale_ = r.number("time_scale", 1.0, 0.01, 1000.0);
+  publish_clock_ = r.flag("publish_clock", false);
   if (time_scale_ != 1.0 && !publish_clock_)
     throw std::invalid_argument("parameter " + pnh_.resolveName("time_scale") +
                                 " != 1 needs ~publish_clock: true (the device owns simulated time)");
   if (publish_clock_ && !ros::Time::isSimTime())
     throw std::invalid_argument("parameter " + pnh_.resolveName("publish_clock") +
                                 " is true but /use_sim_time is not set: set it before the nodes start");
-  sync_mode_ = param_bool(pnh_, "sync_mode", false);
+  sync_mode_ = r.flag("sync_mode", false);
   if (sync_mode_ && !publish_clock_)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
                                 " needs ~publish_clock: true (simulated time advances one period per SYNC)");
-  clock_rate_hz_ = param_double(pnh_, "clock_rate_hz", 200.0, 1.0, 5000.0);
-  fault_silence_s_ = param_double(pnh_, "fault_silence_s", 1.0, 0.0, 600.0);
-  const int seed = param_int(pnh_, "seed", 1, 0, 2147483647);
-  const std::string sim_config_path = param_string(pnh_, "simulator_config", "");
-  frame_id_ = param_string(pnh_, "frame_prefix", "") + "base";
-  const TransportParams transport = read_transport(pnh_, 47101, 47100);
+  clock_rate_hz_ = r.number("clock_rate_hz", 200.0, 1.0, 5000.0);
+  fault_silence_s_ = r.number("fault_silence_s", 1.0, 0.0, 600.0);
+  const int seed = r.integer("seed", 1, 0, 2147483647);
+  const std::string sim_config_path = r.text("simulator_config", "");
+  frame_id_ = r.text("frame_prefix", "") + "base";
+  const TransportParams transport = read_transport(r, 47101, 47100);
 
   sim::SimulatorConfig sim_config = sim_config_path.empty() ? sim::default_simulator_config()
                                                             : sim::load_simulator_config(sim_config_path);
-  XmlRpc::XmlRpcValue effects;
-  if (pnh_.getParam("effects", effects)) {
-    if (effects.getType() != XmlRpc::XmlRpcValue::TypeArray)
-      throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + " must be a list of effect names");
-    for (int i = 0; i < effects.size(); ++i) {
-      if (effects[i].getType() != XmlRpc::XmlRpcValue::TypeString)
-        throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + " must be a list of effect names");
-      try {
-        sim::enable_effect(sim_config, static_cast<std::string>(effects[i]));
-      } catch (const std::invalid_argument& e) {
-        throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + ": " + e.what());
-      }
+  for (const std::string& effect : r.texts("effects", {}, {}, 0, 16)) {
+    try {
+      sim::enable_effect(sim_config, effect);
+    } catch (const std::invalid_argument& e) {
+      throw std::invalid_argument("parameter " + pnh_.resolveName("effects") + ": " + e.what());
     }
   }
+  r.warn_unknown("mm3e_sim");
   simulator_ = std::make_unique<sim::ManipulatorSimulator>(sim_config, static_cast<std::uint64_t>(seed));
   sim::ManipulatorSimulator* s = simulator_.get();
   device_ = std::make_unique<can::DeviceCore>(
@@ -80,6 +75,8 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
   bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
   garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
+  restart_srv_ = pnh_.advertiseService("inject_restart", &SimNode::on_restart, this);
+  stuck_srv_ = pnh_.advertiseService("inject_stuck_amplifier", &SimNode::on_stuck, this);
   ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
                                              << " Hz, "
                                              << (sync_mode_ ? std::string("synchronous: one sample per SYNC")
@@ -229,6 +226,26 @@ bool SimNode::on_bus_off(std_srvs::Trigger::Request&, std_srvs::Trigger::Respons
   silent_until_wall_s_ = wall_now_s() + fault_silence_s_;
   res.success = true;
   res.message = "bus-off error frame sent; silent for " + std::to_string(fault_silence_s_) + " s";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::on_restart(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  device_->restart();
+  res.success = true;
+  res.message = "controller restarted: every axis at its power-up voltage, report counter from 0, boot state for " +
+                std::to_string(can::DeviceCore::kBootSamples) + " samples";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  for (int i = 0; i < can::kAxisCount; ++i) device_->set_stuck(i, req.data);
+  res.success = true;
+  res.message = req.data ? "amplifiers stuck: every axis keeps its present output and ignores set points"
+                         : "amplifiers released";
   ROS_WARN_STREAM("mm3e_sim: " << res.message);
   return true;
 }

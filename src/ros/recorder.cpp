@@ -12,8 +12,10 @@
 #include "piezo_compensation/ProtocolPhase.h"
 #include "piezo_compensation/RecorderProgress.h"
 #include "piezo_compensation/VoltageCommand.h"
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/ros/params.h"
 
 namespace fs = std::filesystem;
 
@@ -44,15 +46,19 @@ YAML::Node to_yaml(const XmlRpc::XmlRpcValue& v) {
   }
 }
 
-std::size_t axis_index(const std::string& a) { return a == "a" ? 0 : a == "b" ? 1 : 2; }
+std::size_t axis_index(const std::string& a) { return static_cast<std::size_t>(io::axis_index_or_none(a)); }
 
 std::string join(const std::string& ns, const std::string& rel) { return ns + "/" + rel; }
 
 }  // namespace
 
-RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh) {
+RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh, std::vector<std::string>* unknown) {
   RecorderOptions o;
-  pnh.param("protocol", o.protocol, o.protocol);
+  params::ParamReader r(pnh);
+  constexpr double kDay = 86400.0;
+  constexpr int kMaxInt = std::numeric_limits<int>::max();
+  o.protocol = r.text("protocol", o.protocol);
+  r.known("protocol_params");
   if (pnh.hasParam("protocol_params")) {
     XmlRpc::XmlRpcValue v;
     pnh.getParam("protocol_params", v);
@@ -62,36 +68,36 @@ RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh) {
       else
         o.protocol_params = to_yaml(v);
     } catch (const std::exception& e) {
-      throw std::invalid_argument("~protocol_params: " + std::string(e.what()));
+      throw std::invalid_argument("parameter " + r.resolved("protocol_params") + ": " + e.what());
     }
-    if (!o.protocol_params.IsMap()) throw std::invalid_argument("~protocol_params: expected a map");
+    if (!o.protocol_params.IsMap())
+      throw std::invalid_argument("parameter " + r.resolved("protocol_params") + " must be a map");
   }
-  int seed = static_cast<int>(o.seed);
-  pnh.param("seed", seed, seed);
-  if (seed < 0) throw std::invalid_argument("~seed must be >= 0");
-  o.seed = static_cast<std::uint64_t>(seed);
-  pnh.param("sample_rate_hz", o.sample_rate_hz, o.sample_rate_hz);
-  pnh.param("duration_s", o.duration_s, o.duration_s);
-  pnh.param("out", o.out, o.out);
-  pnh.param("resume", o.resume, o.resume);
-  pnh.param("axes", o.axes, o.axes);
-  pnh.param("chunk_period_s", o.chunk_period_s, o.chunk_period_s);
-  pnh.param("encoder_timeout_s", o.encoder_timeout_s, o.encoder_timeout_s);
-  pnh.param("startup_timeout_s", o.startup_timeout_s, o.startup_timeout_s);
-  pnh.param("min_free_space_mb", o.min_free_space_mb, o.min_free_space_mb);
-  pnh.param("voltage_tolerance_v", o.voltage_tolerance_v, o.voltage_tolerance_v);
-  pnh.param("max_wait_samples", o.max_wait_samples, o.max_wait_samples);
-  pnh.param("progress_period_s", o.progress_period_s, o.progress_period_s);
-  pnh.param("approach_timeout_s", o.approach_timeout_s, o.approach_timeout_s);
-  int stop_after = 0;
-  pnh.param("stop_after_samples", stop_after, stop_after);
-  if (stop_after < 0) throw std::invalid_argument("~stop_after_samples must be >= 0");
-  o.stop_after_samples = static_cast<std::uint64_t>(stop_after);
-  for (const char* gone : {"publish_clock", "lockstep_settle_s"})
+  o.seed = static_cast<std::uint64_t>(r.integer("seed", static_cast<int>(o.seed), 0, kMaxInt));
+  o.sample_rate_hz = r.number("sample_rate_hz", o.sample_rate_hz, 0.01, 10000.0);
+  o.duration_s = r.number("duration_s", o.duration_s, 0.0, 1e9);
+  o.out = r.text("out", o.out);
+  o.resume = r.flag("resume", o.resume);
+  o.axes = r.texts("axes", o.axes, std::vector<std::string>(io::kAxisNames.begin(), io::kAxisNames.end()), 1,
+                   io::kAxisCount);
+  o.chunk_period_s = r.number("chunk_period_s", o.chunk_period_s, 0.001, kDay);
+  o.encoder_timeout_s = r.number("encoder_timeout_s", o.encoder_timeout_s, 0.01, kDay);
+  o.startup_timeout_s = r.number("startup_timeout_s", o.startup_timeout_s, 0.01, kDay);
+  o.min_free_space_mb = r.number("min_free_space_mb", o.min_free_space_mb, 0.0, 1e9);
+  o.voltage_tolerance_v = r.number("voltage_tolerance_v", o.voltage_tolerance_v, 0.0, 10.0);
+  o.max_wait_samples = r.integer("max_wait_samples", o.max_wait_samples, 0, 1000);
+  o.progress_period_s = r.number("progress_period_s", o.progress_period_s, 0.01, kDay);
+  o.approach_timeout_s = r.number("approach_timeout_s", o.approach_timeout_s, 0.0, kDay);
+  o.stop_after_samples = static_cast<std::uint64_t>(r.integer("stop_after_samples", 0, 0, kMaxInt));
+  for (const char* gone : {"publish_clock", "lockstep_settle_s"}) {
+    r.known(gone);
     if (pnh.hasParam(gone))
-      throw std::invalid_argument(std::string("~") + gone +
+      throw std::invalid_argument(std::string("parameter ") + r.resolved(gone) +
                                   " is no longer a recorder parameter: lock-step with a simulated device is the "
                                   "driver's and mm3e_sim's ~sync_mode (record.launch lockstep:=true)");
+  }
+  if (unknown) *unknown = r.unknown();
+  r.warn_unknown("piezo_recorder");
   o.validate();
   return o;
 }
@@ -114,9 +120,9 @@ void RecorderOptions::validate() const {
   if (max_wait_samples < 0) throw std::invalid_argument("~max_wait_samples must be >= 0");
   positive(progress_period_s, "progress_period_s");
   if (!(approach_timeout_s >= 0.0)) throw std::invalid_argument("~approach_timeout_s must be >= 0");
-  if (axes.empty()) throw std::invalid_argument("~axes: give at least one of a, b, c");
+  if (axes.empty()) throw std::invalid_argument("~axes: give at least one of " + io::axis_names_list());
   for (const auto& a : axes)
-    if (a != "a" && a != "b" && a != "c") throw std::invalid_argument("~axes: unknown axis '" + a + "'");
+    if (io::axis_index_or_none(a) < 0) throw std::invalid_argument("~axes: unknown axis '" + a + "'");
 }
 
 void Recorder::parse_spec(const std::string& yaml, RecorderOptions& o, std::uint64_t& total, double& t0_s) {
@@ -148,8 +154,14 @@ Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(
     const auto found = ros_io::scan_recording(options_.out, topic(options_.axes.front(), "encoder"),
                                               join(ns_, "protocol_phase"));
     for (const auto& f : found.set_aside)
-      ROS_WARN("recorder: %s was open when the last session died (no index); its samples are recorded again",
+      ROS_WARN("recorder: %s was open or torn when the last session died (no index); its samples are recorded again",
                f.c_str());
+    if (!found.set_aside.empty())
+      ROS_WARN("recorder: resume drops %llu bytes in %zu unreadable chunk(s)",
+               static_cast<unsigned long long>(found.set_aside_bytes), found.set_aside.size());
+    if (found.duplicates > 0)
+      ROS_WARN("recorder: %llu samples were both in %s and in its chunks (a merge cut short): kept once",
+               static_cast<unsigned long long>(found.duplicates), options_.out.c_str());
     if (found.found && found.samples > 0) {
       const std::string wanted = options_.protocol;
       parse_spec(found.parameters_yaml, options_, total_, t0_s_);

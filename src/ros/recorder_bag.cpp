@@ -1,12 +1,17 @@
 #include "piezo_compensation/ros/recorder_bag.h"
 
+#include <fcntl.h>
 #include <rosbag/view.h>
 #include <sys/statvfs.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <cerrno>
 #include <cstdio>
+#include <cstring>
 #include <filesystem>
+#include <set>
+#include <tuple>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ProtocolPhase.h"
@@ -41,6 +46,60 @@ std::string chunk_name(std::size_t i) {
   std::snprintf(buf, sizeof buf, "chunk_%06zu.bag", i);
   return buf;
 }
+
+// Durability: data of a file, then the directory entry that names it (after a rename), must reach the disk
+// before anything that depends on them (deleting the chunks a merged bag holds).
+void fsync_path(const std::string& path, bool directory) {
+  const int fd = ::open(path.c_str(), (directory ? O_DIRECTORY : 0) | O_RDONLY | O_CLOEXEC);
+  if (fd < 0) throw RecorderBagError(path + ": cannot open to sync: " + std::strerror(errno));
+  const int rc = ::fsync(fd);
+  const int err = errno;
+  ::close(fd);
+  if (rc != 0) throw RecorderBagError(path + ": fsync failed: " + std::strerror(err));
+}
+void fsync_file(const std::string& path) { fsync_path(path, false); }
+void fsync_parent(const std::string& path) {
+  const fs::path parent = fs::absolute(path).parent_path();
+  fsync_path(parent.empty() ? "." : parent.string(), true);
+}
+
+// A message's identity for de-duplication: the same topic, time and bytes is the same message (what a merge
+// that was interrupted before it deleted its chunks leaves twice).
+struct MessageKey {
+  std::string topic;
+  std::uint32_t size = 0;
+  std::uint64_t hash = 0;
+  bool operator<(const MessageKey& o) const { return std::tie(topic, size, hash) < std::tie(o.topic, o.size, o.hash); }
+};
+MessageKey key_of(const rosbag::MessageInstance& m, std::vector<std::uint8_t>& buffer) {
+  MessageKey k;
+  k.topic = m.getTopic();
+  k.size = m.size();
+  buffer.resize(k.size);
+  ros::serialization::OStream stream(buffer.data(), k.size);
+  m.write(stream);
+  std::uint64_t h = 1469598103934665603ull;  // FNV-1a
+  for (std::uint8_t b : buffer) h = (h ^ b) * 1099511628211ull;
+  k.hash = h;
+  return k;
+}
+
+// Keys of the messages at one time stamp: the view is in time order, so a duplicate shares its stamp.
+class Deduplicator {
+ public:
+  bool seen(const rosbag::MessageInstance& m) {
+    if (m.getTime() != time_) {
+      time_ = m.getTime();
+      keys_.clear();
+    }
+    return !keys_.insert(key_of(m, buffer_)).second;
+  }
+
+ private:
+  ros::Time time_;
+  std::set<MessageKey> keys_;
+  std::vector<std::uint8_t> buffer_;
+};
 
 bool opens(const std::string& path) {
   try {
@@ -92,8 +151,11 @@ ExistingRecording scan_recording(const std::string& out_path, const std::string&
       }
       // the chunk that was open when the process died: no index, its samples are recorded again
       const std::string aside = e.path().string() + ".unindexed";
+      std::error_code size_ec;
+      const auto bytes = fs::file_size(e.path(), size_ec);
       fs::rename(e.path(), aside);
       r.set_aside.push_back(aside);
+      r.set_aside_bytes += size_ec ? 0 : bytes;
     }
     std::sort(chunks.begin(), chunks.end());
     for (auto& c : chunks) r.files.push_back(c.second);
@@ -115,7 +177,12 @@ ExistingRecording scan_recording(const std::string& out_path, const std::string&
     }
   }
   bool any = false;
+  Deduplicator dedup;
   for (const auto& m : encoders) {
+    if (dedup.seen(m)) {  // FILE.bag and chunks it already holds (a merge cut short before the deletion)
+      ++r.duplicates;
+      continue;
+    }
     if (auto e = m.instantiate<piezo_compensation::EncoderPosition>()) {
       ++r.samples;
       if (!any || e->sequence + 1u > r.next_sample) r.next_sample = std::uint64_t{e->sequence} + 1u;
@@ -194,9 +261,11 @@ void ChunkedBag::close_chunk() {
   } catch (const std::exception& e) {
     throw RecorderBagError(active_path_ + ": closing failed: " + e.what());
   }
+  fsync_file(active_path_);
   std::error_code ec;
   fs::rename(active_path_, final_chunk_path_, ec);
   if (ec) throw RecorderBagError(active_path_ + ": cannot rename the closed chunk: " + ec.message());
+  fsync_parent(final_chunk_path_);
   // rosbag does not see every failed buffered write: reading the index back does
   if (!opens(final_chunk_path_))
     throw RecorderBagError(final_chunk_path_ + ": unreadable after closing (write error, disk full?)");
@@ -205,8 +274,10 @@ void ChunkedBag::close_chunk() {
 
 void ChunkedBag::abandon() {
   if (!bag_) return;
-  // leak the open file as a killed process would: no close, no index (the OS closes the descriptor)
-  bag_.release();
+  // leave the open file as a killed process would: no close, no index. The object is kept (reachable, so
+  // LeakSanitizer does not count it) rather than destroyed, since its destructor would write the index.
+  static std::vector<std::unique_ptr<rosbag::Bag>> abandoned;
+  abandoned.push_back(std::move(bag_));
 }
 
 std::uint64_t ChunkedBag::finish() {
@@ -221,7 +292,8 @@ std::uint64_t ChunkedBag::finish() {
   if (fs::exists(out_)) inputs.push_back(out_);
   for (auto& c : chunks) inputs.push_back(c.second);
   if (inputs.empty()) return 0;
-  const std::uint64_t n = merge_bags(inputs, out_);
+  const std::uint64_t n = merge_bags(inputs, out_);  // durable (file and directory synced) before the deletion
+  if (crash_after_merge_) return n;
   std::error_code ec;
   for (auto& c : chunks) fs::remove(c.second, ec);
   bool leftovers = false;
@@ -246,11 +318,14 @@ std::uint64_t merge_bags(const std::vector<std::string>& inputs, const std::stri
     }
     fs::create_directories(parts_dir_of(out_path));
     rosbag::Bag out(tmp, rosbag::bagmode::Write);
+    Deduplicator dedup;
     for (const rosbag::MessageInstance& m : view) {
+      if (dedup.seen(m)) continue;
       out.write(m.getTopic(), m.getTime(), m, m.getConnectionHeader());
       ++n;
     }
     out.close();
+    fsync_file(tmp);
   } catch (const std::exception& e) {
     std::error_code ec;
     fs::remove(tmp, ec);
@@ -260,6 +335,7 @@ std::uint64_t merge_bags(const std::vector<std::string>& inputs, const std::stri
   std::error_code ec;
   fs::rename(tmp, out_path, ec);
   if (ec) throw RecorderBagError(out_path + ": cannot replace it with the merged bag: " + ec.message());
+  fsync_parent(out_path);
   return n;
 }
 

@@ -84,6 +84,57 @@ TEST(RecorderProtocols, SilentDriverStopsSafely) {
   EXPECT_EQ(piezo::ros_io::read_data(out).size(), r.next_sample());  // a valid bag with what was recorded
 }
 
+// recorder_params.test: the parameter layer (ros/params.h). A wrong type and a value out of range each stop the
+// recorder with one error naming the parameter; unknown private parameters are listed and warned about.
+TEST(RecorderParams, WrongTypeAndOutOfRangeAreNamed) {
+  const std::vector<std::pair<std::string, XmlRpc::XmlRpcValue>> cases = {
+      {"seed", XmlRpc::XmlRpcValue("7")},               // was silently seed 1
+      {"seed", XmlRpc::XmlRpcValue(-3)},
+      {"axes", XmlRpc::XmlRpcValue("c")},               // was silently all three axes
+      {"sample_rate_hz", XmlRpc::XmlRpcValue("fast")},
+      {"sample_rate_hz", XmlRpc::XmlRpcValue(0.0)},
+      {"chunk_period_s", XmlRpc::XmlRpcValue(-1.0)},
+      {"max_wait_samples", XmlRpc::XmlRpcValue(2.5)},   // an integer, not truncated
+      {"max_wait_samples", XmlRpc::XmlRpcValue(5000)},
+      {"resume", XmlRpc::XmlRpcValue("yes")},
+      {"voltage_tolerance_v", XmlRpc::XmlRpcValue(50.0)},
+  };
+  int k = 0;
+  for (const auto& [param, value] : cases) {
+    const std::string ns = "/recorder_bad_params/case_" + std::to_string(k++);
+    ros::NodeHandle pnh(ns);
+    pnh.setParam("protocol", "random_walk");
+    pnh.setParam("out", "/tmp/recorder_params_never_written.bag");
+    pnh.setParam(param, value);
+    try {
+      RecorderOptions::from_params(pnh);
+      ADD_FAILURE() << param << ": accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find(ns + "/" + param), std::string::npos) << param << ": " << e.what();
+    }
+  }
+  // The same names with good values are accepted (the failures above are the values, not the setup).
+  ros::NodeHandle good("/recorder_bad_params/good");
+  good.setParam("protocol", "random_walk");
+  good.setParam("out", "/tmp/recorder_params_never_written.bag");
+  good.setParam("seed", 7);
+  good.setParam("axes", std::vector<std::string>{"c"});
+  const RecorderOptions o = RecorderOptions::from_params(good);
+  EXPECT_EQ(o.seed, 7u);
+  EXPECT_EQ(o.axes, std::vector<std::string>{"c"});
+}
+
+TEST(RecorderParams, UnknownPrivateParametersAreListed) {
+  ros::NodeHandle pnh("/recorder_unknown_params");
+  pnh.setParam("protocol", "random_walk");
+  pnh.setParam("out", "/tmp/recorder_params_never_written.bag");
+  pnh.setParam("sample_rate_hz", 11.0);
+  pnh.setParam("chunk_periode_s", 5.0);  // a typo that would otherwise be ignored
+  std::vector<std::string> unknown;
+  RecorderOptions::from_params(pnh, &unknown);
+  EXPECT_EQ(unknown, std::vector<std::string>{"chunk_periode_s"});
+}
+
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "recorder_protocols");

@@ -224,9 +224,12 @@ TEST(CanSequence, CountsDropsReorderAndWrap) {
   auto u = t.update(14);
   EXPECT_EQ(u.dropped, 2u);
   EXPECT_EQ(u.sequence, 14u);
-  u = t.update(13);
-  EXPECT_TRUE(u.out_of_order);
   EXPECT_TRUE(t.update(14).out_of_order);  // duplicate
+  EXPECT_FALSE(t.update(14).restarted);
+  u = t.update(13);  // any step back: one controller never reorders its frames, so it restarted
+  EXPECT_TRUE(u.restarted);
+  EXPECT_EQ(u.sequence, 13u);
+  EXPECT_EQ(t.update(14).dropped, 0u);  // re-anchored there
   SequenceTracker w;
   w.update(kSequenceModulo - 1);
   u = w.update(0);  // 24-bit wrap: continues past 2^24 in 32 bit
@@ -238,6 +241,9 @@ TEST(CanSequence, CountsDropsReorderAndWrap) {
   u = r.update(0);  // far back: device restarted
   EXPECT_TRUE(u.restarted);
   EXPECT_EQ(r.update(1).dropped, 0u);
+  SequenceTracker s;  // a restart within a few samples of power-up is a short step back: still a restart
+  s.update(7);
+  EXPECT_TRUE(s.update(0).restarted);
 }
 
 TEST(CanProtocol, ValidationNamesTheField) {

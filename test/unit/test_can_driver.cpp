@@ -71,6 +71,11 @@ class Device {
     std::lock_guard<std::mutex> lock(mutex_);
     return core_.voltages_v();
   }
+  // Largest change one command frame made to an axis' voltage.
+  double largest_step(int axis) {
+    std::lock_guard<std::mutex> lock(mutex_);
+    return largest_step_[axis];
+  }
 
  private:
   void run() {
@@ -79,11 +84,16 @@ class Device {
       std::vector<ReceivedFrame> in;
       transport_->receive(in, 2);
       std::lock_guard<std::mutex> lock(mutex_);
-      for (const auto& rf : in)
-        if (core_.handle(rf.frame) == DeviceCore::Handled::kSync) {
+      for (const auto& rf : in) {
+        const auto before = core_.voltages_v();
+        const auto handled = core_.handle(rf.frame);
+        for (int i = 0; i < 3; ++i)
+          largest_step_[i] = std::max(largest_step_[i], std::abs(core_.voltages_v()[i] - before[i]));
+        if (handled == DeviceCore::Handled::kSync) {
           ++syncs_;
           voltages_at_sync_ = core_.voltages_v();
         }
+      }
       if (std::chrono::steady_clock::now() >= next) {
         next += 10ms;
         const auto out = core_.step();
@@ -98,6 +108,7 @@ class Device {
   std::atomic<bool> running_{true}, silent_{false};
   std::atomic<int> syncs_{0};
   std::array<double, 3> voltages_at_sync_{};
+  std::array<double, 3> largest_step_{};
   std::thread thread_;
 };
 
@@ -350,4 +361,57 @@ TEST(CanDriver, UdpTransportRejectsBadOptions) {
   o.local_port = base_port() + 7;
   o.host = "not-an-ip";
   EXPECT_THROW(make_udp_transport(o)->open(), TransportError);
+}
+
+namespace {
+// The UDP transport, but send() reports a full queue (ENOBUFS) while `refuse` is set.
+class RefusingTransport : public Transport {
+ public:
+  RefusingTransport(std::unique_ptr<Transport> inner, std::atomic<bool>* refuse) : inner_(std::move(inner)), refuse_(refuse) {}
+  void open() override { inner_->open(); }
+  void close() override { inner_->close(); }
+  bool is_open() const override { return inner_->is_open(); }
+  bool send(const can_frame& f) override { return *refuse_ ? false : inner_->send(f); }
+  int receive(std::vector<ReceivedFrame>& out, int ms) override { return inner_->receive(out, ms); }
+  std::string describe() const override { return inner_->describe(); }
+
+ private:
+  std::unique_ptr<Transport> inner_;
+  std::atomic<bool>* refuse_;
+};
+}  // namespace
+
+TEST(CanDriver, SendsRefusedForHalfASecondDoNotJumpAfterwards) {
+  Device device;
+  Recorder rec;
+  std::atomic<bool> refuse{false};
+  const auto udp = udp_factory(fast_protocol());
+  DriverConfig c = driver_config();
+  c.limits.slew_rate_v_per_s = 100.0;
+  c.limits.max_frame_step_v = 5.0;
+  DriverCore driver(c, [&] { return std::make_unique<RefusingTransport>(udp(), &refuse); }, rec.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }, 3000ms));
+  auto run_for = [&](std::chrono::milliseconds d) {
+    const auto t0 = std::chrono::steady_clock::now();
+    while (std::chrono::steady_clock::now() - t0 < d) {
+      driver.command(2, 70.0, now_s());
+      driver.tick(now_s());
+      std::this_thread::sleep_for(2ms);
+    }
+  };
+  run_for(150ms);  // ramping from 3 V
+  const double before = device.voltages()[2];
+  EXPECT_GT(before, 5.0);
+  EXPECT_LT(before, 40.0);
+  refuse = true;
+  run_for(500ms);  // the ramp would have moved 50 V meanwhile
+  EXPECT_GT(driver.axis_status(2).frames_refused, 50u);
+  EXPECT_NEAR(device.voltages()[2], before, 1e-9);
+  refuse = false;
+  run_for(100ms);
+  const double after = device.voltages()[2];
+  EXPECT_GT(after, before) << "the ramp did not resume";
+  EXPECT_LT(after, before + 100.0 * 0.1 + 5.0) << "the refused half second was made up at once";
+  EXPECT_LE(device.largest_step(2), 5.0 + 1e-6) << "a frame carried more than the cap";
 }

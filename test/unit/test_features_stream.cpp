@@ -70,7 +70,7 @@ TEST(FeatureStream, EveryTypeMatchesItsDefinition) {
   double lp = s.v[0], play = s.v[0], pl_in = s.v[0], pl = s.v[0];
   for (long t = 0; t < static_cast<long>(s.v.size()); ++t) {
     double aux_now = s.aux[t];
-    models::ModelInput in{s.v[t], &aux_now};
+    features::ModelInput in{s.v[t], &aux_now};
     fs.compute(in, x.data());
     const double v = s.v[t];
     EXPECT_DOUBLE_EQ(x[0], v);
@@ -105,7 +105,7 @@ TEST(FeatureStream, CausalTheCurrentPositionNeverEntersTheCurrentFeatures) {
   b.reset(s.v[0], s.d[0]);
   std::vector<double> xa(a.size()), xb(b.size());
   for (std::size_t t = 0; t <= 151; ++t) {
-    models::ModelInput in{s.v[t], nullptr};
+    features::ModelInput in{s.v[t], nullptr};
     a.compute(in, xa.data());
     b.compute(in, xb.data());
     if (t <= 150) {  // D_150 differs, but only after it is committed: features of sample 150 agree
@@ -129,7 +129,7 @@ TEST(FeatureStream, WindowsAreSecondsAtAnyRate) {
     const long w = std::lround(2.0 * rate);
     double x = 0;
     for (long t = 0; t <= w + 3; ++t) {
-      models::ModelInput in{double(t), nullptr};
+      features::ModelInput in{double(t), nullptr};
       fs.compute(in, &x);
       EXPECT_DOUBLE_EQ(x, t - std::max(0L, t - w)) << rate << " Hz, t=" << t;
       fs.commit(in, 0);
@@ -144,7 +144,7 @@ TEST(FeatureStream, RestStateIsStationaryAndStandardisationApplies) {
   FeatureStream fs(spec, 11.0);
   fs.reset(12.5, 300.0);
   std::vector<double> first(fs.size()), x(fs.size());
-  models::ModelInput in{12.5, nullptr};
+  features::ModelInput in{12.5, nullptr};
   fs.compute(in, first.data());
   for (int t = 0; t < 50; ++t) {
     fs.compute(in, x.data());
@@ -201,7 +201,7 @@ TEST(FeatureSets, StudySetIsCausalAndNamed) {
   fs.reset(0, 0);
   std::vector<double> x(6);
   for (int t = 0; t < 12; ++t) {
-    models::ModelInput in{0.0, nullptr};
+    features::ModelInput in{0.0, nullptr};
     fs.compute(in, x.data());
     EXPECT_DOUBLE_EQ(x[4], t >= 10 ? double(t - 10) : 0.0);  // D_{t-10}
     fs.commit(in, double(t));

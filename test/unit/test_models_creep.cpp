@@ -2,6 +2,7 @@
 
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "test_models_data.h"
 
 using namespace piezo;
@@ -23,11 +24,11 @@ io::Dataset generate(const CreepParams& cp, double noise_nm) {
 
 const PiCreepModel& fit(const io::Dataset& d, const std::string& kind, models::ModelPtr& keep,
                        const std::string& input = "voltage") {
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &d;
   req.options["thresholds_v"] = kR;
   req.options["creep_input"] = input;
-  keep = models::model_kind(kind).fit(req);
+  keep = training::fit_model(kind, req);
   EXPECT_EQ(keep->kind(), kind);
   return dynamic_cast<const PiCreepModel&>(*keep);
 }

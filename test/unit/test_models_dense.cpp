@@ -8,6 +8,7 @@
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/dense_model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "test_models_dense_data.h"
 
 using namespace piezo;
@@ -64,7 +65,7 @@ TEST(DenseNet, RejectsBadShape) {
 
 TEST(DenseModel, FitsLearnsAndRoundTripsThroughRegistry) {
   const io::Dataset data = test_data::hysteretic_dataset(4000, 11);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.axis = "c";
   req.seed = 5;
@@ -72,7 +73,7 @@ TEST(DenseModel, FitsLearnsAndRoundTripsThroughRegistry) {
   req.options["epochs"] = 15;
   req.options["width"] = 8;
   req.options["learning_rate"] = 3e-3;
-  const models::ModelPtr m = models::model_kind("dense").fit(req);
+  const models::ModelPtr m = training::fit_model("dense", req);
   ASSERT_TRUE(m);
   EXPECT_EQ(m->kind(), "dense");
   EXPECT_TRUE(m->uses_position_history());
@@ -96,19 +97,19 @@ TEST(DenseModel, FitsLearnsAndRoundTripsThroughRegistry) {
   EXPECT_NE(p1, p2);
 
   // Same seed, same weights; another seed, other weights.
-  const models::ModelPtr m2 = models::model_kind("dense").fit(req);
+  const models::ModelPtr m2 = training::fit_model("dense", req);
   EXPECT_EQ(YAML::Dump(m2->to_yaml()["weights"]), YAML::Dump(m->to_yaml()["weights"]));
   req.seed = 6;
-  const models::ModelPtr m3 = models::model_kind("dense").fit(req);
+  const models::ModelPtr m3 = training::fit_model("dense", req);
   EXPECT_NE(YAML::Dump(m3->to_yaml()["weights"]), YAML::Dump(m->to_yaml()["weights"]));
 }
 
 TEST(DenseModel, MalformedNodesGiveOneClearError) {
   const io::Dataset data = test_data::hysteretic_dataset(800, 11);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.options["epochs"] = 1;
-  const YAML::Node good = models::model_kind("dense").fit(req)->to_yaml();
+  const YAML::Node good = training::fit_model("dense", req)->to_yaml();
   auto expect_error = [](const YAML::Node& n, const std::string& needle) {
     try {
       models::model_kind("dense").load(n);
@@ -132,16 +133,16 @@ TEST(DenseModel, MalformedNodesGiveOneClearError) {
   YAML::Node opts;
   opts["widht"] = 3;
   req.options = opts;
-  EXPECT_THROW(models::model_kind("dense").fit(req), std::runtime_error);
+  EXPECT_THROW(training::fit_model("dense", req), std::runtime_error);
 }
 
 TEST(DenseModel, ExportedC99HeaderMatchesCppSampleBySample) {
   const io::Dataset data = test_data::hysteretic_dataset(1500, 11);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.options["epochs"] = 3;
   req.options["depth"] = 2;
-  const models::ModelPtr m = models::model_kind("dense").fit(req);
+  const models::ModelPtr m = training::fit_model("dense", req);
   const std::string c = models::model_kind("dense").export_c99(*m, "pz");
   EXPECT_NE(c.find("pz_network(const double* x)"), std::string::npos);
   EXPECT_LT(test_data::c_export_max_diff(*m, c, data, "c"), 1e-10);
@@ -149,7 +150,7 @@ TEST(DenseModel, ExportedC99HeaderMatchesCppSampleBySample) {
 
 TEST(DenseModel, TuningThroughTheRegistryRunsTrialsAndReportsProgress) {
   const io::Dataset data = test_data::hysteretic_dataset(1500, 13);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.tune_trials = 4;
   req.options["epochs"] = 3;
@@ -162,7 +163,7 @@ TEST(DenseModel, TuningThroughTheRegistryRunsTrialsAndReportsProgress) {
     last_done = done;
     last_total = total;
   };
-  const models::ModelPtr m = models::model_kind("dense").fit(req);
+  const models::ModelPtr m = training::fit_model("dense", req);
   EXPECT_EQ(calls, 4);
   EXPECT_EQ(last_done, 4);
   EXPECT_EQ(last_total, 4);
@@ -175,7 +176,7 @@ TEST(DenseModel, TuningThroughTheRegistryRunsTrialsAndReportsProgress) {
 
 TEST(DenseModel, FreeRunStaysWithinTheOutputRails) {
   models::DenseShape s{6, 1, 3, 0.01};
-  training::TargetScale target;
+  models::TargetScale target;
   target.output_min_nm = -100.0;
   target.output_max_nm = 100.0;
   // Huge weights: unclamped, the free-run feedback through the position features would explode.

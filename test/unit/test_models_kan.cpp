@@ -7,6 +7,7 @@
 
 #include "piezo_compensation/models/kan_model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "test_models_dense_data.h"
 
 using namespace piezo;
@@ -116,13 +117,13 @@ TEST(KanSymbolic, RecoversPlantedFunctions) {
 
 TEST(KanModel, FitPrintsFormulasAndRoundTrips) {
   const io::Dataset data = test_data::hysteretic_dataset(3000, 31);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.seed = 2;
   req.options["epochs"] = 10;
   req.options["width"] = 3;
   req.options["grid_updates"] = 2;
-  const models::ModelPtr m = models::model_kind("kan").fit(req);
+  const models::ModelPtr m = training::fit_model("kan", req);
   const double mae = test_data::one_step_mae(*m, data, "c");
   EXPECT_LT(mae, 0.15 * test_data::mean_abs_deviation(data.axis("c").position_nm));
 
@@ -151,12 +152,12 @@ TEST(KanModel, FitPrintsFormulasAndRoundTrips) {
 
 TEST(KanModel, TuningSearchesGridOrderAndWidth) {
   const io::Dataset data = test_data::hysteretic_dataset(800, 33);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.tune_trials = 2;
   req.options["epochs"] = 1;
   req.options["grid_updates"] = 1;
-  const models::ModelPtr m = models::model_kind("kan").fit(req);
+  const models::ModelPtr m = training::fit_model("kan", req);
   const YAML::Node h = m->to_yaml()["hyperparameters"];
   EXPECT_GE(h["grid"].as<int>(), 3);
   EXPECT_LE(h["grid"].as<int>(), 20);

@@ -4,6 +4,7 @@
 #include "piezo_compensation/models/linear_model.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/training/fit_common.h"
+#include "piezo_compensation/training/fitters.h"
 #include "test_models_data.h"
 
 using namespace piezo;
@@ -34,10 +35,10 @@ TEST(LinearModel, OlsRecoversTheWeightsThatMadeTheData) {
   LinearModel truth(spec, 11.0, w, 40.0);
   const auto v = testdata::random_walk_v(20000, 3);
   const io::Dataset d = testdata::make_dataset(truth, v, 11.0, 0.0, 1);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &d;
   req.options["features"] = spec.to_yaml();
-  auto fitted = models::model_kind("linear").fit(req);
+  auto fitted = training::fit_model("linear", req);
   // Same predictions as the generator on fresh data.
   const auto v2 = testdata::random_walk_v(3000, 9);
   fitted->reset(v2[0], 0);
@@ -61,11 +62,11 @@ TEST(LinearModel, StudyFeaturesAreAffineAndUsePositions) {
   LinearModel gen(physics_small(), 11.0, w, 0.0);
   const io::Dataset d = testdata::make_dataset(gen, v, 11.0, 20.0, 2);
   for (const char* method : {"ols", "ridge", "lasso"}) {
-    models::FitRequest req;
+    training::FitRequest req;
     req.train = &d;
     req.options["method"] = method;
     req.options["features"] = "study";
-    auto m = models::model_kind("linear").fit(req);
+    auto m = training::fit_model("linear", req);
     EXPECT_TRUE(m->is_affine_in_voltage()) << method;
     EXPECT_TRUE(m->uses_position_history()) << method;
     // Closed-form inverse from two predictions hits the target.
@@ -75,10 +76,10 @@ TEST(LinearModel, StudyFeaturesAreAffineAndUsePositions) {
     const double target = 123.0, vin = (target - f0) / (f1 - f0);
     EXPECT_NEAR(m->predict({vin, nullptr}), target, 1e-6) << method;
   }
-  models::FitRequest bad;
+  training::FitRequest bad;
   bad.train = &d;
   bad.options["method"] = "magic";
-  EXPECT_THROW(models::model_kind("linear").fit(bad), std::runtime_error);
+  EXPECT_THROW(training::fit_model("linear", bad), std::runtime_error);
 }
 
 TEST(LinearModel, PredictionOfSampleTDoesNotDependOnMeasurementT) {

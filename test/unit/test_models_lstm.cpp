@@ -7,6 +7,7 @@
 
 #include "piezo_compensation/models/lstm_model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "test_models_dense_data.h"
 
 using namespace piezo;
@@ -73,7 +74,7 @@ TEST(LstmNet, StreamingStepEqualsSequencePath) {
 
 TEST(LstmModel, FitsStreamsAndRoundTrips) {
   const io::Dataset data = test_data::hysteretic_dataset(3000, 21);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.seed = 3;
   req.options["epochs"] = 15;
@@ -82,7 +83,7 @@ TEST(LstmModel, FitsStreamsAndRoundTrips) {
   req.options["seq_len"] = 16;
   req.options["warmup"] = 8;
   req.options["learning_rate"] = 1e-2;
-  const models::ModelPtr m = models::model_kind("lstm").fit(req);
+  const models::ModelPtr m = training::fit_model("lstm", req);
   const double mae = test_data::one_step_mae(*m, data, "c");
   EXPECT_LT(mae, 0.25 * test_data::mean_abs_deviation(data.axis("c").position_nm));
 
@@ -105,7 +106,7 @@ TEST(LstmModel, FitsStreamsAndRoundTrips) {
   a->commit({20.0, nullptr}, p1);
   EXPECT_NE(lstm->hidden_state(), h0);
 
-  const models::ModelPtr m2 = models::model_kind("lstm").fit(req);
+  const models::ModelPtr m2 = training::fit_model("lstm", req);
   EXPECT_EQ(YAML::Dump(m2->to_yaml()["weights"]), YAML::Dump(m->to_yaml()["weights"]));
 
   YAML::Node bad = m->to_yaml();
@@ -115,13 +116,13 @@ TEST(LstmModel, FitsStreamsAndRoundTrips) {
 
 TEST(LstmModel, TuningSearchesTheStudySpace) {
   const io::Dataset data = test_data::hysteretic_dataset(800, 23);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &data;
   req.tune_trials = 2;
   req.options["epochs"] = 1;
   req.options["seq_len"] = 8;
   req.options["warmup"] = 4;
-  const models::ModelPtr m = models::model_kind("lstm").fit(req);
+  const models::ModelPtr m = training::fit_model("lstm", req);
   const YAML::Node h = m->to_yaml()["hyperparameters"];
   EXPECT_GE(h["layers"].as<int>(), 1);
   EXPECT_LE(h["layers"].as<int>(), 5);

@@ -4,6 +4,7 @@
 
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fitters.h"
 #include "test_models_data.h"
 
 using namespace piezo;
@@ -56,10 +57,10 @@ TEST(PiModel, FitRecoversWeightsAndKeepsThemInvertible) {
   PiCreepModel truth = make_pi();
   const auto v = testdata::random_walk_v(30000, 21);
   const io::Dataset d = testdata::make_dataset(truth, v, 11.0, 0.0, 1);
-  models::FitRequest req;
+  training::FitRequest req;
   req.train = &d;
   req.options["thresholds_v"] = std::vector<double>{0, 8, 16, 24, 32, 40, 48, 56};
-  auto fitted = models::model_kind("pi").fit(req);
+  auto fitted = training::fit_model("pi", req);
   const auto& m = dynamic_cast<const PiCreepModel&>(*fitted);
   for (std::size_t i = 0; i < truth.weights().size(); ++i) EXPECT_NEAR(m.weights()[i], truth.weights()[i], 1e-4) << i;
   EXPECT_NEAR(m.bias_nm(), truth.bias_nm(), 1e-3);
@@ -68,7 +69,7 @@ TEST(PiModel, FitRecoversWeightsAndKeepsThemInvertible) {
   req.train = &noisy;
   req.options = YAML::Node();
   req.options["n_play"] = 20;  // more operators than the truth: some weights hit the bound
-  auto f2 = models::model_kind("pi").fit(req);
+  auto f2 = training::fit_model("pi", req);
   const auto& m2 = dynamic_cast<const PiCreepModel&>(*f2);
   EXPECT_GT(m2.weights()[0], 0.0);
   for (double w : m2.weights()) EXPECT_GE(w, 0.0);
@@ -83,7 +84,7 @@ TEST(Nnls, MatchesBruteForceOnSmallProblem) {
   y << 1, -2, 0.5, 3, -1, 0.2;
   const Eigen::MatrixXd G = A.transpose() * A;
   const Eigen::VectorXd c = A.transpose() * y;
-  const Eigen::VectorXd x = models::nnls_gram(G, c, {false, true, true});
+  const Eigen::VectorXd x = training::nnls_gram(G, c, {false, true, true});
   double best = INFINITY;
   Eigen::VectorXd best_x;
   for (int mask = 0; mask < 4; ++mask) {

@@ -6,6 +6,7 @@
 #include <filesystem>
 #include <fstream>
 #include <limits>
+#include <random>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ProtocolPhase.h"
@@ -105,6 +106,82 @@ TEST(RecordingBag, CrashKeepsClosedChunksAndResumeContinues) {
   EXPECT_EQ(found.files.size(), 1u);
   EXPECT_EQ(found.next_sample, 60u);
   EXPECT_EQ(sequences_in(out).size(), 60u);
+}
+
+namespace {
+// Every sample 0..n-1 exactly once and in order.
+void expect_complete(const std::string& path, std::uint32_t n) {
+  const auto seq = sequences_in(path);
+  ASSERT_EQ(seq.size(), n) << path;
+  std::uint32_t reordered = 0, duplicated = 0;
+  for (std::size_t k = 1; k < seq.size(); ++k) {
+    duplicated += seq[k] == seq[k - 1];
+    reordered += seq[k] < seq[k - 1];
+  }
+  EXPECT_EQ(duplicated, 0u);
+  EXPECT_EQ(reordered, 0u);
+  for (std::uint32_t i = 0; i < n; ++i) EXPECT_EQ(seq[i], i);
+}
+}  // namespace
+
+TEST(RecordingBag, TornLastChunkAtRandomOffsetsIsSetAsideAndRecordedAgain) {
+  std::mt19937 rng(16);
+  for (int trial = 0; trial < 12; ++trial) {
+    const std::string out = fresh_path("torn.bag");
+    {
+      ChunkedBag bag(out, 1e-9, 0.0);
+      write_marker(bag, 0, "protocol: noise");
+      for (std::uint32_t i = 0; i < 40; ++i) {
+        write_sample(bag, i);
+        if (i % 10 == 9) bag.between_samples();  // four closed chunks of 10 samples
+      }
+    }
+    // Power loss while the last chunk was being written out: it ends at any byte.
+    const std::string last = piezo::ros_io::parts_dir_of(out) + "/chunk_000004.bag";
+    ASSERT_TRUE(fs::exists(last));
+    const auto size = fs::file_size(last);
+    const auto cut = std::uniform_int_distribution<std::uintmax_t>(0, size - 1)(rng);
+    fs::resize_file(last, cut);
+    const auto found = scan_recording(out, kEnc, kPhase);
+    ASSERT_TRUE(found.found) << "cut at " << cut;
+    ASSERT_EQ(found.set_aside.size(), 1u) << "cut at " << cut;
+    EXPECT_EQ(found.set_aside_bytes, cut);  // what resume says it dropped
+    EXPECT_EQ(found.samples, 30u) << "cut at " << cut;
+    EXPECT_EQ(found.next_sample, 30u);
+    {
+      ChunkedBag bag(out, 1e9, 0.0);
+      for (std::uint32_t i = 30; i < 50; ++i) write_sample(bag, i);
+      bag.finish();
+    }
+    expect_complete(out, 50);
+  }
+}
+
+TEST(RecordingBag, CrashBetweenMergeAndDeleteMergesOnce) {
+  const std::string out = fresh_path("merged_twice.bag");
+  {
+    ChunkedBag bag(out, 1e-9, 0.0);
+    for (std::uint32_t i = 0; i < 20; ++i) {
+      write_sample(bag, i);
+      if (i % 5 == 4) bag.between_samples();
+    }
+    bag.crash_after_merge_for_test();
+    EXPECT_EQ(bag.finish(), 20u);
+  }
+  // FILE.bag holds every sample and so do the chunks that were not deleted.
+  ASSERT_TRUE(fs::exists(piezo::ros_io::parts_dir_of(out) + "/chunk_000001.bag"));
+  const auto found = scan_recording(out, kEnc, kPhase);
+  EXPECT_EQ(found.files.size(), 5u);
+  EXPECT_EQ(found.samples, 20u);
+  EXPECT_EQ(found.duplicates, 20u);
+  EXPECT_EQ(found.next_sample, 20u);
+  {
+    ChunkedBag bag(out, 1e9, 0.0);
+    for (std::uint32_t i = 20; i < 30; ++i) write_sample(bag, i);
+    EXPECT_EQ(bag.finish(), 30u);
+  }
+  expect_complete(out, 30);
+  EXPECT_FALSE(fs::exists(piezo::ros_io::parts_dir_of(out)));
 }
 
 TEST(RecordingBag, NothingToResume) {

@@ -72,7 +72,7 @@ inline void register_test_kind() {
           return std::make_unique<LowpassLinearModel>(n["w0"].as<double>(), n["w1"].as<double>(), n["w2"].as<double>(),
                                                        n["fs"].as<double>());
         },
-        nullptr, nullptr});
+        nullptr});
     return true;
   }();
   (void)done;

@@ -11,6 +11,7 @@
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/simulator_config.h"
+#include "piezo_compensation/training/fitters.h"
 
 namespace pa = piezo::analysis;
 
@@ -50,13 +51,13 @@ piezo::models::ModelPtr fit_base(const piezo::io::Dataset& train, const pa::Resi
 }
 
 piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val) {
-  piezo::models::FitRequest req;
+  piezo::training::FitRequest req;
   req.train = &fit;
   req.validation = &val;
   req.axis = "c";
   // A fast physics base (PI hysteresis + LTI creep); PIEZO_RESIDUAL_BASE=<kind> tries another.
   const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
-  return piezo::models::model_kind(kind ? kind : "pi_creep_lti").fit(req);
+  return piezo::training::fit_model(kind ? kind : "pi_creep_lti", req);
 }
 
 double clean_mae() {

@@ -101,6 +101,13 @@ TEST(SimConfig, YamlFileMirrorsDefaults) {
     EXPECT_EQ(f.encoder_noise_sigma_nm, d.encoder_noise_sigma_nm);
     EXPECT_EQ(f.voltage_min_v, d.voltage_min_v);
     EXPECT_EQ(f.voltage_max_v, d.voltage_max_v);
+    EXPECT_EQ(f.hysteresis_model, d.hysteresis_model);
+    EXPECT_EQ(f.preisach_grid_count, d.preisach_grid_count);
+    EXPECT_EQ(f.preisach_centre_offset, d.preisach_centre_offset);
+    EXPECT_EQ(f.preisach_centre_spread, d.preisach_centre_spread);
+    EXPECT_EQ(f.preisach_width_decay, d.preisach_width_decay);
+    EXPECT_EQ(f.creep_spectrum_tau_s, d.creep_spectrum_tau_s);
+    EXPECT_EQ(f.creep_spectrum_weights, d.creep_spectrum_weights);
   }
   EXPECT_EQ(file.thermal_drift.gain_nm_per_c, def.thermal_drift.gain_nm_per_c);
   EXPECT_EQ(file.thermal_drift.period_s, def.thermal_drift.period_s);

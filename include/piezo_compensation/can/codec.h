@@ -95,6 +95,10 @@ class Codec {
   // Encoders throw std::invalid_argument for an axis outside 0..2, a non-finite value or one that does not
   // fit the int32 field; they never produce a frame from NaN.
   can_frame encode(const CommandFrame& m) const;
+  // The command frame the driver writes: the voltage rounds to a count inside [lo_v, hi_v] (towards the
+  // inside when the nearest count is outside), and the frame is decoded again to check it. Throws
+  // std::invalid_argument when the value or the encoded one is not within [lo_v, hi_v].
+  can_frame encode_command(const CommandFrame& m, double lo_v, double hi_v) const;
   can_frame encode(const VoltageReport& m) const;
   can_frame encode(const EncoderReport& m) const;
   can_frame encode(const Heartbeat& m) const;
@@ -126,8 +130,9 @@ class SequenceTracker {
   struct Update {
     std::uint32_t sequence = 0;  // unwrapped (wraps at 2^32)
     std::uint32_t dropped = 0;   // frames missing before this one
-    bool out_of_order = false;   // older than one already seen (or a duplicate)
-    bool restarted = false;      // a jump back large enough to be a device restart
+    bool out_of_order = false;   // the same counter again (a repeated frame)
+    bool restarted = false;      // any step back: the controller restarted its counter; re-anchored there
+    bool first = false;          // the first since construction or reset(): nothing to compare it with
   };
   Update update(std::uint32_t wire_sequence);
   void reset() { started_ = false; }

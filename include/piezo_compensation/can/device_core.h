@@ -40,6 +40,13 @@ class DeviceCore {
   Output step();
 
   void set_state(DeviceState state) { state_ = state; }
+  // Fault injection. restart(): power-up as after a controller reset: every axis at its initial voltage, the
+  // report counter from 0, state "boot" (commands ignored, a heartbeat every sample) for kBootSamples samples.
+  void restart();
+  // A stuck amplifier: the axis keeps its present output and ignores set points until released.
+  void set_stuck(int axis, bool stuck) { stuck_.at(axis) = stuck; }
+  static constexpr int kBootSamples = 2;
+  DeviceState state() const { return state_; }
   void set_encoder_valid(int axis, bool valid) { encoder_valid_.at(axis) = valid; }
 
   const std::array<double, kAxisCount>& voltages_v() const { return voltages_v_; }
@@ -54,6 +61,8 @@ class DeviceCore {
   Plant plant_;
   std::array<double, kAxisCount> voltages_v_{};
   std::array<bool, kAxisCount> encoder_valid_{true, true, true};
+  std::array<bool, kAxisCount> stuck_{false, false, false};
+  int boot_samples_left_ = 0;
   std::uint32_t sequence_ = 0;
   std::uint16_t heartbeat_counter_ = 0;
   double time_s_ = 0.0, next_heartbeat_s_ = 0.0;

@@ -40,8 +40,8 @@ struct AxisStatus {
   std::uint64_t encoder_dropped = 0, encoder_out_of_order = 0;
   std::uint64_t voltage_dropped = 0, voltage_out_of_order = 0;
   std::uint64_t commands = 0, clamped = 0, rejected_non_finite = 0, rejected_held = 0, rejected_no_baseline = 0,
-                rejected_no_link = 0;
-  std::uint64_t frames_sent = 0, timeouts = 0;
+                rejected_no_link = 0, rejected_future_stamp = 0;
+  std::uint64_t frames_sent = 0, frames_refused = 0, timeouts = 0, report_mismatches = 0, device_faults = 0;
   double applied_v = 0.0;       // last set point sent
   double target_v = 0.0;        // where the slew ramp is heading
   double reported_v = 0.0;      // last voltage the device reported
@@ -49,6 +49,9 @@ struct AxisStatus {
   double encoder_age_s = -1.0;  // [s, wall] since the last encoder frame; -1 = none yet
   bool has_baseline = false, timed_out = false, halted = false, multiple_commanders = false;
   bool encoder_valid = true, amplifier_fault = false;
+  bool device_fault = false;  // held: the device did not follow (restart, not operational, reports away)
+  bool paused = false;        // the last report matched no written value: the ramp waits for the next one
+  std::string fault;          // "axis a: controller restarted ...: reported 0.000 V, commanded 42.000 V"
 };
 
 struct BusStatus {
@@ -87,8 +90,9 @@ class DriverCore {
   void stop();
 
   // A command for one axis at time now_s (caller's clock: ROS time). command_time_s is when the commander
-  // issued it (its header stamp; NaN = now_s): the watchdog counts from there, so a stale command holds.
-  // Writes a frame at once when the slew limit allows a change.
+  // issued it (its header stamp; NaN = now_s): the watchdog counts from min(command_time_s, now_s), so a stale
+  // command holds, and one stamped more than max_stamp_ahead_s ahead is refused. Writes a frame at once when
+  // the slew limit allows a change.
   CommandOutcome command(int axis, double voltage_v, double now_s, double command_time_s = std::nan(""));
   // Advances slew ramps and watchdogs of all axes (call at the output rate).
   void tick(double now_s);
@@ -97,7 +101,7 @@ class DriverCore {
   bool sync();
 
   void halt();                 // hold every axis where it is and refuse commands until recover()
-  void recover();              // clear halt, reopen the transport now, reset the back-off
+  void recover();              // clear halt and device faults, reopen the transport now, reset the back-off
   void set_multiple_commanders(int axis, bool on);
 
   AxisStatus axis_status(int axis) const;
@@ -111,7 +115,8 @@ class DriverCore {
   using Clock = std::chrono::steady_clock;
   struct Axis;
   struct Pending;
-  void send_locked(int axis, double voltage_v, std::vector<Pending>& events);
+  void send_locked(int axis, double voltage_v, double now_s, std::vector<Pending>& events);
+  void trip_locked(int axis, const std::string& why, std::vector<Pending>& events);
   void close_locked(const std::string& reason, BusState state, std::vector<Pending>& events);
   void flush(std::vector<Pending>& events);
   double since(Clock::time_point t) const;
@@ -128,6 +133,7 @@ class DriverCore {
   bool halted_ = false;
   std::uint32_t command_counter_ = 0;
   std::uint8_t sync_counter_ = 0;
+  double last_now_s_ = 0.0;  // latest caller time seen (command/tick): the time reports are checked at
   Clock::time_point last_rx_{}, last_heartbeat_{}, next_attempt_{};
   double backoff_s_ = 0.0;
   bool ever_connected_ = false;

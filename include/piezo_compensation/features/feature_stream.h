@@ -7,7 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/models/model.h"
+#include "piezo_compensation/features/model_input.h"
 
 namespace piezo::features {
 
@@ -59,9 +59,9 @@ class FeatureStream {
 
   void reset(double voltage_v, double position_nm);
   // Standardised features of the current sample for input `in` (state unchanged). out has size() entries.
-  void compute(const models::ModelInput& in, double* out) const;
+  void compute(const ModelInput& in, double* out) const;
   // Advance the history with the applied input and the remembered position.
-  void commit(const models::ModelInput& in, double position_nm);
+  void commit(const ModelInput& in, double position_nm);
   std::size_t size() const;
   const FeatureSpec& spec() const;
 

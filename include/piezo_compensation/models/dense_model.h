@@ -8,7 +8,7 @@
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/models/model.h"
-#include "piezo_compensation/training/trainer.h"
+#include "piezo_compensation/models/neural_file.h"
 
 namespace piezo::models {
 
@@ -43,24 +43,10 @@ class DenseNet {
   std::vector<int> sizes_;  // inputs, width × depth, 1
 };
 
-// Objective over the columns of a feature matrix (units = samples).
-class DenseObjective : public training::Objective {
- public:
-  DenseObjective(const DenseNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
-  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
-  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                  Eigen::VectorXd* grad) const override;
-
- private:
-  const DenseNet& net_;
-  const Eigen::MatrixXd& x_;
-  const Eigen::VectorXd& y_;
-};
-
 class DenseModel : public Model {
  public:
   DenseModel(const features::FeatureSpec& spec, double sample_rate_hz, const DenseShape& shape,
-             Eigen::VectorXd params, training::TargetScale target);
+             Eigen::VectorXd params, TargetScale target);
   std::string kind() const override { return "dense"; }
   void reset(double voltage_v, double position_nm) override { stream_.reset(voltage_v, position_nm); }
   double predict(const ModelInput& in) const override;
@@ -79,7 +65,7 @@ class DenseModel : public Model {
 
   const DenseNet& net() const { return net_; }
   const Eigen::VectorXd& params() const { return params_; }
-  const training::TargetScale& target() const { return target_; }
+  const TargetScale& target() const { return target_; }
   YAML::Node training_info;  // optimiser, epochs, losses: written to the file for the record
 
  private:
@@ -87,7 +73,7 @@ class DenseModel : public Model {
   double sample_rate_hz_;
   DenseNet net_;
   Eigen::VectorXd params_;
-  training::TargetScale target_;
+  TargetScale target_;
 };
 
 // A complete streaming C99 header (c_export.h's API: <p>_state, <p>_init, <p>_predict, <p>_commit, <p>_step) for a
@@ -96,8 +82,5 @@ class DenseModel : public Model {
 // standardised features. Throws for specs the engine cannot export (aux signals).
 std::string neural_c99_header(const features::FeatureSpec& spec, double sample_rate_hz, const std::string& prefix,
                               const std::string& network_code);
-
-// Trains a dense model (with a hyperparameter search when request.tune_trials > 0).
-std::unique_ptr<DenseModel> fit_dense(const FitRequest& request);
 
 }  // namespace piezo::models

@@ -15,7 +15,7 @@
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/models/model.h"
-#include "piezo_compensation/training/trainer.h"
+#include "piezo_compensation/models/neural_file.h"
 
 namespace piezo::models {
 
@@ -76,19 +76,6 @@ class KanNet {
   std::vector<Eigen::MatrixXd> activations(const Eigen::VectorXd& params, const Eigen::MatrixXd& x) const;
 };
 
-class KanObjective : public training::Objective {
- public:
-  KanObjective(const KanNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
-  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
-  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                  Eigen::VectorXd* grad) const override;
-
- private:
-  const KanNet& net_;
-  const Eigen::MatrixXd& x_;
-  const Eigen::VectorXd& y_;
-};
-
 // A closed-form stand-in for one learned function.
 struct SymbolicFit {
   std::string family;        // "x", "x^2", "x^3", "sin", "tanh", "exp", "log"
@@ -102,7 +89,7 @@ SymbolicFit fit_symbolic(const std::vector<double>& x, const std::vector<double>
 class KanModel : public Model {
  public:
   KanModel(const features::FeatureSpec& spec, double sample_rate_hz, KanNet net, Eigen::VectorXd params,
-           training::TargetScale target);
+           TargetScale target);
   std::string kind() const override { return "kan"; }
   void reset(double voltage_v, double position_nm) override { stream_.reset(voltage_v, position_nm); }
   double predict(const ModelInput& in) const override;
@@ -128,9 +115,7 @@ class KanModel : public Model {
   double sample_rate_hz_;
   KanNet net_;
   Eigen::VectorXd params_;
-  training::TargetScale target_;
+  TargetScale target_;
 };
-
-std::unique_ptr<KanModel> fit_kan(const FitRequest& request);
 
 }  // namespace piezo::models

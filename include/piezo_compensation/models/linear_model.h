@@ -1,4 +1,4 @@
-// Kind "linear": position = bias + Σ w_j · feature_j (standardised features of a FeatureSpec), fitted by OLS,
+// Kind "linear": position = bias + Σ w_j · feature_j (standardised features of a FeatureSpec), fitted (training/fit_linear.cpp) by OLS,
 // ridge or lasso (λ from time-block CV). Affine in the voltage whenever every feature is (no play/stop).
 #pragma once
 
@@ -8,7 +8,6 @@
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/models/model.h"
-#include "piezo_compensation/models/registry.h"
 
 namespace piezo::models {
 
@@ -34,9 +33,7 @@ class LinearModel : public Model {
   const std::string& method() const { return method_; }
   double sample_rate_hz() const { return rate_hz_; }
 
-  static ModelPtr load(const YAML::Node& node);
-  // options: method (ols|ridge|lasso), ridge_lambda, lasso_choice (1se|min), folds, features (see fit_common.h).
-  static ModelPtr fit(const FitRequest& req);
+  static ModelPtr load(const YAML::Node& node);  // fitted by training::fit_linear (training/fitters.h)
 
  private:
   features::FeatureStream stream_;

@@ -10,7 +10,7 @@
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/models/model.h"
-#include "piezo_compensation/training/trainer.h"
+#include "piezo_compensation/models/neural_file.h"
 
 namespace piezo::models {
 
@@ -50,27 +50,10 @@ class LstmNet {
   int layer_inputs(int l) const { return l == 0 ? shape_.inputs : shape_.hidden; }
 };
 
-// Units = windows of warmup + seq_len consecutive samples of a feature matrix, scored on the last seq_len.
-class LstmObjective : public training::Objective {
- public:
-  LstmObjective(const LstmNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y, int seq_len, int warmup);
-  std::size_t num_units() const override { return starts_.size(); }
-  std::size_t samples_per_unit() const override { return static_cast<std::size_t>(seq_len_); }
-  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                  Eigen::VectorXd* grad) const override;
-
- private:
-  const LstmNet& net_;
-  const Eigen::MatrixXd& x_;
-  const Eigen::VectorXd& y_;
-  int seq_len_, warmup_;
-  std::vector<std::size_t> starts_;  // first scored sample of each window
-};
-
 class LstmModel : public Model {
  public:
   LstmModel(const features::FeatureSpec& spec, double sample_rate_hz, const LstmShape& shape, Eigen::VectorXd params,
-            training::TargetScale target, int warmup);
+            TargetScale target, int warmup);
   std::string kind() const override { return "lstm"; }
   void reset(double voltage_v, double position_nm) override;
   double predict(const ModelInput& in) const override;
@@ -94,11 +77,9 @@ class LstmModel : public Model {
   double sample_rate_hz_;
   LstmNet net_;
   Eigen::VectorXd params_;
-  training::TargetScale target_;
+  TargetScale target_;
   int warmup_;
   std::vector<double> h_, c_;  // committed state, layers × hidden
 };
-
-std::unique_ptr<LstmModel> fit_lstm(const FitRequest& request);
 
 }  // namespace piezo::models

@@ -8,14 +8,12 @@
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/features/model_input.h"
+
 namespace piezo::models {
 
-// What is known at one sample when the position is predicted. Causal by construction: the position of the
-// sample being predicted is never an input; positions enter only through Model::commit() of earlier samples.
-struct ModelInput {
-  double voltage_v = 0.0;        // voltage applied at this sample [V]
-  const double* aux = nullptr;   // values of Model::aux_inputs() at this sample, in that order (null if none)
-};
+// The input of one sample (features/model_input.h): the layer below models owns it, models use it.
+using ModelInput = features::ModelInput;
 
 // Facts about a fitted model, stored in the model file beside the weights.
 struct ModelMeta {

@@ -19,6 +19,7 @@
 
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/yaml_fields.h"  // the kinds' loaders read their fields with these
 
 namespace piezo::models {
 
@@ -38,12 +39,5 @@ ModelPtr load_model(const std::string& path);
 
 // Throws ModelFileError naming `where` when the data's rate or axes do not fit the model.
 void check_model_matches_data(const Model& model, const io::Dataset& data, const std::string& where);
-
-// Typed access to kind nodes for loaders: errors are "model.<key>: ..." (load_model adds the file name).
-double yaml_number(const YAML::Node& node, const std::string& key);
-int yaml_int(const YAML::Node& node, const std::string& key);
-std::string yaml_string(const YAML::Node& node, const std::string& key);
-std::vector<double> yaml_numbers(const YAML::Node& node, const std::string& key, long expected_size = -1);
-YAML::Node yaml_list(const std::vector<double>& v);
 
 }  // namespace piezo::models

@@ -11,7 +11,6 @@
 
 #include "piezo_compensation/models/creep_models.h"
 #include "piezo_compensation/models/model.h"
-#include "piezo_compensation/models/registry.h"
 
 namespace piezo::models {
 
@@ -44,10 +43,7 @@ class PiCreepModel : public Model {
   const std::vector<double>& mode_poles() const { return poles_; }
   double sample_rate_hz() const { return rate_hz_; }
 
-  static ModelPtr load(const YAML::Node& node);
-  // options: n_play (12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti start values),
-  // t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s, min_slope_fraction.
-  static ModelPtr fit(const FitRequest& req, CreepKind kind);
+  static ModelPtr load(const YAML::Node& node);  // fitted by training::fit_pi_creep (training/fitters.h)
 
  private:
   std::vector<double> r_, w_;
@@ -73,9 +69,5 @@ class PiInverse {
   std::vector<double> r_, w_, p_;
   double b_;
 };
-
-// Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]
-// (Lawson–Hanson active set). G must be positive definite on the free set.
-Eigen::VectorXd nnls_gram(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, const std::vector<bool>& constrained);
 
 }  // namespace piezo::models

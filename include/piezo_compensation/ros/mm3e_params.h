@@ -11,6 +11,7 @@
 
 #include "piezo_compensation/can/protocol.h"
 #include "piezo_compensation/can/transport.h"
+#include "piezo_compensation/ros/params.h"
 
 namespace piezo::mm3e {
 
@@ -21,6 +22,7 @@ std::string param_string(const ros::NodeHandle& nh, const std::string& name, con
                          const std::vector<std::string>& allowed = {});
 
 // ~protocol/<field> for every field of can::ProtocolConfig (docs/can_protocol.md), then validated.
+can::ProtocolConfig read_protocol(params::ParamReader& reader);
 can::ProtocolConfig read_protocol(const ros::NodeHandle& pnh);
 
 struct TransportParams {
@@ -32,6 +34,7 @@ struct TransportParams {
   std::string describe() const;   // "can0" or "udp 127.0.0.1:47100"
 };
 // ~transport, ~interface, ~udp_host, ~udp_local_port, ~udp_remote_port.
+TransportParams read_transport(params::ParamReader& reader, int default_local_port, int default_remote_port);
 TransportParams read_transport(const ros::NodeHandle& pnh, int default_local_port, int default_remote_port);
 
 std::function<std::unique_ptr<can::Transport>()> transport_factory(const TransportParams& params,

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <ros/ros.h>
+#include <std_srvs/SetBool.h>
 #include <std_srvs/Trigger.h>
 
 #include <array>
@@ -32,6 +33,8 @@ class SimNode {
   void publish_clock(double t_s);
   bool on_bus_off(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool on_garbage(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  bool on_restart(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
+  bool on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
   void send_all(const std::vector<can_frame>& frames);
 
   ros::NodeHandle nh_, pnh_;
@@ -50,7 +53,7 @@ class SimNode {
   std::array<ros::Publisher, can::kAxisCount> truth_pub_;
   ros::Publisher temperature_pub_;  // thermal drift on: the simulated temperature [°C]
   ros::Publisher clock_pub_;
-  ros::ServiceServer bus_off_srv_, garbage_srv_;
+  ros::ServiceServer bus_off_srv_, garbage_srv_, restart_srv_, stuck_srv_;
   std::atomic<bool> running_{true};
   std::atomic<double> silent_until_wall_s_{0.0};
   std::thread thread_;

@@ -18,6 +18,7 @@
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/analysis/recording_summary.h"
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/recorder_bag.h"
 
@@ -32,7 +33,7 @@ struct RecorderOptions {
   double duration_s = 0.0;              // ~duration_s: record only the first part of the protocol (0 = all)
   std::string out;                      // ~out: FILE.bag
   bool resume = false;                  // ~resume
-  std::vector<std::string> axes{"a", "b", "c"};  // ~axes
+  std::vector<std::string> axes{io::kAxisNames.begin(), io::kAxisNames.end()};  // ~axes
   double chunk_period_s = 60.0;         // ~chunk_period_s: wall time between bag chunk closes (crash-loss bound)
   double encoder_timeout_s = 3.0;       // ~encoder_timeout_s: wall time without encoder data = dead driver
   double startup_timeout_s = 30.0;      // ~startup_timeout_s: wall time to wait for the first encoder data
@@ -43,8 +44,9 @@ struct RecorderOptions {
   double approach_timeout_s = 30.0;     // ~approach_timeout_s: wall time to reach the first sample's voltages
   std::uint64_t stop_after_samples = 0; // ~stop_after_samples: stop like Ctrl-C after this many (0 = never)
 
-  // Throws std::invalid_argument naming the parameter.
-  static RecorderOptions from_params(const ros::NodeHandle& pnh);
+  // Through the parameter layer (ros/params.h): type and range checked, throws std::invalid_argument naming the
+  // parameter; unknown private parameters are warned about (and listed in *unknown when given).
+  static RecorderOptions from_params(const ros::NodeHandle& pnh, std::vector<std::string>* unknown = nullptr);
   void validate() const;
 };
 

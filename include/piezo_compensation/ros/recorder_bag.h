@@ -3,6 +3,9 @@
 // or a detected failure merges FILE.bag (from an earlier session, if any) and the chunks into a new FILE.bag
 // atomically (write beside, rename). After a hard crash (kill -9, power) every closed chunk is a valid bag;
 // the next `--resume` merges them and continues after the last sample they hold. Layout: docs/recorder.md.
+// Durability: a chunk is fsynced before its rename and the directory after it; a merged bag likewise, and the
+// chunks are deleted only after that. A merge that died between its rename and the deletion leaves messages
+// twice (in FILE.bag and in the chunks): scanning and merging drop a message whose topic, time and bytes repeat.
 #pragma once
 
 #include <rosbag/bag.h>
@@ -29,6 +32,8 @@ struct ExistingRecording {
   bool found = false;
   std::vector<std::string> files;      // valid bags: FILE.bag first, then closed chunks in order
   std::vector<std::string> set_aside;  // unreadable leftovers (an open chunk of a crashed run), renamed *.unindexed
+  std::uint64_t set_aside_bytes = 0;   // their size: what resume drops (its samples are recorded again)
+  std::uint64_t duplicates = 0;        // first-axis encoder messages found twice (skipped)
   std::string parameters_yaml;         // from the first protocol_phase marker (includes the time base)
   std::uint64_t samples = 0;           // first-axis encoder messages found
   std::uint64_t next_sample = 0;       // last recorded protocol sample index + 1
@@ -62,6 +67,8 @@ class ChunkedBag {
   std::uint64_t finish();
   // Test hook for a hard crash: drop the open chunk unclosed, as kill -9 would.
   void abandon();
+  // Test hook for a crash between the merged bag's rename and the deletion of its chunks.
+  void crash_after_merge_for_test() { crash_after_merge_ = true; }
 
   const std::string& out_path() const { return out_; }
   std::size_t chunks_closed() const { return chunks_closed_; }
@@ -76,10 +83,12 @@ class ChunkedBag {
   std::unique_ptr<rosbag::Bag> bag_;
   std::string active_path_, final_chunk_path_;
   std::size_t next_index_ = 1, chunks_closed_ = 0;
+  bool crash_after_merge_ = false;
   std::chrono::steady_clock::time_point opened_at_, space_checked_at_;
 };
 
-// Merges bags (in time order) into `out_path` via a temporary file and rename.
+// Merges bags (in time order, repeated messages once) into `out_path` via a temporary file, fsync, rename and
+// fsync of the directory. Returns the number of messages written.
 std::uint64_t merge_bags(const std::vector<std::string>& inputs, const std::string& out_path);
 
 }  // namespace piezo::ros_io

@@ -29,7 +29,30 @@ class PrandtlIshlinskii {
   double output_nm_ = 0.0;
 };
 
-// Creep: first-order modes x_j relaxing towards the hysteretic displacement h with log-spaced τ_j;
+// Preisach hysteresis: relay hysterons γ_{α,β} (+1 once u ≥ α, −1 once u ≤ β, else unchanged) on a grid of
+// switching voltages α ≥ β over the range, weighted by a density over their centre and half-width (see
+// AxisConfig::preisach_*), plus a linear term:  H = w_0·u + s·Σ μ_k γ_k − H_start.
+// w_0 and s are solved, like the play weights, so that the full-range loop spans stroke_nm and is
+// loop_width_fraction·stroke wide at mid voltage. Starts demagnetised around v_mid (relays with centre below 0
+// up, the rest down), with H = 0 there.
+class Preisach {
+ public:
+  explicit Preisach(const AxisConfig& axis);
+  // Advances to voltage v; the relay part is weighted by nonlinear_scale (1 = rate independent). Returns H [nm].
+  double update(double voltage_v, double nonlinear_scale = 1.0);
+  double output_nm() const { return output_nm_; }
+  void reset();
+  std::size_t relay_count() const { return alpha_v_.size(); }
+  double linear_weight_nm_per_v() const { return w0_; }
+
+ private:
+  double v_mid_ = 0.0, w0_ = 0.0, start_sum_ = 0.0, output_nm_ = 0.0;
+  std::vector<double> alpha_v_, beta_v_, weight_nm_;  // weights already scaled by s
+  std::vector<signed char> state_, start_state_;
+};
+
+// Creep: first-order modes x_j relaxing towards the hysteretic displacement h, with log-spaced τ_j (weights
+// ∝ τ^(−α)) or the explicit spectrum creep_spectrum_tau_s / creep_spectrum_weights;
 //   creep = Σ g_j x_j,  x_j(t+dt) = h + (x_j(t) − h)·exp(−dt/τ_j)  (exact for h held over dt).
 class CreepModes {
  public:

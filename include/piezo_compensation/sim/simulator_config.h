@@ -2,19 +2,22 @@
 // config/simulator.yaml. Equations and parameter choices: docs/simulator.md.
 #pragma once
 
+#include <yaml-cpp/yaml.h>
+
 #include <array>
 #include <string>
 #include <vector>
 
 namespace piezo::sim {
 
-// One piezo axis: Prandtl–Ishlinskii hysteresis, multi-mode creep, encoder.
+// One piezo axis: hysteresis (Prandtl–Ishlinskii or Preisach), multi-mode creep, encoder.
 struct AxisConfig {
   std::string name;                       // "a", "b" or "c"
   double voltage_min_v = -80.0;           // applied voltages are clamped to [min, max]
   double voltage_max_v = 80.0;
   double stroke_nm = 2000.0;              // creep-free (fast) full-range displacement of the hysteresis part
   double loop_width_fraction = 0.10;      // creep-free full-range loop width (at mid voltage) / stroke
+  std::string hysteresis_model = "prandtl_ishlinskii";  // or "preisach" (asymmetric relay hysterons)
   int play_operator_count = 12;           // play operators with thresholds r_i = i·(range/2)/n, i = 0..n-1
   double play_weight_decay_v = 40.0;      // play weights w_i ∝ exp(−r_i / decay) for i ≥ 1
   double asymmetry_nm = 8.0;              // static asymmetry: + asymmetry·u², u = normalised voltage
@@ -23,6 +26,19 @@ struct AxisConfig {
   double creep_tau_max_s = 20000.0;
   double creep_alpha = -0.1;              // mode weights g_j ∝ τ_j^(−α)
   double creep_gain = 0.35;               // Σ g_j: creep displacement at full relaxation / hysteretic displacement
+  // Explicit creep spectrum: when creep_spectrum_tau_s is non-empty, the modes are exactly these time constants
+  // with these weights (dimensionless, same meaning as g_j) and the log-spaced parameters above are unused.
+  std::vector<double> creep_spectrum_tau_s;
+  std::vector<double> creep_spectrum_weights;
+  // Preisach hysteresis (hysteresis_model: preisach): relays with up/down switching voltages α ≥ β on a
+  // grid of preisach_grid_count points over the range; weight density over the relays' centre c = (α+β)/2 and
+  // half-width w = (α−β)/2 (both as fractions of the half range R):
+  //   μ ∝ exp(−(c − centre_offset)² / (2·centre_spread²)) · exp(−w / width_decay).
+  // A centre offset makes the loop asymmetric (a Prandtl–Ishlinskii model's density is uniform in c).
+  int preisach_grid_count = 40;
+  double preisach_centre_offset = 0.25;
+  double preisach_centre_spread = 0.45;
+  double preisach_width_decay = 0.25;
   double encoder_quantisation_nm = 20.0;  // encoder LSB
   double encoder_noise_sigma_nm = 19.97;  // raw Gaussian σ before quantisation (measured σ² ≈ raw² + q²/12)
 };
@@ -87,6 +103,8 @@ SimulatorConfig default_simulator_config();
 // Reads a YAML file shaped like config/simulator.yaml; keys not given keep their defaults.
 // Throws std::invalid_argument naming the file and the bad key (unknown key, wrong type, out of range).
 SimulatorConfig load_simulator_config(const std::string& yaml_path);
+// The same from a parsed node (e.g. the `simulator:` part of a stage file); errors start with `where`.
+SimulatorConfig simulator_config_from_yaml(const YAML::Node& root, const std::string& where);
 // Checks ranges; throws std::invalid_argument naming the parameter.
 void validate(const SimulatorConfig& config);
 

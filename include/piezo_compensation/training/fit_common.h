@@ -11,8 +11,9 @@
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model.h"
 #include "piezo_compensation/models/model_stream.h"
-#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fit_request.h"
 
 namespace piezo::training {
 
@@ -50,7 +51,7 @@ struct GramStats {
 // Gram sums of the (standardised) features of `spec` over `blocks` contiguous time blocks of equal length
 // (one block = all data). Computed in chunks, never holding the N×p matrix.
 std::vector<GramStats> block_gram(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis,
-                                  int blocks, const models::ProgressFn& progress = {});
+                                  int blocks, const ProgressFn& progress = {});
 
 // Features and measured targets as dense arrays (one-step mode), every `stride`-th sample.
 struct Design {
@@ -66,10 +67,10 @@ Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c,
 // The feature spec a fit uses: options["features"] may be a set name ("study", "candidates", "physics"),
 // "lasso" (lasso with time-block CV over the candidates; the λ_1se survivors), or a full spec mapping.
 // Missing = `default_set`. The result is standardised on req.train.
-features::FeatureSpec resolve_features(const models::FitRequest& req, const std::string& default_set);
+features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set);
 
 // Meta common to all kinds: axis, rate, fingerprint and source of the training data, creation time.
-models::ModelMeta make_meta(const models::FitRequest& req);
+models::ModelMeta make_meta(const FitRequest& req);
 std::string utc_now_iso8601();
 
 // Small typed accessors for FitRequest::options with clear errors ("option 'lambda': expected a number").

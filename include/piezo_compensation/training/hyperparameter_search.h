@@ -16,7 +16,7 @@
 #include <utility>
 #include <vector>
 
-#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fit_request.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/trainer.h"
 
@@ -49,7 +49,7 @@ struct SearchConfig {
   int startup_trials = 8;       // random trials before TPE
   double gamma = 0.25;          // fraction of trials counted as good
   int candidates = 24;          // samples from the good density scored per parameter
-  models::ProgressFn progress;  // (trial, trials, "trial")
+  ProgressFn progress;  // (trial, trials, "trial")
 };
 
 struct SearchResult {
@@ -76,7 +76,7 @@ std::vector<ParamDef> kan_search_space();
 // epochs, seed (request seed + trial), time budget and (no) progress are already set; it returns a trial with
 // `model` (a pointer) and `validation_mse`. The search is recorded in the winner's training_info["tuning"].
 template <typename Train>
-auto tune_and_retrain(const std::string& kind, const std::vector<ParamDef>& space, const models::FitRequest& request,
+auto tune_and_retrain(const std::string& kind, const std::vector<ParamDef>& space, const FitRequest& request,
                       const TrainerConfig& cfg, Train&& train) {
   using Trial = std::invoke_result_t<Train&, const TrialParams&, TrainerConfig>;
   Trial best;

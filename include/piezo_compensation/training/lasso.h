@@ -8,7 +8,7 @@
 #include <vector>
 
 #include "piezo_compensation/features/feature_stream.h"
-#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/training/fit_request.h"
 #include "piezo_compensation/training/fit_common.h"
 
 namespace piezo::training {
@@ -36,7 +36,7 @@ struct LassoPath {
 
 // blocks: Gram sums per contiguous time block (block_gram); folds = blocks.size() (≥ 2 for CV).
 LassoPath lasso_path_cv(const std::vector<GramStats>& blocks, const LassoOptions& opt = {},
-                        const models::ProgressFn& progress = {});
+                        const ProgressFn& progress = {});
 
 // The features with non-zero coefficients at path index `index` (standardisation kept).
 features::FeatureSpec select_features(const features::FeatureSpec& spec, const Eigen::VectorXd& coef);
@@ -51,6 +51,6 @@ struct LassoSelection {
   LassoPath path;
 };
 LassoSelection run_lasso(const features::FeatureSpec& candidates, const io::Dataset& data, const std::string& axis,
-                         const LassoOptions& opt = {}, const models::ProgressFn& progress = {});
+                         const LassoOptions& opt = {}, const ProgressFn& progress = {});
 
 }  // namespace piezo::training

@@ -13,11 +13,13 @@
 #include <functional>
 #include <limits>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/io/dataset.h"
-#include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/models/neural_file.h"
+#include "piezo_compensation/training/fit_request.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/optimizer.h"
 
@@ -36,6 +38,30 @@ class Objective {
                           Eigen::VectorXd* grad) const = 0;
 };
 
+// Objective over the columns of a feature matrix (units = samples) for a network with
+// loss_grad(params, x, y, grad) on a batch of columns (the dense network and the KAN).
+template <typename Net>
+class ColumnObjective : public Objective {
+ public:
+  ColumnObjective(const Net& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) : net_(net), x_(x), y_(y) {}
+  std::size_t num_units() const override { return static_cast<std::size_t>(x_.cols()); }
+  double loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
+                  Eigen::VectorXd* grad) const override {
+    Eigen::MatrixXd xb(x_.rows(), static_cast<Eigen::Index>(n));
+    Eigen::VectorXd yb(static_cast<Eigen::Index>(n));
+    for (std::size_t i = 0; i < n; ++i) {
+      xb.col(static_cast<Eigen::Index>(i)) = x_.col(static_cast<Eigen::Index>(units[i]));
+      yb[static_cast<Eigen::Index>(i)] = y_[static_cast<Eigen::Index>(units[i])];
+    }
+    return net_.loss_grad(params, xb, yb, grad);
+  }
+
+ private:
+  const Net& net_;
+  const Eigen::MatrixXd& x_;
+  const Eigen::VectorXd& y_;
+};
+
 struct TrainerConfig {
   OptimizerConfig optimizer;
   int epochs = 50;
@@ -46,7 +72,7 @@ struct TrainerConfig {
   int threads = 2;
   double time_budget_s = 0.0;    // >0: stop after the epoch that exceeds it
   double grad_clip_norm = 0.0;   // >0: scale the mini-batch gradient down to this norm
-  models::ProgressFn progress;   // called per epoch: (epoch, epochs, "epoch")
+  ProgressFn progress;   // called per epoch: (epoch, epochs, "epoch")
   // Called after each epoch; may change params (KAN grid update). Return true when it did: the optimiser
   // moments and the best-so-far record are then reset, since they refer to the old parameterisation.
   std::function<bool(Eigen::VectorXd& params, int epoch)> on_epoch_end;
@@ -77,54 +103,14 @@ TrainResult train(const Objective& objective, const Objective* validation, const
 // t with measured positions up to t-1 (column-major, size() × n).
 Eigen::MatrixXd feature_matrix(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis);
 
-struct TargetScale {
-  double mean_nm = 0.0;
-  double scale_nm = 1.0;
-  // Output rails: the training range widened by half its span each side. Networks extrapolate without bound;
-  // fed back in free-run they can run away to ±inf, so outputs are held to physically plausible values.
-  double output_min_nm = -std::numeric_limits<double>::infinity();
-  double output_max_nm = std::numeric_limits<double>::infinity();
-  double to_nm(double z) const {
-    const double y = mean_nm + scale_nm * z;
-    return y < output_min_nm ? output_min_nm : (y > output_max_nm ? output_max_nm : y);
-  }
-  double to_z(double nm) const { return (nm - mean_nm) / scale_nm; }
-  YAML::Node to_yaml() const;
-  static TargetScale from_yaml(const YAML::Node& node, const std::string& what);  // rails optional
-  std::string c99_expression(const std::string& z) const;  // to_nm in C
-};
-TargetScale fit_target_scale(const std::vector<double>& position_nm);
+// Target standardisation and output rails from the training positions.
+models::TargetScale fit_target_scale(const std::vector<double>& position_nm);
 
 // Training and validation parts of a FitRequest: its validation set, or the last `fraction` of train by time.
 struct SplitData {
   io::Dataset train, validation;
 };
-SplitData split_for_validation(const models::FitRequest& request, double fraction = 0.1);
-
-// ---- small YAML helpers for the kinds' loaders ------------------------------------------------------------
-
-// Throws naming `what` and the offending key when node has a key outside `allowed`.
-void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what);
-// Required finite scalar / vector under key.
-double yaml_double(const YAML::Node& node, const std::string& key, const std::string& what);
-// Required integer in [low, high] under key.
-int yaml_int(const YAML::Node& node, const std::string& key, const std::string& what, int low, int high);
-std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
-                                 std::size_t expected_size);
-YAML::Node flow_sequence(const Eigen::VectorXd& values);
-
-// What every neural kind's model-file node shares, read and checked in one place: the kind, the sample rate, the
-// feature spec, the target scale and the hyperparameters map (keys checked against `hyperparameter_keys`).
-// `extra_keys` are the kind's own further top-level keys (e.g. KAN's "grids"). Errors name "<kind> model".
-struct NeuralFileHeader {
-  double sample_rate_hz = 0.0;
-  features::FeatureSpec spec;
-  TargetScale target;
-  YAML::Node hyperparameters;
-};
-NeuralFileHeader read_neural_file_header(const YAML::Node& node, const std::string& kind,
-                                         const std::vector<std::string>& hyperparameter_keys,
-                                         const std::vector<std::string>& extra_keys = {});
+SplitData split_for_validation(const FitRequest& request, double fraction = 0.1);
 
 }  // namespace piezo::training
 
@@ -135,14 +121,23 @@ namespace piezo::training {
 struct PreparedData {
   features::FeatureSpec spec;
   double sample_rate_hz = 11.0;
-  TargetScale target;
+  models::TargetScale target;
   Eigen::MatrixXd x_train, x_validation;   // features × samples
   Eigen::VectorXd y_train, y_validation;   // standardised positions
 };
-PreparedData prepare_data(const models::FitRequest& request);
+PreparedData prepare_data(const FitRequest& request);
 
 // Trainer settings from the request and its options (optimizer, learning_rate, epochs, batch_size, patience).
-TrainerConfig trainer_config(const models::FitRequest& request, int default_epochs, int default_batch_size);
+TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int default_batch_size);
+
+// What every neural fit records in the model file's `training:` node, in this order: optimizer, learning_rate,
+// the batch size under `batch_key`, `extra` (the kind's own entries), epochs_run, best_epoch, stopped_early,
+// validation_rmse_nm, train_seconds. Also stores validation_rmse_nm in m.meta.validation.
+YAML::Node record_training(models::Model& m, const TrainerConfig& cfg, const TrainResult& r, double target_scale_nm,
+                           const std::string& batch_key,
+                           const std::vector<std::pair<std::string, YAML::Node>>& extra = {});
+// m.meta from the request (make_meta), keeping the validation figures the fit stored.
+void set_fit_meta(models::Model& m, const FitRequest& request);
 
 // Option keys every neural kind accepts (besides its own architecture keys).
 std::vector<std::string> common_neural_option_keys();

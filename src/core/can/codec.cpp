@@ -141,6 +141,25 @@ can_frame Codec::encode(const CommandFrame& m) const {
   return f;
 }
 
+can_frame Codec::encode_command(const CommandFrame& m, double lo_v, double hi_v) const {
+  if (!(m.voltage_v >= lo_v && m.voltage_v <= hi_v))
+    throw std::invalid_argument("command voltage " + std::to_string(m.voltage_v) + " V is outside [" +
+                                std::to_string(lo_v) + ", " + std::to_string(hi_v) + "] V");
+  const double lsb = config_.voltage_lsb_v;
+  double counts = std::round(m.voltage_v / lsb);
+  if (counts * lsb > hi_v) counts = std::floor(hi_v / lsb);
+  if (counts * lsb < lo_v) counts = std::ceil(lo_v / lsb);
+  CommandFrame inside = m;
+  inside.voltage_v = counts * lsb;
+  const can_frame f = encode(inside);
+  const DecodeResult r = decode(f);
+  const auto* back = std::get_if<CommandFrame>(&r.message_value);
+  if (!r.ok() || !back || !(back->voltage_v >= lo_v && back->voltage_v <= hi_v))
+    throw std::invalid_argument("command voltage " + std::to_string(m.voltage_v) +
+                                " V has no encoding inside the limits (voltage_lsb_v too coarse?)");
+  return f;
+}
+
 can_frame Codec::encode(const VoltageReport& m) const {
   check_axis(m.axis);
   can_frame f = make_frame(voltage_id(m.axis), config_.extended_ids, kVoltageDlc);
@@ -312,6 +331,7 @@ SequenceTracker::Update SequenceTracker::update(std::uint32_t wire) {
     started_ = true;
     last_ = wire;
     u.sequence = wire;
+    u.first = true;
     return u;
   }
   // Forward distance on the 24-bit circle; more than half the circle back counts as "behind".
@@ -323,16 +343,16 @@ SequenceTracker::Update SequenceTracker::update(std::uint32_t wire) {
     u.dropped = forward - 1;
     return u;
   }
-  const std::uint32_t back = (last_wire - wire) % kSequenceModulo;
-  if (back > 1000) {  // far behind: the controller restarted its counter
-    started_ = true;
-    last_ = wire;
-    u.sequence = wire;
-    u.restarted = true;
+  if (forward == 0) {  // the same frame again (CAN may repeat a frame after an error in its last bits)
+    u.sequence = last_;
+    u.out_of_order = true;
     return u;
   }
-  u.sequence = last_ - back;
-  u.out_of_order = true;
+  // Any step back: one device never reorders its own frames on a CAN bus, so the controller restarted its
+  // counter (or something else is sending in its name). Re-anchor there.
+  last_ = wire;
+  u.sequence = wire;
+  u.restarted = true;
   return u;
 }
 

@@ -24,7 +24,7 @@ DeviceCore::Handled DeviceCore::handle(const can_frame& frame) {
   if (!c) return Handled::kIgnored;
   ++commands_;
   // a halted or faulted controller keeps its output
-  if (state_ != DeviceState::kOperational) return Handled::kCommand;
+  if (state_ != DeviceState::kOperational || stuck_[c->axis]) return Handled::kCommand;
   voltages_v_[c->axis] = std::clamp(c->voltage_v, config_.min_voltage_v, config_.max_voltage_v);
   return Handled::kCommand;
 }
@@ -54,14 +54,26 @@ DeviceCore::Output DeviceCore::step() {
     }
   }
   ++sequence_;
-  if (time_s_ + 1e-12 >= next_heartbeat_s_) {
+  if (state_ == DeviceState::kBoot || time_s_ + 1e-12 >= next_heartbeat_s_) {
     Heartbeat h;
     h.state = state_;
     h.counter = heartbeat_counter_++;
     out.frames.push_back(codec_.encode(h));
     next_heartbeat_s_ = time_s_ + codec_.config().heartbeat_period_s;
   }
+  if (boot_samples_left_ > 0 && --boot_samples_left_ == 0 && state_ == DeviceState::kBoot)
+    state_ = DeviceState::kOperational;
   return out;
+}
+
+void DeviceCore::restart() {
+  for (int i = 0; i < kAxisCount; ++i)
+    voltages_v_[i] = std::clamp(config_.initial_voltage_v[i], config_.min_voltage_v, config_.max_voltage_v);
+  stuck_.fill(false);
+  sequence_ = 0;
+  heartbeat_counter_ = 0;
+  state_ = DeviceState::kBoot;
+  boot_samples_left_ = kBootSamples;
 }
 
 }  // namespace piezo::can

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <stdexcept>
 
 namespace piezo::can {
@@ -36,7 +37,6 @@ struct DriverCore::Axis {
   AxisStatus status;
   Clock::time_point last_encoder{};
   bool has_encoder = false;
-  bool resend = false;  // the last set point was not written (queue full): write it again on the next tick
 };
 
 // Callbacks are collected under the lock and run after it is released.
@@ -53,7 +53,10 @@ struct DriverCore::Pending {
 DriverCore::DriverCore(const DriverConfig& config, TransportFactory factory, DriverCallbacks callbacks)
     : config_(config), codec_(config.protocol), factory_(std::move(factory)), callbacks_(std::move(callbacks)) {
   validate(config_);
-  for (auto& a : axes_) a = std::make_unique<Axis>(config_.limits);
+  for (int i = 0; i < kAxisCount; ++i) {
+    axes_[i] = std::make_unique<Axis>(config_.limits);
+    axes_[i]->limiter.set_name(std::string("axis ") + kAxisNames[i]);
+  }
   backoff_s_ = config_.reconnect_min_s;
   transport_ = factory_();
   if (!transport_) throw std::invalid_argument("transport factory returned nothing");
@@ -111,34 +114,54 @@ void DriverCore::close_locked(const std::string& reason, BusState state, std::ve
     a->limiter.rebaseline();
     a->voltage_seq.reset();
     a->encoder_seq.reset();
-    a->resend = false;
   }
 }
 
-void DriverCore::send_locked(int axis, double voltage_v, std::vector<Pending>& events) {
+void DriverCore::send_locked(int axis, double voltage_v, double now_s, std::vector<Pending>& events) {
   Axis& a = *axes_[axis];
-  // Last line of defence: the limiter never produces such a value, and the bus never sees one.
-  if (!(voltage_v >= config_.limits.min_voltage_v && voltage_v <= config_.limits.max_voltage_v)) return;
+  // Last line of defence: the limiter never proposes such a value, and the bus never sees one.
+  if (!a.limiter.sendable(voltage_v)) return;
+  const double lo = std::min(config_.limits.min_voltage_v, voltage_v);
+  const double hi = std::max(config_.limits.max_voltage_v, voltage_v);
   CommandFrame m;
   m.axis = axis;
   m.voltage_v = voltage_v;
-  m.counter = command_counter_++;
-  const can_frame f = codec_.encode(m);
+  m.counter = command_counter_;
+  can_frame f;
+  double encoded_v;
+  try {
+    f = codec_.encode_command(m, lo, hi);
+    encoded_v = std::get<CommandFrame>(codec_.decode(f).message_value).voltage_v;
+  } catch (const std::exception& e) {
+    trip_locked(axis, std::string("cannot encode set point: ") + e.what(), events);
+    return;
+  }
+  if (!a.limiter.sendable(encoded_v)) return;
   try {
     if (transport_->send(f)) {
+      ++command_counter_;
       ++a.status.frames_sent;
-      a.resend = false;
+      a.limiter.sent(encoded_v, now_s);  // only a written frame moves the applied voltage
     } else {
       ++bus_.send_failures;
-      a.resend = true;
+      ++a.status.frames_refused;
     }
   } catch (const TransportError& e) {
     ++bus_.send_failures;
+    ++a.status.frames_refused;
     // The receive thread owns reconnection; it sees the same failure on its next poll.
     bus_.last_error = e.what();
-    a.resend = true;
-    (void)events;
   }
+}
+
+void DriverCore::trip_locked(int axis, const std::string& why, std::vector<Pending>& events) {
+  Axis& a = *axes_[axis];
+  if (a.limiter.held_for(HoldReason::kDeviceFault)) return;
+  char buf[96];
+  std::snprintf(buf, sizeof buf, ": reported %.3f V, commanded %.3f V", a.status.reported_v, a.limiter.applied_v());
+  a.limiter.trip(why + buf);
+  ++a.status.device_faults;
+  events.push_back({Pending::kEvent, {}, {}, 0, 0, a.limiter.fault(), true});
 }
 
 CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s, double command_time_s) {
@@ -149,6 +172,7 @@ CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s, dou
     std::lock_guard<std::mutex> lock(mutex_);
     Axis& a = *axes_[axis];
     ++a.status.commands;
+    last_now_s_ = now_s;
     const bool link = transport_->is_open() && bus_.state != BusState::kBusOff;
     if (!std::isfinite(voltage_v)) {
       outcome = CommandOutcome::kRejectedNonFinite;
@@ -156,17 +180,18 @@ CommandOutcome DriverCore::command(int axis, double voltage_v, double now_s, dou
       ++a.status.rejected_no_link;
       return CommandOutcome::kRejectedHeld;
     } else {
-      outcome = a.limiter.command(voltage_v, std::isfinite(command_time_s) ? command_time_s : now_s);
+      outcome = a.limiter.command(voltage_v, now_s, command_time_s);
     }
     switch (outcome) {
       case CommandOutcome::kRejectedNonFinite: ++a.status.rejected_non_finite; break;
       case CommandOutcome::kRejectedHeld: ++a.status.rejected_held; break;
       case CommandOutcome::kRejectedNoBaseline: ++a.status.rejected_no_baseline; break;
+      case CommandOutcome::kRejectedFutureStamp: ++a.status.rejected_future_stamp; break;
       case CommandOutcome::kClamped: ++a.status.clamped; break;
       case CommandOutcome::kAccepted: break;
     }
     if (link) {
-      if (auto v = a.limiter.step(now_s)) send_locked(axis, *v, events);
+      if (auto v = a.limiter.step(now_s)) send_locked(axis, *v, now_s, events);
     }
   }
   flush(events);
@@ -177,15 +202,12 @@ void DriverCore::tick(double now_s) {
   std::vector<Pending> events;
   {
     std::lock_guard<std::mutex> lock(mutex_);
+    last_now_s_ = now_s;
     const bool link = transport_->is_open() && bus_.state != BusState::kBusOff;
     for (int i = 0; i < kAxisCount; ++i) {
-      Axis& a = *axes_[i];
-      const auto v = a.limiter.step(now_s);
-      if (!link) continue;
-      if (v)
-        send_locked(i, *v, events);
-      else if (a.resend)
-        send_locked(i, a.limiter.applied_v(), events);
+      // A refused frame left the applied voltage where it was: the next proposal starts from there again.
+      const auto v = axes_[i]->limiter.step(now_s);
+      if (link && v) send_locked(i, *v, now_s, events);
     }
   }
   flush(events);
@@ -219,7 +241,10 @@ void DriverCore::recover() {
   {
     std::lock_guard<std::mutex> lock(mutex_);
     halted_ = false;
-    for (auto& a : axes_) a->limiter.set_hold(HoldReason::kHalted, false);
+    for (auto& a : axes_) {
+      a->limiter.set_hold(HoldReason::kHalted, false);
+      a->limiter.clear_fault();
+    }
   }
   recover_requested_ = true;
 }
@@ -241,6 +266,10 @@ AxisStatus DriverCore::axis_status(int axis) const {
   s.timeouts = a.limiter.timeouts();
   s.halted = a.limiter.held_for(HoldReason::kHalted);
   s.multiple_commanders = a.limiter.held_for(HoldReason::kMultipleCommanders);
+  s.device_fault = a.limiter.held_for(HoldReason::kDeviceFault);
+  s.paused = a.limiter.paused();
+  s.fault = a.limiter.fault();
+  s.report_mismatches = a.limiter.report_mismatches();
   s.encoder_age_s = a.has_encoder ? since(a.last_encoder) : -1.0;
   return s;
 }
@@ -351,9 +380,22 @@ void DriverCore::poll_once(int timeout_ms) {
         ++a.status.voltage_frames;
         a.status.voltage_dropped += u.dropped;
         a.status.voltage_out_of_order += u.out_of_order;
-        a.status.reported_v = v->voltage_v;
         a.status.amplifier_fault = v->fault;
-        a.limiter.on_reported_voltage(v->voltage_v);
+        // A repeated frame says nothing new.
+        if (!u.out_of_order) {
+          a.status.reported_v = v->voltage_v;
+          if (u.restarted) {
+            char back[80];
+            std::snprintf(back, sizeof back, "report sequence went back to %u (controller restart?)", v->sequence);
+            trip_locked(v->axis, back, events);
+          }
+          const bool was_held = a.limiter.held_for(HoldReason::kDeviceFault);
+          a.limiter.on_reported_voltage(v->voltage_v, last_now_s_);
+          if (!was_held && a.limiter.held_for(HoldReason::kDeviceFault)) {  // reports away from the commanded value
+            ++a.status.device_faults;
+            events.push_back({Pending::kEvent, {}, {}, 0, 0, a.limiter.fault(), true});
+          }
+        }
         Pending p{Pending::kVoltage, *v, {}, u.sequence, rf.receive_time_s, {}, false};
         events.push_back(std::move(p));
       } else if (const auto* en = std::get_if<EncoderReport>(&r.message_value)) {
@@ -370,6 +412,9 @@ void DriverCore::poll_once(int timeout_ms) {
         events.push_back(std::move(p));
       } else if (const auto* hb = std::get_if<Heartbeat>(&r.message_value)) {
         bus_.heartbeat_seen = true;
+        if (hb->state != DeviceState::kOperational)
+          for (int i = 0; i < kAxisCount; ++i)
+            trip_locked(i, std::string("controller heartbeat says ") + to_string(hb->state), events);
         bus_.device_state = hb->state;
         bus_.device_fault_flags = hb->fault_flags;
         last_heartbeat_ = Clock::now();

@@ -22,7 +22,9 @@ void require(bool ok, const std::string& what) {
 void validate(const ProtocolConfig& c) {
   const std::uint32_t max_id = c.extended_ids ? CAN_EFF_MASK : 0x7FFu;
   require(c.node_id_stride >= 1, "node_id_stride must be >= 1");
-  require(std::isfinite(c.voltage_lsb_v) && c.voltage_lsb_v > 0, "voltage_lsb_v must be a finite value > 0");
+  // Coarser than 10 mV and a rounded set point could differ from the slew-limited one by more than the ramp.
+  require(std::isfinite(c.voltage_lsb_v) && c.voltage_lsb_v > 0 && c.voltage_lsb_v <= 0.01,
+          "voltage_lsb_v must be in (0, 0.01] V");
   require(std::isfinite(c.position_lsb_m) && c.position_lsb_m > 0, "position_lsb_m must be a finite value > 0");
   require(std::isfinite(c.encoder_rate_hz) && c.encoder_rate_hz > 0 && c.encoder_rate_hz <= 10000,
           "encoder_rate_hz must be in (0, 10000]");
@@ -101,7 +103,8 @@ ProtocolConfig protocol_from_yaml(const YAML::Node& node) {
     }
   }
   if (node["byte_order"]) {
-    const std::string order = node["byte_order"].as<std::string>();
+    if (!node["byte_order"].IsScalar()) throw std::invalid_argument("protocol.byte_order must be \"little\" or \"big\"");
+    const std::string order = node["byte_order"].Scalar();
     if (order == "little")
       c.byte_order = ByteOrder::kLittle;
     else if (order == "big")
@@ -124,7 +127,12 @@ ProtocolConfig load_protocol_config(const std::string& path) {
   } catch (const std::exception& e) {
     throw std::invalid_argument("cannot read protocol config " + path + ": " + e.what());
   }
-  return protocol_from_yaml(root["protocol"]);
+  if (!root.IsMap() && !root.IsNull()) throw std::invalid_argument(path + ": expected a map with a protocol: section");
+  try {
+    return protocol_from_yaml(root["protocol"]);
+  } catch (const YAML::Exception& e) {  // anything the field checks did not name
+    throw std::invalid_argument(path + ": protocol: " + e.what());
+  }
 }
 
 }  // namespace piezo::can

@@ -200,7 +200,7 @@ struct FeatureStream::Impl {
   // Play operator output for the current input given the previous output.
   static double play(double v, double r, double prev) { return std::max(v - r, std::min(v + r, prev)); }
 
-  double raw(std::size_t i, const models::ModelInput& in) const {
+  double raw(std::size_t i, const ModelInput& in) const {
     const Compiled& f = c[i];
     const double v = in.voltage_v;
     switch (f.type) {
@@ -335,7 +335,7 @@ void FeatureStream::reset(double voltage_v, double position_nm) {
   }
 }
 
-void FeatureStream::compute(const models::ModelInput& in, double* out) const {
+void FeatureStream::compute(const ModelInput& in, double* out) const {
   const Impl& m = *impl_;
   const std::size_t n = m.c.size();
   if (m.spec.mean.empty()) {
@@ -345,7 +345,7 @@ void FeatureStream::compute(const models::ModelInput& in, double* out) const {
   }
 }
 
-void FeatureStream::commit(const models::ModelInput& in, double position_nm) {
+void FeatureStream::commit(const ModelInput& in, double position_nm) {
   Impl& m = *impl_;
   const double v = in.voltage_v;
   for (std::size_t i = 0; i < m.c.size(); ++i) {

@@ -117,7 +117,7 @@ Dataset read_csv(const std::string& path) {
     }
 
   // Reserve from a cheap line count to avoid reallocations on million-row files.
-  const std::size_t approx_rows = static_cast<std::size_t>(std::count(text.begin() + pos, text.end(), '\n')) + 1;
+  const std::size_t approx_rows = static_cast<std::size_t>(std::count(text.begin() + std::min(pos, text.size()), text.end(), '\n')) + 1;
   std::vector<std::vector<double>*> dest(slots.size(), nullptr);
   std::vector<double> seg_tmp, phase_tmp;
   for (std::size_t c = 0; c < slots.size(); ++c) {

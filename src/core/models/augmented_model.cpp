@@ -418,9 +418,4 @@ ModelPtr AugmentedModel::from_yaml(const YAML::Node& n) {
   return std::make_unique<AugmentedModel>(std::move(base), std::move(terms), off, fs);
 }
 
-PIEZO_REGISTER_MODEL_KIND(ModelKind{"augmented",
-                                    "a base model plus effect terms found by `piezo residual` (load only; fit with `piezo residual`)",
-                                    [](const YAML::Node& node) { return AugmentedModel::from_yaml(node); },
-                                    nullptr, nullptr});
-
 }  // namespace piezo::models

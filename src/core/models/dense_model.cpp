@@ -9,8 +9,6 @@
 
 #include "piezo_compensation/models/c_export.h"
 #include "piezo_compensation/models/linear_model.h"
-#include "piezo_compensation/models/registry.h"
-#include "piezo_compensation/training/hyperparameter_search.h"
 
 namespace piezo::models {
 
@@ -127,21 +125,10 @@ double DenseNet::loss_grad(const Eigen::VectorXd& params, const Eigen::MatrixXd&
   return loss;
 }
 
-double DenseObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                                Eigen::VectorXd* grad) const {
-  Eigen::MatrixXd xb(x_.rows(), static_cast<Eigen::Index>(n));
-  Eigen::VectorXd yb(static_cast<Eigen::Index>(n));
-  for (std::size_t i = 0; i < n; ++i) {
-    xb.col(static_cast<Eigen::Index>(i)) = x_.col(static_cast<Eigen::Index>(units[i]));
-    yb[static_cast<Eigen::Index>(i)] = y_[static_cast<Eigen::Index>(units[i])];
-  }
-  return net_.loss_grad(params, xb, yb, grad);
-}
-
 // ---- model --------------------------------------------------------------------------------------------------
 
 DenseModel::DenseModel(const features::FeatureSpec& spec, double sample_rate_hz, const DenseShape& shape,
-                       Eigen::VectorXd params, training::TargetScale target)
+                       Eigen::VectorXd params, TargetScale target)
     : stream_(spec, sample_rate_hz), sample_rate_hz_(sample_rate_hz), net_(shape), params_(std::move(params)),
       target_(target) {
   if (static_cast<int>(spec.size()) != shape.inputs)
@@ -167,24 +154,23 @@ YAML::Node DenseModel::to_yaml() const {
   n["hyperparameters"]["width"] = net_.shape().width;
   n["hyperparameters"]["leaky_slope"] = net_.shape().leaky_slope;
   if (training_info) n["training"] = training_info;
-  n["weights"] = training::flow_sequence(params_);
+  n["weights"] = yaml_list(params_);
   return n;
 }
 
 std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
-  const std::string what = "dense model";
-  const training::NeuralFileHeader header = training::read_neural_file_header(node, "dense", {"depth", "width", "leaky_slope"});
+  const NeuralFileHeader header = read_neural_file_header(node, "dense", {"depth", "width", "leaky_slope"});
   const double rate = header.sample_rate_hz;
   const features::FeatureSpec& spec = header.spec;
-  const training::TargetScale& target = header.target;
+  const TargetScale& target = header.target;
   const YAML::Node h = header.hyperparameters;
   DenseShape shape;
   shape.inputs = static_cast<int>(spec.size());
-  shape.depth = training::yaml_int(h, "depth", what, 0, 16);
-  shape.width = training::yaml_int(h, "width", what, 1, 256);
-  shape.leaky_slope = training::yaml_double(h, "leaky_slope", what);
+  shape.depth = yaml_int(h, "depth", 0, 16, "model.hyperparameters");
+  shape.width = yaml_int(h, "width", 1, 256, "model.hyperparameters");
+  shape.leaky_slope = yaml_number(h, "leaky_slope", "model.hyperparameters");
   const DenseNet net(shape);
-  const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());
+  const std::vector<double> w = yaml_numbers(node, "weights", static_cast<long>(net.num_params()));
   auto m = std::make_unique<DenseModel>(spec, rate, shape, Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())), target);
   if (node["training"]) m->training_info = node["training"];
   return m;
@@ -261,80 +247,5 @@ std::string neural_c99_header(const features::FeatureSpec& spec, double sample_r
      << "  return y;\n}\n\n#endif\n";
   return os.str();
 }
-
-// ---- fit ----------------------------------------------------------------------------------------------------
-
-namespace {
-
-struct DenseTrial {
-  std::unique_ptr<DenseModel> model;
-  double validation_mse = std::numeric_limits<double>::infinity();
-};
-
-DenseTrial train_dense(const training::PreparedData& data, const DenseShape& shape, training::TrainerConfig cfg) {
-  const DenseNet net(shape);
-  const DenseObjective train_obj(net, data.x_train, data.y_train);
-  const DenseObjective val_obj(net, data.x_validation, data.y_validation);
-  const training::TrainResult r = training::train(train_obj, &val_obj, net.initial_params(cfg.seed), cfg);
-  DenseTrial t;
-  t.validation_mse = r.best_validation_mse;
-  t.model = std::make_unique<DenseModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target);
-  YAML::Node info;
-  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
-  info["learning_rate"] = cfg.optimizer.learning_rate;
-  info["batch_size"] = cfg.batch_size;
-  info["epochs_run"] = r.epochs_run;
-  info["best_epoch"] = r.best_epoch;
-  info["stopped_early"] = r.stopped_early;
-  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  info["train_seconds"] = r.seconds;
-  t.model->training_info = info;
-  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  return t;
-}
-
-}  // namespace
-
-std::unique_ptr<DenseModel> fit_dense(const FitRequest& request) {
-  std::vector<std::string> keys = training::common_neural_option_keys();
-  for (const char* k : {"depth", "width", "leaky_slope"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "dense options");
-  const training::PreparedData data = training::prepare_data(request);
-  DenseShape shape;
-  shape.inputs = static_cast<int>(data.spec.size());
-  shape.depth = training::option_int(request.options, "depth", 1);
-  shape.width = training::option_int(request.options, "width", 10);
-  shape.leaky_slope = training::option_num(request.options, "leaky_slope", 0.01);
-  training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
-  auto finish = [&request](std::unique_ptr<DenseModel> m) {
-    const auto validation = m->meta.validation;
-    m->meta = training::make_meta(request);
-    m->meta.validation = validation;
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_dense(data, shape, cfg).model);
-
-  DenseTrial best = training::tune_and_retrain(
-      "dense", training::dense_search_space(), request, cfg,
-      [&](const training::TrialParams& p, training::TrainerConfig c) {
-        DenseShape s = shape;
-        s.depth = static_cast<int>(p.number.at("depth"));
-        s.width = static_cast<int>(p.number.at("width"));
-        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
-        c.optimizer.learning_rate = p.number.at("learning_rate");
-        return train_dense(data, s, c);
-      });
-  return finish(std::move(best.model));
-}
-
-PIEZO_REGISTER_MODEL_KIND(ModelKind{
-    "dense", "dense network (depth × width, leaky ReLU) on the feature vector, trained with Adam/RMSprop/SGD",
-    [](const YAML::Node& node) -> ModelPtr { return DenseModel::from_yaml(node); },
-    [](const FitRequest& r) -> ModelPtr { return fit_dense(r); },
-    [](const Model& m, const std::string& prefix) {
-      const auto* d = dynamic_cast<const DenseModel*>(&m);
-      if (!d) throw std::runtime_error("export: not a dense model");
-      return d->export_c99(prefix);
-    }});
 
 }  // namespace piezo::models

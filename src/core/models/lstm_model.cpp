@@ -4,14 +4,9 @@
 #include <random>
 #include <stdexcept>
 
-#include "piezo_compensation/models/registry.h"
-#include "piezo_compensation/training/hyperparameter_search.h"
+#include "piezo_compensation/models/activations.h"
 
 namespace piezo::models {
-
-namespace {
-double sigmoid(double z) { return 1.0 / (1.0 + std::exp(-z)); }
-}  // namespace
 
 LstmNet::LstmNet(const LstmShape& shape) : shape_(shape) {
   if (shape.inputs < 1 || shape.inputs > 256) throw std::runtime_error("lstm: inputs must be in 1..256");
@@ -168,34 +163,10 @@ double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vec
   return loss;
 }
 
-LstmObjective::LstmObjective(const LstmNet& net, const Eigen::MatrixXd& x, const Eigen::VectorXd& y, int seq_len,
-                             int warmup)
-    : net_(net), x_(x), y_(y), seq_len_(seq_len), warmup_(warmup) {
-  if (seq_len < 1 || warmup < 0) throw std::runtime_error("lstm: seq_len must be ≥ 1 and warmup ≥ 0");
-  const std::size_t n = static_cast<std::size_t>(x.cols());
-  for (std::size_t s = static_cast<std::size_t>(warmup); s + static_cast<std::size_t>(seq_len) <= n;
-       s += static_cast<std::size_t>(seq_len))
-    starts_.push_back(s);
-}
-
-double LstmObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
-                               Eigen::VectorXd* grad) const {
-  const Eigen::Index B = static_cast<Eigen::Index>(n);
-  std::vector<Eigen::MatrixXd> xs(static_cast<std::size_t>(warmup_ + seq_len_), Eigen::MatrixXd::Zero(x_.rows(), B));
-  Eigen::MatrixXd ys(seq_len_, B);
-  for (Eigen::Index j = 0; j < B; ++j) {
-    const std::size_t s = starts_[units[j]];
-    for (int tau = 0; tau < warmup_ + seq_len_; ++tau)
-      xs[static_cast<std::size_t>(tau)].col(j) = x_.col(static_cast<Eigen::Index>(s - static_cast<std::size_t>(warmup_) + static_cast<std::size_t>(tau)));
-    ys.col(j) = y_.segment(static_cast<Eigen::Index>(s), seq_len_);
-  }
-  return net_.sequence_loss_grad(params, xs, ys, warmup_, grad);
-}
-
 // ---- model --------------------------------------------------------------------------------------------------
 
 LstmModel::LstmModel(const features::FeatureSpec& spec, double sample_rate_hz, const LstmShape& shape,
-                     Eigen::VectorXd params, training::TargetScale target, int warmup)
+                     Eigen::VectorXd params, TargetScale target, int warmup)
     : stream_(spec, sample_rate_hz), sample_rate_hz_(sample_rate_hz), net_(shape), params_(std::move(params)),
       target_(target), warmup_(warmup) {
   if (static_cast<int>(spec.size()) != shape.inputs)
@@ -242,104 +213,28 @@ YAML::Node LstmModel::to_yaml() const {
   n["hyperparameters"]["hidden"] = net_.shape().hidden;
   n["hyperparameters"]["warmup"] = warmup_;
   if (training_info) n["training"] = training_info;
-  n["weights"] = training::flow_sequence(params_);
+  n["weights"] = yaml_list(params_);
   return n;
 }
 
 std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
-  const std::string what = "lstm model";
-  const training::NeuralFileHeader header = training::read_neural_file_header(node, "lstm", {"layers", "hidden", "warmup"});
+  const NeuralFileHeader header = read_neural_file_header(node, "lstm", {"layers", "hidden", "warmup"});
   const double rate = header.sample_rate_hz;
   const features::FeatureSpec& spec = header.spec;
-  const training::TargetScale& target = header.target;
+  const TargetScale& target = header.target;
   const YAML::Node h = header.hyperparameters;
   LstmShape shape;
   shape.inputs = static_cast<int>(spec.size());
-  shape.layers = training::yaml_int(h, "layers", what, 1, 8);
-  shape.hidden = training::yaml_int(h, "hidden", what, 1, 256);
-  const int warmup = training::yaml_int(h, "warmup", what, 0, 100000);
+  shape.layers = yaml_int(h, "layers", 1, 8, "model.hyperparameters");
+  shape.hidden = yaml_int(h, "hidden", 1, 256, "model.hyperparameters");
+  const int warmup = yaml_int(h, "warmup", 0, 100000, "model.hyperparameters");
   const LstmNet net(shape);
-  const std::vector<double> w = training::yaml_doubles(node, "weights", what, net.num_params());
+  const std::vector<double> w = yaml_numbers(node, "weights", static_cast<long>(net.num_params()));
   auto m = std::make_unique<LstmModel>(spec, rate, shape,
                                        Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())),
                                        target, warmup);
   if (node["training"]) m->training_info = node["training"];
   return m;
 }
-
-// ---- fit ----------------------------------------------------------------------------------------------------
-
-namespace {
-
-struct LstmTrial {
-  std::unique_ptr<LstmModel> model;
-  double validation_mse = std::numeric_limits<double>::infinity();
-};
-
-LstmTrial train_lstm(const training::PreparedData& data, const LstmShape& shape, int seq_len, int warmup,
-                     training::TrainerConfig cfg) {
-  const LstmNet net(shape);
-  const LstmObjective train_obj(net, data.x_train, data.y_train, seq_len, warmup);
-  const LstmObjective val_obj(net, data.x_validation, data.y_validation, seq_len, warmup);
-  if (train_obj.num_units() == 0) throw std::runtime_error("lstm: training data shorter than warmup + seq_len");
-  const training::TrainResult r = training::train(train_obj, &val_obj, net.initial_params(cfg.seed), cfg);
-  LstmTrial t;
-  t.validation_mse = r.best_validation_mse;
-  t.model = std::make_unique<LstmModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target, warmup);
-  YAML::Node info;
-  info["optimizer"] = training::optimizer_name(cfg.optimizer.kind);
-  info["learning_rate"] = cfg.optimizer.learning_rate;
-  info["batch_size_sequences"] = cfg.batch_size;
-  info["seq_len"] = seq_len;
-  info["epochs_run"] = r.epochs_run;
-  info["best_epoch"] = r.best_epoch;
-  info["stopped_early"] = r.stopped_early;
-  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  info["train_seconds"] = r.seconds;
-  t.model->training_info = info;
-  t.model->meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * data.target.scale_nm;
-  return t;
-}
-
-}  // namespace
-
-std::unique_ptr<LstmModel> fit_lstm(const FitRequest& request) {
-  std::vector<std::string> keys = training::common_neural_option_keys();
-  for (const char* k : {"layers", "hidden", "seq_len", "warmup"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) training::check_keys(request.options, keys, "lstm options");
-  const training::PreparedData data = training::prepare_data(request);
-  LstmShape shape;
-  shape.inputs = static_cast<int>(data.spec.size());
-  shape.layers = training::option_int(request.options, "layers", 1);
-  shape.hidden = training::option_int(request.options, "hidden", 29);
-  const int seq_len = training::option_int(request.options, "seq_len", 32);
-  const int warmup = training::option_int(request.options, "warmup", 16);
-  training::TrainerConfig cfg = training::trainer_config(request, 45, 32);
-  if (!request.options || !request.options["grad_clip_norm"]) cfg.grad_clip_norm = 1.0;  // BPTT: avoid blow-ups
-  auto finish = [&request](std::unique_ptr<LstmModel> m) {
-    const auto validation = m->meta.validation;
-    m->meta = training::make_meta(request);
-    m->meta.validation = validation;
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_lstm(data, shape, seq_len, warmup, cfg).model);
-
-  LstmTrial best = training::tune_and_retrain(
-      "lstm", training::lstm_search_space(), request, cfg,
-      [&](const training::TrialParams& p, training::TrainerConfig c) {
-        LstmShape s = shape;
-        s.layers = static_cast<int>(p.number.at("layers"));
-        s.hidden = static_cast<int>(p.number.at("hidden"));
-        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
-        c.optimizer.learning_rate = p.number.at("learning_rate");
-        return train_lstm(data, s, seq_len, warmup, c);
-      });
-  return finish(std::move(best.model));
-}
-
-PIEZO_REGISTER_MODEL_KIND(ModelKind{
-    "lstm", "LSTM (layers × hidden, linear head) over the feature vector, truncated BPTT",
-    [](const YAML::Node& node) -> ModelPtr { return LstmModel::from_yaml(node); },
-    [](const FitRequest& r) -> ModelPtr { return fit_lstm(r); }, nullptr});
 
 }  // namespace piezo::models

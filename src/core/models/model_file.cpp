@@ -8,60 +8,6 @@
 
 namespace piezo::models {
 
-namespace {
-std::string scalar_of(const YAML::Node& node, const std::string& key) {
-  const YAML::Node v = node[key];
-  if (!v) throw std::runtime_error("model." + key + ": missing key");
-  if (!v.IsScalar()) throw std::runtime_error("model." + key + ": expected a scalar");
-  return v.Scalar();
-}
-}  // namespace
-
-double yaml_number(const YAML::Node& node, const std::string& key) {
-  const std::string s = scalar_of(node, key);
-  char* end = nullptr;
-  const double v = std::strtod(s.c_str(), &end);
-  if (s.empty() || *end != '\0' || !std::isfinite(v))
-    throw std::runtime_error("model." + key + ": expected a finite number, got '" + s + "'");
-  return v;
-}
-
-int yaml_int(const YAML::Node& node, const std::string& key) {
-  const std::string s = scalar_of(node, key);
-  char* end = nullptr;
-  const long v = std::strtol(s.c_str(), &end, 10);
-  if (s.empty() || *end != '\0') throw std::runtime_error("model." + key + ": expected an integer, got '" + s + "'");
-  return static_cast<int>(v);
-}
-
-std::string yaml_string(const YAML::Node& node, const std::string& key) { return scalar_of(node, key); }
-
-std::vector<double> yaml_numbers(const YAML::Node& node, const std::string& key, long expected) {
-  const YAML::Node v = node[key];
-  if (!v) throw std::runtime_error("model." + key + ": missing key");
-  if (!v.IsSequence()) throw std::runtime_error("model." + key + ": expected a list of numbers");
-  std::vector<double> out;
-  for (std::size_t i = 0; i < v.size(); ++i) {
-    const std::string s = v[i].IsScalar() ? v[i].Scalar() : "";
-    char* end = nullptr;
-    const double x = std::strtod(s.c_str(), &end);
-    if (s.empty() || *end != '\0' || !std::isfinite(x))
-      throw std::runtime_error("model." + key + "[" + std::to_string(i) + "]: expected a finite number");
-    out.push_back(x);
-  }
-  if (expected >= 0 && static_cast<long>(out.size()) != expected)
-    throw std::runtime_error("model." + key + ": expected " + std::to_string(expected) + " entries, got " +
-                             std::to_string(out.size()));
-  return out;
-}
-
-YAML::Node yaml_list(const std::vector<double>& v) {
-  YAML::Node n(YAML::NodeType::Sequence);
-  for (double x : v) n.push_back(x);
-  n.SetStyle(YAML::EmitterStyle::Flow);
-  return n;
-}
-
 YAML::Node model_to_file_yaml(const Model& m) {
   YAML::Node root;
   root["format_version"] = kModelFormatVersion;
@@ -110,7 +56,8 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
     } catch (const YAML::Exception&) {
       throw top_err("sample_rate_hz", "expected a number");
     }
-    if (!(rate > 0) || !std::isfinite(rate)) throw top_err("sample_rate_hz", "must be > 0");
+    // Kinds size buffers and time constants from the rate: bounded so a file cannot ask for gigabytes.
+    if (!(rate > 0) || !(rate <= 1e6)) throw top_err("sample_rate_hz", "must be in (0, 1e6] Hz");
     if (!root["model"].IsMap()) throw top_err("model", "expected a mapping");
     const ModelKind& mk = model_kind(kind);  // throws listing known kinds
     if (!mk.load) throw top_err("kind", "'" + kind + "' cannot be loaded");

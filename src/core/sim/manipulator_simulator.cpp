@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 #include <sstream>
 #include <stdexcept>
 
@@ -54,9 +55,25 @@ class Rng {
 
 int axis_index(const std::string& name) { return name == "a" ? 0 : name == "b" ? 1 : name == "c" ? 2 : -1; }
 
+// The configured hysteresis model of one axis.
+class Hysteresis {
+ public:
+  explicit Hysteresis(const AxisConfig& c) {
+    if (c.hysteresis_model == "preisach")
+      preisach_.emplace(c);
+    else
+      pi_.emplace(c);
+  }
+  double update(double v, double scale) { return pi_ ? pi_->update(v, scale) : preisach_->update(v, scale); }
+
+ private:
+  std::optional<PrandtlIshlinskii> pi_;
+  std::optional<Preisach> preisach_;
+};
+
 struct Axis {
   AxisConfig cfg;
-  PrandtlIshlinskii hysteresis;
+  Hysteresis hysteresis;
   CreepModes creep;
   Rng rng;
   double v_prev = 0.0;

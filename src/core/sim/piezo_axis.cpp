@@ -61,7 +61,77 @@ void PrandtlIshlinskii::reset() {
   output_nm_ = 0.0;
 }
 
+Preisach::Preisach(const AxisConfig& axis) {
+  const int n = axis.preisach_grid_count;
+  const double half_range_v = 0.5 * (axis.voltage_max_v - axis.voltage_min_v);
+  v_mid_ = 0.5 * (axis.voltage_max_v + axis.voltage_min_v);
+  // Switching voltages at the centres of n equal bins over [−R, R]; α ≥ β (α = β: a relay without memory).
+  std::vector<double> grid(n);
+  for (int k = 0; k < n; ++k) grid[k] = half_range_v * (-1.0 + (2.0 * k + 1.0) / n);
+  double sum = 0.0, straddle = 0.0;  // Σμ and Σμ over relays with β < 0 < α (they make the width at mid)
+  for (int i = 0; i < n; ++i) {
+    for (int j = 0; j <= i; ++j) {
+      const double a = grid[i], b = grid[j];
+      const double c = 0.5 * (a + b) / half_range_v, w = 0.5 * (a - b) / half_range_v;
+      const double dc = c - axis.preisach_centre_offset;
+      const double mu = std::exp(-dc * dc / (2.0 * axis.preisach_centre_spread * axis.preisach_centre_spread) -
+                                 w / axis.preisach_width_decay);
+      alpha_v_.push_back(a);
+      beta_v_.push_back(b);
+      weight_nm_.push_back(mu);
+      start_state_.push_back(a + b < 0.0 ? 1 : -1);
+      sum += mu;
+      if (b < 0.0 && a > 0.0) straddle += mu;
+    }
+  }
+  // Full-range loop: relays span 2·Σμ·s, the width at mid is 2·straddle·s; the linear part spans 2R·w_0.
+  const double f = axis.loop_width_fraction;
+  double s = 0.0;
+  if (f > 0.0 && straddle > 0.0) {
+    s = f * axis.stroke_nm / (2.0 * straddle);
+    w0_ = (axis.stroke_nm - 2.0 * sum * s) / (2.0 * half_range_v);
+    if (w0_ < 0.0)
+      throw std::invalid_argument("simulator parameter axes." + axis.name +
+                                  ".loop_width_fraction: too wide for this Preisach density (raise "
+                                  "preisach_width_decay or lower the fraction)");
+  } else {
+    w0_ = axis.stroke_nm / (2.0 * half_range_v);
+  }
+  start_sum_ = 0.0;
+  for (std::size_t k = 0; k < weight_nm_.size(); ++k) {
+    weight_nm_[k] *= s;
+    start_sum_ += weight_nm_[k] * start_state_[k];
+  }
+  state_ = start_state_;
+}
+
+double Preisach::update(double voltage_v, double nonlinear_scale) {
+  const double u = voltage_v - v_mid_;
+  double relays = 0.0;
+  for (std::size_t k = 0; k < state_.size(); ++k) {
+    if (u >= alpha_v_[k])
+      state_[k] = 1;
+    else if (u <= beta_v_[k])
+      state_[k] = -1;
+    relays += weight_nm_[k] * state_[k];
+  }
+  output_nm_ = w0_ * u + nonlinear_scale * (relays - start_sum_);
+  return output_nm_;
+}
+
+void Preisach::reset() {
+  state_ = start_state_;
+  output_nm_ = 0.0;
+}
+
 CreepModes::CreepModes(const AxisConfig& axis) {
+  if (!axis.creep_spectrum_tau_s.empty()) {
+    tau_s_ = axis.creep_spectrum_tau_s;
+    gains_ = axis.creep_spectrum_weights;
+    state_.assign(tau_s_.size(), 0.0);
+    decay_.assign(tau_s_.size(), 0.0);
+    return;
+  }
   const int m = axis.creep_mode_count;
   tau_s_.resize(m);
   gains_.resize(m);

@@ -68,6 +68,24 @@ class MapReader {
     }
     return *this;
   }
+  MapReader& list(const std::string& key, std::vector<double>& out) {
+    seen_[key] = true;
+    if (auto v = node_[key]) {
+      if (!v.IsSequence()) bad(where_ + "." + key, "expected a list of numbers");
+      out.clear();
+      for (const auto& x : v) {
+        double d = 0.0;
+        try {
+          d = x.as<double>();
+        } catch (const YAML::Exception&) {
+          bad(where_ + "." + key, "expected a list of numbers");
+        }
+        if (!std::isfinite(d)) bad(where_ + "." + key, "entries must be finite");
+        out.push_back(d);
+      }
+    }
+    return *this;
+  }
   MapReader& text(const std::string& key, std::string& out) {
     seen_[key] = true;
     if (auto v = node_[key]) {
@@ -95,6 +113,7 @@ void read_axis(const YAML::Node& n, const std::string& where, AxisConfig& a) {
       .num("voltage_max_v", a.voltage_max_v)
       .num("stroke_nm", a.stroke_nm)
       .num("loop_width_fraction", a.loop_width_fraction)
+      .text("hysteresis_model", a.hysteresis_model)
       .integer("play_operator_count", a.play_operator_count)
       .num("play_weight_decay_v", a.play_weight_decay_v)
       .num("asymmetry_nm", a.asymmetry_nm)
@@ -103,6 +122,12 @@ void read_axis(const YAML::Node& n, const std::string& where, AxisConfig& a) {
       .num("creep_tau_max_s", a.creep_tau_max_s)
       .num("creep_alpha", a.creep_alpha)
       .num("creep_gain", a.creep_gain)
+      .list("creep_spectrum_tau_s", a.creep_spectrum_tau_s)
+      .list("creep_spectrum_weights", a.creep_spectrum_weights)
+      .integer("preisach_grid_count", a.preisach_grid_count)
+      .num("preisach_centre_offset", a.preisach_centre_offset)
+      .num("preisach_centre_spread", a.preisach_centre_spread)
+      .num("preisach_width_decay", a.preisach_width_decay)
       .num("encoder_quantisation_nm", a.encoder_quantisation_nm)
       .num("encoder_noise_sigma_nm", a.encoder_noise_sigma_nm)
       .finish();
@@ -196,6 +221,22 @@ void validate(const SimulatorConfig& c) {
             "need 0 < creep_tau_min_s <= creep_tau_max_s");
     require(a.creep_gain >= 0.0 && a.creep_gain < 1.0, p + "creep_gain", "must be in [0, 1)");
     require(std::isfinite(a.creep_alpha), p + "creep_alpha", "must be finite");
+    require(a.hysteresis_model == "prandtl_ishlinskii" || a.hysteresis_model == "preisach", p + "hysteresis_model",
+            "must be prandtl_ishlinskii or preisach, got '" + a.hysteresis_model + "'");
+    require(a.preisach_grid_count >= 2 && a.preisach_grid_count <= 200, p + "preisach_grid_count",
+            "must be in 2..200");
+    require(std::fabs(a.preisach_centre_offset) <= 1.0, p + "preisach_centre_offset", "must be in [-1, 1]");
+    require(a.preisach_centre_spread > 0.0, p + "preisach_centre_spread", "must be > 0");
+    require(a.preisach_width_decay > 0.0, p + "preisach_width_decay", "must be > 0");
+    require(a.creep_spectrum_tau_s.size() == a.creep_spectrum_weights.size(), p + "creep_spectrum_weights",
+            "needs one weight per entry of creep_spectrum_tau_s");
+    require(a.creep_spectrum_tau_s.size() <= 64, p + "creep_spectrum_tau_s", "at most 64 modes");
+    double spectrum_sum = 0.0;
+    for (std::size_t j = 0; j < a.creep_spectrum_tau_s.size(); ++j) {
+      require(a.creep_spectrum_tau_s[j] > 0.0, p + "creep_spectrum_tau_s", "time constants must be > 0");
+      spectrum_sum += std::fabs(a.creep_spectrum_weights[j]);
+    }
+    require(spectrum_sum < 1.0, p + "creep_spectrum_weights", "sum of |weights| must be < 1");
     require(a.encoder_quantisation_nm >= 0.0, p + "encoder_quantisation_nm", "must be >= 0");
     require(a.encoder_noise_sigma_nm >= 0.0, p + "encoder_noise_sigma_nm", "must be >= 0");
   }
@@ -218,19 +259,13 @@ void validate(const SimulatorConfig& c) {
   require(c.periodic_disturbance.frequency_hz > 0.0, "effects.periodic_disturbance.frequency_hz", "must be > 0");
 }
 
-SimulatorConfig load_simulator_config(const std::string& yaml_path) {
-  YAML::Node root;
-  try {
-    root = YAML::LoadFile(yaml_path);
-  } catch (const YAML::Exception& e) {
-    throw std::invalid_argument(yaml_path + ": cannot read simulator config: " + e.what());
-  }
+SimulatorConfig simulator_config_from_yaml(const YAML::Node& root, const std::string& where_prefix) {
   SimulatorConfig c = default_simulator_config();
   if (root.IsNull()) return c;
-  if (!root.IsMap()) bad(yaml_path, "expected a map at the top level");
+  if (!root.IsMap()) bad(where_prefix, "expected a map at the top level");
   for (const auto& kv : root) {
     const std::string key = kv.first.as<std::string>();
-    const std::string where = yaml_path + ": " + key;
+    const std::string where = where_prefix + ": " + key;
     if (key == "sample_rate_hz") {
       try {
         c.sample_rate_hz = kv.second.as<double>();
@@ -254,9 +289,19 @@ SimulatorConfig load_simulator_config(const std::string& yaml_path) {
   try {
     validate(c);
   } catch (const std::invalid_argument& e) {
-    throw std::invalid_argument(yaml_path + ": " + e.what());
+    throw std::invalid_argument(where_prefix + ": " + e.what());
   }
   return c;
+}
+
+SimulatorConfig load_simulator_config(const std::string& yaml_path) {
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(yaml_path);
+  } catch (const YAML::Exception& e) {
+    throw std::invalid_argument(yaml_path + ": cannot read simulator config: " + e.what());
+  }
+  return simulator_config_from_yaml(root, yaml_path);
 }
 
 const std::vector<std::string>& effect_names() {

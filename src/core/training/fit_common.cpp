@@ -22,7 +22,7 @@ void for_each_sample(const features::FeatureSpec& spec, const io::Dataset& data,
   std::vector<double> x(fs.size());
   fs.reset(ax.voltage_v[begin], ax.position_nm[begin]);
   for (std::size_t i = begin; i < end; ++i) {
-    models::ModelInput in{ax.voltage_v[i], aux.at(i)};
+    features::ModelInput in{ax.voltage_v[i], aux.at(i)};
     fs.compute(in, x.data());
     fn(i, x.data(), ax.position_nm[i]);
     fs.commit(in, ax.position_nm[i]);
@@ -88,7 +88,7 @@ double GramStats::sse(const Eigen::VectorXd& beta, double b) const {
 }
 
 std::vector<GramStats> block_gram(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis,
-                                  int blocks, const models::ProgressFn& progress) {
+                                  int blocks, const ProgressFn& progress) {
   if (blocks < 1) throw std::runtime_error("block_gram: need at least one block");
   const std::size_t p = spec.size(), N = data.size();
   if (N < static_cast<std::size_t>(blocks) * 2)
@@ -161,7 +161,7 @@ Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c,
   return A.completeOrthogonalDecomposition().solve(c);
 }
 
-features::FeatureSpec resolve_features(const models::FitRequest& req, const std::string& default_set) {
+features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set) {
   if (!req.train) throw std::runtime_error("fit: no training data");
   const YAML::Node f = req.options ? req.options["features"] : YAML::Node();
   features::FeatureSpec spec;
@@ -195,7 +195,7 @@ std::string utc_now_iso8601() {
   return buf;
 }
 
-models::ModelMeta make_meta(const models::FitRequest& req) {
+models::ModelMeta make_meta(const FitRequest& req) {
   models::ModelMeta m;
   m.axis = req.axis;
   m.sample_rate_hz = req.train->sample_rate_hz();

@@ -37,7 +37,7 @@ int lasso_cd(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, double n, doubl
   return sweep + 1;
 }
 
-LassoPath lasso_path_cv(const std::vector<GramStats>& blocks, const LassoOptions& opt, const models::ProgressFn& progress) {
+LassoPath lasso_path_cv(const std::vector<GramStats>& blocks, const LassoOptions& opt, const ProgressFn& progress) {
   if (blocks.empty()) throw std::runtime_error("lasso: no data blocks");
   GramStats all = blocks[0];
   for (std::size_t k = 1; k < blocks.size(); ++k) all += blocks[k];
@@ -158,7 +158,7 @@ std::string lasso_report(const features::FeatureSpec& spec, const LassoPath& pat
 }
 
 LassoSelection run_lasso(const features::FeatureSpec& candidates, const io::Dataset& data, const std::string& axis,
-                         const LassoOptions& opt, const models::ProgressFn& progress) {
+                         const LassoOptions& opt, const ProgressFn& progress) {
   LassoSelection sel;
   sel.spec = fit_standardisation(candidates, data, axis);
   const auto blocks = block_gram(sel.spec, data, axis, std::max(1, opt.folds), progress);

@@ -190,16 +190,16 @@ Eigen::MatrixXd feature_matrix(const features::FeatureSpec& spec, const io::Data
   std::vector<double> aux(cols.size());
   for (std::size_t t = 0; t < n; ++t) {
     for (std::size_t k = 0; k < cols.size(); ++k) aux[k] = cols[k][t];
-    models::ModelInput in{ax.voltage_v[t], aux.empty() ? nullptr : aux.data()};
+    features::ModelInput in{ax.voltage_v[t], aux.empty() ? nullptr : aux.data()};
     stream.compute(in, x.col(static_cast<Eigen::Index>(t)).data());
     stream.commit(in, ax.position_nm[t]);
   }
   return x;
 }
 
-TargetScale fit_target_scale(const std::vector<double>& position_nm) {
+models::TargetScale fit_target_scale(const std::vector<double>& position_nm) {
   if (position_nm.empty()) throw std::runtime_error("no target samples");
-  TargetScale s;
+  models::TargetScale s;
   double sum = 0.0;
   for (double p : position_nm) sum += p;
   s.mean_nm = sum / static_cast<double>(position_nm.size());
@@ -214,44 +214,7 @@ TargetScale fit_target_scale(const std::vector<double>& position_nm) {
   return s;
 }
 
-YAML::Node TargetScale::to_yaml() const {
-  YAML::Node n;
-  n["mean_nm"] = mean_nm;
-  n["scale_nm"] = scale_nm;
-  if (std::isfinite(output_min_nm)) n["output_min_nm"] = output_min_nm;
-  if (std::isfinite(output_max_nm)) n["output_max_nm"] = output_max_nm;
-  return n;
-}
-
-TargetScale TargetScale::from_yaml(const YAML::Node& node, const std::string& what) {
-  if (!node) throw std::runtime_error(what + ": missing key 'target'");
-  check_keys(node, {"mean_nm", "scale_nm", "output_min_nm", "output_max_nm"}, what + " target");
-  TargetScale t;
-  t.mean_nm = yaml_double(node, "mean_nm", what + " target");
-  t.scale_nm = yaml_double(node, "scale_nm", what + " target");
-  if (!(t.scale_nm > 0.0)) throw std::runtime_error(what + " target: 'scale_nm' must be positive");
-  if (node["output_min_nm"]) t.output_min_nm = yaml_double(node, "output_min_nm", what + " target");
-  if (node["output_max_nm"]) t.output_max_nm = yaml_double(node, "output_max_nm", what + " target");
-  if (!(t.output_min_nm < t.output_max_nm))
-    throw std::runtime_error(what + " target: 'output_min_nm' must be below 'output_max_nm'");
-  return t;
-}
-
-std::string TargetScale::c99_expression(const std::string& z) const {
-  std::ostringstream os;
-  os.precision(17);
-  os << "(" << mean_nm << " + " << scale_nm << " * (" << z << "))";
-  std::string e = os.str();
-  if (std::isfinite(output_min_nm) && std::isfinite(output_max_nm)) {
-    std::ostringstream c;
-    c.precision(17);
-    c << "fmin(fmax(" << e << ", " << output_min_nm << "), " << output_max_nm << ")";
-    e = c.str();
-  }
-  return e;
-}
-
-SplitData split_for_validation(const models::FitRequest& request, double fraction) {
+SplitData split_for_validation(const FitRequest& request, double fraction) {
   if (!request.train) throw std::runtime_error("fit: no training data");
   SplitData out;
   if (request.validation && !request.validation->empty()) {
@@ -267,100 +230,11 @@ SplitData split_for_validation(const models::FitRequest& request, double fractio
   return out;
 }
 
-// ---- YAML helpers ------------------------------------------------------------------------------------------
-
-NeuralFileHeader read_neural_file_header(const YAML::Node& node, const std::string& kind,
-                                         const std::vector<std::string>& hyperparameter_keys,
-                                         const std::vector<std::string>& extra_keys) {
-  const std::string what = kind + " model";
-  // The model file adds axis and kind to this node.
-  std::vector<std::string> allowed = {"kind", "axis", "sample_rate_hz", "features", "target", "hyperparameters",
-                                      "training"};
-  allowed.insert(allowed.end(), extra_keys.begin(), extra_keys.end());
-  allowed.push_back("weights");
-  check_keys(node, allowed, what);
-  if (node["kind"] && node["kind"].as<std::string>() != kind)
-    throw std::runtime_error(what + ": node is of kind '" + node["kind"].as<std::string>() + "'");
-  NeuralFileHeader header;
-  header.sample_rate_hz = yaml_double(node, "sample_rate_hz", what);
-  if (!(header.sample_rate_hz > 0.0)) throw std::runtime_error(what + ": 'sample_rate_hz' must be positive");
-  if (!node["features"]) throw std::runtime_error(what + ": missing key 'features'");
-  header.spec = features::FeatureSpec::from_yaml(node["features"]);
-  header.target = TargetScale::from_yaml(node["target"], what);
-  header.hyperparameters = node["hyperparameters"];
-  if (!header.hyperparameters) throw std::runtime_error(what + ": missing key 'hyperparameters'");
-  check_keys(header.hyperparameters, hyperparameter_keys, what + " hyperparameters");
-  return header;
-}
-
-void check_keys(const YAML::Node& node, const std::vector<std::string>& allowed, const std::string& what) {
-  if (!node || !node.IsMap()) throw std::runtime_error(what + ": expected a map");
-  for (const auto& kv : node) {
-    const std::string key = kv.first.as<std::string>();
-    if (std::find(allowed.begin(), allowed.end(), key) == allowed.end()) {
-      std::string known;
-      for (const auto& a : allowed) known += (known.empty() ? "" : ", ") + a;
-      throw std::runtime_error(what + ": unknown key '" + key + "' (known: " + known + ")");
-    }
-  }
-}
-
-double yaml_double(const YAML::Node& node, const std::string& key, const std::string& what) {
-  const YAML::Node v = node[key];
-  if (!v) throw std::runtime_error(what + ": missing key '" + key + "'");
-  double d = 0.0;
-  try {
-    d = v.as<double>();
-  } catch (const YAML::Exception&) {
-    throw std::runtime_error(what + ": '" + key + "' is not a number");
-  }
-  if (!std::isfinite(d)) throw std::runtime_error(what + ": '" + key + "' is not finite");
-  return d;
-}
-
-int yaml_int(const YAML::Node& node, const std::string& key, const std::string& what, int low, int high) {
-  const double d = yaml_double(node, key, what);
-  if (d != std::floor(d) || d < low || d > high)
-    throw std::runtime_error(what + ": '" + key + "' must be an integer in " + std::to_string(low) + ".." +
-                             std::to_string(high));
-  return static_cast<int>(d);
-}
-
-std::vector<double> yaml_doubles(const YAML::Node& node, const std::string& key, const std::string& what,
-                                 std::size_t expected_size) {
-  const YAML::Node v = node[key];
-  if (!v) throw std::runtime_error(what + ": missing key '" + key + "'");
-  if (!v.IsSequence()) throw std::runtime_error(what + ": '" + key + "' must be a list of numbers");
-  if (v.size() != expected_size) {
-    std::ostringstream os;
-    os << what << ": '" << key << "' has " << v.size() << " values, expected " << expected_size;
-    throw std::runtime_error(os.str());
-  }
-  std::vector<double> out(expected_size);
-  for (std::size_t i = 0; i < expected_size; ++i) {
-    try {
-      out[i] = v[i].as<double>();
-    } catch (const YAML::Exception&) {
-      throw std::runtime_error(what + ": '" + key + "' entry " + std::to_string(i) + " is not a number");
-    }
-    if (!std::isfinite(out[i]))
-      throw std::runtime_error(what + ": '" + key + "' entry " + std::to_string(i) + " is not finite");
-  }
-  return out;
-}
-
-YAML::Node flow_sequence(const Eigen::VectorXd& values) {
-  YAML::Node seq(YAML::NodeType::Sequence);
-  for (Eigen::Index i = 0; i < values.size(); ++i) seq.push_back(values[i]);
-  seq.SetStyle(YAML::EmitterStyle::Flow);
-  return seq;
-}
-
 }  // namespace piezo::training
 
 namespace piezo::training {
 
-PreparedData prepare_data(const models::FitRequest& request) {
+PreparedData prepare_data(const FitRequest& request) {
   const double fraction = option_num(request.options, "validation_fraction", 0.1);
   if (!(fraction > 0.0 && fraction < 0.9)) throw std::runtime_error("option 'validation_fraction' must be in (0, 0.9)");
   const SplitData split = split_for_validation(request, fraction);
@@ -383,7 +257,7 @@ PreparedData prepare_data(const models::FitRequest& request) {
   return p;
 }
 
-TrainerConfig trainer_config(const models::FitRequest& request, int default_epochs, int default_batch_size) {
+TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int default_batch_size) {
   TrainerConfig c;
   c.optimizer.kind = parse_optimizer(option_str(request.options, "optimizer", "adam"));
   c.optimizer.learning_rate = option_num(request.options, "learning_rate", 1e-3);
@@ -399,6 +273,29 @@ TrainerConfig trainer_config(const models::FitRequest& request, int default_epoc
   c.time_budget_s = request.time_budget_s;
   c.progress = request.progress;
   return c;
+}
+
+YAML::Node record_training(models::Model& m, const TrainerConfig& cfg, const TrainResult& r, double target_scale_nm,
+                           const std::string& batch_key,
+                           const std::vector<std::pair<std::string, YAML::Node>>& extra) {
+  YAML::Node info;
+  info["optimizer"] = optimizer_name(cfg.optimizer.kind);
+  info["learning_rate"] = cfg.optimizer.learning_rate;
+  info[batch_key] = cfg.batch_size;
+  for (const auto& [key, value] : extra) info[key] = value;
+  info["epochs_run"] = r.epochs_run;
+  info["best_epoch"] = r.best_epoch;
+  info["stopped_early"] = r.stopped_early;
+  info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * target_scale_nm;
+  info["train_seconds"] = r.seconds;
+  m.meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * target_scale_nm;
+  return info;
+}
+
+void set_fit_meta(models::Model& m, const FitRequest& request) {
+  const auto validation = m.meta.validation;
+  m.meta = make_meta(request);
+  m.meta.validation = validation;
 }
 
 std::vector<std::string> common_neural_option_keys() {

@@ -1,0 +1,92 @@
+// The compensation demo's scenarios and their bookkeeping (scripts/demo, docs/predictor.md), ROS-free: the
+// piezo_demo node only moves messages in and out. One axis is driven through a scenario twice, uncompensated
+// then compensated, one intent per encoder sample (lock-step with the samples), and the true position is scored
+//   "sawtooth": triangles of increasing amplitude (study Fig. 11) → deviation from the ideal line,
+//   "creep": histories of the package's `creep` protocol, each followed by its hold → drift while holding.
+#pragma once
+
+#include <cstdint>
+#include <map>
+#include <optional>
+#include <ostream>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "piezo_compensation/compensation/ideal_line.h"
+
+namespace piezo::compensation {
+
+struct DemoStep {
+  int mode;           // 0 uncompensated, 1 compensated
+  int segment;        // history index (creep) or 0
+  std::string phase;  // "rest", "history", "hold", "saw" (and "hold_wait" in rows: the hold not yet applied)
+  double intent_v;
+};
+
+struct CreepDemoOptions {
+  int seed = 3;                     // protocol seed (the demo's training plan uses the creep set of seed + 7)
+  std::vector<int> scenarios{11, 8, 13, 6};  // protocol segments (0-based)
+  double history_s = 1800.0, hold_s = 1800.0;
+};
+
+// Both modes, one step per encoder sample at `rate_hz`.
+std::vector<DemoStep> sawtooth_demo_steps(double rate_hz);
+// Throws std::invalid_argument naming ~creep_scenarios when a scenario is not in the protocol.
+std::vector<DemoStep> creep_demo_steps(const CreepDemoOptions& o, double rate_hz);
+
+class DemoRun {
+ public:
+  // `scenario` "sawtooth" or "creep" (else std::invalid_argument); `line` scores the intent (the predictor's
+  // ideal line of the same model).
+  DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz);
+
+  // What to do after a complete sample: switch compensation first when `set_mode`, then send `intent_v`.
+  struct Next {
+    bool set_mode = false;
+    bool compensated = false;
+    double intent_v = 0.0;
+  };
+
+  // Device reports by sample sequence; the one that completes a sample (truth, encoder, voltage) returns the next
+  // intent. Samples arriving after the scenario ended return nothing.
+  std::optional<Next> on_truth(std::uint32_t seq, double true_nm);
+  std::optional<Next> on_encoder(std::uint32_t seq, double encoder_nm);
+  std::optional<Next> on_voltage(std::uint32_t seq, double applied_v);
+  // A prediction for the current intent: `commanded_v` the uncorrected command, `sent_v` what went to the driver.
+  void on_prediction(double commanded_v, double sent_v, bool fallback);
+
+  bool done() const { return next_ > steps_.size(); }
+  std::size_t steps() const { return steps_.size(); }
+  std::size_t progress() const { return std::min(next_, steps_.size()); }
+  const IdealLine& line() const { return line_; }
+  double rate_hz() const { return rate_hz_; }
+  const std::string& scenario() const { return scenario_; }
+
+  struct Row {
+    DemoStep step;
+    double time_s, ideal_nm, true_nm, encoder_nm, applied_v;  // time_s: scenario sample index / rate
+  };
+  const std::vector<Row>& rows() const { return rows_; }
+
+  void write_csv(std::ostream& os) const;
+  // The metrics: sawtooth deviation from the ideal line in % of the stroke, or creep drift per hold.
+  void write_json(std::ostream& os) const;
+
+ private:
+  std::optional<Next> pair(std::uint32_t seq);
+
+  std::string scenario_;
+  CreepDemoOptions creep_;
+  IdealLine line_;
+  double rate_hz_;
+  std::vector<DemoStep> steps_;
+  std::size_t next_ = 0;
+  std::vector<Row> rows_;
+  std::map<std::uint32_t, double> truth_by_seq_, enc_by_seq_, volt_by_seq_;
+  std::map<std::pair<int, int>, bool> hold_started_, forced_;
+  std::map<std::pair<int, int>, int> hold_delay_;
+  std::vector<double> hold_sent_v_;
+};
+
+}  // namespace piezo::compensation

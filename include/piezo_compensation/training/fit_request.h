@@ -1,0 +1,29 @@
+// What a fit is asked to do: the data (held out by time), the axis, the kind's options, tuning and budget.
+#pragma once
+
+#include <yaml-cpp/yaml.h>
+
+#include <cstdint>
+#include <functional>
+#include <string>
+
+#include "piezo_compensation/io/dataset.h"
+
+namespace piezo::training {
+
+// Progress of a long fit: done/total in the fit's own unit (epochs, trials, λ values), for the progress bar.
+using ProgressFn = std::function<void(double done, double total, const std::string& what)>;
+
+struct FitRequest {
+  const io::Dataset* train = nullptr;        // training part (held out by time from validation/test)
+  const io::Dataset* validation = nullptr;   // validation part for early stopping / selection (may be null)
+  std::string axis = "c";
+  YAML::Node options;                        // kind-specific hyperparameters (from --set key=value or a YAML file)
+  int tune_trials = 0;                       // >0: hyperparameter search with this many trials
+  double time_budget_s = 0.0;                // >0: stop tuning/training when exceeded
+  std::uint64_t seed = 1;
+  int threads = 2;
+  ProgressFn progress;                       // may be empty
+};
+
+}  // namespace piezo::training

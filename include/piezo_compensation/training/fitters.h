@@ -1,0 +1,45 @@
+// The fit of every model kind, keyed by the kind names of models/registry.h (one explicit list in
+// fitters.cpp, no static registrars). The fitting code of each kind is in training/fit_<kind>.cpp.
+#pragma once
+
+#include <Eigen/Dense>
+
+#include <functional>
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/models/creep_models.h"
+#include "piezo_compensation/models/dense_model.h"
+#include "piezo_compensation/models/kan_model.h"
+#include "piezo_compensation/models/lstm_model.h"
+#include "piezo_compensation/models/model.h"
+#include "piezo_compensation/training/fit_request.h"
+
+namespace piezo::training {
+
+using FitFn = std::function<models::ModelPtr(const FitRequest&)>;
+
+// The fitter of a kind; empty for kinds that cannot be fitted on their own ("augmented": `piezo residual`).
+// Throws std::runtime_error listing the known kinds for a name that is no kind.
+const FitFn& fitter(const std::string& kind);
+// fitter(kind)(request); throws when the kind cannot be fitted on its own.
+models::ModelPtr fit_model(const std::string& kind, const FitRequest& request);
+
+// options: method (ols|ridge|lasso), ridge_lambda, lasso_choice (1se|min), folds, features (see fit_common.h).
+models::ModelPtr fit_linear(const FitRequest& req);
+
+// options: n_play (12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti start values),
+// t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s, min_slope_fraction.
+models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind);
+
+// Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]
+// (Lawson–Hanson active set). G must be positive definite on the free set.
+Eigen::VectorXd nnls_gram(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, const std::vector<bool>& constrained);
+
+// Trains a dense model (with a hyperparameter search when request.tune_trials > 0).
+std::unique_ptr<models::DenseModel> fit_dense(const FitRequest& request);
+std::unique_ptr<models::LstmModel> fit_lstm(const FitRequest& request);
+std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request);
+
+}  // namespace piezo::training

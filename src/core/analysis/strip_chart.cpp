@@ -1,0 +1,220 @@
+#include "piezo_compensation/analysis/strip_chart.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <utility>
+
+#include "piezo_compensation/io/dataset.h"
+
+namespace piezo::analysis {
+namespace {
+
+constexpr ChartColor kMeasured{0.35f, 0.75f, 1.0f, 1.0f};
+constexpr ChartColor kPredicted{1.0f, 0.55f, 0.1f, 1.0f};
+constexpr ChartColor kIntended{0.6f, 0.9f, 0.4f, 0.9f};
+constexpr ChartColor kFan{1.0f, 0.3f, 0.8f, 0.9f};
+constexpr ChartColor kError{1.0f, 0.85f, 0.2f, 1.0f};
+constexpr ChartColor kBand1{0.5f, 0.5f, 0.55f, 0.9f};
+constexpr ChartColor kBand2{0.35f, 0.35f, 0.4f, 0.9f};
+constexpr ChartColor kFrame{0.55f, 0.55f, 0.6f, 1.0f};
+constexpr ChartColor kText{0.95f, 0.95f, 0.95f, 1.0f};
+
+std::string fmt(const char* f, double v) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, f, v);
+  return buf;
+}
+
+// A round span ≥ x (1, 2, 5 × 10^k) so that lane scales change in steps, not every frame.
+double nice_ceil(double x) {
+  if (!(x > 0.0) || !std::isfinite(x)) return 1.0;
+  const double p = std::pow(10.0, std::floor(std::log10(x)));
+  for (double m : {1.0, 2.0, 5.0, 10.0})
+    if (m * p >= x) return m * p;
+  return 10.0 * p;
+}
+
+ChartPrimitive prim(ChartPrimitive::Type t, std::string name, ChartColor c, double size) {
+  ChartPrimitive p;
+  p.type = t;
+  p.name = std::move(name);
+  p.color = c;
+  p.size = size;
+  return p;
+}
+
+ChartPrimitive text(std::string name, double x, double y, std::string s, double h, ChartColor c = kText) {
+  auto p = prim(ChartPrimitive::Type::kText, std::move(name), c, h);
+  p.x = {x};
+  p.y = {y};
+  p.text = std::move(s);
+  return p;
+}
+
+}  // namespace
+
+StripChart::StripChart(std::string axis, StripChartOptions options) : axis_(std::move(axis)), o_(options) {
+  if (!(o_.window_s > 0.0)) throw std::invalid_argument("strip chart: window_s must be > 0 s");
+}
+
+void StripChart::add(ChartSample s) {
+  if (!samples_.empty() && s.time_s < samples_.back().time_s) samples_.clear();
+  samples_.push_back(std::move(s));
+  while (!samples_.empty() && samples_.front().time_s < samples_.back().time_s - o_.window_s) samples_.pop_front();
+}
+
+StripChart::Stats StripChart::stats() const {
+  Stats st;
+  io::Dataset d;
+  auto& ax = d.add_axis(axis_);
+  std::vector<double> pred;
+  double sum = 0.0;
+  for (const auto& s : samples_) {
+    if (!std::isfinite(s.measured_nm) || !std::isfinite(s.predicted_nm)) continue;
+    d.time_s.push_back(s.time_s);
+    ax.voltage_v.push_back(s.voltage_v);
+    ax.position_nm.push_back(s.measured_nm);
+    pred.push_back(s.predicted_nm);
+    sum += std::abs(s.measured_nm - s.predicted_nm);
+  }
+  st.errors = pred.size();
+  if (st.errors > 0) st.mae_nm = sum / static_cast<double>(st.errors);
+  if (o_.noise_sigma_nm > 0.0) {
+    st.floor = noise_floor_from_sigma(o_.noise_sigma_nm);
+  } else if (st.errors >= o_.min_noise_samples) {
+    st.floor = estimate_noise_floor(d, axis_, &pred);
+  }
+  return st;
+}
+
+std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
+  using T = ChartPrimitive::Type;
+  std::vector<ChartPrimitive> out;
+  const std::string n = axis_ + "/";
+  const double W = o_.width, H = o_.position_height, E = o_.error_height;
+  const double th = o_.text_height, lh = 0.7 * th;  // headline, labels
+  const double y_text = y0 - 0.6 * th, y_model = y_text - 1.2 * th, y_pos_top = y0 - 3.2 * th, y_pos_bot = y_pos_top - H;
+  const double y_err_top = y_pos_bot - 0.3, y_err_mid = y_err_top - E / 2, y_err_bot = y_err_top - E;
+  const double t_now = samples_.empty() ? 0.0 : samples_.back().time_s;
+  const auto X = [&](double t) { return x0 + W * (1.0 - (t_now - t) / o_.window_s); };
+  const Stats st = stats();
+
+  // Position lane scale: everything drawn in it, including the fan's ends.
+  double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+  const auto grow = [&](double v) {
+    if (std::isfinite(v)) lo = std::min(lo, v), hi = std::max(hi, v);
+  };
+  for (const auto& s : samples_) grow(s.measured_nm), grow(s.predicted_nm), grow(s.intended_nm);
+  const ChartSample* last = samples_.empty() ? nullptr : &samples_.back();
+  if (last && std::isfinite(last->predicted_nm))
+    for (double d : last->drift_nm) grow(last->predicted_nm + d);
+  if (!std::isfinite(lo)) lo = 0.0, hi = 0.0;
+  const double span = nice_ceil(std::max(hi - lo, 10.0) * 1.1);
+  const double mid = 0.5 * (lo + hi);
+  const double p_lo = mid - span / 2;
+  const auto Y = [&](double nm) { return y_pos_bot + H * (nm - p_lo) / span; };
+
+  // Error lane: ± (3σ, or the largest error when bigger), rounded.
+  double emax = st.floor.sigma_nm * 3.0;
+  for (const auto& s : samples_)
+    if (std::isfinite(s.measured_nm) && std::isfinite(s.predicted_nm))
+      emax = std::max(emax, std::abs(s.measured_nm - s.predicted_nm));
+  const double ehalf = nice_ceil(std::max(emax, 1.0));
+  const auto YE = [&](double nm) { return y_err_mid + (E / 2) * std::clamp(nm / ehalf, -1.0, 1.0); };
+
+  // Frames of both lanes and the "now" line.
+  auto frame = prim(T::kLineList, n + "frame", kFrame, 0.015);
+  for (double yt : {y_pos_top, y_err_top}) {
+    const double yb = yt == y_pos_top ? y_pos_bot : y_err_bot;
+    const double xs[] = {x0, x0 + W, x0 + W, x0 + W, x0 + W, x0, x0, x0};
+    const double ys[] = {yt, yt, yt, yb, yb, yb, yb, yt};
+    frame.x.insert(frame.x.end(), xs, xs + 8);
+    frame.y.insert(frame.y.end(), ys, ys + 8);
+  }
+  frame.x.insert(frame.x.end(), {x0, x0 + W});  // error zero line
+  frame.y.insert(frame.y.end(), {y_err_mid, y_err_mid});
+  out.push_back(frame);
+
+  // Noise-floor bands in the error lane.
+  if (st.floor.sigma_nm > 0.0) {
+    for (int k : {2, 1}) {
+      auto b = prim(T::kLineList, n + "band" + std::to_string(k), k == 1 ? kBand1 : kBand2, 0.015);
+      for (double sgn : {-1.0, 1.0}) {
+        b.x.insert(b.x.end(), {x0, x0 + W});
+        b.y.insert(b.y.end(), {YE(sgn * k * st.floor.sigma_nm), YE(sgn * k * st.floor.sigma_nm)});
+      }
+      out.push_back(b);
+      out.push_back(text(n + "band_label" + std::to_string(k), x0 + W + 0.25, YE(k * st.floor.sigma_nm),
+                         "±" + std::to_string(k) + "σ", lh, k == 1 ? kBand1 : kBand2));
+    }
+  }
+
+  auto meas = prim(T::kPoints, n + "measured", kMeasured, 0.045);
+  auto pred = prim(T::kLineStrip, n + "predicted", kPredicted, 0.03);
+  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.02);
+  auto err = prim(T::kPoints, n + "error", kError, 0.04);
+  for (const auto& s : samples_) {
+    const double x = X(s.time_s);
+    if (std::isfinite(s.measured_nm)) meas.x.push_back(x), meas.y.push_back(Y(s.measured_nm));
+    if (std::isfinite(s.predicted_nm)) pred.x.push_back(x), pred.y.push_back(Y(s.predicted_nm));
+    if (std::isfinite(s.intended_nm)) intent.x.push_back(x), intent.y.push_back(Y(s.intended_nm));
+    if (std::isfinite(s.measured_nm) && std::isfinite(s.predicted_nm))
+      err.x.push_back(x), err.y.push_back(YE(s.measured_nm - s.predicted_nm));
+  }
+  // rviz refuses an empty or one-point line strip: only emit what can be drawn.
+  for (auto* p : {&intent, &pred})
+    if (p->x.size() >= 2) out.push_back(*p);
+  for (auto* p : {&meas, &err})
+    if (!p->x.empty()) out.push_back(*p);
+
+  // Drift fan: from the last prediction to each horizon (log-spaced to the right of "now").
+  if (last && std::isfinite(last->predicted_nm) && !last->drift_nm.empty() &&
+      last->drift_nm.size() == last->drift_horizons_s.size()) {
+    const double hmax = std::max(1.0, *std::max_element(last->drift_horizons_s.begin(), last->drift_horizons_s.end()));
+    auto fan = prim(T::kLineList, n + "fan", kFan, 0.025);
+    for (std::size_t i = 0; i < last->drift_nm.size(); ++i) {
+      const double h = last->drift_horizons_s[i];
+      const double xh = x0 + W + o_.fan_width * std::log1p(std::max(h, 0.0)) / std::log1p(hmax);
+      const double yh = Y(last->predicted_nm + last->drift_nm[i]);
+      fan.x.insert(fan.x.end(), {X(t_now), xh});
+      fan.y.insert(fan.y.end(), {Y(last->predicted_nm), yh});
+      out.push_back(text(n + "fan_label" + std::to_string(i), xh + 0.1, yh + 0.6 * lh,
+                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", h), lh, kFan));
+    }
+    out.push_back(fan);
+  }
+
+  // Scale labels and the headline.
+  const double xl = x0 - 5 * lh;
+  out.push_back(text(n + "pos_hi", xl, y_pos_top, fmt("%.0f nm", p_lo + span), lh));
+  out.push_back(text(n + "pos_lo", xl, y_pos_bot, fmt("%.0f nm", p_lo), lh));
+  out.push_back(text(n + "pos_title", xl, y_pos_bot + H / 2, "position", lh));
+  out.push_back(text(n + "err_hi", xl, y_err_top, fmt("%+.0f nm", ehalf), lh, kError));
+  out.push_back(text(n + "err_lo", xl, y_err_bot, fmt("%+.0f nm", -ehalf), lh, kError));
+  out.push_back(text(n + "err_title", xl, y_err_mid, "error", lh, kError));
+  out.push_back(text(n + "t_left", x0, y_err_bot - 1.2 * lh, fmt("-%.0f s", o_.window_s), lh));
+  out.push_back(text(n + "t_now", x0 + W, y_err_bot - 1.2 * lh, "now", lh));
+  out.push_back(text(n + "legend", x0 + W / 2, y_err_bot - 1.2 * lh,
+                     "dots measured   orange predicted   green intended   magenta drift forecast   yellow measured - predicted",
+                     lh));
+  std::string head = "axis " + axis_;
+  if (last) {
+    head += last->fallback ? "   FALLBACK (uncorrected)"
+                           : std::string(last->compensation_active ? "   compensation ON" : "   compensation OFF");
+    out.push_back(text(n + "model", x0 + W / 2, y_model,
+                       "model " + last->model + (last->fallback ? "   " + last->status : std::string()), lh));
+  } else {
+    head += "   no data";
+  }
+  if (st.errors > 0) {
+    head += fmt("   MAE %.1f nm", st.mae_nm);
+    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) + fmt(" (σ %.1f nm)", st.floor.sigma_nm)
+                                    : std::string(" (floor: too few samples)");
+  }
+  out.push_back(text(n + "headline", x0 + W / 2, y_text, head, th));
+  return out;
+}
+
+}  // namespace piezo::analysis

@@ -1,0 +1,228 @@
+#include "piezo_compensation/compensation/demo_scenario.h"
+
+#include <algorithm>
+#include <cmath>
+#include <iterator>
+#include <stdexcept>
+
+#include <yaml-cpp/yaml.h>
+
+#include "piezo_compensation/protocols/protocol.h"
+
+namespace piezo::compensation {
+namespace {
+
+void ramp(std::vector<DemoStep>& s, int mode, int seg, const std::string& ph, double from, double to, double dur_s,
+          double hz) {
+  const int n = std::max(1, static_cast<int>(std::lround(dur_s * hz)));
+  for (int i = 1; i <= n; ++i) s.push_back({mode, seg, ph, from + (to - from) * i / n});
+}
+void hold(std::vector<DemoStep>& s, int mode, int seg, const std::string& ph, double v, double dur_s, double hz) {
+  const int n = static_cast<int>(std::lround(dur_s * hz));
+  for (int i = 0; i < n; ++i) s.push_back({mode, seg, ph, v});
+}
+
+}  // namespace
+
+std::vector<DemoStep> sawtooth_demo_steps(double hz) {
+  std::vector<DemoStep> s;
+  for (int mode = 0; mode < 2; ++mode) {
+    hold(s, mode, 0, "rest", 0.0, 30.0, hz);
+    // Triangles 0 → +A → −A → 0 with A = 10 … 70 V, 8 V/s (Fig. 11 of the study: increasing amplitude).
+    for (double a = 10.0; a <= 70.0 + 1e-9; a += 10.0) {
+      ramp(s, mode, 0, "saw", 0.0, a, a / 8.0, hz);
+      ramp(s, mode, 0, "saw", a, -a, 2 * a / 8.0, hz);
+      ramp(s, mode, 0, "saw", -a, 0.0, a / 8.0, hz);
+    }
+    hold(s, mode, 0, "rest", 0.0, 5.0, hz);
+  }
+  return s;
+}
+
+// The chosen scenarios of the creep protocol (axis c column): its history, then its hold. A short ramp
+// (≤ 8 V/s) joins the scenarios, which in the protocol follow other scenarios.
+std::vector<DemoStep> creep_demo_steps(const CreepDemoOptions& o, double hz) {
+  if (o.scenarios.empty()) throw std::invalid_argument("~creep_scenarios: empty list");
+  if (!(o.hold_s > 0.0) || !(o.history_s > 0.0)) throw std::invalid_argument("~hold_s and ~creep_history_s must be > 0 s");
+  YAML::Node params;
+  params["history_s"] = o.history_s;
+  params["hold_s"] = o.hold_s;
+  const auto protocol = protocols::make_protocol("creep", params, hz, static_cast<std::uint64_t>(o.seed));
+  std::map<int, std::vector<protocols::ProtocolSample>> by_segment;
+  for (std::size_t i = 0; i < protocol->size(); ++i) {
+    const auto p = protocol->at(i);
+    by_segment[p.segment].push_back(p);
+  }
+  std::vector<DemoStep> s;
+  double v = 0.0;
+  const int n_scen = static_cast<int>(by_segment.size());
+  for (int mode = 0; mode < 2; ++mode) {
+    for (std::size_t h = 0; h < o.scenarios.size(); ++h) {
+      const int seg = o.scenarios[h];
+      if (seg < 0 || seg >= n_scen)
+        throw std::invalid_argument("~creep_scenarios: " + std::to_string(seg) + " outside 0.." +
+                                    std::to_string(n_scen - 1));
+      const auto& samples = by_segment.at(seg);
+      const double first = samples.front().voltage_v[2];
+      ramp(s, mode, static_cast<int>(h), "rest", v, first, std::max(5.0, std::abs(first - v) / 8.0), hz);
+      for (const auto& p : samples)
+        s.push_back({mode, static_cast<int>(h), p.phase == protocols::Phase::kHold ? "hold" : "history", p.voltage_v[2]});
+      v = samples.back().voltage_v[2];
+    }
+  }
+  ramp(s, 1, static_cast<int>(o.scenarios.size()) - 1, "rest", v, 0.0, std::max(5.0, std::abs(v) / 8.0), hz);
+  return s;
+}
+
+DemoRun::DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz)
+    : scenario_(std::move(scenario)), creep_(creep), line_(line), rate_hz_(rate_hz) {
+  if (scenario_ != "sawtooth" && scenario_ != "creep")
+    throw std::invalid_argument("~scenario: sawtooth or creep, got '" + scenario_ + "'");
+  if (!(rate_hz_ > 0.0)) throw std::invalid_argument("demo: sample rate must be > 0 Hz");
+  steps_ = scenario_ == "sawtooth" ? sawtooth_demo_steps(rate_hz_) : creep_demo_steps(creep_, rate_hz_);
+}
+
+std::optional<DemoRun::Next> DemoRun::on_truth(std::uint32_t seq, double true_nm) {
+  truth_by_seq_[seq] = true_nm;
+  return pair(seq);
+}
+std::optional<DemoRun::Next> DemoRun::on_encoder(std::uint32_t seq, double encoder_nm) {
+  enc_by_seq_[seq] = encoder_nm;
+  return pair(seq);
+}
+std::optional<DemoRun::Next> DemoRun::on_voltage(std::uint32_t seq, double applied_v) {
+  volt_by_seq_[seq] = applied_v;
+  return pair(seq);
+}
+
+// Voltages the predictor sent for the hold intent: the hold starts when one of them is applied.
+void DemoRun::on_prediction(double commanded_v, double sent_v, bool fallback) {
+  if (next_ == 0 || next_ > steps_.size()) return;
+  const DemoStep& s = steps_[next_ - 1];
+  if (s.phase != "hold" || fallback) return;
+  if (std::abs(commanded_v - s.intent_v) > 1e-6) return;
+  hold_sent_v_.push_back(sent_v);
+}
+
+// One complete sample: record it against the intent that was in force over its step, give the next intent.
+std::optional<DemoRun::Next> DemoRun::pair(std::uint32_t seq) {
+  auto t = truth_by_seq_.find(seq);
+  auto e = enc_by_seq_.find(seq);
+  auto v = volt_by_seq_.find(seq);
+  if (t == truth_by_seq_.end() || e == enc_by_seq_.end() || v == volt_by_seq_.end()) return std::nullopt;
+  const double true_nm = t->second, enc_nm = e->second, applied_v = v->second;
+  truth_by_seq_.erase(truth_by_seq_.begin(), std::next(t));
+  enc_by_seq_.erase(enc_by_seq_.begin(), std::next(e));
+  volt_by_seq_.erase(volt_by_seq_.begin(), std::next(v));
+  if (next_ > 0 && next_ <= steps_.size()) {
+    DemoStep s = steps_[next_ - 1];
+    if (s.phase == "hold") {
+      // The hold (and its drift) starts at the first sample that has the hold's command applied; before
+      // that the tip is still on the approach, one or two samples behind the intent.
+      const auto key = std::make_pair(s.mode, s.segment);
+      if (!hold_started_[key]) {
+        const bool hit = std::any_of(hold_sent_v_.begin(), hold_sent_v_.end(),
+                                     [&](double x) { return std::abs(x - applied_v) <= 5e-4; });
+        if (hit || hold_delay_[key] >= 20) {
+          hold_started_[key] = true;
+          forced_[key] = !hit;
+        } else {
+          ++hold_delay_[key];
+          s.phase = "hold_wait";
+        }
+      }
+    } else {
+      hold_sent_v_.clear();
+    }
+    rows_.push_back(
+        {s, static_cast<double>(next_ - 1) / rate_hz_, line_.position_nm(s.intent_v), true_nm, enc_nm, applied_v});
+  }
+  if (next_ >= steps_.size()) {
+    ++next_;
+    return std::nullopt;
+  }
+  const DemoStep& s = steps_[next_];
+  Next n;
+  n.set_mode = next_ == 0 || steps_[next_ - 1].mode != s.mode;
+  n.compensated = s.mode == 1;
+  n.intent_v = s.intent_v;
+  ++next_;
+  return n;
+}
+
+void DemoRun::write_csv(std::ostream& csv) const {
+  csv << "mode,segment,phase,time_s,intent_v,applied_v,ideal_nm,true_nm,encoder_nm\n";
+  csv.precision(10);
+  for (const auto& r : rows_)
+    csv << r.step.mode << "," << r.step.segment << "," << r.step.phase << "," << r.time_s << "," << r.step.intent_v
+        << "," << r.applied_v << "," << r.ideal_nm << "," << r.true_nm << "," << r.encoder_nm << "\n";
+}
+
+void DemoRun::write_json(std::ostream& js) const {
+  js.precision(6);
+  if (scenario_ == "sawtooth") {
+    double mx[2] = {0, 0}, ss[2] = {0, 0}, lo = 1e300, hi = -1e300;
+    std::size_t n[2] = {0, 0};
+    for (const auto& r : rows_) {
+      if (r.step.phase != "saw") continue;
+      const double d = r.true_nm - r.ideal_nm;
+      mx[r.step.mode] = std::max(mx[r.step.mode], std::abs(d));
+      ss[r.step.mode] += d * d;
+      ++n[r.step.mode];
+      lo = std::min(lo, r.ideal_nm), hi = std::max(hi, r.ideal_nm);
+    }
+    const double stroke = hi - lo;
+    js << "{\"stroke_nm\": " << stroke << ", \"uncompensated_max_pct\": " << 100 * mx[0] / stroke
+       << ", \"compensated_max_pct\": " << 100 * mx[1] / stroke
+       << ", \"uncompensated_rms_pct\": " << 100 * std::sqrt(ss[0] / std::max<std::size_t>(1, n[0])) / stroke
+       << ", \"compensated_rms_pct\": " << 100 * std::sqrt(ss[1] / std::max<std::size_t>(1, n[1])) / stroke << "}\n";
+    return;
+  }
+  // drift = |true position at the end of the hold − true position at its start|, per history.
+  std::map<std::pair<int, int>, std::pair<double, double>> ends;
+  for (const auto& r : rows_) {
+    if (r.step.phase != "hold") continue;
+    auto key = std::make_pair(r.step.mode, r.step.segment);
+    auto it = ends.find(key);
+    if (it == ends.end()) ends[key] = {r.true_nm, r.true_nm};
+    else it->second.second = r.true_nm;
+  }
+  js << "{";
+  for (int mode = 0; mode < 2; ++mode) {
+    js << (mode ? ", \"compensated_drift_nm\": [" : "\"uncompensated_drift_nm\": [");
+    bool first = true;
+    for (const auto& [key, v] : ends)
+      if (key.first == mode) js << (first ? "" : ", ") << std::abs(v.second - v.first), first = false;
+    js << "]";
+  }
+  // Per hold: intended voltage, true − intended position where the hold starts, samples until the hold's
+  // command was applied (command latency through predictor → driver → device), whether that was forced.
+  std::map<std::pair<int, int>, double> hold_v;
+  for (const auto& r : rows_)
+    if (r.step.phase == "hold") hold_v[{r.step.mode, r.step.segment}] = r.step.intent_v;
+  const auto list = [&](const char* name, auto value) {
+    js << ", \"" << name << "\": [";
+    bool first = true;
+    for (const auto& [key, v] : ends) js << (first ? "" : ", ") << value(key, v), first = false;
+    js << "]";
+  };
+  const auto at = [](const auto& m, const auto& key, auto def) {
+    auto it = m.find(key);
+    return it == m.end() ? def : it->second;
+  };
+  list("hold_v", [&](auto key, auto) { return hold_v[key]; });
+  list("hold_start_error_nm", [&](auto key, auto v) { return v.first - line_.position_nm(hold_v[key]); });
+  list("hold_start_delay_samples", [&](auto key, auto) { return at(hold_delay_, key, 0); });
+  list("hold_start_forced", [&](auto key, auto) { return at(forced_, key, false) ? 1 : 0; });
+  // In-step check: uncompensated samples of the histories whose applied voltage was not the intent in force
+  // (a command that reached the device late).
+  std::size_t late = 0, moving = 0;
+  for (const auto& r : rows_)
+    if (r.step.mode == 0 && r.step.phase == "history") ++moving, late += std::abs(r.applied_v - r.step.intent_v) > 5e-4;
+  js << ", \"uncompensated_history_samples\": " << moving << ", \"uncompensated_late_samples\": " << late;
+  js << ", \"creep_seed\": " << creep_.seed << ", \"creep_scenarios\": [";
+  for (std::size_t i = 0; i < creep_.scenarios.size(); ++i) js << (i ? ", " : "") << creep_.scenarios[i];
+  js << "]}\n";
+}
+
+}  // namespace piezo::compensation

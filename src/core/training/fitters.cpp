@@ -1,0 +1,45 @@
+#include "piezo_compensation/training/fitters.h"
+
+#include <map>
+#include <stdexcept>
+
+#include "piezo_compensation/models/registry.h"
+
+namespace piezo::training {
+
+namespace {
+
+using models::CreepKind;
+using models::ModelPtr;
+
+// Every kind that can be fitted on its own; the names are those of models/registry.cpp's list.
+const std::map<std::string, FitFn>& fitters() {
+  static const std::map<std::string, FitFn> f = {
+      {"linear", &fit_linear},
+      {"pi", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kNone); }},
+      {"pi_creep_log", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kLog); }},
+      {"pi_creep_lti", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kLti); }},
+      {"pi_creep_fractional", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kFractional); }},
+      {"dense", [](const FitRequest& r) -> ModelPtr { return fit_dense(r); }},
+      {"lstm", [](const FitRequest& r) -> ModelPtr { return fit_lstm(r); }},
+      {"kan", [](const FitRequest& r) -> ModelPtr { return fit_kan(r); }},
+  };
+  return f;
+}
+
+}  // namespace
+
+const FitFn& fitter(const std::string& kind) {
+  static const FitFn none;
+  models::model_kind(kind);  // throws listing the known kinds
+  const auto it = fitters().find(kind);
+  return it == fitters().end() ? none : it->second;
+}
+
+models::ModelPtr fit_model(const std::string& kind, const FitRequest& request) {
+  const FitFn& fit = fitter(kind);
+  if (!fit) throw std::runtime_error("kind '" + kind + "' cannot be fitted on its own");
+  return fit(request);
+}
+
+}  // namespace piezo::training

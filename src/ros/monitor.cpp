@@ -1,0 +1,112 @@
+#include "piezo_compensation/ros/monitor.h"
+
+#include <geometry_msgs/TransformStamped.h>
+#include <visualization_msgs/MarkerArray.h>
+
+#include <cmath>
+#include <limits>
+
+#include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/ros/params.h"
+
+namespace piezo::monitor {
+namespace {
+
+using analysis::ChartPrimitive;
+
+visualization_msgs::Marker to_marker(const ChartPrimitive& p, const std::string& frame, const ros::Time& stamp) {
+  visualization_msgs::Marker m;
+  m.header.frame_id = frame;
+  m.header.stamp = stamp;
+  m.ns = p.name;
+  m.id = 0;
+  m.action = visualization_msgs::Marker::ADD;
+  m.pose.orientation.w = 1.0;
+  m.color.r = p.color.r, m.color.g = p.color.g, m.color.b = p.color.b, m.color.a = p.color.a;
+  switch (p.type) {
+    case ChartPrimitive::Type::kPoints:
+      m.type = visualization_msgs::Marker::POINTS;
+      m.scale.x = m.scale.y = p.size;
+      break;
+    case ChartPrimitive::Type::kLineStrip:
+      m.type = visualization_msgs::Marker::LINE_STRIP;
+      m.scale.x = p.size;
+      break;
+    case ChartPrimitive::Type::kLineList:
+      m.type = visualization_msgs::Marker::LINE_LIST;
+      m.scale.x = p.size;
+      break;
+    case ChartPrimitive::Type::kText:
+      m.type = visualization_msgs::Marker::TEXT_VIEW_FACING;
+      m.scale.z = p.size;
+      m.text = p.text;
+      m.pose.position.x = p.x.at(0);
+      m.pose.position.y = p.y.at(0);
+      return m;
+  }
+  m.points.resize(p.x.size());
+  for (std::size_t i = 0; i < p.x.size(); ++i) m.points[i].x = p.x[i], m.points[i].y = p.y[i];
+  return m;
+}
+
+}  // namespace
+
+MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
+  params::ParamReader r(pnh);
+  std::vector<std::string> all(io::kAxisNames.begin(), io::kAxisNames.end());
+  axes_ = r.texts("axes", all, all, 1, all.size());
+  analysis::StripChartOptions o;
+  o.window_s = r.number("window_s", o.window_s, 1.0, 86400.0);
+  o.noise_sigma_nm = r.number("noise_sigma_nm", 0.0, 0.0, 1e6);
+  const double rate_hz = r.number("publish_rate_hz", 4.0, 0.1, 50.0);
+  const std::string prefix = r.text("frame_prefix", "");
+  frame_id_ = prefix + r.text("chart_frame", "chart");
+  const std::string parent = prefix + r.text("parent_frame", "base");
+  r.warn_unknown(pnh.getNamespace());
+
+  for (const auto& a : axes_) {
+    charts_.push_back(std::make_unique<analysis::StripChart>(a, o));
+    analysis::StripChart* chart = charts_.back().get();
+    subs_.push_back(nh_.subscribe<piezo_compensation::Prediction>(
+        a + "/prediction", 50, [chart](const piezo_compensation::Prediction::ConstPtr& m) {
+          analysis::ChartSample s;
+          s.time_s = m->header.stamp.toSec();
+          s.measured_nm = m->measured_position * 1e9;
+          s.predicted_nm = m->fallback ? std::numeric_limits<double>::quiet_NaN() : m->predicted_position * 1e9;
+          s.intended_nm = m->intended_position * 1e9;
+          s.voltage_v = m->compensation_active ? m->corrected_voltage : m->commanded_voltage;
+          s.drift_horizons_s = m->drift_horizons;
+          for (double d : m->drift) s.drift_nm.push_back(d * 1e9);
+          s.compensation_active = m->compensation_active;
+          s.fallback = m->fallback;
+          s.model = m->model;
+          s.status = m->status;
+          chart->add(std::move(s));
+        }));
+  }
+  pub_ = nh_.advertise<visualization_msgs::MarkerArray>("monitor/chart", 1, true);
+  // The chart frame hangs off the manipulator's base so rviz has it in its tf tree (identity: the chart is flat
+  // in its own units, not in metres of the tip).
+  geometry_msgs::TransformStamped t;
+  t.header.stamp = ros::Time::now();
+  t.header.frame_id = parent;
+  t.child_frame_id = frame_id_;
+  t.transform.rotation.w = 1.0;
+  static_tf_.sendTransform(t);
+  timer_ = nh_.createWallTimer(ros::WallDuration(1.0 / rate_hz), &MonitorNode::publish, this);
+  ROS_INFO("piezo_monitor: %zu axis charts, %.0f s window, markers on %s in frame %s", axes_.size(), o.window_s,
+           pub_.getTopic().c_str(), frame_id_.c_str());
+}
+
+void MonitorNode::publish(const ros::WallTimerEvent&) {
+  visualization_msgs::MarkerArray arr;
+  const ros::Time stamp;  // time 0: rviz draws in the frame's latest transform (a static one)
+  double y = 0.0;
+  for (const auto& c : charts_) {
+    for (const auto& p : c->draw(0.0, y)) arr.markers.push_back(to_marker(p, frame_id_, stamp));
+    y -= c->height();
+  }
+  pub_.publish(arr);
+}
+
+}  // namespace piezo::monitor

@@ -1,0 +1,106 @@
+// The demo's scenarios and scoring (compensation/demo_scenario.h), driven by a lock-step fake device.
+#include <gtest/gtest.h>
+#include <yaml-cpp/yaml.h>
+
+#include <cmath>
+#include <algorithm>
+#include <functional>
+#include <sstream>
+
+#include "piezo_compensation/compensation/demo_scenario.h"
+
+namespace {
+
+using piezo::compensation::CreepDemoOptions;
+using piezo::compensation::DemoRun;
+using piezo::compensation::IdealLine;
+
+const IdealLine kLine{10.0, 5.0};  // 10 nm/V, 5 nm at 0 V
+
+// A device that applies each intent at the next sample. `true_nm(mode, phase index in hold, v)` is its physics.
+// Reports arrive in a rotating order (the three topics are not ordered). Returns the JSON metrics.
+YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, double v)>& true_nm,
+                 int* mode_switches = nullptr, std::vector<bool>* modes = nullptr) {
+  double v = 0.0;
+  int mode = 0, hold_k = 0;
+  double last_intent = NAN;
+  for (std::uint32_t seq = 100; !run.done(); ++seq) {
+    const double x = true_nm(mode, hold_k, v);
+    std::optional<DemoRun::Next> n;
+    const auto keep = [&](std::optional<DemoRun::Next> r) { if (r) n = r; };
+    switch (seq % 3) {
+      case 0: keep(run.on_truth(seq, x)); keep(run.on_encoder(seq, std::round(x / 20) * 20)); keep(run.on_voltage(seq, v)); break;
+      case 1: keep(run.on_voltage(seq, v)); keep(run.on_truth(seq, x)); keep(run.on_encoder(seq, std::round(x / 20) * 20)); break;
+      default: keep(run.on_encoder(seq, std::round(x / 20) * 20)); keep(run.on_voltage(seq, v)); keep(run.on_truth(seq, x));
+    }
+    if (!n) continue;
+    if (n->set_mode) {
+      mode = n->compensated ? 1 : 0;
+      if (mode_switches) ++*mode_switches;
+      if (modes) modes->push_back(n->compensated);
+    }
+    hold_k = n->intent_v == last_intent ? hold_k + 1 : 0;
+    last_intent = n->intent_v;
+    run.on_prediction(n->intent_v, n->intent_v, false);  // the predictor sends the intent as it is
+    v = n->intent_v;
+    if (seq > 10'000'000) ADD_FAILURE() << "demo never ends";
+  }
+  std::ostringstream js;
+  run.write_json(js);
+  return YAML::Load(js.str());
+}
+
+TEST(DemoScenario, SawtoothScoresTheDeviationFromTheIdealLine) {
+  DemoRun run("sawtooth", CreepDemoOptions{}, kLine, 11.0);
+  int switches = 0;
+  std::vector<bool> modes;
+  // Uncompensated: 2 % too much gain; compensated: on the line.
+  const auto j = drive(run, [](int mode, int, double v) { return kLine.position_nm(v) + (mode ? 0.0 : 0.2 * v); },
+                       &switches, &modes);
+  EXPECT_EQ(modes, (std::vector<bool>{false, true}));
+  EXPECT_NEAR(j["stroke_nm"].as<double>(), 1400.0, 1e-6);           // ±70 V × 10 nm/V
+  EXPECT_NEAR(j["uncompensated_max_pct"].as<double>(), 1.0, 1e-3);  // 0.2 × 70 / 1400
+  EXPECT_NEAR(j["compensated_max_pct"].as<double>(), 0.0, 1e-9);
+  EXPECT_EQ(run.rows().size(), run.steps());
+  std::ostringstream csv;
+  run.write_csv(csv);
+  EXPECT_EQ(std::count(csv.str().begin(), csv.str().end(), '\n'), static_cast<long>(run.steps()) + 1);
+}
+
+TEST(DemoScenario, CreepMeasuresTheDriftOfEachHold) {
+  CreepDemoOptions co;
+  co.history_s = 30.0;
+  co.hold_s = 20.0;
+  co.scenarios = {2, 1};
+  DemoRun run("creep", co, kLine, 11.0);
+  // Uncompensated: the tip creeps 0.5 nm per sample while holding; compensated: it stays.
+  const auto j = drive(run, [](int mode, int k, double v) { return kLine.position_nm(v) + (mode ? 0.0 : 0.5 * k); });
+  const auto unc = j["uncompensated_drift_nm"], comp = j["compensated_drift_nm"];
+  ASSERT_EQ(unc.size(), 2u);
+  ASSERT_EQ(comp.size(), 2u);
+  for (std::size_t i = 0; i < 2; ++i) {
+    // The hold's first scored sample has the hold voltage applied (k = 1), the last k = 220 samples later.
+    EXPECT_NEAR(unc[i].as<double>(), 0.5 * (co.hold_s * 11 - 1), 1.0) << i;
+    EXPECT_NEAR(comp[i].as<double>(), 0.0, 1e-9) << i;
+    EXPECT_EQ(j["hold_start_forced"][i].as<int>(), 0);
+  }
+  EXPECT_EQ(j["uncompensated_late_samples"].as<int>(), 0);
+  EXPECT_EQ(j["creep_scenarios"].size(), 2u);
+}
+
+TEST(DemoScenario, BadSettingsNameTheParameter) {
+  const auto msg = [](auto f) {
+    try {
+      f();
+    } catch (const std::invalid_argument& e) {
+      return std::string(e.what());
+    }
+    return std::string("no error");
+  };
+  EXPECT_NE(msg([] { DemoRun("zigzag", CreepDemoOptions{}, kLine, 11.0); }).find("~scenario"), std::string::npos);
+  CreepDemoOptions co;
+  co.scenarios = {999};
+  EXPECT_NE(msg([&] { DemoRun("creep", co, kLine, 11.0); }).find("~creep_scenarios"), std::string::npos);
+}
+
+}  // namespace

@@ -1,0 +1,114 @@
+// The strip chart's window, statistics and layout (analysis/strip_chart.h).
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <random>
+
+#include "piezo_compensation/analysis/strip_chart.h"
+
+namespace {
+
+using piezo::analysis::ChartPrimitive;
+using piezo::analysis::ChartSample;
+using piezo::analysis::StripChart;
+using piezo::analysis::StripChartOptions;
+
+// A held voltage with true position 1000 nm, an encoder with 20 nm steps and σ = 8 nm noise, a model 15 nm off.
+ChartSample sample(double t, std::mt19937& rng, double noise_nm = 8.0) {
+  std::normal_distribution<double> n(0.0, noise_nm);
+  ChartSample s;
+  s.time_s = t;
+  s.voltage_v = 40.0;
+  s.measured_nm = 20.0 * std::round((1000.0 + n(rng)) / 20.0);
+  s.predicted_nm = 985.0;
+  s.intended_nm = 990.0;
+  s.drift_horizons_s = {10, 60, 600};
+  s.drift_nm = {1.0, 3.0, 8.0};
+  s.compensation_active = true;
+  s.model = "mm3e_sim_c.yaml (pi_creep_fractional)";
+  return s;
+}
+
+const ChartPrimitive* find(const std::vector<ChartPrimitive>& ps, const std::string& name) {
+  for (const auto& p : ps)
+    if (p.name == name) return &p;
+  return nullptr;
+}
+
+TEST(StripChart, KeepsOnlyTheWindowAndRestartsOnATimeJump) {
+  StripChartOptions o;
+  o.window_s = 10.0;
+  StripChart c("c", o);
+  std::mt19937 rng(1);
+  for (int i = 0; i <= 300; ++i) c.add(sample(i * 0.1, rng));
+  EXPECT_EQ(c.size(), 101u);  // 20.0 … 30.0 s
+  c.add(sample(5.0, rng));    // a bag loop / simulator restart
+  EXPECT_EQ(c.size(), 1u);
+}
+
+TEST(StripChart, MaeAndNoiseFloorFromTheWindow) {
+  StripChart c("c", StripChartOptions{});
+  std::mt19937 rng(7);
+  for (int i = 0; i < 660; ++i) c.add(sample(i / 11.0, rng));
+  const auto st = c.stats();
+  EXPECT_EQ(st.errors, 660u);
+  // measured − predicted ≈ 15 nm + noise: MAE near 15 (noise adds a little), floor σ near max(8, 20/√12) = 8.
+  EXPECT_NEAR(st.mae_nm, 16.0, 2.5);
+  EXPECT_NEAR(st.floor.sigma_nm, 8.0, 1.5);
+  EXPECT_NEAR(st.floor.quantisation_nm, 20.0, 1e-9);
+
+  StripChartOptions given;
+  given.noise_sigma_nm = 20.8;
+  StripChart g("c", given);
+  for (int i = 0; i < 5; ++i) g.add(sample(i, rng));
+  EXPECT_DOUBLE_EQ(g.stats().floor.sigma_nm, 20.8);
+}
+
+TEST(StripChart, LayoutHasEveryElementInsideItsLane) {
+  StripChartOptions o;
+  StripChart c("b", o);
+  std::mt19937 rng(3);
+  for (int i = 0; i < 200; ++i) c.add(sample(i / 11.0, rng));
+  const auto ps = c.draw(0.0, 0.0);
+  for (const char* name : {"b/measured", "b/predicted", "b/intended", "b/error", "b/fan", "b/band1", "b/band2",
+                           "b/headline", "b/model", "b/frame"})
+    ASSERT_NE(find(ps, name), nullptr) << name;
+  EXPECT_EQ(find(ps, "b/measured")->x.size(), 200u);
+  EXPECT_EQ(find(ps, "b/fan")->x.size(), 6u);  // a segment per horizon
+  // Newest sample at the right edge (x = width), all within [0, width].
+  for (double x : find(ps, "b/measured")->x) EXPECT_TRUE(x >= -1e-9 && x <= o.width + 1e-9) << x;
+  EXPECT_NEAR(find(ps, "b/measured")->x.back(), o.width, 1e-9);
+  // Fan right of "now", ordered by horizon.
+  const auto& fan = *find(ps, "b/fan");
+  EXPECT_LT(fan.x[1], fan.x[3]);
+  EXPECT_LT(fan.x[3], fan.x[5]);
+  EXPECT_LE(fan.x[5], o.width + o.fan_width + 1e-9);
+  // The error lane lies below the position lane and holds every error point.
+  double pos_min = 1e9, err_max = -1e9;
+  for (double y : find(ps, "b/measured")->y) pos_min = std::min(pos_min, y);
+  for (double y : find(ps, "b/error")->y) err_max = std::max(err_max, y);
+  EXPECT_LT(err_max, pos_min);
+  for (double y : find(ps, "b/error")->y) EXPECT_GE(y, -c.height());
+  const auto& head = find(ps, "b/headline")->text;
+  EXPECT_NE(head.find("compensation ON"), std::string::npos) << head;
+  EXPECT_NE(head.find("MAE"), std::string::npos) << head;
+  ASSERT_NE(find(ps, "b/model"), nullptr);
+  EXPECT_NE(find(ps, "b/model")->text.find("mm3e_sim_c.yaml"), std::string::npos);
+}
+
+TEST(StripChart, FallbackAndEmptyChartsSaySo) {
+  StripChart c("a", StripChartOptions{});
+  EXPECT_NE(find(c.draw(0, 0), "a/headline")->text.find("no data"), std::string::npos);
+  std::mt19937 rng(5);
+  auto s = sample(0.0, rng);
+  s.fallback = true;
+  s.predicted_nm = std::nan("");
+  s.status = "model unavailable: broken.yaml";
+  c.add(s);
+  const auto ps = c.draw(0, 0);
+  EXPECT_NE(find(ps, "a/headline")->text.find("FALLBACK"), std::string::npos);
+  EXPECT_EQ(find(ps, "a/predicted"), nullptr);  // nothing to draw, no one-point strip
+  EXPECT_EQ(find(ps, "a/fan"), nullptr);
+}
+
+}  // namespace
