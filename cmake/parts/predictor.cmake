@@ -13,3 +13,5 @@ piezo_rostest(test/rostest/predictor_fallback.test test/rostest/predictor_fallba
 piezo_rostest(test/rostest/predictor_live.test test/rostest/predictor_live.cpp DEPENDS piezo_predictor)
 piezo_node(piezo_demo src/nodes/piezo_demo_node.cpp)
 piezo_rostest(test/rostest/predictor_replay.test test/rostest/predictor_replay.cpp DEPENDS piezo_predictor)
+piezo_rostest(test/rostest/predictor_inputs.test test/rostest/predictor_inputs.cpp DEPENDS piezo_predictor)
+piezo_unit_test(test_compensation_watch test/unit/test_compensation_watch.cpp)

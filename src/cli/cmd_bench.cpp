@@ -1,6 +1,8 @@
 // `piezo bench [NAME...]`: runs the benchmark and measurement programs built into <devel>/lib/piezo_compensation/bench
 // and prints their figures. Speed targets are shown here, never asserted in timed tests.
 #include <algorithm>
+#include <unistd.h>  // access(), X_OK
+
 #include <cstdlib>
 #include <filesystem>
 #include <iostream>

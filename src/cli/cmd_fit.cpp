@@ -147,6 +147,7 @@ int run(int argc, char** argv) {
       analysis::check_fit_sanity(*model, nullptr, scale);
     }
   }
+  model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
   if (model->meta.training_source.empty()) model->meta.training_source = args.str("data");
   models::save_model(args.str("out"), *model);
   std::cout << "wrote " << args.str("out") << ": kind " << model->kind() << ", " << model->num_parameters()

@@ -157,6 +157,7 @@ int run(int argc, char** argv) {
 
   const fs::path out = args.str("out");
   fs::create_directories(out);
+  res.model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
   if (!selection_md.empty()) std::ofstream(out / "model_choice.md") << "# Base model choice\n\n" << selection_md;
   analysis::ResidualReportContext ctx;
   ctx.axis = axis;

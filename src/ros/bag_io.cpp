@@ -356,6 +356,7 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
 
   io::Dataset d;
   d.source = path;
+  d.time_clock = "ros";  // stamps are ROS time (sim time under use_sim_time)
   d.time_s.resize(n);
   for (std::size_t i = 0; i < n; ++i) d.time_s[i] = row_t(i);
   for (int k = 0; k < 3; ++k) {

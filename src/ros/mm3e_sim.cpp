@@ -2,6 +2,7 @@
 
 #include <linux/can/error.h>
 #include <rosgraph_msgs/Clock.h>
+#include <sensor_msgs/Temperature.h>
 
 #include <chrono>
 #include <cmath>
@@ -68,6 +69,9 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   for (int i = 0; i < can::kAxisCount; ++i)
     truth_pub_[i] = nh_.advertise<piezo_compensation::EncoderPosition>(
         std::string(can::kAxisNames[i]) + "/true_position", 20);
+  // aux signals of the simulated effects, on the topics the predictor's ~aux_topics map (sensor_msgs/Temperature)
+  if (sim_config.thermal_drift.enabled)
+    temperature_pub_ = nh_.advertise<sensor_msgs::Temperature>("temperature", 20);
   if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
   bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
   garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
@@ -111,6 +115,14 @@ void SimNode::step_once(double t_s) {
     msg.position = out.sample.axes[i].true_position_nm * 1e-9;
     msg.valid = true;
     truth_pub_[i].publish(msg);
+  }
+  if (temperature_pub_) {
+    sensor_msgs::Temperature t;
+    t.header.stamp = ros::Time(t_s);
+    t.header.frame_id = frame_id_;
+    t.temperature = out.sample.temperature_c;
+    t.variance = 0.0;
+    temperature_pub_.publish(t);
   }
   ++sequence_;
 }

@@ -2,6 +2,8 @@
 
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <geometry_msgs/TransformStamped.h>
+#include <sensor_msgs/Temperature.h>
+#include <std_msgs/Float64.h>
 #include <std_srvs/SetBool.h>
 #include <std_srvs/Trigger.h>
 #include <tf2_ros/transform_broadcaster.h>
@@ -67,9 +69,11 @@ models::ModelPtr load_model_file(const std::string& path) {
     throw std::runtime_error(what.find(path) == std::string::npos ? path + ": " + what : what);
   }
   if (!m) throw std::runtime_error(path + ": model file gave no model");
-  if (!m->aux_inputs().empty())
-    throw std::runtime_error(path + ": model reads auxiliary input '" + m->aux_inputs().front() +
-                             "', which the predictor does not receive");
+  try {
+    compensation::InputFeeder check(*m, m->meta.axis, {});  // inputs the predictor can feed, right clock
+  } catch (const std::exception& e) {
+    throw std::runtime_error(path + ": " + e.what());
+  }
   if (!(m->meta.sample_rate_hz > 0.0)) throw std::runtime_error(path + ": model has no positive sample_rate_hz");
   return m;
 #else
@@ -111,6 +115,16 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   if (!std::isfinite(s.fallback_gain_nm_per_v) || s.fallback_gain_nm_per_v == 0.0)
     throw std::invalid_argument("~fallback_gain_nm_per_v: must be finite and non-zero");
   s.hardware_id = param<std::string>(pnh, "hardware_id", s.hardware_id);
+  s.aux_topics = param<std::map<std::string, std::string>>(pnh, "aux_topics", s.aux_topics);
+  for (const auto& [name, topic] : s.aux_topics)
+    if (name.empty() || topic.empty()) throw std::invalid_argument("~aux_topics: each entry maps an input name to a topic");
+  s.aux_stale_after_s = positive(pnh, "aux_stale_after_s", s.aux_stale_after_s);
+  s.aux_recovery_s = positive(pnh, "aux_recovery_s", s.aux_recovery_s, true);
+  s.watch.noise_floor_nm = positive(pnh, "watch_noise_floor_nm", s.watch.noise_floor_nm, true);
+  s.watch.window_s = positive(pnh, "watch_window_s", s.watch.window_s);
+  s.watch.k = positive(pnh, "watch_k", s.watch.k);
+  if (s.watch.k < 1.0) throw std::invalid_argument("~watch_k: must be ≥ 1, got " + std::to_string(s.watch.k));
+  s.watch.hold_s = positive(pnh, "watch_hold_s", s.watch.hold_s, true);
   s.axis.voltage_min_v = param<double>(pnh, "voltage_min_v", s.axis.voltage_min_v);
   s.axis.voltage_max_v = param<double>(pnh, "voltage_max_v", s.axis.voltage_max_v);
   if (!std::isfinite(s.axis.voltage_min_v) || !std::isfinite(s.axis.voltage_max_v) ||
@@ -145,12 +159,24 @@ PredictorAxis::PredictorAxis(std::string axis, std::string model_name, models::M
   compensation::AxisCompensatorConfig cfg = s_.axis;
   cfg.sample_rate_hz = s_.sample_rate_hz > 0 ? s_.sample_rate_hz : model->meta.sample_rate_hz;
   if (!(cfg.sample_rate_hz > 0.0)) cfg.sample_rate_hz = 11.0;
+  feeder_ = make_feeder(*model);
   comp_ = std::make_unique<compensation::AxisCompensator>(std::move(model), line, cfg);
+  if (s_.watch.noise_floor_nm > 0.0) watch_ = std::make_unique<compensation::ResidualWatch>(s_.watch);
+}
+
+std::unique_ptr<compensation::InputFeeder> PredictorAxis::make_feeder(const models::Model& m) const {
+  compensation::AuxFeedOptions o;
+  o.stale_after_s = s_.aux_stale_after_s;
+  o.recovery_s = s_.aux_recovery_s;
+  return std::make_unique<compensation::InputFeeder>(m, axis_, o);
 }
 
 void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model) {
   const compensation::IdealLine line = line_for(*model, s_);
+  auto feeder = make_feeder(*model);
   comp_->replace_model(std::move(model), line);
+  feeder_ = std::move(feeder);
+  if (watch_) watch_->clear();  // the new model is judged on its own samples
   model_name_ = model_name;
   model_error_.clear();
 }
@@ -173,8 +199,20 @@ std::vector<PredictorAxis::Output> PredictorAxis::on_encoder(const EncoderPositi
 
 std::vector<PredictorAxis::Output> PredictorAxis::complete(const std::vector<io::PairedSample>& samples,
                                                           bool compensate, const ros::Time& now) {
+  waiting_.insert(waiting_.end(), samples.begin(), samples.end());
+  return poll(compensate, now);
+}
+
+std::vector<PredictorAxis::Output> PredictorAxis::poll(bool compensate, const ros::Time& now) {
   std::vector<Output> outs;
-  for (const auto& p : samples) outs.push_back(process(p, compensate, now));
+  std::vector<double> in(feeder_->size());
+  while (!waiting_.empty()) {
+    // another axis' value for this sample may still be on its way: the one pairing rule decides (max 3 waiting)
+    const bool give_up = waiting_.size() > kMaxWaiting;
+    if (!feeder_->fill(*live_, waiting_.front(), now.toSec(), give_up, in.data())) break;
+    outs.push_back(process(waiting_.front(), in.empty() ? nullptr : in.data(), compensate, now));
+    waiting_.pop_front();
+  }
   return outs;
 }
 
@@ -204,7 +242,8 @@ bool PredictorAxis::command_now(bool compensate, VoltageCommand& out, const ros:
   return true;
 }
 
-PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, bool compensate, const ros::Time& now) {
+PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, const double* inputs, bool compensate,
+                                             const ros::Time& now) {
   Output out;
   ++encoder_messages_;
   const double applied = sample.voltage_v;
@@ -213,8 +252,12 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, boo
     measured_nm_ = sample.position_nm;
     have_measured_ = true;
   }
-  const compensation::SampleUpdate u = comp_->on_sample(applied, valid ? sample.position_nm : std::nan(""), valid);
+  const compensation::SampleUpdate u =
+      comp_->on_sample(applied, valid ? sample.position_nm : std::nan(""), valid, inputs);
   predicted_nm_ = u.predicted_nm;
+  // free-run residual for the watch (one-step mode remembers the encoder: no free-run figure to watch)
+  if (watch_ && u.ok && valid && !s_.axis.position_feedback && model_error_.empty())
+    watch_->add(sample.stamp_s > 0.0 ? sample.stamp_s : now.toSec(), sample.position_nm - u.predicted_nm);
   hold_v_ = applied;
 
   Prediction& p = out.prediction;
@@ -249,6 +292,7 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, boo
   fallback_now_ = !u.ok || c.fallback;
   p.fallback = fallback_now_;
   p.status = !u.ok ? u.status : c.status;
+  if (p.status.empty() && feeder_->any_fallback()) p.status = input_status();
   if (fallback_now_ && !model_error_.empty()) p.status = "model unavailable: " + model_error_;
   if (fallback_now_) last_status_ = p.status;
 
@@ -259,14 +303,23 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, boo
     if (s_.drift_async) {
       out.forecast_due = true;
     } else {
+      const std::vector<double> next = comp_->next_inputs();
       forecast_ = compensation::forecast_drift(comp_->model(), hold_v_, s_.drift_horizons_s,
-                                               s_.sample_rate_hz > 0 ? s_.sample_rate_hz : comp_->model().meta.sample_rate_hz);
+                                               s_.sample_rate_hz > 0 ? s_.sample_rate_hz : comp_->model().meta.sample_rate_hz,
+                                               next.empty() ? nullptr : next.data());
     }
   }
   p.drift.resize(s_.drift_horizons_s.size());
   for (std::size_t i = 0; i < p.drift.size(); ++i)
     p.drift[i] = forecast_.ok && i < forecast_.drift_nm.size() ? forecast_.drift_nm[i] / kNmPerM : std::nan("");
   return out;
+}
+
+std::string PredictorAxis::input_status() const {
+  std::string s;
+  for (const auto& st : feeder_->states())
+    if (st.fallback) s += (s.empty() ? "input fallback: " : "; ") + st.status;
+  return s;
 }
 
 void PredictorAxis::set_forecast(const compensation::DriftForecast& f) { forecast_ = f; }
@@ -282,7 +335,7 @@ double PredictorAxis::drift_longest_nm() const {
 struct PredictorNode::Axis {
   std::unique_ptr<PredictorAxis> logic;
   ros::Subscriber sub_voltage, sub_encoder, sub_intended;
-  ros::Publisher pub_prediction, pub_command;
+  ros::Publisher pub_prediction, pub_command, pub_watch;
   std::deque<double> processing_us;  // recent per-message processing times
 };
 
@@ -305,6 +358,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
                 name.c_str(), name.c_str(), e.what());
     }
     a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_, error);
+    a->logic->set_live_inputs(&live_);
     const auto& line = a->logic->compensator().ideal_line();
     ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
              a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
@@ -322,6 +376,17 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     });
     axes_.push_back(std::move(a));
   }
+  // Aux signals: each model input name mapped to a topic of either type (the type is taken from the publisher).
+  for (const auto& [name, topic] : s_.aux_topics) {
+    const std::string input = name;
+    aux_subs_.push_back(nh_.subscribe<topic_tools::ShapeShifter>(
+        topic, 10, [this, input](const topic_tools::ShapeShifter::ConstPtr& m) { on_aux(input, m); }));
+  }
+  for (const auto& a : axes_)
+    for (const auto& src : a->logic->inputs().sources())
+      if (src.kind == models::InputSource::Kind::kAux && !s_.aux_topics.count(src.name))
+        ROS_WARN("axis %s: the model reads '%s', which ~aux_topics maps to no topic: it runs on its fallback",
+                 a->logic->axis().c_str(), src.name.c_str());
   markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 2);
   tf_ = std::make_unique<tf2_ros::TransformBroadcaster>();
 
@@ -359,6 +424,19 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     diag_->add("axis " + a->logic->axis(), [this, ap](diagnostic_updater::DiagnosticStatusWrapper& st) { diagnose(*ap, st); });
   }
   diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { diag_->update(); });
+  if (s_.watch.noise_floor_nm > 0.0) {
+    // rolling free-run MAE per axis [m] (SI), once a second
+    for (auto& a : axes_) a->pub_watch = nh_.advertise<std_msgs::Float64>(a->logic->axis() + "/residual_mae", 2);
+    watch_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) {
+      for (auto& a : axes_) {
+        const auto* w = a->logic->watch();
+        if (!w || !std::isfinite(w->rolling_mae_nm())) continue;
+        std_msgs::Float64 m;
+        m.data = w->rolling_mae_nm() / kNmPerM;
+        a->pub_watch.publish(m);
+      }
+    });
+  }
   if (s_.drift_async) worker_ = std::thread([this] { forecast_worker(); });
 }
 
@@ -371,11 +449,45 @@ PredictorNode::~PredictorNode() {
   if (worker_.joinable()) worker_.join();
 }
 
+void PredictorNode::on_aux(const std::string& input, const topic_tools::ShapeShifter::ConstPtr& m) {
+  double value = std::nan("");
+  ros::Time stamp;
+  const std::string& type = m->getDataType();
+  if (type == "std_msgs/Float64") {
+    value = m->instantiate<std_msgs::Float64>()->data;
+  } else if (type == "sensor_msgs/Temperature") {
+    auto t = m->instantiate<sensor_msgs::Temperature>();
+    value = t->temperature;
+    stamp = t->header.stamp;
+  } else {
+    ROS_ERROR_THROTTLE(5.0, "~aux_topics/%s: topic has type %s; expected std_msgs/Float64 or sensor_msgs/Temperature",
+                       input.c_str(), type.c_str());
+    return;
+  }
+  if (!std::isfinite(value)) {
+    ROS_WARN_THROTTLE(5.0, "~aux_topics/%s: non-finite value ignored", input.c_str());
+    return;
+  }
+  const ros::Time now = ros::Time::now();
+  // staleness counts from the sensor's stamp when it has one (never from the future)
+  live_.add_aux(input, value, (stamp.isZero() || stamp > now ? now : stamp).toSec());
+}
+
+void PredictorNode::poll_others(const Axis& except, const ros::Time& now) {
+  for (auto& b : axes_) {
+    if (b.get() == &except) continue;
+    auto outs = b->logic->poll(compensation_, now);
+    if (!outs.empty()) emit(*b, outs, now);
+  }
+}
+
 void PredictorNode::on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg) {
   const auto t0 = std::chrono::steady_clock::now();
   const ros::Time now = ros::Time::now();
+  if (std::isfinite(msg->voltage)) live_.add_voltage(a.logic->axis(), msg->sequence, msg->voltage);
   auto outs = a.logic->on_voltage(*msg, compensation_, now);
   if (!outs.empty()) emit(a, outs, now);
+  poll_others(a, now);
   const double us = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
   if (!outs.empty()) a.processing_us.push_back(us);
   if (a.processing_us.size() > 2000) a.processing_us.pop_front();
@@ -402,8 +514,11 @@ void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
       results_.erase(it);
     }
   }
+  if (msg->valid && std::isfinite(msg->position))
+    live_.add_reading(a.logic->axis(), msg->sequence, msg->position * kNmPerM);
   auto outs = a.logic->on_encoder(*msg, compensation_, now);
   if (!outs.empty()) emit(a, outs, now);
+  poll_others(a, now);
   const double us = std::chrono::duration<double, std::micro>(std::chrono::steady_clock::now() - t0).count();
   if (!outs.empty()) a.processing_us.push_back(us);
   if (a.processing_us.size() > 2000) a.processing_us.pop_front();
@@ -427,7 +542,7 @@ void PredictorNode::start_forecast(Axis& a) {
   auto clone = a.logic->compensator().model().clone();
   {
     std::lock_guard<std::mutex> lk(mutex_);
-    jobs_[a.logic->axis()] = {std::move(clone), a.logic->hold_voltage_v()};
+    jobs_[a.logic->axis()] = {std::move(clone), a.logic->hold_voltage_v(), a.logic->compensator().next_inputs()};
   }
   cv_.notify_one();
 }
@@ -439,9 +554,10 @@ void PredictorNode::forecast_worker() {
     if (stop_) return;
     auto node = jobs_.extract(jobs_.begin());
     lk.unlock();
-    const double rate = s_.sample_rate_hz > 0 ? s_.sample_rate_hz : node.mapped().first->meta.sample_rate_hz;
-    compensation::DriftForecast f =
-        compensation::forecast_drift(*node.mapped().first, node.mapped().second, s_.drift_horizons_s, rate);
+    const ForecastJob& job = node.mapped();
+    const double rate = s_.sample_rate_hz > 0 ? s_.sample_rate_hz : job.model->meta.sample_rate_hz;
+    compensation::DriftForecast f = compensation::forecast_drift(*job.model, job.hold_v, s_.drift_horizons_s, rate,
+                                                                 job.inputs.empty() ? nullptr : job.inputs.data());
     lk.lock();
     results_[node.key()] = std::move(f);
   }
@@ -542,6 +658,11 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
     st.summary(diagnostic_msgs::DiagnosticStatus::WARN, "no encoder sample yet");
   else if (l.fallback_now())
     st.summary(diagnostic_msgs::DiagnosticStatus::WARN, "fallback to uncorrected command: " + l.last_status());
+  else if (l.watch() && l.watch()->warning())
+    st.summary(diagnostic_msgs::DiagnosticStatus::WARN, l.watch()->message(l.axis()));
+  else if (l.inputs().any_fallback())
+    st.summary(diagnostic_msgs::DiagnosticStatus::WARN, l.input_status() +
+                                                            " (that term runs on its fallback; check the topic)");
   else
     st.summary(diagnostic_msgs::DiagnosticStatus::OK, compensation_ ? "compensating" : "predicting (compensation off)");
   st.add("model", l.model_name());
@@ -560,6 +681,17 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   st.add("ideal gain [nm/V]", l.compensator().ideal_line().gain_nm_per_v);
   st.add("re-anchor offset [nm]", l.compensator().anchor_offset_nm());
   st.add("processing p99 [us]", p99);
+  if (l.watch()) {
+    st.add("rolling free-run MAE [nm]", l.watch()->rolling_mae_nm());
+    st.add("watch threshold [nm]", l.watch()->threshold_nm());
+    st.add("above threshold for [s]", l.watch()->above_for_s());
+  }
+  const auto& srcs = l.inputs().sources();
+  for (std::size_t k = 0; k < srcs.size(); ++k) {
+    const auto& in = l.inputs().states()[k];
+    st.add("input " + srcs[k].name, in.fallback ? "FALLBACK: " + in.status : "fed " + std::to_string(in.fed));
+    st.add("input " + srcs[k].name + " fallback samples", in.fallback_samples);
+  }
 }
 
 }  // namespace piezo::predictor

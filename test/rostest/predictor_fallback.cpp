@@ -44,7 +44,7 @@ TEST(PredictorFallback, BrokenModelFileGivesBoundedUncorrectedCommands) {
     ros::WallDuration(0.05).sleep();
     ros::spinOnce();
     for (const auto& s : diags)
-      if (s.level == diagnostic_msgs::DiagnosticStatus::ERROR && s.hardware_id == "mm3e_predictor" &&
+      if (s.level == diagnostic_msgs::DiagnosticStatus::ERROR && s.hardware_id == "piezo_predictor" &&
           s.message.find("model unavailable") != std::string::npos)
         seen = true;
   }

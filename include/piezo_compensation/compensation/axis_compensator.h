@@ -60,7 +60,11 @@ class AxisCompensator {
 
   // One encoder sample: the voltage applied over the step and the encoder reading (NaN/invalid → not used).
   // The first sample starts the model at rest at (applied_v, measured) or (applied_v, ideal) without a reading.
-  SampleUpdate on_sample(double applied_v, double measured_nm, bool measured_valid);
+  // `inputs`: values of model().aux_inputs() at this sample (required when the model reads any); the command
+  // for the next sample uses them held, with time_s one period on.
+  SampleUpdate on_sample(double applied_v, double measured_nm, bool measured_valid, const double* inputs = nullptr);
+  // The inputs the next command and a drift forecast use (empty when the model reads none).
+  std::vector<double> next_inputs() const;
 
   // Voltage to send for the next sample. compensate=false gives the uncorrected command (no model use).
   // Without an intent the hold target is the last applied voltage's ideal position.
@@ -82,6 +86,9 @@ class AxisCompensator {
 
  private:
   static void check_model(const models::Model& model);  // throws for models the compensator cannot feed
+  void set_inputs_for(const models::Model& model);
+  std::vector<double> aux_now_;                         // the model's inputs at the last sample
+  std::vector<std::size_t> time_index_;                 // which of them is time_s
   bool in_range(double position_nm) const;
 
   models::ModelPtr model_;

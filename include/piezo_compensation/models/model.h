@@ -21,6 +21,8 @@ struct ModelMeta {
   double sample_rate_hz = 11.0;
   std::string training_fingerprint;            // hash of the training data (see io::fingerprint)
   std::string training_source;                 // file(s) it was fitted on
+  std::string time_clock;                      // what the training data's time_s was: "ros" (ROS time stamps,
+                                               // a bag the nodes wrote) or "" (the data file's own time base)
   std::map<std::string, double> validation;    // e.g. {"one_step_mae_nm": 17.1, "free_run_mae_nm": 6.2}
   std::string created_utc;
   YAML::Node selection;                        // `--model auto`: the candidates' scores and the choice (or null)

@@ -51,6 +51,7 @@ class SimNode {
   std::string transport_name_;
   std::mutex mutex_;  // device_ and transport_ between the loop and the fault services
   std::array<ros::Publisher, can::kAxisCount> truth_pub_;
+  ros::Publisher temperature_pub_;  // thermal drift on: the simulated temperature [°C]
   ros::Publisher clock_pub_;
   ros::ServiceServer bus_off_srv_, garbage_srv_, restart_srv_, stuck_srv_;
   std::atomic<bool> running_{true};

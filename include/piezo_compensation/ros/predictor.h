@@ -4,6 +4,7 @@
 #pragma once
 
 #include <ros/ros.h>
+#include <topic_tools/shape_shifter.h>
 
 #include <chrono>
 #include <cmath>
@@ -24,6 +25,8 @@
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/compensation/axis_compensator.h"
 #include "piezo_compensation/compensation/drift_forecast.h"
+#include "piezo_compensation/compensation/live_inputs.h"
+#include "piezo_compensation/compensation/residual_watch.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 
 namespace diagnostic_updater {
@@ -75,6 +78,10 @@ struct PredictorSettings {
   double marker_scale = 1e4;         // markers drawn this many times larger than life (1 µm → 1 cm)
   double fallback_gain_nm_per_v = 12.5;  // ideal line when no model is usable (position intents, display)
   std::string hardware_id = "piezo_predictor";
+  std::map<std::string, std::string> aux_topics;  // model input name → topic (std_msgs/Float64 or sensor_msgs/Temperature)
+  double aux_stale_after_s = 5.0;                 // an aux signal older than this feeds its fallback
+  double aux_recovery_s = 10.0;                   // ramp from the fallback back to the fresh signal
+  compensation::ResidualWatchOptions watch;       // noise_floor_nm 0 = no residual watch
   compensation::AxisCompensatorConfig axis;
 };
 
@@ -105,6 +112,14 @@ class PredictorAxis {
   // Command right now from the current state (used when a new intent arrives between samples).
   bool command_now(bool compensate, VoltageCommand& out, const ros::Time& now);
 
+  // Samples waiting for another axis' value: processed when it has come (call after any axis' message).
+  std::vector<Output> poll(bool compensate, const ros::Time& now);
+  // The manipulator's live inputs (other axes, aux topics), shared by the node's axes; must outlive this.
+  void set_live_inputs(const compensation::LiveInputs* live) { live_ = live ? live : &own_live_; }
+  const compensation::InputFeeder& inputs() const { return *feeder_; }
+  std::string input_status() const;  // the inputs in fallback and why ("" when none)
+  const compensation::ResidualWatch* watch() const { return watch_.get(); }
+
   void set_forecast(const compensation::DriftForecast& f);
   void reload(const std::string& model_name, models::ModelPtr model);
   const std::string& model_error() const { return model_error_; }
@@ -126,13 +141,20 @@ class PredictorAxis {
 
  private:
   // One complete sample: advance the model, compute the command. `compensate` is the node's switch.
-  Output process(const io::PairedSample& sample, bool compensate, const ros::Time& now);
+  Output process(const io::PairedSample& sample, const double* inputs, bool compensate, const ros::Time& now);
+  std::unique_ptr<compensation::InputFeeder> make_feeder(const models::Model& m) const;
   std::vector<Output> complete(const std::vector<io::PairedSample>& samples, bool compensate, const ros::Time& now);
 
   std::string axis_, model_name_;
   std::unique_ptr<compensation::AxisCompensator> comp_;
   const PredictorSettings& s_;
   io::SequencePairer pairer_;
+  compensation::LiveInputs own_live_;                 // when the node gives none (one axis, no aux topics)
+  const compensation::LiveInputs* live_ = &own_live_;
+  std::unique_ptr<compensation::InputFeeder> feeder_;
+  std::deque<io::PairedSample> waiting_;              // paired, waiting for another axis' value
+  std::unique_ptr<compensation::ResidualWatch> watch_;  // null: no ~watch_noise_floor_nm
+  static constexpr std::size_t kMaxWaiting = 3;
   bool have_measured_ = false;
   double measured_nm_ = std::nan(""), predicted_nm_ = std::nan(""), intended_nm_ = std::nan("");
   double hold_v_ = 0.0;
@@ -154,6 +176,8 @@ class PredictorNode {
   void on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg);
   void emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now);
   void on_intended(Axis& a, const IntendedMotion::ConstPtr& msg);
+  void on_aux(const std::string& input, const topic_tools::ShapeShifter::ConstPtr& msg);
+  void poll_others(const Axis& except, const ros::Time& now);
   void start_forecast(Axis& a);
   void forecast_worker();
   void publish_tf_and_markers(const ros::Time& stamp);
@@ -163,6 +187,8 @@ class PredictorNode {
   PredictorSettings s_;
   bool compensation_ = true;
   std::vector<std::unique_ptr<Axis>> axes_;
+  compensation::LiveInputs live_;   // other axes' reports and readings, aux signals
+  std::vector<ros::Subscriber> aux_subs_;
   ros::ServiceServer srv_compensation_, srv_reload_;
   ros::Publisher markers_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_;
@@ -173,7 +199,13 @@ class PredictorNode {
   // Drift forecasts run here so a 30-min look-ahead never delays a message.
   std::mutex mutex_;
   std::condition_variable cv_;
-  std::map<std::string, std::pair<models::ModelPtr, double>> jobs_;   // axis → (model clone, hold voltage)
+  ros::Timer watch_timer_;
+  struct ForecastJob {
+    models::ModelPtr model;  // clone
+    double hold_v = 0.0;
+    std::vector<double> inputs;
+  };
+  std::map<std::string, ForecastJob> jobs_;   // per axis
   std::map<std::string, compensation::DriftForecast> results_;
   bool stop_ = false;
   std::thread worker_;

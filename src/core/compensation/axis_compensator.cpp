@@ -16,12 +16,28 @@ AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, 
   if (!(config_.reanchor_time_constant_s >= 0.0) || !(config_.sample_rate_hz > 0.0))
     throw std::invalid_argument("AxisCompensator: reanchor_time_constant_s must be ≥ 0 and sample_rate_hz > 0");
   check_model(*model_);
+  set_inputs_for(*model_);
 }
 
 void AxisCompensator::check_model(const models::Model& model) {
-  if (!model.aux_inputs().empty())
-    throw std::invalid_argument("model '" + model.kind() + "' reads auxiliary input '" + model.aux_inputs().front() +
-                                "', which the compensator does not receive");
+  const std::vector<std::string> names = model.aux_inputs();
+  for (const auto& n : names)
+    if (n.empty()) throw std::invalid_argument("model '" + model.kind() + "' reads an input without a name");
+}
+
+void AxisCompensator::set_inputs_for(const models::Model& model) {
+  const std::vector<std::string> names = model.aux_inputs();
+  aux_now_.assign(names.size(), std::numeric_limits<double>::quiet_NaN());
+  time_index_.clear();
+  for (std::size_t k = 0; k < names.size(); ++k)
+    if (names[k] == "time_s") time_index_.push_back(k);
+}
+
+std::vector<double> AxisCompensator::next_inputs() const {
+  // the command is for the next sample: time runs on one period, the other inputs are held
+  std::vector<double> next = aux_now_;
+  for (std::size_t k : time_index_) next[k] += 1.0 / config_.sample_rate_hz;
+  return next;
 }
 
 void AxisCompensator::set_intended_voltage(double voltage_v) {
@@ -42,9 +58,19 @@ bool AxisCompensator::in_range(double position_nm) const {
   return position_nm >= std::min(a, b) - margin && position_nm <= std::max(a, b) + margin;
 }
 
-SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bool measured_valid) {
+SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bool measured_valid, const double* inputs) {
   SampleUpdate u;
   measured_valid = measured_valid && std::isfinite(measured_nm);
+  if (!aux_now_.empty()) {
+    if (!inputs) {
+      u.ok = false;
+      u.predicted_nm = last_predicted_nm_;
+      u.status = "the model's inputs were not given; sample skipped";
+      ++prediction_failures_;
+      return u;
+    }
+    std::copy(inputs, inputs + aux_now_.size(), aux_now_.begin());
+  }
   if (!std::isfinite(applied_v)) {
     // Nothing sensible to feed the model; keep the state and say so.
     u.ok = false;
@@ -63,7 +89,7 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
     u.predicted_nm = x0;
     return u;
   }
-  const models::ModelInput in{applied_v, nullptr};
+  const models::ModelInput in{applied_v, aux_now_.empty() ? nullptr : aux_now_.data()};
   const double p = model_->predict(in);
   last_applied_v_ = applied_v;
   if (!std::isfinite(p) || !in_range(p)) {
@@ -96,6 +122,7 @@ CommandUpdate AxisCompensator::command(bool compensate) {
   c.commanded_v = std::clamp(line_.voltage_v(c.intended_nm), config_.voltage_min_v, config_.voltage_max_v);
   c.corrected_v = nan;
   c.predicted_at_send_nm = nan;
+  const std::vector<double> next = next_inputs();
   if (!compensate) {
     c.send_v = c.commanded_v;
   } else if (!started_) {
@@ -107,7 +134,7 @@ CommandUpdate AxisCompensator::command(bool compensate) {
     o.voltage_max_v = config_.voltage_max_v;
     o.tolerance_nm = config_.inverse_tolerance_nm;
     // With re-anchoring the model is asked for the target minus its recent measured error.
-    const InverseResult inv = invert(*model_, c.intended_nm - anchor_nm_, o);
+    const InverseResult inv = invert(*model_, c.intended_nm - anchor_nm_, o, next.empty() ? nullptr : next.data());
     if (inv.ok) {
       c.corrected_v = c.send_v = inv.voltage_v;
       c.compensation_active = true;
@@ -126,7 +153,7 @@ CommandUpdate AxisCompensator::command(bool compensate) {
     c.send_v = std::clamp(base + step, config_.voltage_min_v, config_.voltage_max_v);
   }
   if (started_ && !c.compensation_active) {
-    const double p = model_->predict(models::ModelInput{c.send_v, nullptr});
+    const double p = model_->predict(models::ModelInput{c.send_v, next.empty() ? nullptr : next.data()});
     c.predicted_at_send_nm = std::isfinite(p) ? p : nan;
   }
   last_sent_v_ = c.send_v;
@@ -138,6 +165,7 @@ void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& lin
   if (!model) throw std::invalid_argument("AxisCompensator: no model");
   check_model(*model);
   model_ = std::move(model);
+  set_inputs_for(*model_);
   line_ = line;
   if (started_) model_->reset(last_applied_v_, last_predicted_nm_);
   anchor_nm_ = 0.0;

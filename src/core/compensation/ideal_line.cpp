@@ -1,4 +1,5 @@
 #include "piezo_compensation/compensation/ideal_line.h"
+#include "piezo_compensation/compensation/live_inputs.h"
 
 #include <algorithm>
 #include <cmath>
@@ -14,7 +15,9 @@ double settled_position(const models::Model& proto, double target_v, const Ideal
   m->reset(0.0, 0.0);
   const std::size_t ramp = std::max<std::size_t>(1, static_cast<std::size_t>(std::llround(o.ramp_s * o.sample_rate_hz)));
   const std::size_t hold = static_cast<std::size_t>(std::llround(o.hold_s * o.sample_rate_hz));
-  std::vector<double> aux(m->aux_inputs().size(), 0.0);
+  // inputs at their neutral values (the terms on them contribute nothing): the ideal line is the stage's own
+  std::vector<double> aux;
+  for (const auto& name : m->aux_inputs()) aux.push_back(neutral_input(*m, name));
   const double* aux_ptr = aux.empty() ? nullptr : aux.data();
   double p = 0.0;
   for (std::size_t i = 1; i <= ramp + hold; ++i) {

@@ -74,6 +74,7 @@ Dataset Dataset::slice(std::size_t begin, std::size_t end) const {
   };
   Dataset out;
   out.source = source;
+  out.time_clock = time_clock;
   out.time_s = cut(time_s);
   for (const auto& a : axes) {
     AxisSeries s;

@@ -17,6 +17,7 @@ YAML::Node model_to_file_yaml(const Model& m) {
   root["created_utc"] = m.meta.created_utc;
   root["training"]["fingerprint"] = m.meta.training_fingerprint;
   root["training"]["source"] = m.meta.training_source;
+  if (!m.meta.time_clock.empty()) root["training"]["time_clock"] = m.meta.time_clock;
   YAML::Node val(YAML::NodeType::Map);
   for (const auto& [k, v] : m.meta.validation) val[k] = v;
   root["validation"] = val;
@@ -75,6 +76,7 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
       if (!t.IsMap()) throw top_err("training", "expected a mapping");
       if (t["fingerprint"]) m->meta.training_fingerprint = t["fingerprint"].as<std::string>();
       if (t["source"]) m->meta.training_source = t["source"].as<std::string>();
+      if (t["time_clock"]) m->meta.time_clock = t["time_clock"].as<std::string>();
     }
     if (const YAML::Node v = root["validation"]) {
       if (!v.IsMap()) throw top_err("validation", "expected a mapping");

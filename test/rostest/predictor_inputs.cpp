@@ -1,0 +1,176 @@
+// The predictor runs an augmented model with an aux_signal (temperature topic), a cross_axis (axis a's voltage)
+// and a time_drift (ROS time) term and matches the offline prediction (models::stream_model on the same samples)
+// sample by sample; a stale temperature feeds the held value and its return is ramped, so nothing jumps.
+#include <gtest/gtest.h>
+#include <ros/ros.h>
+#include <sensor_msgs/Temperature.h>
+#include <std_srvs/Trigger.h>
+
+#include <cmath>
+#include <map>
+
+#include "piezo_compensation/AxisVoltage.h"
+#include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/Prediction.h"
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/augmented_model.h"
+#include "piezo_compensation/models/model_file.h"
+#include "piezo_compensation/models/model_stream.h"
+
+using piezo_compensation::AxisVoltage;
+using piezo_compensation::EncoderPosition;
+using piezo_compensation::Prediction;
+
+namespace {
+
+piezo::models::EffectTerm linear_term(const std::string& signal, const std::string& family, double center,
+                                      double scale, double weight_nm) {
+  piezo::models::EffectTerm t;
+  t.type = "linear";
+  t.signal = signal;
+  t.family = family;
+  t.center = {center};
+  t.scale = {scale};
+  t.weight = {weight_nm};
+  return t;
+}
+
+}  // namespace
+
+TEST(PredictorInputs, AuxCrossAxisAndTimeTermsMatchOfflineAndFallBackWithoutJumps) {
+  ros::NodeHandle nh, pnh("~");
+  const std::string path = pnh.param<std::string>("model_file", ""), base = pnh.param<std::string>("base_model", "");
+  // stamps run ahead of the wall clock, so the temperature's staleness counts from its receipt
+  const double t0 = std::ceil(ros::Time::now().toSec()) + 1.0;
+  std::vector<piezo::models::EffectTerm> terms{
+      linear_term("temperature_c", "aux_signal", 22.0, 1.0, 40.0),   // 40 nm/°C
+      linear_term("a_voltage_v", "cross_axis", 0.0, 10.0, 15.0),      // 1.5 nm/V
+      linear_term("time_s", "time_drift", t0, 10.0, 5.0)};            // 0.5 nm/s
+  piezo::models::AugmentedModel model(piezo::models::load_model(base), terms, 0.0, 11.0);
+  model.meta.axis = "c";
+  model.meta.sample_rate_hz = 11.0;
+  model.meta.time_clock = "ros";
+  piezo::models::save_model(path, model);
+
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(20.0)));
+  std_srvs::Trigger reload;
+  ASSERT_TRUE(ros::service::call("/mm1/predictor/reload_model", reload));
+  ASSERT_TRUE(reload.response.success) << reload.response.message;
+
+  auto va = nh.advertise<AxisVoltage>("/mm1/a/voltage", 100), vc = nh.advertise<AxisVoltage>("/mm1/c/voltage", 100);
+  auto ea = nh.advertise<EncoderPosition>("/mm1/a/encoder", 100), ec = nh.advertise<EncoderPosition>("/mm1/c/encoder", 100);
+  auto temp = nh.advertise<sensor_msgs::Temperature>("/mm1/temperature", 100);
+  std::map<double, Prediction> live;
+  auto sub = nh.subscribe<Prediction>("/mm1/c/prediction", 2000,
+                                      [&](const Prediction::ConstPtr& p) { live[p->header.stamp.toSec()] = *p; });
+  for (int i = 0; i < 200 && (va.getNumSubscribers() == 0 || vc.getNumSubscribers() == 0 || ea.getNumSubscribers() == 0 ||
+                              ec.getNumSubscribers() == 0 || temp.getNumSubscribers() == 0 || sub.getNumPublishers() == 0);
+       ++i)
+    ros::WallDuration(0.05).sleep();
+
+  piezo::io::Dataset d;
+  d.time_clock = "ros";
+  std::vector<double> volt_a, volt_c, pos_a, pos_c, temps;
+  const std::size_t n_match = 400, n_total = 700, gap_begin = 420, gap_end = 570;
+  double last_va = 0, last_vc = 0;
+  for (std::size_t i = 0; i < n_total; ++i) {
+    const double t = t0 + static_cast<double>(i) / 11.0;
+    const bool moving = i < n_match;
+    const double a_v = moving ? 20.0 + 15.0 * std::sin(2 * M_PI * i / 60.0) : last_va;
+    const double c_v = moving ? 30.0 + 20.0 * std::sin(2 * M_PI * i / 45.0) : last_vc;
+    last_va = a_v, last_vc = c_v;
+    const double temperature = i < gap_end ? 22.0 + 0.5 * std::floor(i / 50.0) : 27.0;
+    const auto seq = static_cast<std::uint32_t>(100 + i);
+    if (i < gap_begin || i >= gap_end) {
+      sensor_msgs::Temperature m;
+      m.header.stamp = ros::Time(t);
+      m.temperature = temperature;
+      temp.publish(m);
+    }
+    ros::WallDuration(0.002).sleep();
+    for (int k = 0; k < 2; ++k) {
+      AxisVoltage v;
+      v.header.stamp = ros::Time(t);
+      v.axis = k ? "c" : "a";
+      v.sequence = seq;
+      v.voltage = k ? c_v : a_v;
+      (k ? vc : va).publish(v);
+    }
+    ros::WallDuration(0.002).sleep();
+    for (int k = 0; k < 2; ++k) {
+      EncoderPosition e;
+      e.header.stamp = ros::Time(t);
+      e.axis = k ? "c" : "a";
+      e.sequence = seq;
+      e.position = (k ? 12.5 * c_v : 12.5 * a_v) * 1e-9;
+      e.valid = true;
+      (k ? ec : ea).publish(e);
+    }
+    ros::WallDuration(0.004).sleep();
+    ros::spinOnce();
+    if (i < n_match) {
+      d.time_s.push_back(t);
+      volt_a.push_back(a_v), volt_c.push_back(c_v), pos_a.push_back(12.5 * a_v), pos_c.push_back(12.5 * c_v);
+      temps.push_back(temperature);
+    }
+  }
+  for (int i = 0; i < 200 && live.size() < n_total; ++i) {
+    ros::WallDuration(0.05).sleep();
+    ros::spinOnce();
+  }
+  ASSERT_GE(live.size(), n_total - 5) << "too few predictions";
+
+  // offline: the one streaming path over the same samples, free-run from rest at the first sample
+  auto& a = d.add_axis("a");
+  a.voltage_v = volt_a, a.position_nm = pos_a;
+  auto& c = d.add_axis("c");
+  c.voltage_v = volt_c, c.position_nm = pos_c;
+  d.aux.push_back({"temperature_c", temps});
+  // The compensator starts the model at rest at the first sample (no step); the streaming path then continues
+  // from that state over the following rows.
+  auto offline_model = piezo::models::load_model(path);
+  offline_model->reset(volt_c[0], pos_c[0]);
+  piezo::models::StreamOptions so;
+  so.reset = false;
+  const auto offline = piezo::models::stream_model(*offline_model, d.slice(1, d.size()), "c", so);
+  std::size_t compared = 0;
+  double worst_nm = 0.0;
+  for (std::size_t i = 1; i < n_match; ++i) {
+    auto it = live.find(d.time_s[i]);
+    if (it == live.end()) continue;
+    ++compared;
+    const double diff = std::abs(it->second.predicted_position * 1e9 - offline.prediction[i - 1]);
+    if (i < 4 || (diff > 1e-6 && i % 50 == 0))
+      std::cout << "[predictor_inputs] sample " << i << ": live " << it->second.predicted_position * 1e9 << " nm, offline "
+                << offline.prediction[i - 1] << " nm, status '" << it->second.status << "'\n";
+    worst_nm = std::max(worst_nm, diff);
+  }
+  EXPECT_GE(compared, n_match - 3);
+  EXPECT_LT(worst_nm, 1e-6) << "live prediction differs from the offline one by up to " << worst_nm << " nm";
+  std::cout << "[predictor_inputs] " << compared << " samples compared, worst |live - offline| = " << worst_nm
+            << " nm\n";
+
+  // stale temperature: the term holds (no jump), the status says so; its return is ramped over aux_recovery_s
+  double worst_step_nm = 0.0, prev = std::nan("");
+  bool said_stale = false;
+  for (std::size_t i = n_match + 5; i < n_total; ++i) {
+    auto it = live.find(t0 + static_cast<double>(i) / 11.0);
+    if (it == live.end()) continue;
+    const double x = it->second.predicted_position * 1e9;
+    if (std::isfinite(prev)) worst_step_nm = std::max(worst_step_nm, std::abs(x - prev));
+    prev = x;
+    said_stale = said_stale || it->second.status.find("temperature_c: stale") != std::string::npos;
+  }
+  EXPECT_TRUE(said_stale) << "no prediction said the temperature was stale";
+  // an unramped return of the temperature (25.5 → 27 °C) would step the prediction by 60 nm
+  EXPECT_LT(worst_step_nm, 5.0) << "the prediction jumped by " << worst_step_nm << " nm around the stale signal";
+  std::cout << "[predictor_inputs] largest step while the temperature went stale and came back: " << worst_step_nm
+            << " nm\n";
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  ros::init(argc, argv, "predictor_inputs_check");
+  ros::NodeHandle nh;
+  return RUN_ALL_TESTS();
+}
