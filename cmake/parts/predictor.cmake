@@ -14,4 +14,5 @@ piezo_rostest(test/rostest/predictor_live.test test/rostest/predictor_live.cpp D
 piezo_node(piezo_demo src/nodes/piezo_demo_node.cpp)
 piezo_rostest(test/rostest/predictor_replay.test test/rostest/predictor_replay.cpp DEPENDS piezo_predictor)
 piezo_rostest(test/rostest/predictor_inputs.test test/rostest/predictor_inputs.cpp DEPENDS piezo_predictor)
+piezo_rostest(test/rostest/predictor_params.test test/rostest/predictor_params.cpp)
 piezo_unit_test(test_compensation_watch test/unit/test_compensation_watch.cpp)

@@ -1,5 +1,8 @@
 #include "piezo_compensation/ros/predictor.h"
 
+#include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/ros/params.h"
+
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <geometry_msgs/TransformStamped.h>
 #include <sensor_msgs/Temperature.h>
@@ -25,26 +28,6 @@ namespace piezo::predictor {
 namespace {
 
 constexpr double kNmPerM = 1e9;
-
-std::string axis_name_ok(const std::string& a) {
-  if (a != "a" && a != "b" && a != "c") throw std::invalid_argument("~axes: unknown axis '" + a + "' (use a, b, c)");
-  return a;
-}
-
-template <typename T>
-T param(const ros::NodeHandle& pnh, const std::string& name, const T& def) {
-  T v = def;
-  if (pnh.hasParam(name) && !pnh.getParam(name, v))
-    throw std::invalid_argument("~" + name + ": wrong type (see config/predictor.yaml)");
-  return v;
-}
-
-double positive(const ros::NodeHandle& pnh, const std::string& name, double def, bool allow_zero = false) {
-  const double v = param<double>(pnh, name, def);
-  if (!std::isfinite(v) || v < 0.0 || (!allow_zero && v == 0.0))
-    throw std::invalid_argument("~" + name + ": must be " + (allow_zero ? "≥ 0" : "> 0") + ", got " + std::to_string(v));
-  return v;
-}
 
 compensation::IdealLine line_for(const models::Model& m, const PredictorSettings& s) {
   compensation::IdealLineOptions o;
@@ -82,59 +65,67 @@ models::ModelPtr load_model_file(const std::string& path) {
 }
 
 PredictorSettings read_settings(const ros::NodeHandle& pnh) {
+  // Ranges are the documented ceilings of config/predictor.yaml: every size the node allocates from is bounded.
+  params::ParamReader r(pnh);
   PredictorSettings s;
-  s.axes = param<std::vector<std::string>>(pnh, "axes", s.axes);
-  if (s.axes.empty()) throw std::invalid_argument("~axes: empty");
-  for (const auto& a : s.axes) axis_name_ok(a);
+  const std::vector<std::string> axis_names(io::kAxisNames.begin(), io::kAxisNames.end());
+  s.axes = r.texts("axes", s.axes, axis_names, 1, axis_names.size());
+  r.known("model_file");
   XmlRpc::XmlRpcValue mf;
-  if (!pnh.getParam("model_file", mf)) throw std::invalid_argument("~model_file: required (a path, or {a: path, ...})");
+  if (!pnh.getParam("model_file", mf))
+    throw std::invalid_argument("parameter " + r.resolved("model_file") + " is required (a path, or {a: path, ...})");
   if (mf.getType() == XmlRpc::XmlRpcValue::TypeString) {
     for (const auto& a : s.axes) s.model_files[a] = static_cast<std::string>(mf);
   } else if (mf.getType() == XmlRpc::XmlRpcValue::TypeStruct) {
     for (const auto& a : s.axes) {
       if (!mf.hasMember(a) || mf[a].getType() != XmlRpc::XmlRpcValue::TypeString)
-        throw std::invalid_argument("~model_file/" + a + ": required for axis " + a + " (a path)");
+        throw std::invalid_argument("parameter " + r.resolved("model_file") + "/" + a + " is required for axis " + a +
+                                    " (a path)");
       s.model_files[a] = static_cast<std::string>(mf[a]);
     }
   } else {
-    throw std::invalid_argument("~model_file: must be a path or a map {a: path, b: path, c: path}");
+    throw std::invalid_argument("parameter " + r.resolved("model_file") +
+                                " must be a path or a map {a: path, b: path, c: path}");
   }
-  s.compensation = param<bool>(pnh, "compensation", s.compensation);
-  s.forward_when_off = param<bool>(pnh, "forward_when_off", s.forward_when_off);
-  s.frame_prefix = param<std::string>(pnh, "frame_prefix", s.frame_prefix);
-  s.drift_horizons_s = param<std::vector<double>>(pnh, "drift_horizons_s", s.drift_horizons_s);
-  for (double h : s.drift_horizons_s)
-    if (!std::isfinite(h) || h < 0.0) throw std::invalid_argument("~drift_horizons_s: horizons must be ≥ 0 s");
-  s.drift_update_period_s = positive(pnh, "drift_update_period_s", s.drift_update_period_s, true);
-  s.drift_async = param<bool>(pnh, "drift_async", s.drift_async);
-  s.sample_rate_hz = positive(pnh, "sample_rate_hz", s.sample_rate_hz, true);
-  s.ideal_line_hold_s = positive(pnh, "ideal_line_hold_s", s.ideal_line_hold_s, true);
-  s.tf_period_s = positive(pnh, "tf_period_s", s.tf_period_s, true);
-  s.marker_scale = positive(pnh, "marker_scale", s.marker_scale);
-  s.fallback_gain_nm_per_v = param<double>(pnh, "fallback_gain_nm_per_v", s.fallback_gain_nm_per_v);
-  if (!std::isfinite(s.fallback_gain_nm_per_v) || s.fallback_gain_nm_per_v == 0.0)
-    throw std::invalid_argument("~fallback_gain_nm_per_v: must be finite and non-zero");
-  s.hardware_id = param<std::string>(pnh, "hardware_id", s.hardware_id);
-  s.aux_topics = param<std::map<std::string, std::string>>(pnh, "aux_topics", s.aux_topics);
+  s.compensation = r.flag("compensation", s.compensation);
+  s.forward_when_off = r.flag("forward_when_off", s.forward_when_off);
+  s.frame_prefix = r.text("frame_prefix", s.frame_prefix);
+  s.drift_horizons_s = r.numbers("drift_horizons_s", s.drift_horizons_s, 0.0, 86400.0, 0, 8);
+  s.drift_update_period_s = r.number("drift_update_period_s", s.drift_update_period_s, 0.0, 3600.0);
+  s.drift_async = r.flag("drift_async", s.drift_async);
+  s.sample_rate_hz = r.number("sample_rate_hz", s.sample_rate_hz, 0.0, 100000.0);
+  s.ideal_line_hold_s = r.number("ideal_line_hold_s", s.ideal_line_hold_s, 0.0, 3600.0);
+  s.tf_period_s = r.number("tf_period_s", s.tf_period_s, 0.0, 60.0);
+  s.marker_scale = r.number("marker_scale", s.marker_scale, 1e-3, 1e9);
+  s.fallback_gain_nm_per_v = r.number("fallback_gain_nm_per_v", s.fallback_gain_nm_per_v, -1e6, 1e6);
+  if (s.fallback_gain_nm_per_v == 0.0)
+    throw std::invalid_argument("parameter " + r.resolved("fallback_gain_nm_per_v") + " must be non-zero");
+  s.hardware_id = r.text("hardware_id", s.hardware_id);
+  r.known("aux_topics");
+  if (pnh.hasParam("aux_topics") && !pnh.getParam("aux_topics", s.aux_topics))
+    throw std::invalid_argument("parameter " + r.resolved("aux_topics") +
+                                " must be a map of input name to topic, e.g. {temperature_c: temperature}");
+  if (s.aux_topics.size() > 64)
+    throw std::invalid_argument("parameter " + r.resolved("aux_topics") + " has more than 64 entries");
   for (const auto& [name, topic] : s.aux_topics)
-    if (name.empty() || topic.empty()) throw std::invalid_argument("~aux_topics: each entry maps an input name to a topic");
-  s.aux_stale_after_s = positive(pnh, "aux_stale_after_s", s.aux_stale_after_s);
-  s.aux_recovery_s = positive(pnh, "aux_recovery_s", s.aux_recovery_s, true);
-  s.watch.noise_floor_nm = positive(pnh, "watch_noise_floor_nm", s.watch.noise_floor_nm, true);
-  s.watch.window_s = positive(pnh, "watch_window_s", s.watch.window_s);
-  s.watch.k = positive(pnh, "watch_k", s.watch.k);
-  if (s.watch.k < 1.0) throw std::invalid_argument("~watch_k: must be ≥ 1, got " + std::to_string(s.watch.k));
-  s.watch.hold_s = positive(pnh, "watch_hold_s", s.watch.hold_s, true);
-  s.axis.voltage_min_v = param<double>(pnh, "voltage_min_v", s.axis.voltage_min_v);
-  s.axis.voltage_max_v = param<double>(pnh, "voltage_max_v", s.axis.voltage_max_v);
-  if (!std::isfinite(s.axis.voltage_min_v) || !std::isfinite(s.axis.voltage_max_v) ||
-      !(s.axis.voltage_max_v > s.axis.voltage_min_v))
-    throw std::invalid_argument("~voltage_min_v/~voltage_max_v: need finite limits with min < max");
-  s.axis.fallback_max_step_v = positive(pnh, "fallback_max_step_v", s.axis.fallback_max_step_v);
-  s.axis.inverse_tolerance_nm = positive(pnh, "inverse_tolerance_nm", s.axis.inverse_tolerance_nm);
-  s.axis.position_margin_nm = positive(pnh, "position_margin_nm", s.axis.position_margin_nm, true);
-  s.axis.position_feedback = param<bool>(pnh, "position_feedback", s.axis.position_feedback);
-  s.axis.reanchor_time_constant_s = positive(pnh, "reanchor_time_constant_s", s.axis.reanchor_time_constant_s, true);
+    if (name.empty() || topic.empty())
+      throw std::invalid_argument("parameter " + r.resolved("aux_topics") + ": each entry maps an input name to a topic");
+  s.aux_stale_after_s = r.number("aux_stale_after_s", s.aux_stale_after_s, 1e-3, 3600.0);
+  s.aux_recovery_s = r.number("aux_recovery_s", s.aux_recovery_s, 0.0, 3600.0);
+  s.watch.noise_floor_nm = r.number("watch_noise_floor_nm", s.watch.noise_floor_nm, 0.0, 1e6);
+  s.watch.window_s = r.number("watch_window_s", s.watch.window_s, 1e-3, 3600.0);
+  s.watch.k = r.number("watch_k", s.watch.k, 1.0, 1000.0);
+  s.watch.hold_s = r.number("watch_hold_s", s.watch.hold_s, 0.0, 86400.0);
+  s.axis.voltage_min_v = r.number("voltage_min_v", s.axis.voltage_min_v, -1000.0, 1000.0);
+  s.axis.voltage_max_v = r.number("voltage_max_v", s.axis.voltage_max_v, -1000.0, 1000.0);
+  if (!(s.axis.voltage_max_v > s.axis.voltage_min_v))
+    throw std::invalid_argument("parameters " + r.resolved("voltage_min_v") + " and voltage_max_v need min < max");
+  s.axis.fallback_max_step_v = r.number("fallback_max_step_v", s.axis.fallback_max_step_v, 1e-6, 100.0);
+  s.axis.inverse_tolerance_nm = r.number("inverse_tolerance_nm", s.axis.inverse_tolerance_nm, 1e-9, 1e6);
+  s.axis.position_margin_nm = r.number("position_margin_nm", s.axis.position_margin_nm, 0.0, 1e9);
+  s.axis.position_feedback = r.flag("position_feedback", s.axis.position_feedback);
+  s.axis.reanchor_time_constant_s = r.number("reanchor_time_constant_s", s.axis.reanchor_time_constant_s, 0.0, 86400.0);
+  r.warn_unknown("piezo_predictor");
   return s;
 }
 
