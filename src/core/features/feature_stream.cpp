@@ -1,4 +1,5 @@
 #include "piezo_compensation/features/feature_stream.h"
+#include "piezo_compensation/features/play_operator.h"
 
 #include <algorithm>
 #include <cmath>
@@ -197,8 +198,6 @@ struct FeatureStream::Impl {
   bool aux_primed = false;
   bool has_aux = false;
 
-  // Play operator output for the current input given the previous output.
-  static double play(double v, double r, double prev) { return std::max(v - r, std::min(v + r, prev)); }
 
   double raw(std::size_t i, const ModelInput& in) const {
     const Compiled& f = c[i];
@@ -354,9 +353,9 @@ void FeatureStream::commit(const ModelInput& in, double position_nm) {
       case Type::kExpSum: m.state[i] = f.alpha * m.state[i] + v - f.alpha_w * m.volts.get(f.w); break;
       case Type::kLowpass: m.state[i] = f.a * m.state[i] + (1 - f.a) * v; break;
       case Type::kPlay:
-      case Type::kStop: m.state[i] = Impl::play(v, f.r, m.state[i]); break;
+      case Type::kStop: m.state[i] = play(v, f.r, m.state[i]); break;
       case Type::kPlayLowpass:
-        m.state[i] = Impl::play(v, f.r, m.state[i]);
+        m.state[i] = play(v, f.r, m.state[i]);
         m.state2[i] = f.a * m.state2[i] + (1 - f.a) * m.state[i];
         break;
       case Type::kMean: m.state[i] += position_nm - m.pos.get(f.w); break;

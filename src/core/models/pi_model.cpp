@@ -1,4 +1,5 @@
 #include "piezo_compensation/models/pi_model.h"
+#include "piezo_compensation/features/play_operator.h"
 
 #include <algorithm>
 #include <cmath>
@@ -11,7 +12,7 @@
 namespace piezo::models {
 
 namespace {
-inline double play(double v, double r, double prev) { return std::max(v - r, std::min(v + r, prev)); }
+using features::play;
 }  // namespace
 
 PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights, double bias_nm,

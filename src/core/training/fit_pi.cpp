@@ -5,6 +5,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/models/model_file.h"
+#include "piezo_compensation/features/play_operator.h"
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/fitters.h"
@@ -15,7 +16,7 @@ namespace piezo::training {
 using namespace models;  // the fit code names the model's classes as models/ does
 
 namespace {
-inline double play(double v, double r, double prev) { return std::max(v - r, std::min(v + r, prev)); }
+using features::play;
 }  // namespace
 
 Eigen::VectorXd nnls_gram(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, const std::vector<bool>& constrained) {
@@ -176,6 +177,17 @@ std::vector<double> init_poles(const std::vector<double>& taus, const FitData& d
 // Creep coefficients with a physical sign: the prony spectrum's weights (creep follows its input).
 bool signed_creep(const CreepParams& cp) { return cp.kind == CreepKind::kProny; }
 
+// Advances the first-order creep modes l (poles a) by input u and writes the basis projections Σ_j B[k][j]·l[j].
+void creep_columns(const std::vector<double>& a, std::vector<double>& l, double u,
+                   const std::vector<std::vector<double>>& B, double* out) {
+  for (std::size_t j = 0; j < l.size(); ++j) l[j] = a[j] * l[j] + (1 - a[j]) * u;
+  for (std::size_t k = 0; k < B.size(); ++k) {
+    double s = 0;
+    for (std::size_t j = 0; j < l.size(); ++j) s += B[k][j] * l[j];
+    out[k] = s;
+  }
+}
+
 // Creep on the voltage: play outputs and creep basis columns, all weights at once (play weights ≥ 0).
 EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepParams& cp, double min_w0) {
   std::vector<double> taus;
@@ -188,12 +200,7 @@ EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepP
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
     for (std::size_t i = 0; i < np; ++i) x[i] = p[i] = play(v, r[i], p[i]);
-    for (std::size_t j = 0; j < nm; ++j) l[j] = a[j] * l[j] + (1 - a[j]) * v;
-    for (std::size_t k = 0; k < nk; ++k) {
-      double s = 0;
-      for (std::size_t j = 0; j < nm; ++j) s += B[k][j] * l[j];
-      x[np + k] = s;
-    }
+    creep_columns(a, l, v, B, x + np);
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
   std::vector<bool> constrained(np + nk, signed_creep(cp));
@@ -222,13 +229,8 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& r, c
   const auto g = stream_gram(V.size(), nk + 1, [&](std::size_t t, double* x) {
     double h = 0;
     for (std::size_t i = 0; i < np; ++i) h += w[i] * (p[i] = play(V[t], r[i], p[i]));
-    for (std::size_t j = 0; j < nm; ++j) l[j] = a[j] * l[j] + (1 - a[j]) * h;
     x[0] = h;
-    for (std::size_t k = 0; k < nk; ++k) {
-      double s = 0;
-      for (std::size_t j = 0; j < nm; ++j) s += B[k][j] * l[j];
-      x[1 + k] = s;
-    }
+    creep_columns(a, l, h, B, x + 1);
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
   std::vector<bool> constrained(nk + 1, signed_creep(cp));
