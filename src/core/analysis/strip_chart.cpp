@@ -11,7 +11,7 @@
 namespace piezo::analysis {
 namespace {
 
-constexpr ChartColor kMeasured{0.35f, 0.75f, 1.0f, 1.0f};
+constexpr ChartColor kMeasured{0.35f, 0.75f, 1.0f, 0.85f};
 constexpr ChartColor kPredicted{1.0f, 0.55f, 0.1f, 1.0f};
 constexpr ChartColor kIntended{0.6f, 0.9f, 0.4f, 0.9f};
 constexpr ChartColor kFan{1.0f, 0.3f, 0.8f, 0.9f};
@@ -83,8 +83,23 @@ StripChart::Stats StripChart::stats() const {
   if (st.errors > 0) st.mae_nm = sum / static_cast<double>(st.errors);
   if (o_.noise_sigma_nm > 0.0) {
     st.floor = noise_floor_from_sigma(o_.noise_sigma_nm);
-  } else if (st.errors >= o_.min_noise_samples) {
+    st.floor_source = "given";
+    return st;
+  }
+  if (st.errors >= o_.min_noise_samples) {
     st.floor = estimate_noise_floor(d, axis_, &pred);
+    st.floor_source = "estimated (" + st.floor.method + ")";
+  }
+  // An encoder reading is off by up to half a step even without noise: σ ≥ q/√12, and a perfect predictor scores
+  // q/4 when rounding dominates. estimate_noise_floor applies this with the step it sees; an axis held on one
+  // step shows none, so the encoder's resolution (when given) is the bound.
+  const bool given_q = o_.encoder_resolution_nm > 0.0;
+  const double q = given_q ? o_.encoder_resolution_nm : st.floor.quantisation_nm;
+  if (q > 0.0 && (st.errors > 0 || given_q) && st.floor.sigma_nm < q / std::sqrt(12.0) * (1.0 + 1e-9)) {
+    st.floor.sigma_nm = q / std::sqrt(12.0);
+    st.floor.floor_mae_nm = q / 4.0;
+    st.floor.quantisation_nm = q;
+    st.floor_source = fmt("q/√12, q %g nm", q) + (given_q ? " encoder resolution" : " reading step");
   }
   return st;
 }
@@ -151,10 +166,13 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
     }
   }
 
-  auto meas = prim(T::kPoints, n + "measured", kMeasured, 0.045);
-  auto pred = prim(T::kLineStrip, n + "predicted", kPredicted, 0.03);
-  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.02);
+  // Layers: measured dots at the bottom, the intended target above them, the predicted line on top (wider than
+  // a dot is tall, so it stays visible where the dots sit on it).
+  auto meas = prim(T::kPoints, n + "measured", kMeasured, 0.035);
+  auto pred = prim(T::kLineStrip, n + "predicted", kPredicted, 0.045);
+  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.025);
   auto err = prim(T::kPoints, n + "error", kError, 0.04);
+  meas.z = 0.0, intent.z = 0.01, pred.z = 0.02, err.z = 0.01;
   for (const auto& s : samples_) {
     const double x = X(s.time_s);
     if (std::isfinite(s.measured_nm)) meas.x.push_back(x), meas.y.push_back(Y(s.measured_nm));
@@ -173,7 +191,8 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   if (last && std::isfinite(last->predicted_nm) && !last->drift_nm.empty() &&
       last->drift_nm.size() == last->drift_horizons_s.size()) {
     const double hmax = std::max(1.0, *std::max_element(last->drift_horizons_s.begin(), last->drift_horizons_s.end()));
-    auto fan = prim(T::kLineList, n + "fan", kFan, 0.025);
+    auto fan = prim(T::kLineList, n + "fan", kFan, 0.03);
+    fan.z = 0.03;
     for (std::size_t i = 0; i < last->drift_nm.size(); ++i) {
       const double h = last->drift_horizons_s[i];
       const double xh = x0 + W + o_.fan_width * std::log1p(std::max(h, 0.0)) / std::log1p(hmax);
@@ -210,7 +229,8 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   }
   if (st.errors > 0) {
     head += fmt("   MAE %.1f nm", st.mae_nm);
-    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) + fmt(" (σ %.1f nm)", st.floor.sigma_nm)
+    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) +
+                                          fmt(" (σ %.1f nm, ", st.floor.sigma_nm) + st.floor_source + ")"
                                     : std::string(" (floor: too few samples)");
   }
   out.push_back(text(n + "headline", x0 + W / 2, y_text, head, th));
