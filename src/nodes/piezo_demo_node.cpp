@@ -6,6 +6,7 @@
 //   ~out_prefix: writes <prefix>.csv (every sample) and <prefix>.json (the metrics);
 //   ~hold_s, ~creep_history_s [s], ~creep_seed, ~creep_scenarios (creep protocol); ~ideal_line_hold_s [s];
 //   ~progress_period_s [s, wall]: a progress line with the ETA this often;
+//   ~hold_axes, ~hold_axes_v [V]: other axes given one constant intent each at the start (the monitor screenshots);
 //   ~lockstep: the device samples once per command (sim.launch lockstep:=true command_on_sample:=false): the
 //   next intent goes out once the predictor's prediction of the sample is in, so the demo paces the device.
 #include <ros/callback_queue.h>
@@ -15,6 +16,8 @@
 #include <cmath>
 #include <fstream>
 #include <optional>
+#include <utility>
+#include <vector>
 
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
@@ -30,7 +33,7 @@ namespace {
 using piezo::compensation::DemoRun;
 
 std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::string& out_prefix,
-                                  double& progress_s) {
+                                  double& progress_s, std::vector<std::pair<std::string, double>>& holds) {
   piezo::params::ParamReader r(pnh);
   const std::string scenario = r.text("scenario", "sawtooth", {"sawtooth", "creep"});
   axis = r.text("axis", "c", {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()});
@@ -49,6 +52,14 @@ std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::
   o.hold_s = r.number("ideal_line_hold_s", 60.0, 0.0, 1e6);
   progress_s = r.number("progress_period_s", 10.0, 0.1, 3600.0);
   const bool lockstep = r.flag("lockstep", false);
+  const auto hold_axes = r.texts("hold_axes", {}, {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()}, 0, 2);
+  const auto hold_v = r.numbers("hold_axes_v", {}, -1000.0, 1000.0, 0, 2);
+  if (hold_v.size() != hold_axes.size())
+    throw std::invalid_argument("parameter " + r.resolved("hold_axes_v") + ": one voltage per ~hold_axes entry");
+  for (std::size_t i = 0; i < hold_axes.size(); ++i) {
+    if (hold_axes[i] == axis) throw std::invalid_argument("parameter " + r.resolved("hold_axes") + ": contains ~axis");
+    holds.emplace_back(hold_axes[i], hold_v[i]);
+  }
   r.warn_unknown(pnh.getNamespace());
   auto model = piezo::predictor::load_model_file(model_file);
   o.sample_rate_hz = model->meta.sample_rate_hz;
@@ -64,7 +75,8 @@ int main(int argc, char** argv) {
   try {
     std::string axis, out_prefix;
     double progress_s = 10.0;
-    auto run = make_run(pnh, axis, out_prefix, progress_s);
+    std::vector<std::pair<std::string, double>> holds;
+    auto run = make_run(pnh, axis, out_prefix, progress_s, holds);
     const char* name = run->scenario().c_str();
     ROS_INFO("demo %s: %zu samples (%.0f s simulated per mode), ideal line %.4f nm/V + %.2f nm%s", name, run->steps(),
              run->steps() / 2.0 / run->rate_hz(), run->line().gain_nm_per_v, run->line().offset_nm,
@@ -104,6 +116,16 @@ int main(int argc, char** argv) {
     }, ros::VoidConstPtr(), hints);
     if (!ros::service::waitForService(nh.resolveName("predictor/set_compensation"), ros::Duration(60)))
       throw std::runtime_error("predictor/set_compensation not available after 60 s");
+    std::vector<ros::Publisher> hold_pubs;  // latched: the predictor gets the intent whenever it connects
+    for (const auto& [ax, v] : holds) {
+      hold_pubs.push_back(nh.advertise<piezo_compensation::IntendedMotion>(ax + "/intended", 1, true));
+      piezo_compensation::IntendedMotion im;
+      im.header.stamp = ros::Time::now();
+      im.mode = piezo_compensation::IntendedMotion::VOLTAGE;
+      im.voltage = v;
+      hold_pubs.back().publish(im);
+      ROS_INFO("demo %s: axis %s held at %.1f V", name, ax.c_str(), v);
+    }
     const ros::WallTime start = ros::WallTime::now();
     ros::WallTime next_progress = start + ros::WallDuration(progress_s);
     while (ros::ok() && !run->done()) {

@@ -121,7 +121,7 @@ TEST(StripChart, HeldAxisOnACoarseEncoderUsesTheQuantisationFloor) {
   EXPECT_NEAR(st.floor.floor_mae_nm, 62.5, 1e-9);                 // q/4
   const auto ps = c.draw(0, 0);
   const auto& head = find(ps, "a/headline")->text;
-  EXPECT_NE(head.find("q/√12, q 250 nm encoder resolution"), std::string::npos) << head;
+  EXPECT_NE(head.find("q/sqrt12, q 250 nm encoder resolution"), std::string::npos) << head;
   ASSERT_NE(find(ps, "a/band1"), nullptr);  // the bands no longer collapse
 
   // A noisy axis above the bound keeps its estimate (the 20 nm encoder with σ 8 nm: 8 > 20/√12).

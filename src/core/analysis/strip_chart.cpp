@@ -99,7 +99,7 @@ StripChart::Stats StripChart::stats() const {
     st.floor.sigma_nm = q / std::sqrt(12.0);
     st.floor.floor_mae_nm = q / 4.0;
     st.floor.quantisation_nm = q;
-    st.floor_source = fmt("q/√12, q %g nm", q) + (given_q ? " encoder resolution" : " reading step");
+    st.floor_source = fmt("q/sqrt12, q %g nm", q) + (given_q ? " encoder resolution" : " reading step");
   }
   return st;
 }
@@ -166,13 +166,14 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
     }
   }
 
-  // Layers: measured dots at the bottom, the intended target above them, the predicted line on top (wider than
-  // a dot is tall, so it stays visible where the dots sit on it).
+  // Layers: measured dots at the bottom, the predicted line over them (wider than a dot is tall, so it stays
+  // visible where the dots sit on it), the intended target thin on top.
   auto meas = prim(T::kPoints, n + "measured", kMeasured, 0.035);
   auto pred = prim(T::kLineStrip, n + "predicted", kPredicted, 0.045);
-  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.025);
+  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.015);
   auto err = prim(T::kPoints, n + "error", kError, 0.04);
-  meas.z = 0.0, intent.z = 0.01, pred.z = 0.02, err.z = 0.01;
+  meas.z = 0.0, pred.z = 0.01, intent.z = 0.02, err.z = 0.01;  // intended: thin, over the predicted line it
+                                                                 // follows when compensating
   for (const auto& s : samples_) {
     const double x = X(s.time_s);
     if (std::isfinite(s.measured_nm)) meas.x.push_back(x), meas.y.push_back(Y(s.measured_nm));
@@ -193,15 +194,26 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
     const double hmax = std::max(1.0, *std::max_element(last->drift_horizons_s.begin(), last->drift_horizons_s.end()));
     auto fan = prim(T::kLineList, n + "fan", kFan, 0.03);
     fan.z = 0.03;
-    for (std::size_t i = 0; i < last->drift_nm.size(); ++i) {
+    const std::size_t k = last->drift_nm.size();
+    std::vector<double> label_y(k);
+    for (std::size_t i = 0; i < k; ++i) {
       const double h = last->drift_horizons_s[i];
       const double xh = x0 + W + o_.fan_width * std::log1p(std::max(h, 0.0)) / std::log1p(hmax);
       const double yh = Y(last->predicted_nm + last->drift_nm[i]);
       fan.x.insert(fan.x.end(), {X(t_now), xh});
       fan.y.insert(fan.y.end(), {Y(last->predicted_nm), yh});
-      out.push_back(text(n + "fan_label" + std::to_string(i), xh + 0.1, yh + 0.6 * lh,
-                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", h), lh, kFan));
+      label_y[i] = yh;
     }
+    // Labels in a column right of the fan, each at its line's end but pushed apart so none overlap (small drifts
+    // end at nearly the same height).
+    std::vector<std::size_t> order(k);
+    for (std::size_t i = 0; i < k; ++i) order[i] = i;
+    std::sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return label_y[a] > label_y[b]; });
+    for (std::size_t j = 1; j < k; ++j)
+      label_y[order[j]] = std::min(label_y[order[j]], label_y[order[j - 1]] - 1.3 * lh);
+    for (std::size_t i = 0; i < k; ++i)
+      out.push_back(text(n + "fan_label" + std::to_string(i), x0 + W + o_.fan_width + 0.8, label_y[i],
+                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", last->drift_horizons_s[i]), lh, kFan));
     out.push_back(fan);
   }
 
