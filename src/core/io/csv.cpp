@@ -1,8 +1,14 @@
 // CSV reading and writing with one-line, located error messages.
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <algorithm>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <memory>
 #include <sstream>
@@ -219,9 +225,20 @@ void write_csv(const std::string& path, const Dataset& d) {
       if (std::fputs(line.c_str(), f.get()) < 0) throw DataError(path + ": write failed (disk full?)");
     }
     if (std::fflush(f.get()) != 0) throw DataError(path + ": write failed (disk full?)");
+    // The data must be on the disk before the rename makes it the real file (a power cut after a rename of
+    // unsynced data can leave an empty file under the real name).
+    if (::fsync(::fileno(f.get())) != 0) throw DataError(path + ": fsync failed: " + std::strerror(errno));
   }
   // Rename only when complete, so a crash never leaves a half-written data file under the real name.
   if (std::rename(tmp.c_str(), path.c_str()) != 0) throw DataError(path + ": cannot rename " + tmp);
+  // Then the directory entry that names it.
+  const std::string dir = std::filesystem::path(path).parent_path().string();
+  const int fd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) throw DataError(path + ": cannot open its directory to fsync it: " + std::strerror(errno));
+  const int rc = ::fsync(fd);
+  const int err = errno;
+  ::close(fd);
+  if (rc != 0) throw DataError(path + ": fsync of its directory failed: " + std::strerror(err));
 }
 
 }  // namespace piezo::io
