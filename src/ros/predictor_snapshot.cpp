@@ -1,0 +1,107 @@
+// The predictor's ~snapshot: the buffered last minutes written as a bag in the layout `piezo residual` and
+// `piezo eval` read as they are (ros/data_file.h: <ns>/<axis>/voltage, <ns>/<axis>/encoder, <ns>/aux).
+#include <piezo_compensation/AuxSignal.h>
+#include <piezo_compensation/AxisVoltage.h>
+#include <piezo_compensation/EncoderPosition.h>
+#include <rosbag/bag.h>
+
+#include <cerrno>
+#include <cstdlib>
+#include <cstring>
+#include <ctime>
+#include <filesystem>
+#include <fstream>
+#include <stdexcept>
+#include <unistd.h>
+
+#include "piezo_compensation/ros/predictor.h"
+
+namespace fs = std::filesystem;
+
+namespace piezo::predictor {
+
+namespace {
+
+std::string topic(const std::string& ns, const std::string& rest) {
+  if (ns.empty() || ns == "/") return "/" + rest;
+  return (ns.front() == '/' ? ns : "/" + ns) + (ns.back() == '/' ? "" : "/") + rest;
+}
+
+}  // namespace
+
+std::string snapshot_directory(const std::string& configured) {
+  if (!configured.empty()) return configured;
+  const char* ros_home = std::getenv("ROS_HOME");
+  if (ros_home && *ros_home) return std::string(ros_home) + "/piezo_snapshots";
+  const char* home = std::getenv("HOME");
+  return std::string(home && *home ? home : "/tmp") + "/.ros/piezo_snapshots";
+}
+
+std::string snapshot_path(const std::string& dir, double end_stamp_s) {
+  std::error_code ec;
+  fs::create_directories(dir, ec);
+  if (!fs::is_directory(dir)) throw std::runtime_error("snapshot directory " + dir + " does not exist and cannot be created" +
+                                                       (ec ? ": " + ec.message() : std::string()));
+  if (::access(dir.c_str(), W_OK | X_OK) != 0)
+    throw std::runtime_error("snapshot directory " + dir + " is not writable: " + std::strerror(errno));
+  // named by the (ROS) time of the newest reading, UTC, so under sim time it names the simulated moment
+  const std::time_t t = static_cast<std::time_t>(end_stamp_s);
+  std::tm tm{};
+  gmtime_r(&t, &tm);
+  char stamp[32];
+  std::strftime(stamp, sizeof stamp, "%Y%m%dT%H%M%SZ", &tm);
+  std::string path = dir + "/snapshot_" + stamp + ".bag";
+  for (int k = 2; fs::exists(path); ++k) path = dir + "/snapshot_" + stamp + "_" + std::to_string(k) + ".bag";
+  return path;
+}
+
+void write_snapshot_bag(const std::string& path, const std::string& ns, const compensation::Snapshot& s,
+                        const std::string& frame_id) {
+  if (!ros::Time::isValid()) ros::Time::init();
+  const std::string tmp = path + ".part";  // a reader never sees half a bag
+  try {
+    rosbag::Bag bag(tmp, rosbag::bagmode::Write);
+    bag.setCompression(rosbag::compression::LZ4);
+    for (const auto& [axis, a] : s.axes) {
+      for (const auto& v : a.voltages) {
+        piezo_compensation::AxisVoltage m;
+        m.header.stamp = ros::Time(v.stamp_s);
+        m.header.frame_id = frame_id;
+        m.axis = axis;
+        m.sequence = v.sequence;
+        m.voltage = v.voltage_v;
+        bag.write(topic(ns, axis + "/voltage"), m.header.stamp, m);
+      }
+      for (const auto& r : a.readings) {
+        piezo_compensation::EncoderPosition m;
+        m.header.stamp = ros::Time(r.stamp_s);
+        m.header.frame_id = frame_id;
+        m.axis = axis;
+        m.sequence = r.sequence;
+        m.position = r.position_nm * 1e-9;
+        m.valid = true;
+        bag.write(topic(ns, axis + "/encoder"), m.header.stamp, m);
+      }
+    }
+    for (const auto& [name, values] : s.aux) {
+      for (const auto& x : values) {
+        piezo_compensation::AuxSignal m;
+        m.header.stamp = ros::Time(x.stamp_s);
+        m.header.frame_id = frame_id;
+        m.name = name;
+        m.value = x.value;
+        bag.write(topic(ns, "aux"), m.header.stamp, m);
+      }
+    }
+    bag.close();
+  } catch (const std::exception& e) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw std::runtime_error(path + ": cannot write bag: " + e.what());
+  }
+  std::error_code ec;
+  fs::rename(tmp, path, ec);
+  if (ec) throw std::runtime_error(path + ": cannot write bag: " + ec.message());
+}
+
+}  // namespace piezo::predictor
