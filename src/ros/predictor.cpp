@@ -28,6 +28,7 @@ namespace piezo::predictor {
 namespace {
 
 constexpr double kNmPerM = 1e9;
+constexpr std::uint32_t kInputQueue = 200;
 
 compensation::IdealLine line_for(const models::Model& m, const PredictorSettings& s) {
   compensation::IdealLineOptions o;
@@ -170,10 +171,10 @@ std::unique_ptr<compensation::InputFeeder> PredictorAxis::make_feeder(const mode
   return std::make_unique<compensation::InputFeeder>(m, axis_, o);
 }
 
-void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model) {
+void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model, bool warm) {
   const compensation::IdealLine line = line_for(*model, s_);
   auto feeder = make_feeder(*model);
-  comp_->replace_model(std::move(model), line);
+  comp_->replace_model(std::move(model), line, warm);
   feeder_ = std::move(feeder);
   if (watch_) watch_->clear();  // the new model is judged on its own samples
   model_name_ = model_name;
@@ -364,10 +365,12 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     Axis* ap = a.get();
     a->pub_prediction = nh_.advertise<Prediction>(name + "/prediction", 20);
     a->pub_command = nh_.advertise<VoltageCommand>(name + "/command", 1);
-    a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", 20, [this, ap](const AxisVoltage::ConstPtr& m) {
+    // Sensor topics keep every sample through a stall of the host (kInputQueue samples: 18 s at 11 Hz, 0.45 s of
+    // wall time at 40 x simulated time); a dropped one would be a gap in the snapshot and in the model's clock.
+    a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", kInputQueue, [this, ap](const AxisVoltage::ConstPtr& m) {
       on_voltage(*ap, m);
     }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
-    a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", 20, [this, ap](const EncoderPosition::ConstPtr& m) {
+    a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", kInputQueue, [this, ap](const EncoderPosition::ConstPtr& m) {
       on_encoder(*ap, m);
     }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
     a->sub_intended = nh_.subscribe<IntendedMotion>(name + "/intended", 10, [this, ap](const IntendedMotion::ConstPtr& m) {
@@ -379,7 +382,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
   for (const auto& [name, topic] : s_.aux_topics) {
     const std::string input = name;
     aux_subs_.push_back(nh_.subscribe<topic_tools::ShapeShifter>(
-        topic, 10, [this, input](const topic_tools::ShapeShifter::ConstPtr& m) { on_aux(input, m); }));
+        topic, kInputQueue, [this, input](const topic_tools::ShapeShifter::ConstPtr& m) { on_aux(input, m); }));
   }
   for (const auto& a : axes_)
     for (const auto& src : a->logic->inputs().sources())
@@ -406,8 +409,28 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
         try {
           files = read_model_files(pnh_, s_.axes);
           for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis())));
+          // Warm start on the buffered samples: a model with slow terms (a 300 s low-pass, creep) started at rest
+          // would carry a transient of minutes that the offline score of the same model never saw.
+          std::vector<std::string> cold(axes_.size());
+          std::optional<compensation::Snapshot> recent;
+          std::string no_recent = "no ~snapshot buffer (~snapshot_duration_s 0)";
+          if (snapshot_) {
+            try {
+              recent = snapshot_->take();
+            } catch (const std::exception& e) {
+              no_recent = e.what();
+            }
+          }
           for (std::size_t i = 0; i < axes_.size(); ++i)
-            axes_[i]->logic->reload(files.at(axes_[i]->logic->axis()), std::move(fresh[i]));
+            cold[i] = recent ? warm_model(*fresh[i], axes_[i]->logic->axis(), *recent, nh_.getNamespace()) : no_recent;
+          for (std::size_t i = 0; i < axes_.size(); ++i)
+            axes_[i]->logic->reload(files.at(axes_[i]->logic->axis()), std::move(fresh[i]), cold[i].empty());
+          res.message.clear();
+          for (std::size_t i = 0; i < axes_.size(); ++i)
+            res.message += "; " + axes_[i]->logic->axis() + ": " +
+                           (cold[i].empty() ? "warm, on the last " + std::to_string(static_cast<int>(
+                                                  recent->end_s - recent->begin_s)) + " s"
+                                            : "cold start (" + cold[i] + ")");
         } catch (const std::exception& e) {
           res.success = false;
           res.message = std::string("reload failed, models unchanged: ") + e.what();
@@ -416,8 +439,10 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
         }
         s_.model_files = files;
         res.success = true;
+        std::string warmth = res.message;
         res.message = "models reloaded:";
         for (const auto& [axis, path] : files) res.message += " " + axis + " " + path;
+        res.message += warmth;
         ROS_INFO("%s", res.message.c_str());
         return true;
       });
@@ -436,7 +461,9 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
             for (const auto& [axis, a] : snap.axes) readings += a.readings.size();
             std::ostringstream os;
             os << path << " (" << std::fixed << std::setprecision(1) << snap.end_s - snap.begin_s << " s, "
-               << snap.axes.size() << " axes, " << readings << " readings, " << snap.aux.size() << " aux signals";
+               << snap.axes.size() << " axes, " << readings << " readings, " << snap.aux.size() << " aux signals, "
+               << std::setprecision(4) << snap.period_s * 1e3 << " ms sample clock, receive stamps within "
+               << snap.max_restamp_s * 1e3 << " ms of it";
             if (snap.invalid_readings > 0) os << ", " << snap.invalid_readings << " invalid readings left out";
             os << ")";
             res.success = true;

@@ -14,6 +14,8 @@
 #include <stdexcept>
 #include <unistd.h>
 
+#include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/ros/predictor.h"
 
 namespace fs = std::filesystem;
@@ -70,7 +72,7 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
         m.axis = axis;
         m.sequence = v.sequence;
         m.voltage = v.voltage_v;
-        bag.write(topic(ns, axis + "/voltage"), m.header.stamp, m);
+        bag.write(topic(ns, axis + "/voltage"), ros::Time(v.received_s), m);  // record time: when it was heard
       }
       for (const auto& r : a.readings) {
         piezo_compensation::EncoderPosition m;
@@ -80,7 +82,7 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
         m.sequence = r.sequence;
         m.position = r.position_nm * 1e-9;
         m.valid = true;
-        bag.write(topic(ns, axis + "/encoder"), m.header.stamp, m);
+        bag.write(topic(ns, axis + "/encoder"), ros::Time(r.received_s), m);
       }
     }
     for (const auto& [name, values] : s.aux) {
@@ -102,6 +104,25 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
   std::error_code ec;
   fs::rename(tmp, path, ec);
   if (ec) throw std::runtime_error(path + ": cannot write bag: " + ec.message());
+}
+
+std::string warm_model(models::Model& model, const std::string& axis, const compensation::Snapshot& s,
+                       const std::string& ns) {
+  if (!s.axes.count(axis)) return "axis " + axis + " not in the buffer";
+  // through a bag and the one reader, so the warm-up pairs and aligns samples exactly as `piezo residual` did
+  const fs::path tmp = fs::temp_directory_path() / ("piezo_warmup_" + std::to_string(::getpid()) + ".bag");
+  try {
+    write_snapshot_bag(tmp.string(), ns, s, "base");
+    const io::Dataset d = ros_io::read_bag(tmp.string());
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    models::stream_model(model, d, axis, models::StreamOptions{});  // on failure the reload resets it (cold)
+  } catch (const std::exception& e) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    return e.what();
+  }
+  return "";
 }
 
 }  // namespace piezo::predictor

@@ -23,8 +23,10 @@ void feed(compensation::SnapshotBuffer& b, double t0, std::size_t n, std::uint32
     const double va = 10.0 * std::sin(0.01 * i), vc = 20.0 * std::cos(0.013 * i);
     b.add_voltage("a", seq, va, t);
     b.add_reading("a", seq, 12.0 * va, true, t);
-    b.add_voltage("c", seq, vc, t);
-    b.add_reading("c", seq, 13.0 * vc, true, t + 0.002);
+    // receive stamps jitter (host load): up to ±4 ms on c, one reading 0.3 s late
+    const double jitter = (i == 1100 ? 0.3 : 0.004 * std::sin(1.7 * static_cast<double>(i)));
+    b.add_voltage("c", seq, vc, t + jitter);
+    b.add_reading("c", seq, 13.0 * vc, true, t + jitter + 0.002);
     if (i % 11 == 5) b.add_aux("temperature_c", 22.0 + 0.001 * static_cast<double>(i), t);
   }
 }
@@ -100,7 +102,7 @@ TEST(SnapshotBuffer, InvalidReadingsAreLeftOutAndCounted) {
 
 TEST(SnapshotBag, ReadsAsItIsWithTheOneBagReader) {
   compensation::SnapshotBuffer b({60.0, 100000});
-  feed(b, 1.7e9, 11 * 120, 4000000000u);  // epoch-like stamps, sequence numbers wrapping at 2^32
+  feed(b, 1.7e9, 11 * 120, 4294966000u);  // epoch-like stamps, sequence numbers wrapping at 2^32 in the window
   const compensation::Snapshot s = b.take();
   const std::string dir = ::testing::TempDir() + "snapshot_test";
   std::filesystem::remove_all(dir);
@@ -110,6 +112,10 @@ TEST(SnapshotBag, ReadsAsItIsWithTheOneBagReader) {
   EXPECT_NE(predictor::snapshot_path(dir, s.end_s), path) << "a second snapshot must not overwrite the first";
 
   const io::Dataset d = ros_io::read_bag(path);
+  // the sample clock: constant rate (what every offline tool requires) though the receive stamps jitter
+  EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);
+  EXPECT_NEAR(s.period_s, 1.0 / 11.0, 1e-9);
+  EXPECT_NEAR(s.max_restamp_s, 0.3, 0.01);  // the late reading
   ASSERT_EQ(d.axes.size(), 2u);
   EXPECT_EQ(d.time_clock, "ros");
   EXPECT_EQ(d.size(), s.axes.at("a").readings.size());

@@ -18,14 +18,17 @@ struct SnapshotOptions {
   std::size_t max_messages = 1000000;   // per stream (axis voltage, axis encoder, aux signal): the memory bound
 };
 
+// stamp_s: the sample clock (see Snapshot); received_s: the stamp the message came with (receive time).
 struct SnapshotVoltage {
   double stamp_s = 0.0;
+  double received_s = 0.0;
   std::uint32_t sequence = 0;
   double voltage_v = 0.0;
 };
 
 struct SnapshotReading {
   double stamp_s = 0.0;
+  double received_s = 0.0;
   std::uint32_t sequence = 0;
   double position_nm = 0.0;
 };
@@ -42,7 +45,13 @@ struct Snapshot {
   };
   std::map<std::string, Axis> axes;                         // by axis name
   std::map<std::string, std::vector<SnapshotAux>> aux;      // by input name (e.g. temperature_c)
+  // Stamps on the controller's sample clock: the newest reading keeps its stamp, each earlier sample lies a whole
+  // number of periods before it (counted by sequence number; by time across a controller restart), the period
+  // being the window's mean. The driver stamps on receipt, and host load jitters those stamps by more than the
+  // offline tools' constant-rate rule (1 % of a period) allows; the receive stamps stay in received_s.
   double begin_s = 0.0, end_s = 0.0;                        // stamps of the first and last reading
+  double period_s = 0.0;                                    // the mean sample period
+  double max_restamp_s = 0.0;                               // largest |sample clock − receive stamp| of a reading
   std::size_t invalid_readings = 0;  // readings the controller flagged invalid: left out (the reader makes no row)
 };
 

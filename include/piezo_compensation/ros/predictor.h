@@ -102,6 +102,11 @@ std::string snapshot_path(const std::string& dir, double end_stamp_s);
 // Writes the snapshot under namespace `ns` in the bag layout of ros/data_file.h; throws std::runtime_error.
 void write_snapshot_bag(const std::string& path, const std::string& ns, const compensation::Snapshot& s,
                         const std::string& frame_id);
+// Streams `model` (free-run, from rest at the first row) over the snapshot, read through the one bag reader, so a
+// reloaded model starts with the state of a model that had been running (low-pass and lag terms, creep).
+// Returns "" or why it could not (the caller then starts the model at rest).
+std::string warm_model(models::Model& model, const std::string& axis, const compensation::Snapshot& s,
+                       const std::string& ns);
 
 // One axis at message level, without a NodeHandle: the node, the replay measurement and the tests drive it.
 class PredictorAxis {
@@ -136,7 +141,8 @@ class PredictorAxis {
   const compensation::ResidualWatch* watch() const { return watch_.get(); }
 
   void set_forecast(const compensation::DriftForecast& f);
-  void reload(const std::string& model_name, models::ModelPtr model);
+  // `warm`: the model was streamed over the recent samples and keeps that state (else it starts at rest).
+  void reload(const std::string& model_name, models::ModelPtr model, bool warm = false);
   const std::string& model_error() const { return model_error_; }
 
   const std::string& axis() const { return axis_; }

@@ -10,6 +10,39 @@
 namespace piezo::compensation {
 
 namespace {
+
+// Puts one axis' samples on the sample clock (Snapshot): readings by sequence distance from the newest, reports
+// onto the stamp of their reading (or shifted like the reading before them when theirs was lost).
+void restamp(Snapshot::Axis& a, Snapshot& s) {
+  auto& r = a.readings;
+  if (r.empty()) return;
+  const std::size_t n = r.size();
+  const double rough = n > 1 ? (r.back().received_s - r.front().received_s) / static_cast<double>(n - 1) : 0.0;
+  std::vector<double> index(n, 0.0);  // sample number from the first reading
+  for (std::size_t i = 1; i < n; ++i) {
+    const std::uint32_t dseq = r[i].sequence - r[i - 1].sequence;  // wraps at 2^32 like the counter
+    double step = static_cast<double>(dseq);
+    if (dseq == 0 || dseq > 1000)  // a controller restart: count the periods by time
+      step = rough > 0.0 ? std::max(1.0, std::round((r[i].received_s - r[i - 1].received_s) / rough)) : 1.0;
+    index[i] = index[i - 1] + step;
+  }
+  const double period = index.back() > 0.0 ? (r.back().received_s - r.front().received_s) / index.back() : 0.0;
+  if (s.period_s == 0.0) s.period_s = period;
+  std::map<std::uint32_t, double> shift;  // sequence → sample clock − receive stamp
+  for (std::size_t i = 0; i < n; ++i) {
+    const double clock = r.back().received_s - (index.back() - index[i]) * period;
+    s.max_restamp_s = std::max(s.max_restamp_s, std::fabs(clock - r[i].received_s));
+    shift[r[i].sequence] = clock - r[i].received_s;
+    r[i].stamp_s = clock;
+  }
+  double last = 0.0;
+  for (auto& v : a.voltages) {
+    const auto it = shift.find(v.sequence);
+    if (it != shift.end()) last = it->second;
+    v.stamp_s = v.received_s + last;
+  }
+}
+
 // A voltage report and its reading carry stamps of the same sample; a controller restart reuses numbers only
 // much later, so a match within this is the report of that reading.
 constexpr double kSameSampleS = 1.0;
@@ -37,7 +70,7 @@ void SnapshotBuffer::trim(Q& q, double newest_s, bool keep_one_before) const {
 void SnapshotBuffer::add_voltage(const std::string& axis, std::uint32_t sequence, double voltage_v, double stamp_s) {
   if (!std::isfinite(voltage_v) || !std::isfinite(stamp_s)) return;
   auto& q = axes_[axis].voltages;
-  q.push_back({stamp_s, sequence, voltage_v});
+  q.push_back({stamp_s, stamp_s, sequence, voltage_v});
   trim(q, stamp_s, false);
 }
 
@@ -46,7 +79,7 @@ void SnapshotBuffer::add_reading(const std::string& axis, std::uint32_t sequence
   if (!std::isfinite(stamp_s)) return;
   if (!std::isfinite(position_nm)) valid = false;
   auto& q = axes_[axis].readings;
-  q.push_back({{stamp_s, sequence, valid ? position_nm : 0.0}, valid});
+  q.push_back({{stamp_s, stamp_s, sequence, valid ? position_nm : 0.0}, valid});
   trim(q, stamp_s, false);
 }
 
@@ -118,7 +151,10 @@ Snapshot SnapshotBuffer::take() const {
       if (a.readings[i].valid) out.readings.push_back(a.readings[i].r);
       else ++s.invalid_readings;
     }
-    s.begin_s = std::min(s.begin_s, out.readings.front().stamp_s);
+  }
+  for (auto& [name, a] : s.axes) {
+    restamp(a, s);
+    s.begin_s = std::min(s.begin_s, a.readings.front().stamp_s);
   }
   for (const auto& [name, q] : aux_) {
     if (q.empty()) continue;
