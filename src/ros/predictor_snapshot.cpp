@@ -64,35 +64,35 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
   try {
     rosbag::Bag bag(tmp, rosbag::bagmode::Write);
     bag.setCompression(rosbag::compression::LZ4);
+    // header stamp: the sample clock; record time: when the message was heard
+    const auto put = [&](const std::string& t, double stamp_s, double received_s, auto& m) {
+      m.header.stamp = ros::Time(stamp_s);
+      m.header.frame_id = frame_id;
+      bag.write(topic(ns, t), ros::Time(received_s), m);
+    };
     for (const auto& [axis, a] : s.axes) {
-      for (const auto& v : a.voltages) {
-        piezo_compensation::AxisVoltage m;
-        m.header.stamp = ros::Time(v.stamp_s);
-        m.header.frame_id = frame_id;
-        m.axis = axis;
-        m.sequence = v.sequence;
-        m.voltage = v.voltage_v;
-        bag.write(topic(ns, axis + "/voltage"), ros::Time(v.received_s), m);  // record time: when it was heard
+      piezo_compensation::AxisVoltage v;
+      v.axis = axis;
+      for (const auto& x : a.voltages) {
+        v.sequence = x.sequence;
+        v.voltage = x.voltage_v;
+        put(axis + "/voltage", x.stamp_s, x.received_s, v);
       }
-      for (const auto& r : a.readings) {
-        piezo_compensation::EncoderPosition m;
-        m.header.stamp = ros::Time(r.stamp_s);
-        m.header.frame_id = frame_id;
-        m.axis = axis;
-        m.sequence = r.sequence;
-        m.position = r.position_nm * 1e-9;
-        m.valid = true;
-        bag.write(topic(ns, axis + "/encoder"), ros::Time(r.received_s), m);
+      piezo_compensation::EncoderPosition e;
+      e.axis = axis;
+      e.valid = true;
+      for (const auto& x : a.readings) {
+        e.sequence = x.sequence;
+        e.position = x.position_nm * 1e-9;
+        put(axis + "/encoder", x.stamp_s, x.received_s, e);
       }
     }
     for (const auto& [name, values] : s.aux) {
+      piezo_compensation::AuxSignal m;
+      m.name = name;
       for (const auto& x : values) {
-        piezo_compensation::AuxSignal m;
-        m.header.stamp = ros::Time(x.stamp_s);
-        m.header.frame_id = frame_id;
-        m.name = name;
         m.value = x.value;
-        bag.write(topic(ns, "aux"), m.header.stamp, m);
+        put("aux", x.stamp_s, x.stamp_s, m);
       }
     }
     bag.close();
