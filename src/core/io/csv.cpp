@@ -8,13 +8,13 @@
 #include <sstream>
 #include <string_view>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/dataset.h"
 
 namespace piezo::io {
 
 namespace {
 
-const char* kAxes[] = {"a", "b", "c"};
 
 std::string trim(std::string_view s) {
   while (!s.empty() && (s.front() == ' ' || s.front() == '\t')) s.remove_prefix(1);
@@ -82,9 +82,9 @@ Dataset read_csv(const std::string& path) {
       s.target = Target::kPhase;
     } else {
       for (int a = 0; a < 3; ++a) {
-        if (n == voltage_column(kAxes[a])) { s = {Target::kVoltage, a, n}; have_v[a] = true; }
-        else if (n == position_column(kAxes[a])) { s = {Target::kPosition, a, n}; have_p[a] = true; }
-        else if (n == true_position_column(kAxes[a])) { s = {Target::kTruth, a, n}; }
+        if (n == voltage_column(kAxisNames[a])) { s = {Target::kVoltage, a, n}; have_v[a] = true; }
+        else if (n == position_column(kAxisNames[a])) { s = {Target::kPosition, a, n}; have_p[a] = true; }
+        else if (n == true_position_column(kAxisNames[a])) { s = {Target::kTruth, a, n}; }
       }
     }
     if (s.target == Target::kAux) {
@@ -98,11 +98,11 @@ Dataset read_csv(const std::string& path) {
   for (int a = 0; a < 3; ++a) {
     if (have_v[a] != have_p[a])
       throw DataError(path + ": missing column " +
-                      (have_v[a] ? position_column(kAxes[a]) : voltage_column(kAxes[a])) + " (axis '" + kAxes[a] +
+                      (have_v[a] ? position_column(kAxisNames[a]) : voltage_column(kAxisNames[a])) + " (axis '" + kAxisNames[a] +
                       "' needs both voltage and position)");
     if (have_v[a]) {
       AxisSeries s;
-      s.name = kAxes[a];
+      s.name = kAxisNames[a];
       axis_of[a] = static_cast<int>(d.axes.size());
       d.axes.push_back(std::move(s));
     }
