@@ -22,6 +22,8 @@ namespace piezo::analysis {
 const std::vector<std::string>& residual_family_names();
 // Gain families scale the base output (or the voltage) by 1 + f(signal): time_gain, cross_axis_gain, aux_gain.
 bool is_gain_family(const std::string& family);
+// The additive family on the same signal as a gain family ("aux_gain" → "aux_signal"), "" for others.
+std::string additive_counterpart(const std::string& gain_family);
 // Families whose regressors are functions of the operating point (voltage, position) rather than of a
 // physical signal; they must win by a clear margin (ResidualOptions::operating_point_margin).
 bool is_operating_point_family(const std::string& family);
@@ -88,6 +90,9 @@ struct ResidualOptions {
   // rate_dependent, missing_memory) replaces one that names a physical signal only with validation gain ≥
   // margin × the other's + min_validation_gain.
   double operating_point_margin = 1.5;
+  // A gain family (aux_gain, time_gain, cross_axis_gain) replaces the additive family on the same signal
+  // (aux_signal, time_drift, cross_axis) only with validation gain ≥ margin × the additive's + min_validation_gain.
+  double gain_margin = 1.2;
   double hold_tolerance = 0.005;       // an effect may not raise the validation MAE inside holds by more than this
   std::size_t max_score_samples = 24000;  // statistics on a decimated grid (the residual is strongly autocorrelated)
   std::vector<std::string> families;   // empty = all

@@ -28,6 +28,13 @@ bool is_gain_family(const std::string& family) {
   return family == "time_gain" || family == "cross_axis_gain" || family == "aux_gain";
 }
 
+std::string additive_counterpart(const std::string& gain_family) {
+  if (gain_family == "time_gain") return "time_drift";
+  if (gain_family == "cross_axis_gain") return "cross_axis";
+  if (gain_family == "aux_gain") return "aux_signal";
+  return "";
+}
+
 bool is_operating_point_family(const std::string& family) {
   return family == "voltage_nonlinearity" || family == "position_periodic" || family == "rate_dependent" ||
          family == "missing_memory";
@@ -602,12 +609,35 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       if (!s.available || !s.significant) continue;
       if (s.validation_gain < o.min_validation_gain) {
         s.verdict = "validation gain below " + std::to_string(100.0 * o.min_validation_gain).substr(0, 4) + " %";
-        continue;
-      }
-      if (n_val_hold && s.hold_validation_gain < -o.hold_tolerance) {
+      } else if (n_val_hold && s.hold_validation_gain < -o.hold_tolerance) {
         s.verdict = "worsens the validation error inside holds";
-        continue;
       }
+    }
+    // A gain on a signal against the additive term on the same signal: where the base output varies little
+    // (holds, a compensated axis parked near one set point) the two fit the same residual, and the gain's
+    // extrapolation to other positions is a guess. It is kept only with a clear margin over the additive one.
+    for (auto& s : ranking) {
+      if (!s.available || !s.significant || !s.verdict.empty() || !is_gain_family(s.family)) continue;
+      const std::string additive = additive_counterpart(s.family);
+      const auto sig = s.best.labels.find("signal");
+      for (const auto& a : ranking) {
+        if (a.family != additive || !a.available || !a.significant || !a.verdict.empty()) continue;
+        const auto asig = a.best.labels.find("signal");
+        if (additive != "time_drift" &&
+            (sig == s.best.labels.end() || asig == a.best.labels.end() || sig->second != asig->second))
+          continue;
+        const double need = o.gain_margin * a.validation_gain + o.min_validation_gain;
+        if (s.validation_gain < need) {
+          std::ostringstream why;
+          why.precision(3);
+          why << "a gain that did not beat the additive " << additive << " (" << 100 * a.validation_gain
+              << " %) by the margin (needs ≥ " << 100 * need << " %)";
+          s.verdict = why.str();
+        }
+      }
+    }
+    for (auto& s : ranking) {
+      if (!s.available || !s.significant || !s.verdict.empty()) continue;
       FamilyScore*& slot = is_operating_point_family(s.family) ? best_op : best_phys;
       if (!slot || s.validation_gain > slot->validation_gain) slot = &s;
     }
