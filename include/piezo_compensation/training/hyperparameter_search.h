@@ -70,6 +70,13 @@ std::vector<ParamDef> dense_search_space();
 std::vector<ParamDef> lstm_search_space();
 std::vector<ParamDef> kan_search_space();
 
+// `cfg` with the trial's optimiser (when the space has one) and learning rate.
+inline TrainerConfig with_trial_optimizer(TrainerConfig cfg, const TrialParams& p) {
+  if (p.choice.count("optimizer")) cfg.optimizer.kind = parse_optimizer(p.choice.at("optimizer"));
+  cfg.optimizer.learning_rate = p.number.at("learning_rate");
+  return cfg;
+}
+
 // The neural kinds' tuning: TPE over `space` with trials of `tune_epochs` (option; default the full epochs),
 // then the winner retrained with the full `cfg.epochs` while time is left, keeping the better of the two.
 // `train(params, config)` applies the trial's shape and optimiser from `params` and trains with `config`, whose
