@@ -6,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/sim/piezo_axis.h"
 #include "piezo_compensation/sim/simulator_config.h"
 #include "piezo_compensation/util/splitmix64.h"
@@ -53,7 +54,7 @@ class Rng {
   bool has_spare_ = false;
 };
 
-int axis_index(const std::string& name) { return name == "a" ? 0 : name == "b" ? 1 : name == "c" ? 2 : -1; }
+int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
 
 // The configured hysteresis model of one axis.
 class Hysteresis {
@@ -185,6 +186,11 @@ StepResult ManipulatorSimulator::step(const std::array<double, 3>& voltages_v, d
 }
 
 double ManipulatorSimulator::time_s() const { return impl_->time_s; }
+void ManipulatorSimulator::set_thermal_drift(bool on) {
+  if (on && !impl_->cfg.thermal_drift.enabled) impl_->thermal_lagged_c = impl_->cfg.thermal_drift.ambient_c;
+  impl_->cfg.thermal_drift.enabled = on;
+}
+
 const SimulatorConfig& ManipulatorSimulator::config() const { return impl_->cfg; }
 
 io::Dataset ManipulatorSimulator::run(const io::Dataset& program) {
