@@ -123,4 +123,15 @@ auto tune_and_retrain(const std::string& kind, const std::vector<ParamDef>& spac
   return best;
 }
 
+// A neural kind's fit: one run of `train_default(cfg)`, or with request.tune_trials > 0 tune_and_retrain with
+// `train_trial`; the model's meta is set from the request. Returns the model.
+template <typename TrainDefault, typename TrainTrial>
+auto fit_or_tune(const std::string& kind, const std::vector<ParamDef>& space, const FitRequest& request,
+                 const TrainerConfig& cfg, TrainDefault&& train_default, TrainTrial&& train_trial) {
+  auto model = request.tune_trials <= 0 ? train_default(cfg).model
+                                        : tune_and_retrain(kind, space, request, cfg, train_trial).model;
+  set_fit_meta(*model, request);
+  return model;
+}
+
 }  // namespace piezo::training

@@ -37,21 +37,15 @@ std::unique_ptr<models::DenseModel> fit_dense(const FitRequest& request) {
   shape.width = training::option_int(request.options, "width", 10);
   shape.leaky_slope = training::option_num(request.options, "leaky_slope", 0.01);
   training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
-  auto finish = [&request](std::unique_ptr<DenseModel> m) {
-    set_fit_meta(*m, request);
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_dense(data, shape, cfg).model);
-
-  DenseTrial best = training::tune_and_retrain(
+  return fit_or_tune(
       "dense", training::dense_search_space(), request, cfg,
+      [&](training::TrainerConfig c) { return train_dense(data, shape, c); },
       [&](const training::TrialParams& p, training::TrainerConfig c) {
         DenseShape s = shape;
         s.depth = static_cast<int>(p.number.at("depth"));
         s.width = static_cast<int>(p.number.at("width"));
         return train_dense(data, s, with_trial_optimizer(c, p));
       });
-  return finish(std::move(best.model));
 }
 
 }  // namespace piezo::training

@@ -57,26 +57,21 @@ std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request) {
   const int grid_updates = training::option_int(request.options, "grid_updates", 3);
   training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
   if (!request.options || !request.options["learning_rate"]) cfg.optimizer.learning_rate = 3e-3;
-  auto finish = [&request](std::unique_ptr<KanModel> m) {
-    set_fit_meta(*m, request);
-    // The interpretable form travels with the model file (one line per edge).
-    YAML::Node lines(YAML::NodeType::Sequence);
-    std::istringstream text(m->formulas());
-    for (std::string line; std::getline(text, line);)
-      if (line.find_first_not_of(' ') != std::string::npos) lines.push_back(line.substr(line.find_first_not_of(' ')));
-    m->training_info["formulas"] = lines;
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_kan(data, shape, grid_updates, cfg).model);
-
-  KanTrial best = training::tune_and_retrain(
+  auto m = fit_or_tune(
       "kan", training::kan_search_space(), request, cfg,
+      [&](training::TrainerConfig c) { return train_kan(data, shape, grid_updates, c); },
       [&](const training::TrialParams& p, training::TrainerConfig c) {
         const KanShape s = shape_for(static_cast<int>(p.number.at("width")), static_cast<int>(p.number.at("grid")),
                                      static_cast<int>(p.number.at("order")));
         return train_kan(data, s, grid_updates, with_trial_optimizer(c, p));
       });
-  return finish(std::move(best.model));
+  // The interpretable form travels with the model file (one line per edge).
+  YAML::Node lines(YAML::NodeType::Sequence);
+  std::istringstream text(m->formulas());
+  for (std::string line; std::getline(text, line);)
+    if (line.find_first_not_of(' ') != std::string::npos) lines.push_back(line.substr(line.find_first_not_of(' ')));
+  m->training_info["formulas"] = lines;
+  return m;
 }
 
 }  // namespace piezo::training

@@ -84,21 +84,15 @@ std::unique_ptr<models::LstmModel> fit_lstm(const FitRequest& request) {
   const int warmup = training::option_int(request.options, "warmup", 16);
   training::TrainerConfig cfg = training::trainer_config(request, 45, 32);
   if (!request.options || !request.options["grad_clip_norm"]) cfg.grad_clip_norm = 1.0;  // BPTT: avoid blow-ups
-  auto finish = [&request](std::unique_ptr<LstmModel> m) {
-    set_fit_meta(*m, request);
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_lstm(data, shape, seq_len, warmup, cfg).model);
-
-  LstmTrial best = training::tune_and_retrain(
+  return fit_or_tune(
       "lstm", training::lstm_search_space(), request, cfg,
+      [&](training::TrainerConfig c) { return train_lstm(data, shape, seq_len, warmup, c); },
       [&](const training::TrialParams& p, training::TrainerConfig c) {
         LstmShape s = shape;
         s.layers = static_cast<int>(p.number.at("layers"));
         s.hidden = static_cast<int>(p.number.at("hidden"));
         return train_lstm(data, s, seq_len, warmup, with_trial_optimizer(c, p));
       });
-  return finish(std::move(best.model));
 }
 
 }  // namespace piezo::training
