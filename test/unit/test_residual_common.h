@@ -5,8 +5,6 @@
 #include <Eigen/Dense>
 #include <cmath>
 #include <cstdlib>
-#include <cstring>
-#include <map>
 #include <memory>
 #include <random>
 #include <string>
@@ -69,40 +67,13 @@ class LowpassLinearModel : public models::Model {
 };
 
 // A fast physics base for the simulator tests (PI hysteresis + LTI creep); PIEZO_RESIDUAL_BASE=<kind> tries another.
-// Content hash of what a base fit reads (time, every axis' voltage and position, aux columns).
-inline std::uint64_t data_hash(const io::Dataset& d, std::uint64_t h = 1469598103934665603ull) {
-  auto mix = [&h](const std::vector<double>& v) {
-    for (double x : v) {
-      std::uint64_t u;
-      std::memcpy(&u, &x, sizeof u);
-      h = (h ^ u) * 1099511628211ull;
-    }
-    h = (h ^ v.size()) * 1099511628211ull;
-  };
-  mix(d.time_s);
-  for (const char* a : {"a", "b", "c"})
-    if (d.has_axis(a)) mix(d.axis(a).voltage_v), mix(d.axis(a).position_nm);
-  for (const auto& s : d.aux) mix(s.values);
-  return h;
-}
-
-// The base fit of the residual tests. The same data are fitted more than once within a test binary (the base,
-// then the backfitting refits on data the residual left unchanged), so fits are kept per data content: the
-// result is the same model, fitted once.
 inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val) {
-  static std::map<std::uint64_t, models::ModelPtr> cache;
+  training::FitRequest req;
+  req.train = &fit;
+  req.validation = &val;
+  req.axis = "c";
   const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
-  const std::string k = kind ? kind : "pi_creep_lti";
-  const std::uint64_t key = data_hash(val, data_hash(fit, std::hash<std::string>{}(k)));
-  auto it = cache.find(key);
-  if (it == cache.end()) {
-    training::FitRequest req;
-    req.train = &fit;
-    req.validation = &val;
-    req.axis = "c";
-    it = cache.emplace(key, training::fit_model(k, req)).first;
-  }
-  return it->second->clone();
+  return training::fit_model(kind ? kind : "pi_creep_lti", req);
 }
 
 inline void register_test_kind() {
