@@ -4,6 +4,7 @@
 // Set PIEZO_STAGE_MATRIX_FULL=1 for the MM3E stages' full 7.5 h (the default run uses 2 h to stay fast).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <map>
@@ -21,17 +22,29 @@ const char* kStages[] = {"lowvolt", "stack150", "mm3e"};
 const char* kPhysics[] = {"pi", "pi_creep", "preisach", "preisach_creep"};
 const std::vector<std::string> kNeural = {"dense", "lstm", "kan"};
 
-// Cells known to fail the 10 % criterion today, with the reason (docs/models.md); every other cell must pass.
+// The neural kinds train for a fixed number of optimiser steps (deterministic for the seed): their cells are
+// reproducible and asserted like the others.
+constexpr int kNeuralSteps = 800;
+
+// Cells known to fail the 10 % criterion, with the measured figure and the reason (docs/models.md); every other
+// cell must pass, and a listed cell that passes is reported.
 const std::map<std::string, std::string> kKnownFailing = {
-    {"lowvolt_pi/pi_creep_lti", "cancelling creep weights (-1.9e5 nm/V over a 3.6 V span, 15x the range), refused by the gate"},
+    {"lowvolt_pi/pi_creep_lti", "refused by the gate: cancelling creep weights (0.54 % MAE)"},
+    // The neural kinds read the measured position history (study features: D(t-0.9 s), its 0.9-s mean), are
+    // trained one-step and kept at their best one-step validation epoch; run free, their own errors feed back.
+    {"lowvolt_pi/dense", "19.0 % free-run (one-step training, position-history features)"},
+    {"lowvolt_pi_creep/dense", "21.3 % free-run (one-step training, position-history features)"},
+    {"lowvolt_preisach_creep/lstm", "14.1 % free-run (one-step training, position-history features)"},
+    {"mm3e_pi/dense", "60.6 %, refused (free-run drift of the position-history features)"},
+    {"mm3e_pi_creep/dense", "68.3 %, refused (free-run drift of the position-history features)"},
+    {"mm3e_pi_creep/kan", "101 %, refused (free-run drift of the position-history features)"},
+    {"mm3e_preisach/dense", "60.8 %, refused (free-run drift of the position-history features)"},
+    {"mm3e_preisach_creep/dense", "55.3 %, refused (free-run drift of the position-history features)"},
+    {"mm3e_preisach_creep/kan", "107 %, refused (free-run drift of the position-history features)"},
+    // auto's candidates are linear, pi and pi_creep_*: on the low-voltage Preisach stages a neural kind is better.
+    {"lowvolt_preisach/auto", "auto 730 nm (linear), lstm 471 nm"},
+    {"lowvolt_preisach_creep/auto", "auto 856 nm (pi_creep_log), kan 480 nm"},
 };
-// The neural kinds train under a wall-time budget here (3 s), so their cells depend on the machine's load: they are
-// printed (docs/models.md) but not asserted. Every PI-family and linear cell and `auto` are asserted.
-bool is_neural(const std::string& label) {
-  for (const auto& k : kNeural)
-    if (label.rfind(k, 0) == 0) return true;
-  return false;
-}
 
 }  // namespace
 
@@ -56,7 +69,8 @@ TEST(StageMatrix, EveryKindHoldsOnEveryStage) {
       const io::Dataset train = all.slice(0, cut), val = all.slice(cut, all.size());
       analysis::SelectionRequest rq = analysis::selection_request(train, &val, all, cut, "c");
       rq.candidates = analysis::default_candidates(kNeural);
-      rq.time_budget_s = 3.0;  // the neural kinds: small budgets keep the matrix fast
+      for (auto& c : rq.candidates)
+        if (std::count(kNeural.begin(), kNeural.end(), c.kind)) c.options = YAML::Load("{steps: " + std::to_string(kNeuralSteps) + ", patience: 0}");
       rq.seed = 3;
       analysis::Selection sel;
       try {
@@ -87,15 +101,14 @@ TEST(StageMatrix, EveryKindHoldsOnEveryStage) {
           std::snprintf(buf, sizeof buf, " **refused** |");
         md += buf;
         if (r.refused.empty()) {
-          if (!is_neural(r.candidate.label)) best_all = std::min(best_all, mae);
+          best_all = std::min(best_all, mae);
           if (k < n_default) best_auto = std::min(best_auto, mae);
         }
-        if (!ok && !kKnownFailing.count(cell) && !is_neural(r.candidate.label)) ADD_FAILURE() << cell << ": " << (r.refused.empty() ? "free-run MAE " + std::to_string(mae) + " nm ≥ 10 % of " + std::to_string(range) + " nm" : r.refused);
+        if (!ok && !kKnownFailing.count(cell)) ADD_FAILURE() << cell << ": " << (r.refused.empty() ? "free-run MAE " + std::to_string(mae) + " nm ≥ 10 % of " + std::to_string(range) + " nm" : r.refused);
       }
       std::snprintf(buf, sizeof buf, " %.4g (%.2f %%) |\n", best_auto, 100.0 * best_auto / range);
       md += buf;
-      // auto (linear on lasso features, pi, pi_creep_*) within 10 % of the best deterministic kind (neural kinds are
-      // time-budgeted, see is_neural; their figures are in the printed table).
+      // auto (linear on lasso features, pi, pi_creep_*) within 10 % of the best kind, neural ones included.
       const std::string cell = name + "/auto";
       if (!(best_auto <= 1.10 * best_all)) {
         failing.insert(cell);
@@ -103,9 +116,8 @@ TEST(StageMatrix, EveryKindHoldsOnEveryStage) {
           ADD_FAILURE() << cell << ": auto " << best_auto << " nm, best kind " << best_all << " nm";
       }
     }
-  // The neural kinds train under a time budget, so a known failure may pass on a faster machine: say so.
   for (const auto& [cell, why] : kKnownFailing)
     if (!failing.count(cell)) std::printf("%s now passes (listed as failing: %s)\n", cell.c_str(), why.c_str());
-  std::printf("\nFree-run validation MAE [nm] (%% of the position range) per kind and stage%s:\n\n%s\n",
-              full ? "" : " (MM3E stages: 2 h)", md.c_str());
+  std::printf("\nFree-run validation MAE [nm] (%% of the position range) per kind and stage%s; neural kinds: %d "
+              "optimiser steps, seed 3:\n\n%s\n", full ? "" : " (MM3E stages: 2 h)", kNeuralSteps, md.c_str());
 }

@@ -114,6 +114,29 @@ TEST(Trainer, EarlyStoppingTriggersAndKeepsTheBestEpoch) {
   EXPECT_FALSE(all.stopped_early);
 }
 
+TEST(Trainer, StepBudgetStopsMidEpochAndIsDeterministic) {
+  // 1000 samples in batches of 64: 16 steps per epoch, so a budget of 40 steps ends inside epoch 3.
+  const LinearObjective train_obj(1000, 0.1, 5, Eigen::Vector2d(1.0, -1.0)), val_obj(200, 0.1, 6, Eigen::Vector2d(1.0, -1.0));
+  TrainerConfig cfg;
+  cfg.epochs = 1000;
+  cfg.batch_size = 64;
+  cfg.patience = 0;
+  cfg.max_steps = 40;
+  const TrainResult a = train(train_obj, &val_obj, Eigen::VectorXd::Zero(2), cfg);
+  EXPECT_TRUE(a.hit_step_budget);
+  EXPECT_EQ(a.steps, 40);
+  EXPECT_EQ(a.epochs_run, 3);
+  EXPECT_EQ(a.validation_mse.size(), 3u);  // the partial epoch is validated too
+  cfg.threads = 1;
+  const TrainResult b = train(train_obj, &val_obj, Eigen::VectorXd::Zero(2), cfg);
+  EXPECT_EQ(a.params, b.params);
+  cfg.max_steps = 0;
+  cfg.epochs = 2;
+  const TrainResult c = train(train_obj, &val_obj, Eigen::VectorXd::Zero(2), cfg);
+  EXPECT_FALSE(c.hit_step_budget);
+  EXPECT_EQ(c.steps, 32);
+}
+
 TEST(Trainer, RejectsBadConfigAndDivergence) {
   const LinearObjective obj(100, 0.1, 3, Eigen::Vector2d(1.0, 1.0));
   TrainerConfig cfg;

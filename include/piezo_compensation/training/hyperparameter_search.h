@@ -70,6 +70,13 @@ std::vector<ParamDef> dense_search_space();
 std::vector<ParamDef> lstm_search_space();
 std::vector<ParamDef> kan_search_space();
 
+// `cfg` with the trial's optimiser (when the space has one) and learning rate.
+inline TrainerConfig with_trial_optimizer(TrainerConfig cfg, const TrialParams& p) {
+  if (p.choice.count("optimizer")) cfg.optimizer.kind = parse_optimizer(p.choice.at("optimizer"));
+  cfg.optimizer.learning_rate = p.number.at("learning_rate");
+  return cfg;
+}
+
 // The neural kinds' tuning: TPE over `space` with trials of `tune_epochs` (option; default the full epochs),
 // then the winner retrained with the full `cfg.epochs` while time is left, keeping the better of the two.
 // `train(params, config)` applies the trial's shape and optimiser from `params` and trains with `config`, whose
@@ -114,6 +121,17 @@ auto tune_and_retrain(const std::string& kind, const std::vector<ParamDef>& spac
   best.model->training_info["tuning"]["trials"] = static_cast<int>(search.trials.size());
   best.model->training_info["tuning"]["best"] = search.best_trial().params.to_string();
   return best;
+}
+
+// A neural kind's fit: one run of `train_default(cfg)`, or with request.tune_trials > 0 tune_and_retrain with
+// `train_trial`; the model's meta is set from the request. Returns the model.
+template <typename TrainDefault, typename TrainTrial>
+auto fit_or_tune(const std::string& kind, const std::vector<ParamDef>& space, const FitRequest& request,
+                 const TrainerConfig& cfg, TrainDefault&& train_default, TrainTrial&& train_trial) {
+  auto model = request.tune_trials <= 0 ? train_default(cfg).model
+                                        : tune_and_retrain(kind, space, request, cfg, train_trial).model;
+  set_fit_meta(*model, request);
+  return model;
 }
 
 }  // namespace piezo::training

@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <functional>
 #include <limits>
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -70,7 +71,8 @@ struct TrainerConfig {
   double min_rel_improvement = 1e-4;  // a validation loss counts as better below best * (1 - this)
   std::uint64_t seed = 1;
   int threads = 2;
-  double time_budget_s = 0.0;    // >0: stop after the epoch that exceeds it
+  double time_budget_s = 0.0;    // >0: stop after the epoch that exceeds it (depends on the machine's load)
+  long max_steps = 0;            // >0: stop after this many optimiser steps (a budget that is deterministic)
   double grad_clip_norm = 0.0;   // >0: scale the mini-batch gradient down to this norm
   ProgressFn progress;   // called per epoch: (epoch, epochs, "epoch")
   // Called after each epoch; may change params (KAN grid update). Return true when it did: the optimiser
@@ -86,6 +88,8 @@ struct TrainResult {
   int best_epoch = 0;
   bool stopped_early = false;
   bool hit_time_budget = false;
+  bool hit_step_budget = false;
+  long steps = 0;                 // optimiser steps taken
   double seconds = 0.0;
   std::vector<double> train_mse, validation_mse;  // per epoch
 };
@@ -125,7 +129,8 @@ struct PreparedData {
   Eigen::MatrixXd x_train, x_validation;   // features × samples
   Eigen::VectorXd y_train, y_validation;   // standardised positions
 };
-PreparedData prepare_data(const FitRequest& request);
+// The request's options are checked first: the common neural keys plus the kind's `own_keys`.
+PreparedData prepare_data(const FitRequest& request, const std::string& kind, const std::vector<std::string>& own_keys);
 
 // Trainer settings from the request and its options (optimizer, learning_rate, epochs, batch_size, patience).
 TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int default_batch_size);
@@ -136,6 +141,23 @@ TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int 
 YAML::Node record_training(models::Model& m, const TrainerConfig& cfg, const TrainResult& r, double target_scale_nm,
                            const std::string& batch_key,
                            const std::vector<std::pair<std::string, YAML::Node>>& extra = {});
+// One trained network of a neural kind and its validation loss: what tune_and_retrain compares.
+template <typename M>
+struct NeuralTrial {
+  std::unique_ptr<M> model;
+  double validation_mse = std::numeric_limits<double>::infinity();
+};
+// The trial of a finished training run, its training_info recorded (record_training's arguments).
+template <typename M>
+NeuralTrial<M> make_trial(std::unique_ptr<M> model, const TrainerConfig& cfg, const TrainResult& r,
+                          double target_scale_nm, const std::string& batch_key,
+                          const std::vector<std::pair<std::string, YAML::Node>>& extra = {}) {
+  NeuralTrial<M> t;
+  t.validation_mse = r.best_validation_mse;
+  t.model = std::move(model);
+  t.model->training_info = record_training(*t.model, cfg, r, target_scale_nm, batch_key, extra);
+  return t;
+}
 // m.meta from the request (make_meta), keeping the validation figures the fit stored.
 void set_fit_meta(models::Model& m, const FitRequest& request);
 

@@ -136,6 +136,7 @@ std::string sanity_problem(const models::Model& model, const ValidationScore* sc
   const double size_nm = std::max(range, 1e-9) + scale.position_abs_max_nm;
   for_each_number(model.to_yaml(), "model", "", [&](const std::string& path, const std::string& key, double v) {
     if (!problem.empty()) return;
+    if (path.rfind("model.training.", 0) == 0) return;  // figures of the training run, not parameters
     if (!std::isfinite(v)) {
       problem = who + "parameter " + path + " is not finite; likely cause: a numerically unstable fit";
     } else if (ends_with(key, "_nm") && !ends_with(key, "_per_nm") && std::fabs(v) > 10.0 * size_nm) {

@@ -160,18 +160,15 @@ YAML::Node DenseModel::to_yaml() const {
 
 std::unique_ptr<DenseModel> DenseModel::from_yaml(const YAML::Node& node) {
   const NeuralFileHeader header = read_neural_file_header(node, "dense", {"depth", "width", "leaky_slope"});
-  const double rate = header.sample_rate_hz;
-  const features::FeatureSpec& spec = header.spec;
-  const TargetScale& target = header.target;
   const YAML::Node h = header.hyperparameters;
   DenseShape shape;
-  shape.inputs = static_cast<int>(spec.size());
+  shape.inputs = static_cast<int>(header.spec.size());
   shape.depth = yaml_int(h, "depth", 0, 16, "model.hyperparameters");
   shape.width = yaml_int(h, "width", 1, 256, "model.hyperparameters");
   shape.leaky_slope = yaml_number(h, "leaky_slope", "model.hyperparameters");
   const DenseNet net(shape);
   const std::vector<double> w = yaml_numbers(node, "weights", static_cast<long>(net.num_params()));
-  auto m = std::make_unique<DenseModel>(spec, rate, shape, Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())), target);
+  auto m = std::make_unique<DenseModel>(header.spec, header.sample_rate_hz, shape, Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())), header.target);
   if (node["training"]) m->training_info = node["training"];
   return m;
 }

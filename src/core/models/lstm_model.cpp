@@ -219,20 +219,17 @@ YAML::Node LstmModel::to_yaml() const {
 
 std::unique_ptr<LstmModel> LstmModel::from_yaml(const YAML::Node& node) {
   const NeuralFileHeader header = read_neural_file_header(node, "lstm", {"layers", "hidden", "warmup"});
-  const double rate = header.sample_rate_hz;
-  const features::FeatureSpec& spec = header.spec;
-  const TargetScale& target = header.target;
   const YAML::Node h = header.hyperparameters;
   LstmShape shape;
-  shape.inputs = static_cast<int>(spec.size());
+  shape.inputs = static_cast<int>(header.spec.size());
   shape.layers = yaml_int(h, "layers", 1, 8, "model.hyperparameters");
   shape.hidden = yaml_int(h, "hidden", 1, 256, "model.hyperparameters");
   const int warmup = yaml_int(h, "warmup", 0, 100000, "model.hyperparameters");
   const LstmNet net(shape);
   const std::vector<double> w = yaml_numbers(node, "weights", static_cast<long>(net.num_params()));
-  auto m = std::make_unique<LstmModel>(spec, rate, shape,
+  auto m = std::make_unique<LstmModel>(header.spec, header.sample_rate_hz, shape,
                                        Eigen::Map<const Eigen::VectorXd>(w.data(), static_cast<Eigen::Index>(w.size())),
-                                       target, warmup);
+                                       header.target, warmup);
   if (node["training"]) m->training_info = node["training"];
   return m;
 }

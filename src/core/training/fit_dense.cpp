@@ -16,53 +16,36 @@ using DenseObjective = ColumnObjective<DenseNet>;
 
 namespace {
 
-struct DenseTrial {
-  std::unique_ptr<DenseModel> model;
-  double validation_mse = std::numeric_limits<double>::infinity();
-};
+using DenseTrial = NeuralTrial<DenseModel>;
 
 DenseTrial train_dense(const training::PreparedData& data, const DenseShape& shape, training::TrainerConfig cfg) {
   const DenseNet net(shape);
   const DenseObjective train_obj(net, data.x_train, data.y_train);
   const DenseObjective val_obj(net, data.x_validation, data.y_validation);
   const training::TrainResult r = training::train(train_obj, &val_obj, net.initial_params(cfg.seed), cfg);
-  DenseTrial t;
-  t.validation_mse = r.best_validation_mse;
-  t.model = std::make_unique<DenseModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target);
-  t.model->training_info = record_training(*t.model, cfg, r, data.target.scale_nm, "batch_size");
-  return t;
+  return make_trial(std::make_unique<DenseModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target), cfg, r,
+                    data.target.scale_nm, "batch_size");
 }
 
 }  // namespace
 
 std::unique_ptr<models::DenseModel> fit_dense(const FitRequest& request) {
-  std::vector<std::string> keys = training::common_neural_option_keys();
-  for (const char* k : {"depth", "width", "leaky_slope"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) check_keys(request.options, keys, "dense options");
-  const training::PreparedData data = training::prepare_data(request);
+  const training::PreparedData data = training::prepare_data(request, "dense", {"depth", "width", "leaky_slope"});
   DenseShape shape;
   shape.inputs = static_cast<int>(data.spec.size());
   shape.depth = training::option_int(request.options, "depth", 1);
   shape.width = training::option_int(request.options, "width", 10);
   shape.leaky_slope = training::option_num(request.options, "leaky_slope", 0.01);
   training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
-  auto finish = [&request](std::unique_ptr<DenseModel> m) {
-    set_fit_meta(*m, request);
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_dense(data, shape, cfg).model);
-
-  DenseTrial best = training::tune_and_retrain(
+  return fit_or_tune(
       "dense", training::dense_search_space(), request, cfg,
+      [&](training::TrainerConfig c) { return train_dense(data, shape, c); },
       [&](const training::TrialParams& p, training::TrainerConfig c) {
         DenseShape s = shape;
         s.depth = static_cast<int>(p.number.at("depth"));
         s.width = static_cast<int>(p.number.at("width"));
-        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
-        c.optimizer.learning_rate = p.number.at("learning_rate");
-        return train_dense(data, s, c);
+        return train_dense(data, s, with_trial_optimizer(c, p));
       });
-  return finish(std::move(best.model));
 }
 
 }  // namespace piezo::training

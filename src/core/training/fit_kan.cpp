@@ -16,10 +16,7 @@ using KanObjective = ColumnObjective<KanNet>;
 
 namespace {
 
-struct KanTrial {
-  std::unique_ptr<KanModel> model;
-  double validation_mse = std::numeric_limits<double>::infinity();
-};
+using KanTrial = NeuralTrial<KanModel>;
 
 KanTrial train_kan(const training::PreparedData& data, const KanShape& shape, int grid_updates,
                    training::TrainerConfig cfg) {
@@ -35,21 +32,14 @@ KanTrial train_kan(const training::PreparedData& data, const KanShape& shape, in
     return true;
   };
   const training::TrainResult r = training::train(train_obj, &val_obj, init, cfg);
-  KanTrial t;
-  t.validation_mse = r.best_validation_mse;
-  t.model = std::make_unique<KanModel>(data.spec, data.sample_rate_hz, net, r.params, data.target);
-  t.model->training_info =
-      record_training(*t.model, cfg, r, data.target.scale_nm, "batch_size", {{"grid_updates", YAML::Node(grid_updates)}});
-  return t;
+  return make_trial(std::make_unique<KanModel>(data.spec, data.sample_rate_hz, net, r.params, data.target), cfg, r,
+                    data.target.scale_nm, "batch_size", {{"grid_updates", YAML::Node(grid_updates)}});
 }
 
 }  // namespace
 
 std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request) {
-  std::vector<std::string> keys = training::common_neural_option_keys();
-  for (const char* k : {"width", "hidden_layers", "grid", "order", "grid_updates"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) check_keys(request.options, keys, "kan options");
-  const training::PreparedData data = training::prepare_data(request);
+  const training::PreparedData data = training::prepare_data(request, "kan", {"width", "hidden_layers", "grid", "order", "grid_updates"});
   const int width = training::option_int(request.options, "width", 4);
   const int hidden_layers = training::option_int(request.options, "hidden_layers", 1);
   if (hidden_layers < 0 || hidden_layers > 4) throw std::runtime_error("option 'hidden_layers' must be in 0..4");
@@ -67,27 +57,21 @@ std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request) {
   const int grid_updates = training::option_int(request.options, "grid_updates", 3);
   training::TrainerConfig cfg = training::trainer_config(request, 50, 256);
   if (!request.options || !request.options["learning_rate"]) cfg.optimizer.learning_rate = 3e-3;
-  auto finish = [&request](std::unique_ptr<KanModel> m) {
-    set_fit_meta(*m, request);
-    // The interpretable form travels with the model file (one line per edge).
-    YAML::Node lines(YAML::NodeType::Sequence);
-    std::istringstream text(m->formulas());
-    for (std::string line; std::getline(text, line);)
-      if (line.find_first_not_of(' ') != std::string::npos) lines.push_back(line.substr(line.find_first_not_of(' ')));
-    m->training_info["formulas"] = lines;
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_kan(data, shape, grid_updates, cfg).model);
-
-  KanTrial best = training::tune_and_retrain(
+  auto m = fit_or_tune(
       "kan", training::kan_search_space(), request, cfg,
+      [&](training::TrainerConfig c) { return train_kan(data, shape, grid_updates, c); },
       [&](const training::TrialParams& p, training::TrainerConfig c) {
         const KanShape s = shape_for(static_cast<int>(p.number.at("width")), static_cast<int>(p.number.at("grid")),
                                      static_cast<int>(p.number.at("order")));
-        c.optimizer.learning_rate = p.number.at("learning_rate");
-        return train_kan(data, s, grid_updates, c);
+        return train_kan(data, s, grid_updates, with_trial_optimizer(c, p));
       });
-  return finish(std::move(best.model));
+  // The interpretable form travels with the model file (one line per edge).
+  YAML::Node lines(YAML::NodeType::Sequence);
+  std::istringstream text(m->formulas());
+  for (std::string line; std::getline(text, line);)
+    if (line.find_first_not_of(' ') != std::string::npos) lines.push_back(line.substr(line.find_first_not_of(' ')));
+  m->training_info["formulas"] = lines;
+  return m;
 }
 
 }  // namespace piezo::training

@@ -59,10 +59,7 @@ double LstmObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t*
 
 namespace {
 
-struct LstmTrial {
-  std::unique_ptr<LstmModel> model;
-  double validation_mse = std::numeric_limits<double>::infinity();
-};
+using LstmTrial = NeuralTrial<LstmModel>;
 
 LstmTrial train_lstm(const training::PreparedData& data, const LstmShape& shape, int seq_len, int warmup,
                      training::TrainerConfig cfg) {
@@ -71,21 +68,14 @@ LstmTrial train_lstm(const training::PreparedData& data, const LstmShape& shape,
   const LstmObjective val_obj(net, data.x_validation, data.y_validation, seq_len, warmup);
   if (train_obj.num_units() == 0) throw std::runtime_error("lstm: training data shorter than warmup + seq_len");
   const training::TrainResult r = training::train(train_obj, &val_obj, net.initial_params(cfg.seed), cfg);
-  LstmTrial t;
-  t.validation_mse = r.best_validation_mse;
-  t.model = std::make_unique<LstmModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target, warmup);
-  t.model->training_info =
-      record_training(*t.model, cfg, r, data.target.scale_nm, "batch_size_sequences", {{"seq_len", YAML::Node(seq_len)}});
-  return t;
+  return make_trial(std::make_unique<LstmModel>(data.spec, data.sample_rate_hz, shape, r.params, data.target, warmup),
+                    cfg, r, data.target.scale_nm, "batch_size_sequences", {{"seq_len", YAML::Node(seq_len)}});
 }
 
 }  // namespace
 
 std::unique_ptr<models::LstmModel> fit_lstm(const FitRequest& request) {
-  std::vector<std::string> keys = training::common_neural_option_keys();
-  for (const char* k : {"layers", "hidden", "seq_len", "warmup"}) keys.emplace_back(k);
-  if (request.options && request.options.IsMap()) check_keys(request.options, keys, "lstm options");
-  const training::PreparedData data = training::prepare_data(request);
+  const training::PreparedData data = training::prepare_data(request, "lstm", {"layers", "hidden", "seq_len", "warmup"});
   LstmShape shape;
   shape.inputs = static_cast<int>(data.spec.size());
   shape.layers = training::option_int(request.options, "layers", 1);
@@ -94,23 +84,15 @@ std::unique_ptr<models::LstmModel> fit_lstm(const FitRequest& request) {
   const int warmup = training::option_int(request.options, "warmup", 16);
   training::TrainerConfig cfg = training::trainer_config(request, 45, 32);
   if (!request.options || !request.options["grad_clip_norm"]) cfg.grad_clip_norm = 1.0;  // BPTT: avoid blow-ups
-  auto finish = [&request](std::unique_ptr<LstmModel> m) {
-    set_fit_meta(*m, request);
-    return m;
-  };
-  if (request.tune_trials <= 0) return finish(train_lstm(data, shape, seq_len, warmup, cfg).model);
-
-  LstmTrial best = training::tune_and_retrain(
+  return fit_or_tune(
       "lstm", training::lstm_search_space(), request, cfg,
+      [&](training::TrainerConfig c) { return train_lstm(data, shape, seq_len, warmup, c); },
       [&](const training::TrialParams& p, training::TrainerConfig c) {
         LstmShape s = shape;
         s.layers = static_cast<int>(p.number.at("layers"));
         s.hidden = static_cast<int>(p.number.at("hidden"));
-        c.optimizer.kind = training::parse_optimizer(p.choice.at("optimizer"));
-        c.optimizer.learning_rate = p.number.at("learning_rate");
-        return train_lstm(data, s, seq_len, warmup, c);
+        return train_lstm(data, s, seq_len, warmup, with_trial_optimizer(c, p));
       });
-  return finish(std::move(best.model));
 }
 
 }  // namespace piezo::training

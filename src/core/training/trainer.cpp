@@ -1,5 +1,7 @@
 #include "piezo_compensation/training/trainer.h"
 
+#include "piezo_compensation/models/yaml_fields.h"
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -109,6 +111,11 @@ TrainResult train(const Objective& objective, const Objective* validation, const
         if (norm > config.grad_clip_norm) grad *= config.grad_clip_norm / norm;
       }
       opt.step(params, grad);
+      ++result.steps;
+      if (config.max_steps > 0 && result.steps >= config.max_steps) {
+        result.hit_step_budget = true;
+        break;
+      }
       if (config.time_budget_s > 0.0 && (++batches % 64) == 0 && seconds_since(t0) > config.time_budget_s) {
         result.hit_time_budget = true;
         break;
@@ -150,7 +157,7 @@ TrainResult train(const Objective& objective, const Objective* validation, const
       result.best_epoch = epoch;
     }
     if (config.progress) config.progress(epoch, config.epochs, "epoch");
-    if (result.hit_time_budget) break;
+    if (result.hit_time_budget || result.hit_step_budget) break;
     if (config.time_budget_s > 0.0 && seconds_since(t0) > config.time_budget_s) {
       result.hit_time_budget = true;
       break;
@@ -234,7 +241,10 @@ SplitData split_for_validation(const FitRequest& request, double fraction) {
 
 namespace piezo::training {
 
-PreparedData prepare_data(const FitRequest& request) {
+PreparedData prepare_data(const FitRequest& request, const std::string& kind, const std::vector<std::string>& own_keys) {
+  std::vector<std::string> keys = common_neural_option_keys();
+  keys.insert(keys.end(), own_keys.begin(), own_keys.end());
+  if (request.options && request.options.IsMap()) models::check_keys(request.options, keys, kind + " options");
   const double fraction = option_num(request.options, "validation_fraction", 0.1);
   if (!(fraction > 0.0 && fraction < 0.9)) throw std::runtime_error("option 'validation_fraction' must be in (0, 0.9)");
   const SplitData split = split_for_validation(request, fraction);
@@ -262,7 +272,11 @@ TrainerConfig trainer_config(const FitRequest& request, int default_epochs, int 
   c.optimizer.kind = parse_optimizer(option_str(request.options, "optimizer", "adam"));
   c.optimizer.learning_rate = option_num(request.options, "learning_rate", 1e-3);
   if (!(c.optimizer.learning_rate > 0.0)) throw std::runtime_error("option 'learning_rate' must be positive");
-  c.epochs = option_int(request.options, "epochs", default_epochs);
+  c.max_steps = option_int(request.options, "steps", 0);
+  if (c.max_steps < 0) throw std::runtime_error("option 'steps' must be ≥ 0 (0: no step budget)");
+  // A step budget alone: as many epochs as it takes (the data's size sets the steps per epoch, not the budget).
+  const bool epochs_given = request.options && request.options.IsMap() && request.options["epochs"];
+  c.epochs = option_int(request.options, "epochs", c.max_steps > 0 && !epochs_given ? 1000000 : default_epochs);
   if (c.epochs < 1) throw std::runtime_error("option 'epochs' must be at least 1");
   c.batch_size = option_int(request.options, "batch_size", default_batch_size);
   if (c.batch_size < 1) throw std::runtime_error("option 'batch_size' must be at least 1");
@@ -286,6 +300,7 @@ YAML::Node record_training(models::Model& m, const TrainerConfig& cfg, const Tra
   info["epochs_run"] = r.epochs_run;
   info["best_epoch"] = r.best_epoch;
   info["stopped_early"] = r.stopped_early;
+  if (cfg.max_steps > 0) info["steps"] = static_cast<long long>(r.steps);
   info["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * target_scale_nm;
   info["train_seconds"] = r.seconds;
   m.meta.validation["validation_rmse_nm"] = std::sqrt(r.best_validation_mse) * target_scale_nm;
@@ -300,7 +315,7 @@ void set_fit_meta(models::Model& m, const FitRequest& request) {
 
 std::vector<std::string> common_neural_option_keys() {
   return {"features", "optimizer", "learning_rate", "epochs", "batch_size", "patience", "grad_clip_norm",
-          "validation_fraction", "tune_epochs"};
+          "validation_fraction", "tune_epochs", "steps"};
 }
 
 }  // namespace piezo::training
