@@ -33,7 +33,7 @@ models::ModelPtr fit_linear(const FitRequest& req);
 // start values), t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s (clamped
 // to [2 samples, training duration]), creep_input (auto|voltage|hysteresis), hold_weight (auto|off|factor),
 // min_slope_fraction. Kinds pi, pi_creep_log, pi_creep_lti, pi_creep_fractional, pi_creep_prony.
-models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind);
+models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, bool preisach = false);
 
 // Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]
 // (Lawson–Hanson active set). G must be positive definite on the free set.
