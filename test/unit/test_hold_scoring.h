@@ -29,7 +29,7 @@ io::Dataset slice(const io::Dataset& d, std::size_t b, std::size_t e) {
 struct HoldScore {
   double mae_nm = 0, worst_end_nm = 0;
   int holds = 0;
-  std::vector<double> start_nm, end_nm;  // per hold: signed mean error of its first and last 5 s
+  std::vector<double> start_nm, end_nm, voltage_v;  // per hold: signed mean error of its first and last 5 s, voltage
 };
 
 // Free-run over all of `d` from rest at its first voltage; scored against the true position inside the holds of
@@ -61,6 +61,7 @@ HoldScore score_holds(const models::Model& fitted, const io::Dataset& d, std::si
     for (std::size_t k = b; k < b + last; ++k) e0 += err[k];
     s.worst_end_nm = std::max(s.worst_end_nm, std::abs(e / last));
     s.start_nm.push_back(e0 / last);
+    s.voltage_v.push_back(ax.voltage_v[t]);
     s.end_nm.push_back(e / last);
     ++s.holds;
   }

@@ -696,6 +696,24 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
     if (keep) m = std::move(mw), used_factor = factor;
   }
 
+  // With everything chosen, the final weights from the training and validation parts together (they are one
+  // recording in time): slow creep modes are identified from hours, and the validation part is hours more. Only
+  // for the kinds linear in their parameters (no creep law search that the validation part no longer checks).
+  const bool linear_kind = kind == CreepKind::kNone || kind == CreepKind::kProny;
+  const bool refit = val && option_str(o, "refit_with_validation", linear_kind ? "true" : "false") != "false";
+  std::vector<double> all_v, all_y, all_w;
+  if (refit) {
+    all_v = ax.voltage_v, all_y = ax.position_nm;
+    all_v.insert(all_v.end(), val->voltage_v.begin(), val->voltage_v.end());
+    all_y.insert(all_y.end(), val->position_nm.begin(), val->position_nm.end());
+    for (std::size_t t = 0; t < all_v.size(); ++t) {
+      const bool hold = t < train_hold.size() ? train_hold[t] : val_hold[t - train_hold.size()];
+      all_w.push_back(hold ? used_factor : 1.0);
+    }
+    d.v = &all_v, d.y = &all_y;
+    m = fit_with(r, m->creep().on_hysteresis, used_factor > 1.0 ? &all_w : nullptr);
+  }
+
   m->meta = make_meta(req);
   m->meta.validation["fit_hold_weight"] = used_factor;
   m->meta.validation["fit_play_operators"] = static_cast<double>(r.r.size());
