@@ -41,9 +41,16 @@ TEST(PronyCreep, HoldsWithinFiveNanometresWithAnIndependentCreepSpectrum) {
             << " nm over " << s.holds << " holds\n";
   EXPECT_EQ(s.holds, 3);
   EXPECT_LE(s.mae_nm, 5.0);
-  // Issue 12 asks ≤ 5 nm at every end of hold; measured 5.01 nm here (seed not tuned), so the bound is 6 nm and
-  // the miss is reported in docs/models.md rather than hidden by another seed.
-  EXPECT_LE(s.worst_end_nm, 6.0);
+  // Issue 12: ≤ 5 nm at every end of hold (measured 2.60 nm since the final refit on train + validation; 5.01 nm
+  // before it).
+  EXPECT_LE(s.worst_end_nm, 5.0);
+  // PI hysteresis is a special case of the preisach kind: it must do no worse here (5 % slack on the worst end).
+  auto pre = training::fit_model("preisach_creep_prony", req);
+  const HoldScore sp = score_holds(*pre, d, n_val, rate);
+  std::cout << "preisach_creep_prony: test-hold MAE vs truth " << sp.mae_nm << " nm, worst end-of-hold "
+            << sp.worst_end_nm << " nm\n";
+  EXPECT_LE(sp.mae_nm, s.mae_nm);
+  EXPECT_LE(sp.worst_end_nm, std::min(5.0, 1.05 * s.worst_end_nm));
   // Identifiable modes only: none faster than two samples, none slower than the training record.
   const auto& pm = dynamic_cast<const PiCreepModel&>(*prony);
   for (double tau : pm.mode_taus_s()) {
@@ -72,17 +79,20 @@ TEST(PronyCreep, ShortLowVoltageRecordingGivesSaneParametersForEveryPiKind) {
   const io::AxisSeries& ax = all.axis("c");
   const auto [pmn, pmx] = std::minmax_element(ax.position_nm.begin(), ax.position_nm.end());
   const auto [vmn, vmx] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
-  for (const char* kind : {"pi", "pi_creep_log", "pi_creep_lti", "pi_creep_fractional", "pi_creep_prony"}) {
+  for (const char* kind :
+       {"pi", "pi_creep_log", "pi_creep_lti", "pi_creep_fractional", "pi_creep_prony", "preisach", "preisach_creep_prony"}) {
     training::FitRequest req;
     req.train = &train;
     req.validation = &val;
     auto m = training::fit_model(kind, req);
     const auto& pm = dynamic_cast<const PiCreepModel&>(*m);
     EXPECT_LT(std::abs(pm.bias_nm()), 2 * (std::abs(*pmn) + std::abs(*pmx))) << kind;
-    double sum_w = 0;
-    for (double w : pm.weights()) sum_w += w;
-    // Σw·span is the hysteretic travel: within a few times the measured travel.
-    EXPECT_LT(sum_w * (*vmx - *vmn), 3 * (*pmx - *pmn)) << kind;
+    // The hysteretic travel (PI: Σw·span; preisach: its output over a full sweep) within a few times the measured one.
+    auto sweep = m->clone();
+    sweep->reset(*vmn, 0.0);
+    const double y_lo = sweep->predict({*vmn, nullptr});
+    EXPECT_LT(std::abs(sweep->predict({*vmx, nullptr}) - y_lo), 3 * (*pmx - *pmn)) << kind;
+    for (double w : pm.weights()) EXPECT_GE(w, 0.0) << kind;
     for (double tau : pm.mode_taus_s()) {
       EXPECT_GE(tau, 2.0 / rate * 0.999) << kind;
       EXPECT_LE(tau, 32.0 * 1.001) << kind;

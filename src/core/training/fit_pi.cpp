@@ -136,10 +136,22 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
 // Least squares on the Gram sums; columns flagged constrained stay ≥ their lower bound (`lower`, 0 where it is
 // shorter). Solved on unit-diagonal (Jacobi-scaled) normal equations with a small ridge, so volts, nanometres and
 // slow near-collinear mode columns do not set the conditioning, and no pair of columns can cancel at huge values.
-EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, const std::vector<double>& lower = {}) {
+// `pairs` (optional): column pairs whose weight difference is penalised by `smoothing` × the mean diagonal of those
+// columns (the preisach pieces of one play: a smooth map of the play output, PI when the data show nothing else).
+EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, const std::vector<double>& lower = {},
+                 const std::vector<std::pair<std::size_t, std::size_t>>& pairs = {}, double smoothing = 0.0) {
   const std::size_t used = constrained.size();
   constrained.resize(static_cast<std::size_t>(g.sx.size()), false);  // initial-state columns are free
   Eigen::MatrixXd G = g.centered_xx();
+  if (smoothing > 0 && !pairs.empty()) {
+    double diag = 0;
+    for (const auto& pr : pairs) diag += G(pr.first, pr.first) + G(pr.second, pr.second);
+    const double lambda = smoothing * diag / (2.0 * pairs.size());
+    for (const auto& pr : pairs) {
+      const auto a = static_cast<Eigen::Index>(pr.first), b = static_cast<Eigen::Index>(pr.second);
+      G(a, a) += lambda, G(b, b) += lambda, G(a, b) -= lambda, G(b, a) -= lambda;
+    }
+  }
   Eigen::VectorXd c = g.centered_xy();
   const Eigen::Index P = G.rows();
   Eigen::VectorXd lo = Eigen::VectorXd::Zero(P);
@@ -188,6 +200,17 @@ struct Basis {
     std::fill(lo.begin(), lo.begin() + static_cast<std::ptrdiff_t>(n0), min_w0);
     return lo;
   }
+  // Neighbouring pieces of each play (the smoothing penalty's pairs).
+  std::vector<std::pair<std::size_t, std::size_t>> neighbours() const {
+    std::vector<std::pair<std::size_t, std::size_t>> out;
+    std::size_t at = 0;
+    for (const auto& k : knots) {
+      for (std::size_t j = 0; j < k.size(); ++j) out.emplace_back(at + j, at + j + 1);
+      at += features::play_piece_count(k.size());
+    }
+    return out;
+  }
+  double smoothing = 0;  // weight of the penalty on neighbouring pieces' differences (solve)
   std::unique_ptr<PiCreepModel> model(const std::vector<double>& w, double b, const CreepParams& cp,
                                       double rate) const {
     return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots);
@@ -242,7 +265,7 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
   }, init_poles(taus, d), d.weight);
   std::vector<bool> constrained(np + nk, signed_creep(cp));
   for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
-  EvalResult res = solve(g, constrained, hb.lower(min_w0));
+  EvalResult res = solve(g, constrained, hb.lower(min_w0), hb.neighbours(), hb.smoothing);
   res.w.assign(res.theta.begin(), res.theta.begin() + np);
   res.theta.erase(res.theta.begin(), res.theta.begin() + np);
   return res;
@@ -311,7 +334,7 @@ EvalResult evaluate_w_given_creep_on_h(const FitData& d, const Basis& hb, const 
     }
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
-  EvalResult res = solve(g, std::vector<bool>(np, true), hb.lower(min_w0));
+  EvalResult res = solve(g, std::vector<bool>(np, true), hb.lower(min_w0), hb.neighbours(), hb.smoothing);
   res.w = res.theta;
   res.theta.clear();
   return res;
@@ -609,8 +632,12 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
     throw std::runtime_error("option 'knots_per_span': expected 1.." + std::to_string(kMaxKnotsPerPlay + 1));
   auto basis_n = [&](std::vector<double> thresholds) {
     const int n = static_cast<int>(thresholds.size());
-    return basis_for(ax.voltage_v, std::move(thresholds), preisach,
-                     knots_option > 0 ? knots_option : std::min(n, 12));
+    Basis b = basis_for(ax.voltage_v, std::move(thresholds), preisach,
+                        knots_option > 0 ? knots_option : std::min(n, 12));
+    // Measured on the PI-hysteresis and Preisach creep-protocol stages (docs/models.md): 0.1 beats 0 on both.
+    b.smoothing = option_num(o, "piece_smoothing", 0.1);
+    if (!(b.smoothing >= 0 && b.smoothing <= 1e6)) throw std::runtime_error("option 'piece_smoothing': expected 0..1e6");
+    return b;
   };
   Basis r;
   double chosen_n = 0;
