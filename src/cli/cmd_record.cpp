@@ -17,6 +17,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "plot_script.h"
 #include "piezo_compensation/analysis/recording_summary.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
@@ -30,11 +31,6 @@ namespace {
 
 std::atomic<bool> g_stop{false};
 extern "C" void on_signal(int) { g_stop = true; }
-
-std::string source_dir() {
-  const char* d = std::getenv("PIEZO_SOURCE_DIR");
-  return d ? d : ".";
-}
 
 // Everything that determines the recording, so a resume regenerates exactly the same samples.
 struct Spec {
@@ -192,8 +188,13 @@ int run(int argc, char** argv) {
     for (const auto& e : args.list("effect")) spec.effects.push_back(e);
     if (args.has("simulator-config")) {
       spec.simulator_config = fs::absolute(args.str("simulator-config")).string();
-    } else if (fs::exists(source_dir() + "/config/simulator.yaml")) {
-      spec.simulator_config = fs::absolute(source_dir() + "/config/simulator.yaml").string();
+    } else {
+      // The package's config/simulator.yaml (source tree or install space, never the current directory);
+      // without it the built-in defaults, which are the same physics.
+      try {
+        spec.simulator_config = find_package_file("config/simulator.yaml").string();
+      } catch (const std::runtime_error&) {
+      }
     }
   }
 

@@ -5,6 +5,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
@@ -19,8 +20,8 @@ std::vector<std::string> split_axes(const std::string& s) {
   std::stringstream ss(s);
   std::string item;
   while (std::getline(ss, item, ',')) {
-    if (item != "a" && item != "b" && item != "c")
-      throw UsageError("simulate: --axes takes a comma-separated subset of a,b,c, got '" + item + "'");
+    if (io::axis_index_or_none(item) < 0)
+      throw UsageError("simulate: --axes takes a comma-separated subset of " + io::axis_names_list() + ", got '" + item + "'");
     for (const auto& x : out)
       if (x == item) throw UsageError("simulate: axis '" + item + "' given twice in --axes");
     out.push_back(item);

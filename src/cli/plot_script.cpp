@@ -10,7 +10,7 @@ namespace piezo::cli {
 
 namespace fs = std::filesystem;
 
-fs::path find_plot_script(const std::string& name) {
+fs::path find_package_file(const std::string& relative) {
   std::vector<fs::path> roots;
   if (const char* src = std::getenv("PIEZO_SOURCE_DIR"); src && *src) roots.emplace_back(src);
   std::error_code ec;
@@ -21,12 +21,14 @@ fs::path find_plot_script(const std::string& name) {
   std::string looked;
   for (const fs::path& root : roots) {
     if (!root.is_absolute()) continue;  // a relative root would depend on the current directory
-    const fs::path p = root / "scripts" / "plotting" / name;
+    const fs::path p = root / relative;
     if (fs::is_regular_file(p, ec)) return p;
     looked += (looked.empty() ? "" : ", ") + p.string();
   }
-  throw std::runtime_error(name + " not found (looked in " + looked + "; set PIEZO_SOURCE_DIR)");
+  throw std::runtime_error(relative + " not found (looked in " + looked + "; set PIEZO_SOURCE_DIR)");
 }
+
+fs::path find_plot_script(const std::string& name) { return find_package_file("scripts/plotting/" + name); }
 
 bool run_plot_script(const std::string& what, const std::string& name, const std::vector<std::string>& args) {
   std::vector<std::string> argv{"/usr/bin/python3"};

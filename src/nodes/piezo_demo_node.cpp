@@ -1,16 +1,23 @@
 // piezo_demo: drives one axis of the simulated manipulator through a demo scenario (scripts/demo), once
-// uncompensated and once compensated, one intent per encoder sample; the scenario and its scoring are
-// compensation::DemoRun (compensation/demo_scenario.h), this node only moves messages.
+// uncompensated and once compensated, one intent per encoder sample; the scenario, the pairing of the device's
+// reports (io/sequence_pairer.h) and the scoring are compensation::DemoRun (compensation/demo_scenario.h), this
+// node only moves messages.
 //   ~scenario "sawtooth" | "creep"; ~axis; ~model_file (the predictor's model: the same ideal line);
 //   ~out_prefix: writes <prefix>.csv (every sample) and <prefix>.json (the metrics);
 //   ~hold_s, ~creep_history_s [s], ~creep_seed, ~creep_scenarios (creep protocol); ~ideal_line_hold_s [s];
-//   ~progress_period_s [s, wall]: a progress line with the ETA this often.
+//   ~progress_period_s [s, wall]: a progress line with the ETA this often;
+//   ~hold_axes, ~hold_axes_v [V]: other axes given one constant intent each at the start (the monitor screenshots);
+//   ~lockstep: the device samples once per command (sim.launch lockstep:=true command_on_sample:=false): the
+//   next intent goes out once the predictor's prediction of the sample is in, so the demo paces the device.
+#include <ros/callback_queue.h>
 #include <ros/ros.h>
 #include <std_srvs/SetBool.h>
 
 #include <cmath>
 #include <fstream>
 #include <optional>
+#include <utility>
+#include <vector>
 
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
@@ -26,7 +33,7 @@ namespace {
 using piezo::compensation::DemoRun;
 
 std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::string& out_prefix,
-                                  double& progress_s) {
+                                  double& progress_s, std::vector<std::pair<std::string, double>>& holds) {
   piezo::params::ParamReader r(pnh);
   const std::string scenario = r.text("scenario", "sawtooth", {"sawtooth", "creep"});
   axis = r.text("axis", "c", {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()});
@@ -44,11 +51,20 @@ std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::
   piezo::compensation::IdealLineOptions o;  // the predictor's defaults (config/predictor.yaml)
   o.hold_s = r.number("ideal_line_hold_s", 60.0, 0.0, 1e6);
   progress_s = r.number("progress_period_s", 10.0, 0.1, 3600.0);
+  const bool lockstep = r.flag("lockstep", false);
+  const auto hold_axes = r.texts("hold_axes", {}, {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()}, 0, 2);
+  const auto hold_v = r.numbers("hold_axes_v", {}, -1000.0, 1000.0, 0, 2);
+  if (hold_v.size() != hold_axes.size())
+    throw std::invalid_argument("parameter " + r.resolved("hold_axes_v") + ": one voltage per ~hold_axes entry");
+  for (std::size_t i = 0; i < hold_axes.size(); ++i) {
+    if (hold_axes[i] == axis) throw std::invalid_argument("parameter " + r.resolved("hold_axes") + ": contains ~axis");
+    holds.emplace_back(hold_axes[i], hold_v[i]);
+  }
   r.warn_unknown(pnh.getNamespace());
   auto model = piezo::predictor::load_model_file(model_file);
   o.sample_rate_hz = model->meta.sample_rate_hz;
   return std::make_unique<DemoRun>(scenario, co, piezo::compensation::ideal_line_from_model(*model, o),
-                                   model->meta.sample_rate_hz);
+                                   model->meta.sample_rate_hz, lockstep);
 }
 
 }  // namespace
@@ -59,10 +75,12 @@ int main(int argc, char** argv) {
   try {
     std::string axis, out_prefix;
     double progress_s = 10.0;
-    auto run = make_run(pnh, axis, out_prefix, progress_s);
+    std::vector<std::pair<std::string, double>> holds;
+    auto run = make_run(pnh, axis, out_prefix, progress_s, holds);
     const char* name = run->scenario().c_str();
-    ROS_INFO("demo %s: %zu samples (%.0f s simulated per mode), ideal line %.4f nm/V + %.2f nm", name, run->steps(),
-             run->steps() / 2.0 / run->rate_hz(), run->line().gain_nm_per_v, run->line().offset_nm);
+    ROS_INFO("demo %s: %zu samples (%.0f s simulated per mode), ideal line %.4f nm/V + %.2f nm%s", name, run->steps(),
+             run->steps() / 2.0 / run->rate_hz(), run->line().gain_nm_per_v, run->line().offset_nm,
+             run->lockstep() ? ", lock-step (paced by this node)" : "");
     auto intended = nh.advertise<piezo_compensation::IntendedMotion>(axis + "/intended", 5);
     auto sw = nh.serviceClient<std_srvs::SetBool>("predictor/set_compensation");
     const auto act = [&](const std::optional<DemoRun::Next>& n) {
@@ -82,26 +100,36 @@ int main(int argc, char** argv) {
     using piezo_compensation::AxisVoltage;
     using piezo_compensation::EncoderPosition;
     using piezo_compensation::Prediction;
+    const auto hints = ros::TransportHints().tcpNoDelay();
     auto s1 = nh.subscribe<EncoderPosition>(axis + "/encoder", 50, [&](const EncoderPosition::ConstPtr& m) {
-      act(run->on_encoder(m->sequence, m->position * 1e9));
-    });
+      act(run->on_encoder(m->sequence, m->position * 1e9, m->header.stamp.toSec(), m->valid));
+    }, ros::VoidConstPtr(), hints);
     auto s2 = nh.subscribe<EncoderPosition>(axis + "/true_position", 50, [&](const EncoderPosition::ConstPtr& m) {
-      act(run->on_truth(m->sequence, m->position * 1e9));
-    });
+      act(run->on_truth(m->sequence, m->position * 1e9, m->header.stamp.toSec()));
+    }, ros::VoidConstPtr(), hints);
     auto s3 = nh.subscribe<AxisVoltage>(axis + "/voltage", 50, [&](const AxisVoltage::ConstPtr& m) {
-      act(run->on_voltage(m->sequence, m->voltage));
-    });
+      act(run->on_voltage(m->sequence, m->voltage, m->header.stamp.toSec()));
+    }, ros::VoidConstPtr(), hints);
     auto s4 = nh.subscribe<Prediction>(axis + "/prediction", 50, [&](const Prediction::ConstPtr& m) {
-      run->on_prediction(m->commanded_voltage, m->compensation_active ? m->corrected_voltage : m->commanded_voltage,
-                         m->fallback);
-    });
+      act(run->on_prediction(m->header.stamp.toSec(), m->commanded_voltage,
+                             m->compensation_active ? m->corrected_voltage : m->commanded_voltage, m->fallback));
+    }, ros::VoidConstPtr(), hints);
     if (!ros::service::waitForService(nh.resolveName("predictor/set_compensation"), ros::Duration(60)))
       throw std::runtime_error("predictor/set_compensation not available after 60 s");
+    std::vector<ros::Publisher> hold_pubs;  // latched: the predictor gets the intent whenever it connects
+    for (const auto& [ax, v] : holds) {
+      hold_pubs.push_back(nh.advertise<piezo_compensation::IntendedMotion>(ax + "/intended", 1, true));
+      piezo_compensation::IntendedMotion im;
+      im.header.stamp = ros::Time::now();
+      im.mode = piezo_compensation::IntendedMotion::VOLTAGE;
+      im.voltage = v;
+      hold_pubs.back().publish(im);
+      ROS_INFO("demo %s: axis %s held at %.1f V", name, ax.c_str(), v);
+    }
     const ros::WallTime start = ros::WallTime::now();
     ros::WallTime next_progress = start + ros::WallDuration(progress_s);
     while (ros::ok() && !run->done()) {
-      ros::spinOnce();
-      ros::WallDuration(0.0002).sleep();
+      ros::getGlobalCallbackQueue()->callAvailable(ros::WallDuration(0.05));
       const ros::WallTime now = ros::WallTime::now();
       if (now >= next_progress) {
         next_progress = now + ros::WallDuration(progress_s);
@@ -114,8 +142,12 @@ int main(int argc, char** argv) {
     std::ofstream csv(out_prefix + ".csv"), js(out_prefix + ".json");
     run->write_csv(csv);
     run->write_json(js);
-    ROS_INFO("demo %s: wrote %s.csv and %s.json (%zu samples) in %.0f s", name, out_prefix.c_str(), out_prefix.c_str(),
-             run->rows().size(), (ros::WallTime::now() - start).toSec());
+    const auto& pc = run->pairing();
+    ROS_INFO("demo %s: wrote %s.csv and %s.json (%zu samples) in %.0f s; pairing: %llu lost voltages, %llu lost "
+             "readings, %llu lost truths, %llu dropped", name, out_prefix.c_str(), out_prefix.c_str(),
+             run->rows().size(), (ros::WallTime::now() - start).toSec(),
+             static_cast<unsigned long long>(pc.lost_voltages), static_cast<unsigned long long>(pc.lost_readings),
+             static_cast<unsigned long long>(pc.lost_truths), static_cast<unsigned long long>(pc.dropped_samples));
   } catch (const std::exception& e) {
     ROS_FATAL("piezo_demo: %s", e.what());
     return 1;

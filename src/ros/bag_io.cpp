@@ -16,6 +16,7 @@
 #include <set>
 #include <sstream>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
@@ -24,7 +25,6 @@ namespace piezo::ros_io {
 
 namespace {
 
-const char* kAxes[3] = {"a", "b", "c"};
 constexpr double kNmPerM = 1e9;
 
 std::string join_ns(const std::string& ns, const std::string& rest) {
@@ -132,7 +132,7 @@ std::string detect_ns(rosbag::Bag& bag, const std::string& path) {
   rosbag::View all(bag);
   std::set<std::string> found;
   for (const rosbag::ConnectionInfo* c : all.getConnections()) {
-    for (const char* ax : kAxes) {
+    for (const char* ax : io::kAxisNames) {
       const std::string suffix = std::string("/") + ax + "/encoder";
       const std::string& topic = c->topic;
       if (topic.size() >= suffix.size() && topic.compare(topic.size() - suffix.size(), suffix.size(), suffix) == 0)
@@ -273,9 +273,9 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   std::vector<std::pair<double, std::pair<int, int>>> markers;  // stamp → (segment, phase)
   std::map<std::string, int> topic_kind;                        // 0..8 axis topics, 9 aux, 10 phase
   for (int k = 0; k < 3; ++k) {
-    topic_kind[join_ns(ns, std::string(kAxes[k]) + "/voltage")] = k * 3 + 0;
-    topic_kind[join_ns(ns, std::string(kAxes[k]) + "/encoder")] = k * 3 + 1;
-    topic_kind[join_ns(ns, std::string(kAxes[k]) + "/true_position")] = k * 3 + 2;
+    topic_kind[join_ns(ns, std::string(io::kAxisNames[k]) + "/voltage")] = k * 3 + 0;
+    topic_kind[join_ns(ns, std::string(io::kAxisNames[k]) + "/encoder")] = k * 3 + 1;
+    topic_kind[join_ns(ns, std::string(io::kAxisNames[k]) + "/true_position")] = k * 3 + 2;
   }
   topic_kind[join_ns(ns, "aux")] = 9;
   topic_kind[join_ns(ns, "protocol_phase")] = 10;
@@ -325,9 +325,9 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   int first = -1;
   for (int k = 0; k < 3; ++k) {
     if (has_topic[k][1] != has_topic[k][0])
-      throw io::DataError(path + ": axis " + kAxes[k] + " has " + (has_topic[k][1] ? "encoder" : "voltage") +
-                          " messages but no " + (has_topic[k][1] ? join_ns(ns, std::string(kAxes[k]) + "/voltage")
-                                                                  : join_ns(ns, std::string(kAxes[k]) + "/encoder")));
+      throw io::DataError(path + ": axis " + io::kAxisNames[k] + " has " + (has_topic[k][1] ? "encoder" : "voltage") +
+                          " messages but no " + (has_topic[k][1] ? join_ns(ns, std::string(io::kAxisNames[k]) + "/voltage")
+                                                                  : join_ns(ns, std::string(io::kAxisNames[k]) + "/encoder")));
     if (has_topic[k][1] && first < 0) first = k;
   }
   if (first < 0) throw io::DataError(path + ": no encoder messages under namespace '" + ns + "'");
@@ -361,29 +361,29 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   for (std::size_t i = 0; i < n; ++i) d.time_s[i] = row_t(i);
   for (int k = 0; k < 3; ++k) {
     if (!has_topic[k][1]) continue;
-    auto& ax = d.add_axis(kAxes[k]);
+    auto& ax = d.add_axis(io::kAxisNames[k]);
     const bool with_truth = has_topic[k][2];
     if (with_truth) ax.true_position_nm.resize(n);
     const Paired& pk = paired[k];
     for (std::size_t i = 0; i < n; ++i) {
       const io::PairedSample& row = paired[first].samples[row_of[i]];
       const io::PairedSample* e = k == first ? &row : pk.match(row.sequence, row.stamp_s, period);
-      if (!e) throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) + "no encoder message at t=" +
+      if (!e) throw io::DataError(row_col(path, i, io::position_column(io::kAxisNames[k])) + "no encoder message at t=" +
                                   std::to_string(row.stamp_s) + " s");
       if (!e->measured)
-        throw io::DataError(row_col(path, i, io::position_column(kAxes[k])) +
+        throw io::DataError(row_col(path, i, io::position_column(io::kAxisNames[k])) +
                             (e->reading_lost ? "encoder reading lost" : "encoder reading flagged invalid"));
       ax.position_nm[i] = e->position_nm;
       ax.voltage_v[i] = e->voltage_v;
       if (with_truth) {
         if (!std::isfinite(e->truth_nm))
-          throw io::DataError(row_col(path, i, io::true_position_column(kAxes[k])) + "no message at or before t=" +
+          throw io::DataError(row_col(path, i, io::true_position_column(io::kAxisNames[k])) + "no message at or before t=" +
                               std::to_string(row.stamp_s) + " s");
         ax.true_position_nm[i] = e->truth_nm;
       }
     }
     if (pk.dropped > 0)
-      throw io::DataError(path + ": axis " + kAxes[k] + ": " + std::to_string(pk.dropped) +
+      throw io::DataError(path + ": axis " + io::kAxisNames[k] + ": " + std::to_string(pk.dropped) +
                           " encoder reading(s) with no voltage message at or before them");
   }
   for (const auto& kv : aux) {

@@ -5,6 +5,8 @@
 
 #include <cmath>
 #include <limits>
+#include <map>
+#include <stdexcept>
 
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/ros/params.h"
@@ -22,6 +24,7 @@ visualization_msgs::Marker to_marker(const ChartPrimitive& p, const std::string&
   m.id = 0;
   m.action = visualization_msgs::Marker::ADD;
   m.pose.orientation.w = 1.0;
+  m.pose.position.z = p.z;
   m.color.r = p.color.r, m.color.g = p.color.g, m.color.b = p.color.b, m.color.a = p.color.a;
   switch (p.type) {
     case ChartPrimitive::Type::kPoints:
@@ -58,6 +61,27 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
   analysis::StripChartOptions o;
   o.window_s = r.number("window_s", o.window_s, 1.0, 86400.0);
   o.noise_sigma_nm = r.number("noise_sigma_nm", 0.0, 0.0, 1e6);
+  // ~encoder_resolution_nm: one step for every axis, or a map {a: 250, b: 250, c: 20}
+  std::map<std::string, double> resolution;
+  r.known("encoder_resolution_nm");
+  XmlRpc::XmlRpcValue q;
+  const auto as_step = [&](XmlRpc::XmlRpcValue& v, const std::string& name) {
+    double x = std::nan("");
+    if (v.getType() == XmlRpc::XmlRpcValue::TypeDouble) x = static_cast<double>(v);
+    if (v.getType() == XmlRpc::XmlRpcValue::TypeInt) x = static_cast<int>(v);
+    if (!(x >= 0.0 && x <= 1e6))
+      throw std::invalid_argument("parameter " + pnh.resolveName(name) + " must be a number of nm in 0..1e6");
+    return x;
+  };
+  if (pnh.getParam("encoder_resolution_nm", q)) {
+    for (const auto& a : axes_) {
+      if (q.getType() == XmlRpc::XmlRpcValue::TypeStruct) {
+        if (q.hasMember(a)) resolution[a] = as_step(q[a], "encoder_resolution_nm/" + a);
+      } else {
+        resolution[a] = as_step(q, "encoder_resolution_nm");
+      }
+    }
+  }
   const double rate_hz = r.number("publish_rate_hz", 4.0, 0.1, 50.0);
   const std::string prefix = r.text("frame_prefix", "");
   frame_id_ = prefix + r.text("chart_frame", "chart");
@@ -65,6 +89,7 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
   r.warn_unknown(pnh.getNamespace());
 
   for (const auto& a : axes_) {
+    o.encoder_resolution_nm = resolution.count(a) ? resolution[a] : 0.0;
     charts_.push_back(std::make_unique<analysis::StripChart>(a, o));
     analysis::StripChart* chart = charts_.back().get();
     subs_.push_back(nh_.subscribe<piezo_compensation::Prediction>(

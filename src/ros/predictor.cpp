@@ -89,6 +89,7 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   }
   s.compensation = r.flag("compensation", s.compensation);
   s.forward_when_off = r.flag("forward_when_off", s.forward_when_off);
+  s.command_on_sample = r.flag("command_on_sample", s.command_on_sample);
   s.frame_prefix = r.text("frame_prefix", s.frame_prefix);
   s.drift_horizons_s = r.numbers("drift_horizons_s", s.drift_horizons_s, 0.0, 86400.0, 0, 8);
   s.drift_update_period_s = r.number("drift_update_period_s", s.drift_update_period_s, 0.0, 3600.0);
@@ -265,7 +266,7 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   if (comp_->has_intent()) {
     c = comp_->command(compensate);
     if (sending) {
-      out.send = true;
+      out.send = s_.command_on_sample;
       out.command.header.stamp = now;
       out.command.voltage = c.send_v;
       hold_v_ = c.send_v;

@@ -18,20 +18,27 @@ using piezo::compensation::IdealLine;
 const IdealLine kLine{10.0, 5.0};  // 10 nm/V, 5 nm at 0 V
 
 // A device that applies each intent at the next sample. `true_nm(mode, phase index in hold, v)` is its physics.
-// Reports arrive in a rotating order (the three topics are not ordered). Returns the JSON metrics.
+// Reports arrive in a rotating order (the three topics are not ordered). Lock-step: the predictor's output of the
+// sample comes before or after the reports, also rotating. Returns the JSON metrics.
 YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, double v)>& true_nm,
                  int* mode_switches = nullptr, std::vector<bool>* modes = nullptr) {
   double v = 0.0;
   int mode = 0, hold_k = 0;
-  double last_intent = NAN;
+  double last_intent = NAN, intent = 0.0;
   for (std::uint32_t seq = 100; !run.done(); ++seq) {
-    const double x = true_nm(mode, hold_k, v);
+    const double x = true_nm(mode, hold_k, v), t = seq / 11.0;
     std::optional<DemoRun::Next> n;
     const auto keep = [&](std::optional<DemoRun::Next> r) { if (r) n = r; };
+    const auto predicted = [&] { keep(run.on_prediction(t, intent, intent, false)); };
+    if (run.lockstep() && seq % 2) predicted();
     switch (seq % 3) {
-      case 0: keep(run.on_truth(seq, x)); keep(run.on_encoder(seq, std::round(x / 20) * 20)); keep(run.on_voltage(seq, v)); break;
-      case 1: keep(run.on_voltage(seq, v)); keep(run.on_truth(seq, x)); keep(run.on_encoder(seq, std::round(x / 20) * 20)); break;
-      default: keep(run.on_encoder(seq, std::round(x / 20) * 20)); keep(run.on_voltage(seq, v)); keep(run.on_truth(seq, x));
+      case 0: keep(run.on_truth(seq, x, t)); keep(run.on_encoder(seq, std::round(x / 20) * 20, t)); keep(run.on_voltage(seq, v, t)); break;
+      case 1: keep(run.on_voltage(seq, v, t)); keep(run.on_truth(seq, x, t)); keep(run.on_encoder(seq, std::round(x / 20) * 20, t)); break;
+      default: keep(run.on_encoder(seq, std::round(x / 20) * 20, t)); keep(run.on_voltage(seq, v, t)); keep(run.on_truth(seq, x, t));
+    }
+    if (run.lockstep() && !(seq % 2)) {
+      EXPECT_FALSE(n) << "lock-step: an intent before the predictor has the sample (seq " << seq << ")";
+      predicted();
     }
     if (!n) continue;
     if (n->set_mode) {
@@ -41,7 +48,8 @@ YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, 
     }
     hold_k = n->intent_v == last_intent ? hold_k + 1 : 0;
     last_intent = n->intent_v;
-    run.on_prediction(n->intent_v, n->intent_v, false);  // the predictor sends the intent as it is
+    intent = n->intent_v;
+    if (!run.lockstep()) run.on_prediction(t, n->intent_v, n->intent_v, false);  // the predictor sends the intent as it is
     v = n->intent_v;
     if (seq > 10'000'000) ADD_FAILURE() << "demo never ends";
   }
@@ -87,6 +95,51 @@ TEST(DemoScenario, CreepMeasuresTheDriftOfEachHold) {
   }
   EXPECT_EQ(j["uncompensated_late_samples"].as<int>(), 0);
   EXPECT_EQ(j["creep_scenarios"].size(), 2u);
+}
+
+TEST(DemoScenario, LockStepWaitsForThePredictionAndStartsHoldsAtOnce) {
+  CreepDemoOptions co;
+  co.history_s = 300.0;
+  co.hold_s = 20.0;
+  co.scenarios = {2, 1};
+  DemoRun run("creep", co, kLine, 11.0, true);
+  const auto j = drive(run, [](int mode, int k, double v) { return kLine.position_nm(v) + (mode ? 0.0 : 0.5 * k); });
+  EXPECT_TRUE(j["lockstep"].as<bool>());
+  for (std::size_t i = 0; i < 2; ++i) {
+    EXPECT_NEAR(j["uncompensated_drift_nm"][i].as<double>(), 0.5 * (co.hold_s * 11 - 1), 1.0) << i;
+    EXPECT_EQ(j["hold_start_delay_samples"][i].as<int>(), 0) << i;
+  }
+  EXPECT_EQ(j["uncompensated_late_samples"].as<int>(), 0);
+  EXPECT_EQ(run.rows().size(), run.steps());
+
+  DemoRun saw("sawtooth", CreepDemoOptions{}, kLine, 11.0, true);
+  const auto js = drive(saw, [](int mode, int, double v) { return kLine.position_nm(v) + (mode ? 0.0 : 0.2 * v); });
+  EXPECT_NEAR(js["uncompensated_max_pct"].as<double>(), 1.0, 1e-3);
+  EXPECT_EQ(js["uncompensated_late_samples"].as<int>(), 0);
+  EXPECT_GT(js["uncompensated_saw_samples"].as<int>(), 1000);
+}
+
+// Pairing goes through io/sequence_pairer.h: a lost voltage report takes the held value, a lost encoder reading is
+// a sample without a measurement, and each keeps the scenario on the device's sample clock.
+TEST(DemoScenario, LostReportsKeepOneStepPerSample) {
+  DemoRun run("sawtooth", CreepDemoOptions{}, kLine, 11.0);
+  double v = 0.0;
+  std::size_t given = 0;
+  for (std::uint32_t seq = 7; !run.done() && seq < 100000; ++seq) {
+    std::optional<DemoRun::Next> n;
+    const auto keep = [&](std::optional<DemoRun::Next> r) { if (r) n = r; };
+    keep(run.on_truth(seq, kLine.position_nm(v)));
+    if (seq % 50 != 0) keep(run.on_voltage(seq, v));   // lost voltage: pairs when the next report shows it lost
+    if (seq % 70 != 3) keep(run.on_encoder(seq, std::round(kLine.position_nm(v) / 20) * 20));
+    if (n) v = n->intent_v, ++given;
+  }
+  EXPECT_TRUE(run.done());
+  EXPECT_GT(run.pairing().lost_voltages, 0u);
+  EXPECT_GT(run.pairing().lost_readings, 0u);
+  std::size_t unmeasured = 0;
+  for (const auto& r : run.rows()) unmeasured += std::isnan(r.encoder_nm);
+  EXPECT_EQ(unmeasured, run.pairing().lost_readings);
+  EXPECT_EQ(run.rows().size(), run.steps());
 }
 
 TEST(DemoScenario, BadSettingsNameTheParameter) {

@@ -96,6 +96,56 @@ TEST(StripChart, LayoutHasEveryElementInsideItsLane) {
   EXPECT_NE(find(ps, "b/model")->text.find("mm3e_sim_c.yaml"), std::string::npos);
 }
 
+// A held axis on a coarse encoder: every reading sits on the same 250 nm step, so the window shows no spread. The
+// floor falls back to the quantisation bound q/√12 with q the encoder's resolution, and the headline says so.
+TEST(StripChart, HeldAxisOnACoarseEncoderUsesTheQuantisationFloor) {
+  std::mt19937 rng(11);
+  const auto held = [&](StripChart& c) {
+    for (int i = 0; i < 200; ++i) {
+      auto s = sample(i / 11.0, rng, 0.0);
+      s.measured_nm = 1000.0;  // one 250 nm step
+      s.predicted_nm = 1040.0;
+      c.add(s);
+    }
+  };
+  StripChart unknown("a", StripChartOptions{});
+  held(unknown);
+  EXPECT_EQ(unknown.stats().floor.sigma_nm, 0.0);  // nothing in the readings tells the step
+
+  StripChartOptions o;
+  o.encoder_resolution_nm = 250.0;
+  StripChart c("a", o);
+  held(c);
+  const auto st = c.stats();
+  EXPECT_NEAR(st.floor.sigma_nm, 250.0 / std::sqrt(12.0), 1e-9);  // 72.2 nm
+  EXPECT_NEAR(st.floor.floor_mae_nm, 62.5, 1e-9);                 // q/4
+  const auto ps = c.draw(0, 0);
+  const auto& head = find(ps, "a/headline")->text;
+  EXPECT_NE(head.find("q/sqrt12, q 250 nm encoder resolution"), std::string::npos) << head;
+  ASSERT_NE(find(ps, "a/band1"), nullptr);  // the bands no longer collapse
+
+  // A noisy axis above the bound keeps its estimate (the 20 nm encoder with σ 8 nm: 8 > 20/√12).
+  StripChartOptions oc;
+  oc.encoder_resolution_nm = 20.0;
+  StripChart n("c", oc);
+  for (int i = 0; i < 660; ++i) n.add(sample(i / 11.0, rng));
+  EXPECT_NEAR(n.stats().floor.sigma_nm, 8.0, 1.5);
+  EXPECT_NE(n.stats().floor_source.find("estimated"), std::string::npos);
+}
+
+TEST(StripChart, PredictedLineIsDrawnOverTheMeasuredDots) {
+  StripChart c("c", StripChartOptions{});
+  std::mt19937 rng(2);
+  for (int i = 0; i < 100; ++i) c.add(sample(i / 11.0, rng));
+  const auto ps = c.draw(0, 0);
+  const auto* meas = find(ps, "c/measured");
+  const auto* pred = find(ps, "c/predicted");
+  ASSERT_TRUE(meas && pred);
+  EXPECT_GT(pred->z, meas->z);
+  EXPECT_GT(pred->size, meas->size);  // wider than a dot: visible where the dots sit on it
+  EXPECT_GT(find(ps, "c/intended")->z, meas->z);
+}
+
 TEST(StripChart, FallbackAndEmptyChartsSaySo) {
   StripChart c("a", StripChartOptions{});
   EXPECT_NE(find(c.draw(0, 0), "a/headline")->text.find("no data"), std::string::npos);

@@ -37,6 +37,7 @@ struct ChartPrimitive {
   ChartColor color;
   double size = 0.02;                      // line width / point size / text height [chart units]
   std::string text;
+  double z = 0.0;                          // layer: higher is drawn over lower (rviz looks down the z axis)
 };
 
 struct StripChartOptions {
@@ -47,6 +48,8 @@ struct StripChartOptions {
   double error_height = 1.2;        // error lane
   double text_height = 0.2;         // headline; labels are smaller
   double noise_sigma_nm = 0.0;      // > 0: the floor's σ as given; 0: estimated from the window
+  double encoder_resolution_nm = 0.0;  // encoder step q: σ ≥ q/√12 (a held axis' readings sit on one step and
+                                       // show no spread); 0 = the step found in the window's readings
   std::size_t min_noise_samples = 30;  // fewer finite errors than this: no floor yet
 };
 
@@ -63,6 +66,7 @@ class StripChart {
     std::size_t errors = 0;   // samples with measured and predicted
     double mae_nm = 0.0;      // mean |measured − predicted| over the window
     NoiseFloor floor;         // σ and the MAE a perfect predictor scores (sigma_nm 0 = not known yet)
+    std::string floor_source; // how σ was found, for the headline: "given", "estimated (holds)", "q/√12 (...)"
   };
   Stats stats() const;
 

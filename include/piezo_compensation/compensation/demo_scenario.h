@@ -1,6 +1,7 @@
 // The compensation demo's scenarios and their bookkeeping (scripts/demo, docs/predictor.md), ROS-free: the
 // piezo_demo node only moves messages in and out. One axis is driven through a scenario twice, uncompensated
-// then compensated, one intent per encoder sample (lock-step with the samples), and the true position is scored
+// then compensated, one intent per encoder sample (paired by io/sequence_pairer.h, the one pairing rule), and the
+// true position is scored
 //   "sawtooth": triangles of increasing amplitude (study Fig. 11) → deviation from the ideal line,
 //   "creep": histories of the package's `creep` protocol, each followed by its hold → drift while holding.
 #pragma once
@@ -14,6 +15,7 @@
 #include <vector>
 
 #include "piezo_compensation/compensation/ideal_line.h"
+#include "piezo_compensation/io/sequence_pairer.h"
 
 namespace piezo::compensation {
 
@@ -38,8 +40,11 @@ std::vector<DemoStep> creep_demo_steps(const CreepDemoOptions& o, double rate_hz
 class DemoRun {
  public:
   // `scenario` "sawtooth" or "creep" (else std::invalid_argument); `line` scores the intent (the predictor's
-  // ideal line of the same model).
-  DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz);
+  // ideal line of the same model). `lockstep`: the device takes one sample per command (SYNC) and the predictor
+  // commands only on an intent, so the demo paces the device: the next intent is given once the predictor has
+  // published its prediction of the sample (it has then taken that sample into its model), and each hold starts
+  // at its first sample.
+  DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep = false);
 
   // What to do after a complete sample: switch compensation first when `set_mode`, then send `intent_v`.
   struct Next {
@@ -48,15 +53,20 @@ class DemoRun {
     double intent_v = 0.0;
   };
 
-  // Device reports by sample sequence; the one that completes a sample (truth, encoder, voltage) returns the next
-  // intent. Samples arriving after the scenario ended return nothing.
-  std::optional<Next> on_truth(std::uint32_t seq, double true_nm);
-  std::optional<Next> on_encoder(std::uint32_t seq, double encoder_nm);
-  std::optional<Next> on_voltage(std::uint32_t seq, double applied_v);
-  // A prediction for the current intent: `commanded_v` the uncorrected command, `sent_v` what went to the driver.
-  void on_prediction(double commanded_v, double sent_v, bool fallback);
+  // Device reports by sample sequence and stamp [s]; the one that completes a sample (truth, encoder, voltage)
+  // returns the next intent (lock-step: once the prediction of that sample is in). Several samples completed at
+  // once each take a step; the intent returned is the last one, with `set_mode` if any of them switched.
+  // Samples arriving after the scenario ended return nothing.
+  std::optional<Next> on_truth(std::uint32_t seq, double true_nm, double stamp_s = 0.0);
+  std::optional<Next> on_encoder(std::uint32_t seq, double encoder_nm, double stamp_s = 0.0, bool valid = true);
+  std::optional<Next> on_voltage(std::uint32_t seq, double applied_v, double stamp_s = 0.0);
+  // The predictor's output for the sample stamped `stamp_s`: `commanded_v` the uncorrected command, `sent_v` what
+  // went to the driver. Lock-step: returns the intent that waited for it.
+  std::optional<Next> on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback);
 
   bool done() const { return next_ > steps_.size(); }
+  bool lockstep() const { return lockstep_; }
+  const io::PairerCounters& pairing() const { return pairer_.counters(); }
   std::size_t steps() const { return steps_.size(); }
   std::size_t progress() const { return std::min(next_, steps_.size()); }
   const IdealLine& line() const { return line_; }
@@ -74,16 +84,21 @@ class DemoRun {
   void write_json(std::ostream& os) const;
 
  private:
-  std::optional<Next> pair(std::uint32_t seq);
+  std::optional<Next> take(const std::vector<io::PairedSample>& samples);
+  std::optional<Next> step(const io::PairedSample& sample);
+  std::optional<Next> release();
 
   std::string scenario_;
   CreepDemoOptions creep_;
   IdealLine line_;
   double rate_hz_;
+  bool lockstep_;
   std::vector<DemoStep> steps_;
   std::size_t next_ = 0;
   std::vector<Row> rows_;
-  std::map<std::uint32_t, double> truth_by_seq_, enc_by_seq_, volt_by_seq_;
+  io::SequencePairer pairer_;
+  std::optional<Next> pending_;        // lock-step: the next intent, waiting for the prediction of its sample
+  double pending_stamp_s_ = 0.0, newest_prediction_s_ = -1e300;
   std::map<std::pair<int, int>, bool> hold_started_, forced_;
   std::map<std::pair<int, int>, int> hold_delay_;
   std::vector<double> hold_sent_v_;

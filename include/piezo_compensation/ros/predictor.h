@@ -68,6 +68,7 @@ struct PredictorSettings {
   std::map<std::string, std::string> model_files;   // per axis
   bool compensation = true;
   bool forward_when_off = true;      // compensation off: still pass the intent on to the driver, uncorrected
+  bool command_on_sample = true;     // false: command only when an intent arrives (a lock-step commander paces)
   std::string frame_prefix;          // frames <prefix>base, <prefix>tip_measured, ...
   std::vector<double> drift_horizons_s{1.0, 60.0, 1800.0};
   double drift_update_period_s = 1.0;  // ROS time between forecasts per axis (0 = every sample)

@@ -11,7 +11,7 @@
 namespace piezo::analysis {
 namespace {
 
-constexpr ChartColor kMeasured{0.35f, 0.75f, 1.0f, 1.0f};
+constexpr ChartColor kMeasured{0.35f, 0.75f, 1.0f, 0.85f};
 constexpr ChartColor kPredicted{1.0f, 0.55f, 0.1f, 1.0f};
 constexpr ChartColor kIntended{0.6f, 0.9f, 0.4f, 0.9f};
 constexpr ChartColor kFan{1.0f, 0.3f, 0.8f, 0.9f};
@@ -83,8 +83,23 @@ StripChart::Stats StripChart::stats() const {
   if (st.errors > 0) st.mae_nm = sum / static_cast<double>(st.errors);
   if (o_.noise_sigma_nm > 0.0) {
     st.floor = noise_floor_from_sigma(o_.noise_sigma_nm);
-  } else if (st.errors >= o_.min_noise_samples) {
+    st.floor_source = "given";
+    return st;
+  }
+  if (st.errors >= o_.min_noise_samples) {
     st.floor = estimate_noise_floor(d, axis_, &pred);
+    st.floor_source = "estimated (" + st.floor.method + ")";
+  }
+  // An encoder reading is off by up to half a step even without noise: σ ≥ q/√12, and a perfect predictor scores
+  // q/4 when rounding dominates. estimate_noise_floor applies this with the step it sees; an axis held on one
+  // step shows none, so the encoder's resolution (when given) is the bound.
+  const bool given_q = o_.encoder_resolution_nm > 0.0;
+  const double q = given_q ? o_.encoder_resolution_nm : st.floor.quantisation_nm;
+  if (q > 0.0 && (st.errors > 0 || given_q) && st.floor.sigma_nm < q / std::sqrt(12.0) * (1.0 + 1e-9)) {
+    st.floor.sigma_nm = q / std::sqrt(12.0);
+    st.floor.floor_mae_nm = q / 4.0;
+    st.floor.quantisation_nm = q;
+    st.floor_source = fmt("q/sqrt12, q %g nm", q) + (given_q ? " encoder resolution" : " reading step");
   }
   return st;
 }
@@ -151,10 +166,14 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
     }
   }
 
-  auto meas = prim(T::kPoints, n + "measured", kMeasured, 0.045);
-  auto pred = prim(T::kLineStrip, n + "predicted", kPredicted, 0.03);
-  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.02);
+  // Layers: measured dots at the bottom, the predicted line over them (wider than a dot is tall, so it stays
+  // visible where the dots sit on it), the intended target thin on top.
+  auto meas = prim(T::kPoints, n + "measured", kMeasured, 0.035);
+  auto pred = prim(T::kLineStrip, n + "predicted", kPredicted, 0.045);
+  auto intent = prim(T::kLineStrip, n + "intended", kIntended, 0.015);
   auto err = prim(T::kPoints, n + "error", kError, 0.04);
+  meas.z = 0.0, pred.z = 0.01, intent.z = 0.02, err.z = 0.01;  // intended: thin, over the predicted line it
+                                                                 // follows when compensating
   for (const auto& s : samples_) {
     const double x = X(s.time_s);
     if (std::isfinite(s.measured_nm)) meas.x.push_back(x), meas.y.push_back(Y(s.measured_nm));
@@ -173,16 +192,28 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   if (last && std::isfinite(last->predicted_nm) && !last->drift_nm.empty() &&
       last->drift_nm.size() == last->drift_horizons_s.size()) {
     const double hmax = std::max(1.0, *std::max_element(last->drift_horizons_s.begin(), last->drift_horizons_s.end()));
-    auto fan = prim(T::kLineList, n + "fan", kFan, 0.025);
-    for (std::size_t i = 0; i < last->drift_nm.size(); ++i) {
+    auto fan = prim(T::kLineList, n + "fan", kFan, 0.03);
+    fan.z = 0.03;
+    const std::size_t k = last->drift_nm.size();
+    std::vector<double> label_y(k);
+    for (std::size_t i = 0; i < k; ++i) {
       const double h = last->drift_horizons_s[i];
       const double xh = x0 + W + o_.fan_width * std::log1p(std::max(h, 0.0)) / std::log1p(hmax);
       const double yh = Y(last->predicted_nm + last->drift_nm[i]);
       fan.x.insert(fan.x.end(), {X(t_now), xh});
       fan.y.insert(fan.y.end(), {Y(last->predicted_nm), yh});
-      out.push_back(text(n + "fan_label" + std::to_string(i), xh + 0.1, yh + 0.6 * lh,
-                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", h), lh, kFan));
+      label_y[i] = yh;
     }
+    // Labels in a column right of the fan, each at its line's end but pushed apart so none overlap (small drifts
+    // end at nearly the same height).
+    std::vector<std::size_t> order(k);
+    for (std::size_t i = 0; i < k; ++i) order[i] = i;
+    std::sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return label_y[a] > label_y[b]; });
+    for (std::size_t j = 1; j < k; ++j)
+      label_y[order[j]] = std::min(label_y[order[j]], label_y[order[j - 1]] - 1.3 * lh);
+    for (std::size_t i = 0; i < k; ++i)
+      out.push_back(text(n + "fan_label" + std::to_string(i), x0 + W + o_.fan_width + 0.8, label_y[i],
+                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", last->drift_horizons_s[i]), lh, kFan));
     out.push_back(fan);
   }
 
@@ -210,7 +241,8 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   }
   if (st.errors > 0) {
     head += fmt("   MAE %.1f nm", st.mae_nm);
-    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) + fmt(" (σ %.1f nm)", st.floor.sigma_nm)
+    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) +
+                                          fmt(" (σ %.1f nm, ", st.floor.sigma_nm) + st.floor_source + ")"
                                     : std::string(" (floor: too few samples)");
   }
   out.push_back(text(n + "headline", x0 + W / 2, y_text, head, th));

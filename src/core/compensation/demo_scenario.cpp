@@ -74,55 +74,81 @@ std::vector<DemoStep> creep_demo_steps(const CreepDemoOptions& o, double hz) {
   return s;
 }
 
-DemoRun::DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz)
-    : scenario_(std::move(scenario)), creep_(creep), line_(line), rate_hz_(rate_hz) {
+namespace {
+io::PairerOptions demo_pairing() {
+  io::PairerOptions o;
+  o.with_truth = true;  // the score is the simulator's true position
+  return o;
+}
+}  // namespace
+
+DemoRun::DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep)
+    : scenario_(std::move(scenario)), creep_(creep), line_(line), rate_hz_(rate_hz), lockstep_(lockstep),
+      pairer_(demo_pairing()) {
   if (scenario_ != "sawtooth" && scenario_ != "creep")
     throw std::invalid_argument("~scenario: sawtooth or creep, got '" + scenario_ + "'");
   if (!(rate_hz_ > 0.0)) throw std::invalid_argument("demo: sample rate must be > 0 Hz");
   steps_ = scenario_ == "sawtooth" ? sawtooth_demo_steps(rate_hz_) : creep_demo_steps(creep_, rate_hz_);
 }
 
-std::optional<DemoRun::Next> DemoRun::on_truth(std::uint32_t seq, double true_nm) {
-  truth_by_seq_[seq] = true_nm;
-  return pair(seq);
+std::optional<DemoRun::Next> DemoRun::on_truth(std::uint32_t seq, double true_nm, double stamp_s) {
+  return take(pairer_.add_truth(seq, true_nm, stamp_s));
 }
-std::optional<DemoRun::Next> DemoRun::on_encoder(std::uint32_t seq, double encoder_nm) {
-  enc_by_seq_[seq] = encoder_nm;
-  return pair(seq);
+std::optional<DemoRun::Next> DemoRun::on_encoder(std::uint32_t seq, double encoder_nm, double stamp_s, bool valid) {
+  return take(pairer_.add_reading(seq, encoder_nm, valid, stamp_s));
 }
-std::optional<DemoRun::Next> DemoRun::on_voltage(std::uint32_t seq, double applied_v) {
-  volt_by_seq_[seq] = applied_v;
-  return pair(seq);
+std::optional<DemoRun::Next> DemoRun::on_voltage(std::uint32_t seq, double applied_v, double stamp_s) {
+  return take(pairer_.add_voltage(seq, applied_v, stamp_s));
 }
 
 // Voltages the predictor sent for the hold intent: the hold starts when one of them is applied.
-void DemoRun::on_prediction(double commanded_v, double sent_v, bool fallback) {
-  if (next_ == 0 || next_ > steps_.size()) return;
-  const DemoStep& s = steps_[next_ - 1];
-  if (s.phase != "hold" || fallback) return;
-  if (std::abs(commanded_v - s.intent_v) > 1e-6) return;
-  hold_sent_v_.push_back(sent_v);
+std::optional<DemoRun::Next> DemoRun::on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback) {
+  newest_prediction_s_ = std::max(newest_prediction_s_, stamp_s);
+  if (next_ > 0 && next_ <= steps_.size()) {
+    const DemoStep& s = steps_[next_ - 1];
+    if (s.phase == "hold" && !fallback && std::abs(commanded_v - s.intent_v) <= 1e-6) hold_sent_v_.push_back(sent_v);
+  }
+  return release();
+}
+
+std::optional<DemoRun::Next> DemoRun::take(const std::vector<io::PairedSample>& samples) {
+  std::optional<Next> merged;
+  for (const auto& p : samples) {
+    auto n = step(p);
+    if (!n) continue;
+    if (merged && merged->set_mode) n->set_mode = true;
+    merged = n;
+  }
+  if (!merged) return std::nullopt;
+  if (!lockstep_) return merged;
+  if (pending_ && pending_->set_mode) merged->set_mode = true;  // a newer sample overtook it: keep the switch
+  pending_ = merged;
+  pending_stamp_s_ = samples.back().stamp_s;
+  return release();
+}
+
+std::optional<DemoRun::Next> DemoRun::release() {
+  // stamps of one sample agree to well within a period (driver stamp → predictor stamp, via ros::Time)
+  if (!pending_ || newest_prediction_s_ < pending_stamp_s_ - 0.25 / rate_hz_) return std::nullopt;
+  auto n = pending_;
+  pending_.reset();
+  return n;
 }
 
 // One complete sample: record it against the intent that was in force over its step, give the next intent.
-std::optional<DemoRun::Next> DemoRun::pair(std::uint32_t seq) {
-  auto t = truth_by_seq_.find(seq);
-  auto e = enc_by_seq_.find(seq);
-  auto v = volt_by_seq_.find(seq);
-  if (t == truth_by_seq_.end() || e == enc_by_seq_.end() || v == volt_by_seq_.end()) return std::nullopt;
-  const double true_nm = t->second, enc_nm = e->second, applied_v = v->second;
-  truth_by_seq_.erase(truth_by_seq_.begin(), std::next(t));
-  enc_by_seq_.erase(enc_by_seq_.begin(), std::next(e));
-  volt_by_seq_.erase(volt_by_seq_.begin(), std::next(v));
+std::optional<DemoRun::Next> DemoRun::step(const io::PairedSample& sample) {
+  const double true_nm = sample.truth_nm, applied_v = sample.voltage_v;
+  const double enc_nm = sample.measured ? sample.position_nm : std::nan("");
   if (next_ > 0 && next_ <= steps_.size()) {
     DemoStep s = steps_[next_ - 1];
     if (s.phase == "hold") {
-      // The hold (and its drift) starts at the first sample that has the hold's command applied; before
-      // that the tip is still on the approach, one or two samples behind the intent.
+      // The hold (and its drift) starts at the first sample that has the hold's command applied; free-running,
+      // the tip is before that still on the approach, one or two samples behind the intent. In lock-step the
+      // hold's command is in the hold's first sample.
       const auto key = std::make_pair(s.mode, s.segment);
       if (!hold_started_[key]) {
-        const bool hit = std::any_of(hold_sent_v_.begin(), hold_sent_v_.end(),
-                                     [&](double x) { return std::abs(x - applied_v) <= 5e-4; });
+        const bool hit = lockstep_ || std::any_of(hold_sent_v_.begin(), hold_sent_v_.end(),
+                                                  [&](double x) { return std::abs(x - applied_v) <= 5e-4; });
         if (hit || hold_delay_[key] >= 20) {
           hold_started_[key] = true;
           forced_[key] = !hit;
@@ -172,7 +198,11 @@ void DemoRun::write_json(std::ostream& js) const {
       lo = std::min(lo, r.ideal_nm), hi = std::max(hi, r.ideal_nm);
     }
     const double stroke = hi - lo;
-    js << "{\"stroke_nm\": " << stroke << ", \"uncompensated_max_pct\": " << 100 * mx[0] / stroke
+    std::size_t moving = 0, late = 0;  // in-step check, as for the creep histories below
+    for (const auto& r : rows_)
+      if (r.step.mode == 0 && r.step.phase == "saw") ++moving, late += std::abs(r.applied_v - r.step.intent_v) > 5e-4;
+    js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", \"uncompensated_saw_samples\": " << moving
+       << ", \"uncompensated_late_samples\": " << late << ", \"stroke_nm\": " << stroke << ", \"uncompensated_max_pct\": " << 100 * mx[0] / stroke
        << ", \"compensated_max_pct\": " << 100 * mx[1] / stroke
        << ", \"uncompensated_rms_pct\": " << 100 * std::sqrt(ss[0] / std::max<std::size_t>(1, n[0])) / stroke
        << ", \"compensated_rms_pct\": " << 100 * std::sqrt(ss[1] / std::max<std::size_t>(1, n[1])) / stroke << "}\n";
@@ -187,7 +217,7 @@ void DemoRun::write_json(std::ostream& js) const {
     if (it == ends.end()) ends[key] = {r.true_nm, r.true_nm};
     else it->second.second = r.true_nm;
   }
-  js << "{";
+  js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", ";
   for (int mode = 0; mode < 2; ++mode) {
     js << (mode ? ", \"compensated_drift_nm\": [" : "\"uncompensated_drift_nm\": [");
     bool first = true;

@@ -1,20 +1,26 @@
 // CSV reading and writing with one-line, located error messages.
+#include <fcntl.h>
+#include <unistd.h>
+
 #include <algorithm>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
 #include <cstdio>
+#include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <memory>
 #include <sstream>
 #include <string_view>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/dataset.h"
 
 namespace piezo::io {
 
 namespace {
 
-const char* kAxes[] = {"a", "b", "c"};
 
 std::string trim(std::string_view s) {
   while (!s.empty() && (s.front() == ' ' || s.front() == '\t')) s.remove_prefix(1);
@@ -82,9 +88,9 @@ Dataset read_csv(const std::string& path) {
       s.target = Target::kPhase;
     } else {
       for (int a = 0; a < 3; ++a) {
-        if (n == voltage_column(kAxes[a])) { s = {Target::kVoltage, a, n}; have_v[a] = true; }
-        else if (n == position_column(kAxes[a])) { s = {Target::kPosition, a, n}; have_p[a] = true; }
-        else if (n == true_position_column(kAxes[a])) { s = {Target::kTruth, a, n}; }
+        if (n == voltage_column(kAxisNames[a])) { s = {Target::kVoltage, a, n}; have_v[a] = true; }
+        else if (n == position_column(kAxisNames[a])) { s = {Target::kPosition, a, n}; have_p[a] = true; }
+        else if (n == true_position_column(kAxisNames[a])) { s = {Target::kTruth, a, n}; }
       }
     }
     if (s.target == Target::kAux) {
@@ -98,11 +104,11 @@ Dataset read_csv(const std::string& path) {
   for (int a = 0; a < 3; ++a) {
     if (have_v[a] != have_p[a])
       throw DataError(path + ": missing column " +
-                      (have_v[a] ? position_column(kAxes[a]) : voltage_column(kAxes[a])) + " (axis '" + kAxes[a] +
+                      (have_v[a] ? position_column(kAxisNames[a]) : voltage_column(kAxisNames[a])) + " (axis '" + kAxisNames[a] +
                       "' needs both voltage and position)");
     if (have_v[a]) {
       AxisSeries s;
-      s.name = kAxes[a];
+      s.name = kAxisNames[a];
       axis_of[a] = static_cast<int>(d.axes.size());
       d.axes.push_back(std::move(s));
     }
@@ -219,9 +225,20 @@ void write_csv(const std::string& path, const Dataset& d) {
       if (std::fputs(line.c_str(), f.get()) < 0) throw DataError(path + ": write failed (disk full?)");
     }
     if (std::fflush(f.get()) != 0) throw DataError(path + ": write failed (disk full?)");
+    // The data must be on the disk before the rename makes it the real file (a power cut after a rename of
+    // unsynced data can leave an empty file under the real name).
+    if (::fsync(::fileno(f.get())) != 0) throw DataError(path + ": fsync failed: " + std::strerror(errno));
   }
   // Rename only when complete, so a crash never leaves a half-written data file under the real name.
   if (std::rename(tmp.c_str(), path.c_str()) != 0) throw DataError(path + ": cannot rename " + tmp);
+  // Then the directory entry that names it.
+  const std::string dir = std::filesystem::path(path).parent_path().string();
+  const int fd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+  if (fd < 0) throw DataError(path + ": cannot open its directory to fsync it: " + std::strerror(errno));
+  const int rc = ::fsync(fd);
+  const int err = errno;
+  ::close(fd);
+  if (rc != 0) throw DataError(path + ": fsync of its directory failed: " + std::strerror(err));
 }
 
 }  // namespace piezo::io

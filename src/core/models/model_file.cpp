@@ -4,6 +4,7 @@
 #include <fstream>
 #include <sstream>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/models/registry.h"
 
 namespace piezo::models {
@@ -50,7 +51,7 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
     if (!root["axis"].IsScalar()) throw top_err("axis", "expected a string");
     const std::string kind = root["kind"].Scalar();
     const std::string axis = root["axis"].Scalar();
-    if (axis != "a" && axis != "b" && axis != "c") throw top_err("axis", "expected a, b or c, got '" + axis + "'");
+    if (io::axis_index_or_none(axis) < 0) throw top_err("axis", "expected one of " + io::axis_names_list() + ", got '" + axis + "'");
     double rate = 0;
     try {
       rate = root["sample_rate_hz"].as<double>();

@@ -1,4 +1,5 @@
 // Protocol base pieces: phase names, program(), defaults and the factory.
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/protocols/protocol.h"
 
 #include <algorithm>
@@ -33,7 +34,7 @@ io::Dataset Protocol::program(std::size_t begin, std::size_t end) const {
   io::Dataset d;
   d.source = "protocol " + name();
   d.time_s.resize(n);
-  for (const char* ax : {"a", "b", "c"}) d.add_axis(ax);
+  for (const char* ax : io::kAxisNames) d.add_axis(ax);
   for (auto& a : d.axes) {
     a.voltage_v.resize(n);
     a.position_nm.assign(n, 0.0);

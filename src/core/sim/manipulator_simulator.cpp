@@ -6,6 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/sim/piezo_axis.h"
 #include "piezo_compensation/sim/simulator_config.h"
 #include "piezo_compensation/util/splitmix64.h"
@@ -53,7 +54,7 @@ class Rng {
   bool has_spare_ = false;
 };
 
-int axis_index(const std::string& name) { return name == "a" ? 0 : name == "b" ? 1 : name == "c" ? 2 : -1; }
+int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
 
 // The configured hysteresis model of one axis.
 class Hysteresis {

@@ -1,4 +1,5 @@
 #include "piezo_compensation/sim/simulator_config.h"
+#include "piezo_compensation/io/axes.h"
 
 #include <yaml-cpp/yaml.h>
 
@@ -11,8 +12,7 @@ namespace piezo::sim {
 
 SimulatorConfig default_simulator_config() {
   SimulatorConfig c;
-  const char* names[3] = {"a", "b", "c"};
-  for (int k = 0; k < 3; ++k) c.axes[k].name = names[k];
+  for (int k = 0; k < io::kAxisCount; ++k) c.axes[k].name = io::kAxisNames[k];
   // a and b: longer stroke, coarse encoders (study §2.2: 250 nm on a/b, 20 nm on c).
   for (int k = 0; k < 2; ++k) {
     c.axes[k].stroke_nm = 6000.0;
@@ -191,12 +191,7 @@ void read_effects(const YAML::Node& n, const std::string& where, SimulatorConfig
   }
 }
 
-int axis_index(const std::string& name) {
-  if (name == "a") return 0;
-  if (name == "b") return 1;
-  if (name == "c") return 2;
-  return -1;
-}
+int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
 
 void require(bool ok, const std::string& param, const std::string& what) {
   if (!ok) throw std::invalid_argument("simulator parameter " + param + ": " + what);

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 
@@ -56,11 +57,11 @@ StageConfig load_stage(const std::string& yaml_path) {
       s.duration_s = number(kv.second, where);
       if (s.duration_s <= 0.0) bad(where, "must be > 0");
     } else if (key == "axes") {
-      if (!kv.second.IsSequence() || kv.second.size() == 0) bad(where, "expected a non-empty list of a, b, c");
+      if (!kv.second.IsSequence() || kv.second.size() == 0) bad(where, "expected a non-empty list of " + io::axis_names_list());
       s.axes.clear();
       for (const auto& a : kv.second) {
         const std::string name = a.as<std::string>();
-        if (name != "a" && name != "b" && name != "c") bad(where, "axes must be a, b or c, got '" + name + "'");
+        if (io::axis_index_or_none(name) < 0) bad(where, "axes must be among " + io::axis_names_list() + ", got '" + name + "'");
         if (std::find(s.axes.begin(), s.axes.end(), name) != s.axes.end()) bad(where, "axis '" + name + "' twice");
         s.axes.push_back(name);
       }
