@@ -724,11 +724,17 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
     if (keep) m = std::move(mw), used_factor = factor;
   }
 
-  // With everything chosen, the final weights from the training and validation parts together (they are one
-  // recording in time): slow creep modes are identified from hours, and the validation part is hours more. Only
-  // for the kinds linear in their parameters (no creep law search that the validation part no longer checks).
+  // Optionally (refit_with_validation: true), with everything chosen, the final weights from the training and
+  // validation parts together (one recording in time): slow creep modes get hours more data. Off by default: the
+  // validation metrics stored with the model and compared by --model auto would then be in-sample. Only for the
+  // kinds linear in their parameters (no creep-law search that the validation part no longer checks).
   const bool linear_kind = kind == CreepKind::kNone || kind == CreepKind::kProny;
-  const bool refit = val && option_str(o, "refit_with_validation", linear_kind ? "true" : "false") != "false";
+  const std::string refit_opt = option_str(o, "refit_with_validation", "false");
+  if (refit_opt != "true" && refit_opt != "false")
+    throw std::runtime_error("option 'refit_with_validation': expected true or false, got '" + refit_opt + "'");
+  if (refit_opt == "true" && !linear_kind)
+    throw std::runtime_error("option 'refit_with_validation': only for pi, pi_creep_prony and the preisach kinds");
+  const bool refit = val && refit_opt == "true";
   std::vector<double> all_v, all_y, all_w;
   if (refit) {
     all_v = ax.voltage_v, all_y = ax.position_nm;
