@@ -111,9 +111,8 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
     for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
   }
   // Issue 12: hold MAE ≤ 5 nm (measured 4.69 nm; pi_creep_prony 46.4 nm). It also asks ≤ 5 nm at every end of
-  // hold: measured 16.1 nm (holds 14–15, an offset that appears during the walk at ~13.4 h and persists; holds
-  // 11–13 end within 1.6 nm), so that bound holds the gain made (pi_creep_prony: 115.2 nm) and docs/models.md
-  // reports the miss.
+  // hold: measured 16.1 nm (drift inside holds 11, 12, 15), so that bound holds the gain made (pi_creep_prony:
+  // 115.2 nm) and docs/models.md reports the miss.
   EXPECT_LE(got["preisach_creep_prony"].mae_nm, 5.0);
   EXPECT_LE(got["preisach_creep_prony"].worst_end_nm, 20.0);
   EXPECT_LT(got["preisach_creep_prony"].mae_nm, 0.25 * got["pi_creep_prony"].mae_nm);
