@@ -130,8 +130,7 @@ TEST(PronyCreep, ModelFileRoundTripsAndBoundsItsSizes) {
   const auto& b = dynamic_cast<const PiCreepModel&>(*back);
   EXPECT_EQ(b.mode_taus_s(), m.mode_taus_s());
   EXPECT_EQ(b.mode_gains(), m.mode_gains());
-  auto load_error = [&](const std::string& from, const std::string& to) { return load_error_after(text, from, to); };
-  EXPECT_NE(load_error("modes_per_decade: 2", "modes_per_decade: 500").find("modes_per_decade"), std::string::npos);
-  EXPECT_NE(load_error("tau_max_s: 2000", "tau_max_s: 1e30").find("decades"), std::string::npos);
-  EXPECT_NE(load_error("tau_max_s: 2000", "tau_max_s: 20000").find("mode_gains"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "modes_per_decade: 2", "modes_per_decade: 500").find("modes_per_decade"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "tau_max_s: 2000", "tau_max_s: 1e30").find("decades"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "tau_max_s: 2000", "tau_max_s: 20000").find("mode_gains"), std::string::npos);
 }
