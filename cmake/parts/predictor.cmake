@@ -16,3 +16,5 @@ piezo_rostest(test/rostest/predictor_replay.test test/rostest/predictor_replay.c
 piezo_rostest(test/rostest/predictor_inputs.test test/rostest/predictor_inputs.cpp DEPENDS piezo_predictor)
 piezo_rostest(test/rostest/predictor_params.test test/rostest/predictor_params.cpp)
 piezo_unit_test(test_compensation_watch test/unit/test_compensation_watch.cpp)
+piezo_ros_unit_test(test_predictor_snapshot test/unit/test_predictor_snapshot.cpp)
+piezo_rostest(test/rostest/live_loop.test test/rostest/live_loop.cpp DEPENDS piezo_predictor mm3e_sim mm3e_driver)

@@ -19,3 +19,4 @@ if(CATKIN_ENABLE_TESTING)
      ! $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/mm3e_pi.yaml --protocol noise --out $d/x.csv 2>/dev/null; \
      rm -rf $d")
 endif()
+piezo_unit_test(test_sim_thermal_switch test/unit/test_sim_thermal_switch.cpp)

@@ -6,6 +6,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <sstream>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ros/mm3e_params.h"
@@ -69,14 +70,16 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   for (int i = 0; i < can::kAxisCount; ++i)
     truth_pub_[i] = nh_.advertise<piezo_compensation::EncoderPosition>(
         std::string(can::kAxisNames[i]) + "/true_position", 20);
-  // aux signals of the simulated effects, on the topics the predictor's ~aux_topics map (sensor_msgs/Temperature)
-  if (sim_config.thermal_drift.enabled)
-    temperature_pub_ = nh_.advertise<sensor_msgs::Temperature>("temperature", 20);
+  // aux signals of the simulated effects, on the topics the predictor's ~aux_topics map (sensor_msgs/Temperature).
+  // Always published: the thermal drift can be switched on mid-run (~set_thermal_drift); while it is off the
+  // sensor reads the ambient temperature.
+  temperature_pub_ = nh_.advertise<sensor_msgs::Temperature>("temperature", 20);
   if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
   bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
   garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
   restart_srv_ = pnh_.advertiseService("inject_restart", &SimNode::on_restart, this);
   stuck_srv_ = pnh_.advertiseService("inject_stuck_amplifier", &SimNode::on_stuck, this);
+  thermal_srv_ = pnh_.advertiseService("set_thermal_drift", &SimNode::on_thermal, this);
   ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
                                              << " Hz, "
                                              << (sync_mode_ ? std::string("synchronous: one sample per SYNC")
@@ -116,7 +119,7 @@ void SimNode::step_once(double t_s) {
     msg.valid = true;
     truth_pub_[i].publish(msg);
   }
-  if (temperature_pub_) {
+  {
     sensor_msgs::Temperature t;
     t.header.stamp = ros::Time(t_s);
     t.header.frame_id = frame_id_;
@@ -246,6 +249,22 @@ bool SimNode::on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Respo
   res.success = true;
   res.message = req.data ? "amplifiers stuck: every axis keeps its present output and ignores set points"
                          : "amplifiers released";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::on_thermal(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  simulator_->set_thermal_drift(req.data);
+  const auto& t = simulator_->config().thermal_drift;
+  std::ostringstream os;
+  if (req.data)
+    os << "thermal drift on: " << t.gain_nm_per_c << " nm/°C through a " << t.lag_s << " s lag, temperature "
+       << t.ambient_c << " ± " << t.amplitude_c << " °C over " << t.period_s << " s";
+  else
+    os << "thermal drift off";
+  res.success = true;
+  res.message = os.str();
   ROS_WARN_STREAM("mm3e_sim: " << res.message);
   return true;
 }

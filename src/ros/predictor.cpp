@@ -28,6 +28,7 @@ namespace piezo::predictor {
 namespace {
 
 constexpr double kNmPerM = 1e9;
+constexpr std::uint32_t kInputQueue = 200;
 
 compensation::IdealLine line_for(const models::Model& m, const PredictorSettings& s) {
   compensation::IdealLineOptions o;
@@ -64,6 +65,26 @@ models::ModelPtr load_model_file(const std::string& path) {
 #endif
 }
 
+std::map<std::string, std::string> read_model_files(const ros::NodeHandle& pnh, const std::vector<std::string>& axes) {
+  const std::string name = pnh.resolveName("model_file");
+  std::map<std::string, std::string> files;
+  XmlRpc::XmlRpcValue mf;
+  if (!pnh.getParam("model_file", mf))
+    throw std::invalid_argument("parameter " + name + " is required (a path, or {a: path, ...})");
+  if (mf.getType() == XmlRpc::XmlRpcValue::TypeString) {
+    for (const auto& a : axes) files[a] = static_cast<std::string>(mf);
+  } else if (mf.getType() == XmlRpc::XmlRpcValue::TypeStruct) {
+    for (const auto& a : axes) {
+      if (!mf.hasMember(a) || mf[a].getType() != XmlRpc::XmlRpcValue::TypeString)
+        throw std::invalid_argument("parameter " + name + "/" + a + " is required for axis " + a + " (a path)");
+      files[a] = static_cast<std::string>(mf[a]);
+    }
+  } else {
+    throw std::invalid_argument("parameter " + name + " must be a path or a map {a: path, b: path, c: path}");
+  }
+  return files;
+}
+
 PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   // Ranges are the documented ceilings of config/predictor.yaml: every size the node allocates from is bounded.
   params::ParamReader r(pnh);
@@ -71,22 +92,7 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   const std::vector<std::string> axis_names(io::kAxisNames.begin(), io::kAxisNames.end());
   s.axes = r.texts("axes", s.axes, axis_names, 1, axis_names.size());
   r.known("model_file");
-  XmlRpc::XmlRpcValue mf;
-  if (!pnh.getParam("model_file", mf))
-    throw std::invalid_argument("parameter " + r.resolved("model_file") + " is required (a path, or {a: path, ...})");
-  if (mf.getType() == XmlRpc::XmlRpcValue::TypeString) {
-    for (const auto& a : s.axes) s.model_files[a] = static_cast<std::string>(mf);
-  } else if (mf.getType() == XmlRpc::XmlRpcValue::TypeStruct) {
-    for (const auto& a : s.axes) {
-      if (!mf.hasMember(a) || mf[a].getType() != XmlRpc::XmlRpcValue::TypeString)
-        throw std::invalid_argument("parameter " + r.resolved("model_file") + "/" + a + " is required for axis " + a +
-                                    " (a path)");
-      s.model_files[a] = static_cast<std::string>(mf[a]);
-    }
-  } else {
-    throw std::invalid_argument("parameter " + r.resolved("model_file") +
-                                " must be a path or a map {a: path, b: path, c: path}");
-  }
+  s.model_files = read_model_files(pnh, s.axes);
   s.compensation = r.flag("compensation", s.compensation);
   s.forward_when_off = r.flag("forward_when_off", s.forward_when_off);
   s.command_on_sample = r.flag("command_on_sample", s.command_on_sample);
@@ -117,6 +123,9 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   s.watch.window_s = r.number("watch_window_s", s.watch.window_s, 1e-3, 3600.0);
   s.watch.k = r.number("watch_k", s.watch.k, 1.0, 1000.0);
   s.watch.hold_s = r.number("watch_hold_s", s.watch.hold_s, 0.0, 86400.0);
+  s.snapshot_duration_s = r.number("snapshot_duration_s", s.snapshot_duration_s, 0.0, 86400.0);
+  s.snapshot_max_messages = r.integer("snapshot_max_messages", s.snapshot_max_messages, 1000, 20000000);
+  s.snapshot_dir = r.text("snapshot_dir", s.snapshot_dir);
   s.axis.voltage_min_v = r.number("voltage_min_v", s.axis.voltage_min_v, -1000.0, 1000.0);
   s.axis.voltage_max_v = r.number("voltage_max_v", s.axis.voltage_max_v, -1000.0, 1000.0);
   if (!(s.axis.voltage_max_v > s.axis.voltage_min_v))
@@ -163,10 +172,10 @@ std::unique_ptr<compensation::InputFeeder> PredictorAxis::make_feeder(const mode
   return std::make_unique<compensation::InputFeeder>(m, axis_, o);
 }
 
-void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model) {
+void PredictorAxis::reload(const std::string& model_name, models::ModelPtr model, bool warm) {
   const compensation::IdealLine line = line_for(*model, s_);
   auto feeder = make_feeder(*model);
-  comp_->replace_model(std::move(model), line);
+  comp_->replace_model(std::move(model), line, warm);
   feeder_ = std::move(feeder);
   if (watch_) watch_->clear();  // the new model is judged on its own samples
   model_name_ = model_name;
@@ -357,10 +366,12 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     Axis* ap = a.get();
     a->pub_prediction = nh_.advertise<Prediction>(name + "/prediction", 20);
     a->pub_command = nh_.advertise<VoltageCommand>(name + "/command", 1);
-    a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", 20, [this, ap](const AxisVoltage::ConstPtr& m) {
+    // Sensor topics keep every sample through a stall of the host (kInputQueue samples: 18 s at 11 Hz, 0.45 s of
+    // wall time at 40 x simulated time); a dropped one would be a gap in the snapshot and in the model's clock.
+    a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", kInputQueue, [this, ap](const AxisVoltage::ConstPtr& m) {
       on_voltage(*ap, m);
     }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
-    a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", 20, [this, ap](const EncoderPosition::ConstPtr& m) {
+    a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", kInputQueue, [this, ap](const EncoderPosition::ConstPtr& m) {
       on_encoder(*ap, m);
     }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
     a->sub_intended = nh_.subscribe<IntendedMotion>(name + "/intended", 10, [this, ap](const IntendedMotion::ConstPtr& m) {
@@ -372,7 +383,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
   for (const auto& [name, topic] : s_.aux_topics) {
     const std::string input = name;
     aux_subs_.push_back(nh_.subscribe<topic_tools::ShapeShifter>(
-        topic, 10, [this, input](const topic_tools::ShapeShifter::ConstPtr& m) { on_aux(input, m); }));
+        topic, kInputQueue, [this, input](const topic_tools::ShapeShifter::ConstPtr& m) { on_aux(input, m); }));
   }
   for (const auto& a : axes_)
     for (const auto& src : a->logic->inputs().sources())
@@ -392,22 +403,81 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
       });
   srv_reload_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
       "reload_model", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+        // ~model_file is read again (an operator points it at the augmented model `piezo residual` wrote).
         // All or nothing: a broken file leaves every axis on its current model.
         std::vector<models::ModelPtr> fresh;
+        std::map<std::string, std::string> files;
         try {
-          for (const auto& a : axes_) fresh.push_back(load_model_file(s_.model_files.at(a->logic->axis())));
+          files = read_model_files(pnh_, s_.axes);
+          for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis())));
+          // Warm start on the buffered samples: a model with slow terms (a 300 s low-pass, creep) started at rest
+          // would carry a transient of minutes that the offline score of the same model never saw.
+          std::vector<std::string> cold(axes_.size());
+          std::optional<compensation::Snapshot> recent;
+          std::string no_recent = "no ~snapshot buffer (~snapshot_duration_s 0)";
+          if (snapshot_) {
+            try {
+              recent = snapshot_->take();
+            } catch (const std::exception& e) {
+              no_recent = e.what();
+            }
+          }
           for (std::size_t i = 0; i < axes_.size(); ++i)
-            axes_[i]->logic->reload(s_.model_files.at(axes_[i]->logic->axis()), std::move(fresh[i]));
+            cold[i] = recent ? warm_model(*fresh[i], axes_[i]->logic->axis(), *recent, nh_.getNamespace()) : no_recent;
+          for (std::size_t i = 0; i < axes_.size(); ++i)
+            axes_[i]->logic->reload(files.at(axes_[i]->logic->axis()), std::move(fresh[i]), cold[i].empty());
+          res.message.clear();
+          for (std::size_t i = 0; i < axes_.size(); ++i)
+            res.message += "; " + axes_[i]->logic->axis() + ": " +
+                           (cold[i].empty() ? "warm, on the last " + std::to_string(static_cast<int>(
+                                                  recent->end_s - recent->begin_s)) + " s"
+                                            : "cold start (" + cold[i] + ")");
         } catch (const std::exception& e) {
           res.success = false;
           res.message = std::string("reload failed, models unchanged: ") + e.what();
           ROS_ERROR("%s", res.message.c_str());
           return true;
         }
+        s_.model_files = files;
         res.success = true;
-        res.message = "models reloaded";
+        std::string warmth = res.message;
+        res.message = "models reloaded:";
+        for (const auto& [axis, path] : files) res.message += " " + axis + " " + path;
+        res.message += warmth;
+        ROS_INFO("%s", res.message.c_str());
         return true;
       });
+  if (s_.snapshot_duration_s > 0.0) {
+    compensation::SnapshotOptions so;
+    so.duration_s = s_.snapshot_duration_s;
+    so.max_messages = static_cast<std::size_t>(s_.snapshot_max_messages);
+    snapshot_ = std::make_unique<compensation::SnapshotBuffer>(so);
+    srv_snapshot_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
+        "snapshot", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+          try {
+            const compensation::Snapshot snap = snapshot_->take();
+            const std::string path = snapshot_path(snapshot_directory(s_.snapshot_dir), snap.end_s);
+            write_snapshot_bag(path, nh_.getNamespace(), snap, s_.frame_prefix + "base");
+            std::size_t readings = 0;
+            for (const auto& [axis, a] : snap.axes) readings += a.readings.size();
+            std::ostringstream os;
+            os << path << " (" << std::fixed << std::setprecision(1) << snap.end_s - snap.begin_s << " s, "
+               << snap.axes.size() << " axes, " << readings << " readings, " << snap.aux.size() << " aux signals, "
+               << std::setprecision(4) << snap.period_s * 1e3 << " ms sample clock, receive stamps within "
+               << snap.max_restamp_s * 1e3 << " ms of it";
+            if (snap.invalid_readings > 0) os << ", " << snap.invalid_readings << " invalid readings left out";
+            os << ")";
+            res.success = true;
+            res.message = os.str();
+            ROS_INFO("snapshot: %s", res.message.c_str());
+          } catch (const std::exception& e) {
+            res.success = false;
+            res.message = std::string("no snapshot written: ") + e.what();
+            ROS_ERROR("%s", res.message.c_str());
+          }
+          return true;
+        });
+  }
 
   diag_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
   diag_->setHardwareID(s_.hardware_id);
@@ -463,6 +533,8 @@ void PredictorNode::on_aux(const std::string& input, const topic_tools::ShapeShi
   const ros::Time now = ros::Time::now();
   // staleness counts from the sensor's stamp when it has one (never from the future)
   live_.add_aux(input, value, (stamp.isZero() || stamp > now ? now : stamp).toSec());
+  // the bag row of a sample takes the aux value at or before its stamp: the sensor's stamp when it has one
+  if (snapshot_) snapshot_->add_aux(input, value, (stamp.isZero() ? now : stamp).toSec());
 }
 
 void PredictorNode::poll_others(const Axis& except, const ros::Time& now) {
@@ -477,6 +549,7 @@ void PredictorNode::on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg) {
   const auto t0 = std::chrono::steady_clock::now();
   const ros::Time now = ros::Time::now();
   if (std::isfinite(msg->voltage)) live_.add_voltage(a.logic->axis(), msg->sequence, msg->voltage);
+  if (snapshot_) snapshot_->add_voltage(a.logic->axis(), msg->sequence, msg->voltage, msg->header.stamp.toSec());
   auto outs = a.logic->on_voltage(*msg, compensation_, now);
   if (!outs.empty()) emit(a, outs, now);
   poll_others(a, now);
@@ -508,6 +581,9 @@ void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
   }
   if (msg->valid && std::isfinite(msg->position))
     live_.add_reading(a.logic->axis(), msg->sequence, msg->position * kNmPerM);
+  if (snapshot_)
+    snapshot_->add_reading(a.logic->axis(), msg->sequence, msg->position * kNmPerM, msg->valid,
+                           msg->header.stamp.toSec());
   auto outs = a.logic->on_encoder(*msg, compensation_, now);
   if (!outs.empty()) emit(a, outs, now);
   poll_others(a, now);

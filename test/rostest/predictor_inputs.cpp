@@ -1,5 +1,5 @@
-// The predictor runs an augmented model with an aux_signal (temperature topic), a cross_axis (axis a's voltage)
-// and a time_drift (ROS time) term and matches the offline prediction (models::stream_model on the same samples)
+// The predictor runs an augmented model with an aux_signal and an aux_gain (temperature topic), a cross_axis (axis
+// a's voltage) and a time_drift (ROS time) term and matches the offline prediction (models::stream_model on the same samples)
 // sample by sample; a stale temperature feeds the held value and its return is ramped, so nothing jumps.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
@@ -35,9 +35,27 @@ piezo::models::EffectTerm linear_term(const std::string& signal, const std::stri
   return t;
 }
 
+// Issue 18: a stroke gain driven by the low-passed temperature, the form analysis/residual.cpp writes for aux_gain:
+// the base output scaled by 1 + gain_per_c · (lowpass_τ(T) − T0).
+piezo::models::EffectTerm temperature_gain(double t0_c, double tau_s, double gain_per_c) {
+  piezo::models::EffectTerm t;
+  t.type = "gain";
+  t.signal = "temperature_c";
+  t.family = "aux_gain";
+  t.time_constant_s = tau_s;
+  t.pre_center = t0_c;
+  t.pre_scale = 1.0;
+  t.scales = piezo::models::kSignalPosition;
+  t.reference = 0.0;
+  t.center = {0.0};
+  t.scale = {1.0};
+  t.weight = {gain_per_c};
+  return t;
+}
+
 }  // namespace
 
-TEST(PredictorInputs, AuxCrossAxisAndTimeTermsMatchOfflineAndFallBackWithoutJumps) {
+TEST(PredictorInputs, AuxGainCrossAxisAndTimeTermsMatchOfflineAndFallBackWithoutJumps) {
   ros::NodeHandle nh, pnh("~");
   const std::string path = pnh.param<std::string>("model_file", ""), base = pnh.param<std::string>("base_model", "");
   // stamps run ahead of the wall clock, so the temperature's staleness counts from its receipt
@@ -45,7 +63,8 @@ TEST(PredictorInputs, AuxCrossAxisAndTimeTermsMatchOfflineAndFallBackWithoutJump
   std::vector<piezo::models::EffectTerm> terms{
       linear_term("temperature_c", "aux_signal", 22.0, 1.0, 40.0),   // 40 nm/°C
       linear_term("a_voltage_v", "cross_axis", 0.0, 10.0, 15.0),      // 1.5 nm/V
-      linear_term("time_s", "time_drift", t0, 10.0, 5.0)};            // 0.5 nm/s
+      linear_term("time_s", "time_drift", t0, 10.0, 5.0),             // 0.5 nm/s
+      temperature_gain(22.0, 5.0, 0.03)};                             // stroke +3 %/°C through a 5 s low-pass
   piezo::models::AugmentedModel model(piezo::models::load_model(base), terms, 0.0, 11.0);
   model.meta.axis = "c";
   model.meta.sample_rate_hz = 11.0;

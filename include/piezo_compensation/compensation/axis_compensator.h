@@ -70,8 +70,9 @@ class AxisCompensator {
   // Without an intent the hold target is the last applied voltage's ideal position.
   CommandUpdate command(bool compensate);
 
-  // Replace the model (reload); the new model starts at rest at the last applied voltage and predicted position.
-  void replace_model(models::ModelPtr model, const IdealLine& line);
+  // Replace the model (reload); the new model starts at rest at the last applied voltage and predicted position,
+  // or, with `warm`, keeps the state it has (the caller streamed it over the recent samples).
+  void replace_model(models::ModelPtr model, const IdealLine& line, bool warm = false);
 
   const models::Model& model() const { return *model_; }
   const IdealLine& ideal_line() const { return line_; }

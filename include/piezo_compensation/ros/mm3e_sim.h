@@ -35,6 +35,7 @@ class SimNode {
   bool on_garbage(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool on_restart(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
+  bool on_thermal(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
   void send_all(const std::vector<can_frame>& frames);
 
   ros::NodeHandle nh_, pnh_;
@@ -51,9 +52,9 @@ class SimNode {
   std::string transport_name_;
   std::mutex mutex_;  // device_ and transport_ between the loop and the fault services
   std::array<ros::Publisher, can::kAxisCount> truth_pub_;
-  ros::Publisher temperature_pub_;  // thermal drift on: the simulated temperature [°C]
+  ros::Publisher temperature_pub_;  // the simulated temperature [°C] (ambient while thermal drift is off)
   ros::Publisher clock_pub_;
-  ros::ServiceServer bus_off_srv_, garbage_srv_, restart_srv_, stuck_srv_;
+  ros::ServiceServer bus_off_srv_, garbage_srv_, restart_srv_, stuck_srv_, thermal_srv_;
   std::atomic<bool> running_{true};
   std::atomic<double> silent_until_wall_s_{0.0};
   std::thread thread_;

@@ -27,6 +27,7 @@
 #include "piezo_compensation/compensation/drift_forecast.h"
 #include "piezo_compensation/compensation/live_inputs.h"
 #include "piezo_compensation/compensation/residual_watch.h"
+#include "piezo_compensation/compensation/snapshot_buffer.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 
 namespace diagnostic_updater {
@@ -83,11 +84,30 @@ struct PredictorSettings {
   double aux_stale_after_s = 5.0;                 // an aux signal older than this feeds its fallback
   double aux_recovery_s = 10.0;                   // ramp from the fallback back to the fresh signal
   compensation::ResidualWatchOptions watch;       // noise_floor_nm 0 = no residual watch
+  double snapshot_duration_s = 1800.0;            // ~snapshot keeps this much (0 = no snapshot service)
+  int snapshot_max_messages = 1000000;            // per stream: the buffer's memory bound
+  std::string snapshot_dir;                       // "" = $ROS_HOME/piezo_snapshots (~/.ros/piezo_snapshots)
   compensation::AxisCompensatorConfig axis;
 };
 
 // Reads and validates the private parameters; throws std::invalid_argument naming the parameter.
 PredictorSettings read_settings(const ros::NodeHandle& pnh);
+// ~model_file for `axes` (a path, or a map axis → path); read again by ~reload_model.
+std::map<std::string, std::string> read_model_files(const ros::NodeHandle& pnh, const std::vector<std::string>& axes);
+
+// ~snapshot (src/ros/predictor_snapshot.cpp). The directory ("" = the default under $ROS_HOME or ~/.ros).
+std::string snapshot_directory(const std::string& configured);
+// A new bag path in `dir` named by the newest reading's stamp (UTC); creates `dir`; throws std::runtime_error
+// when it is not a writable directory.
+std::string snapshot_path(const std::string& dir, double end_stamp_s);
+// Writes the snapshot under namespace `ns` in the bag layout of ros/data_file.h; throws std::runtime_error.
+void write_snapshot_bag(const std::string& path, const std::string& ns, const compensation::Snapshot& s,
+                        const std::string& frame_id);
+// Streams `model` (free-run, from rest at the first row) over the snapshot, read through the one bag reader, so a
+// reloaded model starts with the state of a model that had been running (low-pass and lag terms, creep).
+// Returns "" or why it could not (the caller then starts the model at rest).
+std::string warm_model(models::Model& model, const std::string& axis, const compensation::Snapshot& s,
+                       const std::string& ns);
 
 // One axis at message level, without a NodeHandle: the node, the replay measurement and the tests drive it.
 class PredictorAxis {
@@ -122,7 +142,8 @@ class PredictorAxis {
   const compensation::ResidualWatch* watch() const { return watch_.get(); }
 
   void set_forecast(const compensation::DriftForecast& f);
-  void reload(const std::string& model_name, models::ModelPtr model);
+  // `warm`: the model was streamed over the recent samples and keeps that state (else it starts at rest).
+  void reload(const std::string& model_name, models::ModelPtr model, bool warm = false);
   const std::string& model_error() const { return model_error_; }
 
   const std::string& axis() const { return axis_; }
@@ -190,7 +211,8 @@ class PredictorNode {
   std::vector<std::unique_ptr<Axis>> axes_;
   compensation::LiveInputs live_;   // other axes' reports and readings, aux signals
   std::vector<ros::Subscriber> aux_subs_;
-  ros::ServiceServer srv_compensation_, srv_reload_;
+  ros::ServiceServer srv_compensation_, srv_reload_, srv_snapshot_;
+  std::unique_ptr<compensation::SnapshotBuffer> snapshot_;  // null: ~snapshot_duration_s 0
   ros::Publisher markers_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_;
   std::unique_ptr<diagnostic_updater::Updater> diag_;

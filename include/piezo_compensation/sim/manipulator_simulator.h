@@ -46,6 +46,10 @@ class ManipulatorSimulator {
 
   double time_s() const;
   const SimulatorConfig& config() const;
+  // Switches the thermal drift effect (its configured parameters) on or off from now on. Switched on, the
+  // mechanics start at the ambient temperature and follow the air through the lag, so the position does not jump;
+  // switched off, the thermal offset goes at once.
+  void set_thermal_drift(bool on);
 
  private:
   struct Impl;

@@ -161,13 +161,13 @@ CommandUpdate AxisCompensator::command(bool compensate) {
   return c;
 }
 
-void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& line) {
+void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& line, bool warm) {
   if (!model) throw std::invalid_argument("AxisCompensator: no model");
   check_model(*model);
   model_ = std::move(model);
   set_inputs_for(*model_);
   line_ = line;
-  if (started_) model_->reset(last_applied_v_, last_predicted_nm_);
+  if (started_ && !warm) model_->reset(last_applied_v_, last_predicted_nm_);
   anchor_nm_ = 0.0;
 }
 

@@ -186,6 +186,11 @@ StepResult ManipulatorSimulator::step(const std::array<double, 3>& voltages_v, d
 }
 
 double ManipulatorSimulator::time_s() const { return impl_->time_s; }
+void ManipulatorSimulator::set_thermal_drift(bool on) {
+  if (on && !impl_->cfg.thermal_drift.enabled) impl_->thermal_lagged_c = impl_->cfg.thermal_drift.ambient_c;
+  impl_->cfg.thermal_drift.enabled = on;
+}
+
 const SimulatorConfig& ManipulatorSimulator::config() const { return impl_->cfg; }
 
 io::Dataset ManipulatorSimulator::run(const io::Dataset& program) {

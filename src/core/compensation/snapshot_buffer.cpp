@@ -1,0 +1,168 @@
+#include "piezo_compensation/compensation/snapshot_buffer.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <sstream>
+#include <stdexcept>
+#include <type_traits>
+
+namespace piezo::compensation {
+
+namespace {
+
+// Puts one axis' samples on the sample clock (Snapshot): readings by sequence distance from the newest, reports
+// onto the stamp of their reading (or shifted like the reading before them when theirs was lost).
+void restamp(Snapshot::Axis& a, Snapshot& s) {
+  auto& r = a.readings;
+  if (r.empty()) return;
+  const std::size_t n = r.size();
+  const double rough = n > 1 ? (r.back().received_s - r.front().received_s) / static_cast<double>(n - 1) : 0.0;
+  std::vector<double> index(n, 0.0);  // sample number from the first reading
+  for (std::size_t i = 1; i < n; ++i) {
+    const std::uint32_t dseq = r[i].sequence - r[i - 1].sequence;  // wraps at 2^32 like the counter
+    double step = static_cast<double>(dseq);
+    if (dseq == 0 || dseq > 1000)  // a controller restart: count the periods by time
+      step = rough > 0.0 ? std::max(1.0, std::round((r[i].received_s - r[i - 1].received_s) / rough)) : 1.0;
+    index[i] = index[i - 1] + step;
+  }
+  const double period = index.back() > 0.0 ? (r.back().received_s - r.front().received_s) / index.back() : 0.0;
+  if (s.period_s == 0.0) s.period_s = period;
+  std::map<std::uint32_t, double> shift;  // sequence → sample clock − receive stamp
+  for (std::size_t i = 0; i < n; ++i) {
+    const double clock = r.back().received_s - (index.back() - index[i]) * period;
+    s.max_restamp_s = std::max(s.max_restamp_s, std::fabs(clock - r[i].received_s));
+    shift[r[i].sequence] = clock - r[i].received_s;
+    r[i].stamp_s = clock;
+  }
+  double last = 0.0;
+  for (auto& v : a.voltages) {
+    const auto it = shift.find(v.sequence);
+    if (it != shift.end()) last = it->second;
+    v.stamp_s = v.received_s + last;
+  }
+}
+
+// A voltage report and its reading carry stamps of the same sample; a controller restart reuses numbers only
+// much later, so a match within this is the report of that reading.
+constexpr double kSameSampleS = 1.0;
+}  // namespace
+
+SnapshotBuffer::SnapshotBuffer(const SnapshotOptions& o) : o_(o) {
+  if (!(o_.duration_s > 0.0) || !std::isfinite(o_.duration_s))
+    throw std::invalid_argument("snapshot duration_s must be finite and > 0");
+  if (o_.max_messages < 2) throw std::invalid_argument("snapshot max_messages must be at least 2");
+}
+
+template <class Q>
+void SnapshotBuffer::trim(Q& q, double newest_s, bool keep_one_before) const {
+  // Some headroom beyond duration_s, so take() still finds the report of the first reading it keeps.
+  const double cut = newest_s - o_.duration_s - kSameSampleS;
+  const auto stamp = [](const auto& e) {
+    if constexpr (std::is_same_v<std::decay_t<decltype(e)>, Reading>) return e.r.stamp_s;
+    else return e.stamp_s;
+  };
+  while (q.size() > o_.max_messages) q.pop_front();
+  while (!q.empty() && stamp(q.front()) < cut && (!keep_one_before || (q.size() > 1 && stamp(q[1]) < cut)))
+    q.pop_front();
+}
+
+void SnapshotBuffer::add_voltage(const std::string& axis, std::uint32_t sequence, double voltage_v, double stamp_s) {
+  if (!std::isfinite(voltage_v) || !std::isfinite(stamp_s)) return;
+  auto& q = axes_[axis].voltages;
+  q.push_back({stamp_s, stamp_s, sequence, voltage_v});
+  trim(q, stamp_s, false);
+}
+
+void SnapshotBuffer::add_reading(const std::string& axis, std::uint32_t sequence, double position_nm, bool valid,
+                                 double stamp_s) {
+  if (!std::isfinite(stamp_s)) return;
+  if (!std::isfinite(position_nm)) valid = false;
+  auto& q = axes_[axis].readings;
+  q.push_back({{stamp_s, stamp_s, sequence, valid ? position_nm : 0.0}, valid});
+  trim(q, stamp_s, false);
+}
+
+void SnapshotBuffer::add_aux(const std::string& name, double value, double stamp_s) {
+  if (!std::isfinite(value) || !std::isfinite(stamp_s)) return;
+  auto& q = aux_[name];
+  q.push_back({stamp_s, value});
+  trim(q, stamp_s, true);  // the value in force at the window's start
+}
+
+std::size_t SnapshotBuffer::messages() const {
+  std::size_t n = 0;
+  for (const auto& [name, a] : axes_) n += a.voltages.size() + a.readings.size();
+  for (const auto& [name, q] : aux_) n += q.size();
+  return n;
+}
+
+Snapshot SnapshotBuffer::take() const {
+  double end = -std::numeric_limits<double>::infinity();
+  for (const auto& [name, a] : axes_)
+    if (!a.readings.empty()) end = std::max(end, a.readings.back().r.stamp_s);
+  if (!std::isfinite(end)) throw std::runtime_error("nothing recorded yet (no encoder reading)");
+
+  // index of the voltage report of reading r, or npos
+  const auto report_of = [](const AxisStreams& a, const SnapshotReading& r) {
+    for (std::size_t i = 0; i < a.voltages.size(); ++i)
+      if (a.voltages[i].sequence == r.sequence && std::fabs(a.voltages[i].stamp_s - r.stamp_s) <= kSameSampleS)
+        return i;
+    return a.voltages.size();
+  };
+  // first valid reading at or after t whose report is held: (reading index, report index)
+  const auto first_complete = [&](const AxisStreams& a, double t) {
+    for (std::size_t i = 0; i < a.readings.size(); ++i) {
+      const Reading& r = a.readings[i];
+      if (r.r.stamp_s < t || !r.valid) continue;
+      const std::size_t v = report_of(a, r.r);
+      if (v < a.voltages.size()) return std::make_pair(i, v);
+    }
+    return std::make_pair(a.readings.size(), a.voltages.size());
+  };
+
+  // Every axis and every aux signal must be present from the first row on: the start is the latest of their
+  // first complete samples.
+  double start = end - o_.duration_s;
+  for (const auto& [name, a] : axes_) {
+    const auto [ri, vi] = first_complete(a, start);
+    if (ri == a.readings.size())
+      throw std::runtime_error("axis " + name + ": no encoder reading with its voltage report in the last " +
+                               std::to_string(o_.duration_s) + " s");
+    start = std::max(start, a.readings[ri].r.stamp_s);
+  }
+  for (const auto& [name, q] : aux_)
+    if (!q.empty() && q.front().stamp_s > start) start = q.front().stamp_s;
+
+  Snapshot s;
+  s.begin_s = std::numeric_limits<double>::infinity();
+  s.end_s = end;
+  for (const auto& [name, a] : axes_) {
+    const auto [ri, vi] = first_complete(a, start);
+    if (ri == a.readings.size()) {
+      std::ostringstream os;
+      os << "axis " << name << ": no encoder reading with its voltage report after t = " << std::fixed << start
+         << " s (an aux signal or another axis starts later)";
+      throw std::runtime_error(os.str());
+    }
+    Snapshot::Axis& out = s.axes[name];
+    out.voltages.assign(a.voltages.begin() + static_cast<std::ptrdiff_t>(vi), a.voltages.end());
+    for (std::size_t i = ri; i < a.readings.size(); ++i) {
+      if (a.readings[i].valid) out.readings.push_back(a.readings[i].r);
+      else ++s.invalid_readings;
+    }
+  }
+  for (auto& [name, a] : s.axes) {
+    restamp(a, s);
+    s.begin_s = std::min(s.begin_s, a.readings.front().stamp_s);
+  }
+  for (const auto& [name, q] : aux_) {
+    if (q.empty()) continue;
+    std::size_t k = 0;
+    while (k + 1 < q.size() && q[k + 1].stamp_s <= s.begin_s) ++k;  // the value in force at the first row
+    s.aux[name].assign(q.begin() + static_cast<std::ptrdiff_t>(k), q.end());
+  }
+  return s;
+}
+
+}  // namespace piezo::compensation
