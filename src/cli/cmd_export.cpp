@@ -14,7 +14,7 @@ namespace {
 
 int run(int argc, char** argv) {
   Args args("export", "Write a model file as a C99 header: state struct, <prefix>_init, _predict, _commit, _step\n"
-                      "and, where the model has a closed form, _inverse. Kinds: linear, pi, pi_creep_*.");
+                      "and, where the model has a closed form, _inverse. Kinds: linear, pi, pi_creep_*, preisach*.");
   args.required("model", "FILE.yaml", "model file")
       .required("c-header", "FILE.h", "header to write")
       .option("prefix", "NAME", "C identifier prefix (default: from the header file name)");

@@ -29,7 +29,7 @@ int run(int argc, char** argv) {
       .option("validation", "FILE", "separate validation data (else --split is used)")
       .option("split", "FRACTION", "training fraction of --data when no --validation is given", "0.8")
       .option("axis", "a|b|c", "axis to model", "c")
-      .required("model", "KIND", "model kind, or auto: linear on lasso features, pi and every pi_creep_* kind, scored\n"
+      .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, scored\n"
                 "free-run on the validation part; the table is printed and stored in the file")
       .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm, kan)", "", true)
       .option("features", "SET", "study | candidates | physics | lasso (lasso on the candidates, λ_1se survivors)")

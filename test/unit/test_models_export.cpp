@@ -116,6 +116,19 @@ TEST(CExport, PiAndCreepKindsMatchCpp) {
     }
 }
 
+TEST(CExport, PreisachKindsMatchCpp) {
+  CreepParams none, prony;
+  prony.kind = CreepKind::kProny, prony.tau_min_s = 0.5, prony.tau_max_s = 500, prony.modes_per_decade = 1;
+  prony.gains_nm_per_v = {0.1, 0.2, 0.05, 0.3};
+  const std::vector<std::vector<double>> knots = {{-30, 0, 30}, {-10, 10}, {}, {5}};
+  for (bool on_h : {false, true})
+    for (auto cp : {none, prony}) {
+      cp.on_hysteresis = on_h;
+      PiCreepModel m({0, 10, 20, 35}, {5, 4, 6, 7, 1, 0.5, 2, 0.25, 0.1, 0.4}, 2.0, cp, 11.0, knots);
+      expect_equal_to_cpp(m, true);
+    }
+}
+
 TEST(CExport, BadPrefixAndAuxAreRefused) {
   PiCreepModel m({0}, {1}, 0, {}, 11.0);
   EXPECT_THROW(export_c99(m, "9abc"), std::runtime_error);

@@ -96,7 +96,7 @@ TEST(ModelFile, MalformedFilesGiveOneClearErrorNamingFileAndKey) {
       {"unknown_kind", "unknown model kind 'banana'", [](YAML::Node& n) { n["kind"] = "banana"; }},
       {"newer", "format_version: 99 is newer", [](YAML::Node& n) { n["format_version"] = 99; }},
       {"rate_type", "sample_rate_hz: expected a number", [](YAML::Node& n) { n["sample_rate_hz"] = "fast"; }},
-      {"axis", "axis: expected a, b or c", [](YAML::Node& n) { n["axis"] = "z"; }},
+      {"axis", "axis: expected one of a, b, c", [](YAML::Node& n) { n["axis"] = "z"; }},
       {"weights_size", "model.weights: expected", [](YAML::Node& n) { n["model"]["weights"] = std::vector<double>{1, 2}; }},
       {"weights_type", "model.weights[0]: expected a finite number",
        [](YAML::Node& n) { n["model"]["weights"][0] = "x"; }},

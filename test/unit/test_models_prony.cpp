@@ -11,61 +11,11 @@
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/sim/stage.h"
+#include "test_hold_scoring.h"
 
 using namespace piezo;
 using models::PiCreepModel;
 
-namespace {
-
-io::Dataset slice(const io::Dataset& d, std::size_t b, std::size_t e) {
-  io::Dataset s;
-  s.time_s.assign(d.time_s.begin() + b, d.time_s.begin() + e);
-  io::AxisSeries& ax = s.add_axis("c");
-  const io::AxisSeries& src = d.axis("c");
-  ax.voltage_v.assign(src.voltage_v.begin() + b, src.voltage_v.begin() + e);
-  ax.position_nm.assign(src.position_nm.begin() + b, src.position_nm.begin() + e);
-  ax.true_position_nm.assign(src.true_position_nm.begin() + b, src.true_position_nm.begin() + e);
-  if (!d.phase.empty()) s.phase.assign(d.phase.begin() + b, d.phase.begin() + e);
-  if (!d.segment.empty()) s.segment.assign(d.segment.begin() + b, d.segment.begin() + e);
-  return s;
-}
-
-struct HoldScore {
-  double mae_nm = 0, worst_end_nm = 0;
-  int holds = 0;
-};
-
-// Free-run over all of `d` from rest at its first voltage; scored against the true position inside the holds of
-// samples ≥ from: MAE, and per hold the mean error of its last 5 s.
-HoldScore score_holds(const models::Model& fitted, const io::Dataset& d, std::size_t from, double rate_hz) {
-  auto m = fitted.clone();
-  const io::AxisSeries& ax = d.axis("c");
-  m->reset(ax.voltage_v[0], ax.position_nm[0]);
-  HoldScore s;
-  double sum = 0;
-  std::size_t n = 0;
-  std::vector<double> err(ax.voltage_v.size(), 0.0);
-  for (std::size_t t = 0; t < ax.voltage_v.size(); ++t) {
-    models::ModelInput in{ax.voltage_v[t], nullptr};
-    const double y = m->predict(in);
-    m->commit(in, y);
-    err[t] = y - ax.true_position_nm[t];
-    if (t >= from && d.phase[t] == 1) sum += std::abs(err[t]), ++n;
-  }
-  s.mae_nm = n ? sum / n : INFINITY;
-  const std::size_t last = static_cast<std::size_t>(5 * rate_hz);
-  for (std::size_t t = from; t < err.size(); ++t) {
-    const bool end_of_hold = d.phase[t] == 1 && (t + 1 == err.size() || d.phase[t + 1] != 1);
-    if (!end_of_hold) continue;
-    double e = 0;
-    for (std::size_t k = t + 1 - last; k <= t; ++k) e += err[k];
-    s.worst_end_nm = std::max(s.worst_end_nm, std::abs(e / last));
-    ++s.holds;
-  }
-  return s;
-}
-
-}  // namespace
 
 // Issue 12's done-when, on the creep-protocol stage (config/stages/mm3e_preisach_creep_protocol.yaml: each scenario a
 // 30-min random history ending in a fast approach, then a 30-min hold; a creep spectrum of five first-order modes
@@ -85,15 +35,24 @@ TEST(PronyCreep, HoldsWithinFiveNanometresWithAnIndependentCreepSpectrum) {
   training::FitRequest req;
   req.train = &train;
   req.validation = &val;
+  // The final model of a user who has chosen the kind: weights refitted on training + validation.
+  req.options = YAML::Load("{refit_with_validation: true}");
   auto prony = training::fit_model("pi_creep_prony", req);
   const HoldScore s = score_holds(*prony, d, n_val, rate);
   std::cout << "pi_creep_prony: test-hold MAE vs truth " << s.mae_nm << " nm, worst end-of-hold " << s.worst_end_nm
             << " nm over " << s.holds << " holds\n";
   EXPECT_EQ(s.holds, 3);
   EXPECT_LE(s.mae_nm, 5.0);
-  // Issue 12 asks ≤ 5 nm at every end of hold; measured 5.01 nm here (seed not tuned), so the bound is 6 nm and
-  // the miss is reported in docs/models.md rather than hidden by another seed.
-  EXPECT_LE(s.worst_end_nm, 6.0);
+  // Issue 12: ≤ 5 nm at every end of hold (measured 2.60 nm with the final refit on train + validation; 5.01 nm
+  // without it).
+  EXPECT_LE(s.worst_end_nm, 5.0);
+  // PI hysteresis is a special case of the preisach kind: it must do no worse here (5 % slack on the worst end).
+  auto pre = training::fit_model("preisach_creep_prony", req);
+  const HoldScore sp = score_holds(*pre, d, n_val, rate);
+  std::cout << "preisach_creep_prony: test-hold MAE vs truth " << sp.mae_nm << " nm, worst end-of-hold "
+            << sp.worst_end_nm << " nm\n";
+  EXPECT_LE(sp.mae_nm, s.mae_nm);
+  EXPECT_LE(sp.worst_end_nm, std::min(5.0, 1.05 * s.worst_end_nm));
   // Identifiable modes only: none faster than two samples, none slower than the training record.
   const auto& pm = dynamic_cast<const PiCreepModel&>(*prony);
   for (double tau : pm.mode_taus_s()) {
@@ -122,17 +81,20 @@ TEST(PronyCreep, ShortLowVoltageRecordingGivesSaneParametersForEveryPiKind) {
   const io::AxisSeries& ax = all.axis("c");
   const auto [pmn, pmx] = std::minmax_element(ax.position_nm.begin(), ax.position_nm.end());
   const auto [vmn, vmx] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
-  for (const char* kind : {"pi", "pi_creep_log", "pi_creep_lti", "pi_creep_fractional", "pi_creep_prony"}) {
+  for (const char* kind :
+       {"pi", "pi_creep_log", "pi_creep_lti", "pi_creep_fractional", "pi_creep_prony", "preisach", "preisach_creep_prony"}) {
     training::FitRequest req;
     req.train = &train;
     req.validation = &val;
     auto m = training::fit_model(kind, req);
     const auto& pm = dynamic_cast<const PiCreepModel&>(*m);
     EXPECT_LT(std::abs(pm.bias_nm()), 2 * (std::abs(*pmn) + std::abs(*pmx))) << kind;
-    double sum_w = 0;
-    for (double w : pm.weights()) sum_w += w;
-    // Σw·span is the hysteretic travel: within a few times the measured travel.
-    EXPECT_LT(sum_w * (*vmx - *vmn), 3 * (*pmx - *pmn)) << kind;
+    // The hysteretic travel (PI: Σw·span; preisach: its output over a full sweep) within a few times the measured one.
+    auto sweep = m->clone();
+    sweep->reset(*vmn, 0.0);
+    const double y_lo = sweep->predict({*vmn, nullptr});
+    EXPECT_LT(std::abs(sweep->predict({*vmx, nullptr}) - y_lo), 3 * (*pmx - *pmn)) << kind;
+    for (double w : pm.weights()) EXPECT_GE(w, 0.0) << kind;
     for (double tau : pm.mode_taus_s()) {
       EXPECT_GE(tau, 2.0 / rate * 0.999) << kind;
       EXPECT_LE(tau, 32.0 * 1.001) << kind;
@@ -162,28 +124,13 @@ TEST(PronyCreep, ModelFileRoundTripsAndBoundsItsSizes) {
   cp.gains_nm_per_v.assign(cp.num_coefficients(), 0.0);
   for (std::size_t j = 0; j < cp.gains_nm_per_v.size(); ++j) cp.gains_nm_per_v[j] = 0.01 * (j + 1);
   PiCreepModel m({0, 10, 20}, {5, 1, 0.5}, 3.0, cp, 11.0);
-  YAML::Emitter em;
-  em << models::model_to_file_yaml(m);
-  const std::string text = em.c_str();
-  auto from_string = [](const std::string& t) { return models::model_from_file_yaml(YAML::Load(t), "test"); };
-  auto back = from_string(text);
+  const std::string text = model_file_text(m);
+  auto back = model_from_text(text);
   ASSERT_EQ(back->kind(), "pi_creep_prony");
   const auto& b = dynamic_cast<const PiCreepModel&>(*back);
   EXPECT_EQ(b.mode_taus_s(), m.mode_taus_s());
   EXPECT_EQ(b.mode_gains(), m.mode_gains());
-  auto load_error = [&](const std::string& from, const std::string& to) {
-    std::string t = text;
-    const auto at = t.find(from);
-    EXPECT_NE(at, std::string::npos) << from;
-    t.replace(at, from.size(), to);
-    try {
-      from_string(t);
-    } catch (const std::exception& e) {
-      return std::string(e.what());
-    }
-    return std::string("loaded");
-  };
-  EXPECT_NE(load_error("modes_per_decade: 2", "modes_per_decade: 500").find("modes_per_decade"), std::string::npos);
-  EXPECT_NE(load_error("tau_max_s: 2000", "tau_max_s: 1e30").find("decades"), std::string::npos);
-  EXPECT_NE(load_error("tau_max_s: 2000", "tau_max_s: 20000").find("mode_gains"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "modes_per_decade: 2", "modes_per_decade: 500").find("modes_per_decade"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "tau_max_s: 2000", "tau_max_s: 1e30").find("decades"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "tau_max_s: 2000", "tau_max_s: 20000").find("mode_gains"), std::string::npos);
 }

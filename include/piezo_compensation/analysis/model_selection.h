@@ -66,7 +66,7 @@ struct ModelCandidate {
   YAML::Node options;  // kind options (null = defaults); for the lasso linear filled in during selection
   bool lasso_features = false;
 };
-// linear on lasso-selected features, pi, and every registered pi_creep_* kind; `extra_kinds` (e.g. dense,
+// linear on lasso-selected features, pi, and every registered pi_creep_* and preisach* kind; `extra_kinds` (e.g. dense,
 // lstm, kan) are added with default options.
 std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& extra_kinds = {});
 

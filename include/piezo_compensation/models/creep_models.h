@@ -23,8 +23,11 @@ namespace piezo::models {
 
 enum class CreepKind { kNone, kLog, kLti, kFractional, kProny };
 constexpr int kMaxCreepModes = 120, kMaxModesPerDecade = 12, kMaxCreepDecades = 10;
-std::string creep_kind_name(CreepKind k);  // "pi", "pi_creep_log", ...
-CreepKind creep_kind_from_name(const std::string& kind);  // throws for other names
+// "pi", "pi_creep_log", ...; with preisach "preisach" or "preisach_creep_prony" (pi_model.h; other creep laws throw).
+std::string creep_kind_name(CreepKind k, bool preisach = false);
+CreepKind creep_kind_from_name(const std::string& kind, bool* preisach = nullptr);  // throws for other names
+// Bounds of the preisach kinds' pieces, so a model file cannot ask for an unbounded state.
+constexpr int kMaxPlayOperators = 200, kMaxKnotsPerPlay = 64, kMaxPieces = 4096;
 
 struct CreepParams {
   CreepKind kind = CreepKind::kNone;

@@ -2,6 +2,11 @@
 //   y = b + Σ_i w_i · play_{r_i}(V)      (r_0 = 0, w_i ≥ 0, w_0 > 0: strictly increasing, so invertible)
 // plus an optional creep law on the voltage (creep_models.h). Weights by constrained least squares (NNLS on the
 // play weights); the creep law's time constants / exponent by a 1-D or coordinate search around it.
+// Kinds "preisach", "preisach_creep_prony": the same with each play output cut into monotone pieces at knots
+// (features/play_operator.h: play_pieces), one non-negative weight per piece,
+//   y = b + Σ_i Σ_k w_ik · piece_k(play_{r_i}(V)) + creep,
+// a discrete Preisach plane of ramp hysterons (centre = knot, half-width = r_i) that can be asymmetric, which the
+// symmetric play operators cannot. Equal weights along a play give PI back. Still monotone in V, so invertible.
 #pragma once
 
 #include <Eigen/Dense>
@@ -16,10 +21,12 @@ namespace piezo::models {
 
 class PiCreepModel : public Model {
  public:
+  // knots_v: empty for the PI kinds; for the preisach kinds one (possibly empty) knot list per play operator, and
+  // then one weight per piece (Σ_i (knots_i + 1) weights, play by play).
   PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights_nm_per_v, double bias_nm,
-               CreepParams creep, double sample_rate_hz);
+               CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v = {});
 
-  std::string kind() const override { return creep_kind_name(creep_.kind); }
+  std::string kind() const override { return creep_kind_name(creep_.kind, preisach()); }
   void reset(double voltage_v, double position_nm) override;
   double predict(const ModelInput& in) const override { return predict_v(in.voltage_v); }
   void commit(const ModelInput& in, double position_nm) override;
@@ -35,7 +42,11 @@ class PiCreepModel : public Model {
   double inverse(double target_nm) const;
 
   const std::vector<double>& thresholds_v() const { return r_; }
-  const std::vector<double>& weights() const { return w_; }
+  const std::vector<double>& weights() const { return w_; }  // per piece for the preisach kinds
+  bool preisach() const { return !knots_.empty(); }
+  const std::vector<std::vector<double>>& knots_v() const { return knots_; }
+  // Hysteresis output Σ w·pieces for input v from play states p; writes the advanced states to p_next if given.
+  double hysteresis(double v, const std::vector<double>& p, std::vector<double>* p_next = nullptr) const;
   double bias_nm() const { return b_; }
   const CreepParams& creep() const { return creep_; }
   const std::vector<double>& mode_taus_s() const { return taus_; }
@@ -47,6 +58,8 @@ class PiCreepModel : public Model {
 
  private:
   std::vector<double> r_, w_;
+  std::vector<std::vector<double>> knots_;
+  std::vector<std::size_t> first_;  // index in w_ of each play's first piece
   double b_;
   CreepParams creep_;
   double rate_hz_;

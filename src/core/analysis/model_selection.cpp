@@ -184,6 +184,8 @@ std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& e
   c.push_back({"pi", "pi", YAML::Node(), false});
   for (const auto& k : models::model_kind_names())
     if (k.rfind("pi_creep_", 0) == 0) c.push_back({k, k, YAML::Node(), false});
+  for (const auto& k : models::model_kind_names())
+    if (k.rfind("preisach", 0) == 0) c.push_back({k, k, YAML::Node(), false});
   for (const auto& k : extra_kinds) {
     models::model_kind(k);  // throws listing the known kinds
     const bool dup = std::any_of(c.begin(), c.end(), [&](const ModelCandidate& x) { return x.label == k; });

@@ -159,19 +159,35 @@ typedef struct {
 
 static double PFX_play(double v, double r, double prev) { double lo = v - r, hi = v + r; return prev < lo ? lo : (prev > hi ? hi : prev); }
 
+/* Weighted pieces of play output p of operator i: with no knot w*p; else min(p-c0,0), ramps between knots, max(p-cn,0). */
+static double PFX_pieces(double p, int i) {
+#if PFX_NKNOT == 0
+  return PFX_w[i] * p;  /* PI: one weight per play */
+#else
+  const double* c = PFX_knots + PFX_k0[i];
+  const double* w = PFX_w + PFX_w0[i];
+  int n = PFX_nk[i], k;
+  double s;
+  if (n == 0) return w[0] * p;
+  s = w[0] * (p < c[0] ? p - c[0] : 0.0) + w[n] * (p > c[n - 1] ? p - c[n - 1] : 0.0);
+  for (k = 1; k < n; ++k) { double q = p - c[k - 1], d = c[k] - c[k - 1]; s += w[k] * (q < 0.0 ? 0.0 : (q > d ? d : q)); }
+  return s;
+#endif
+}
+
 static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
   int i;
   (void)position_nm;
   double h = 0.0;
-  for (i = 0; i < PFX_NP; ++i) { st->p[i] = voltage_v; h += PFX_w[i] * voltage_v; }
+  for (i = 0; i < PFX_NP; ++i) { st->p[i] = voltage_v; h += PFX_pieces(voltage_v, i); }
   for (i = 0; i < PFX_NMODE; ++i) st->l[i] = PFX_CREEP_ON_H ? h : voltage_v;
 }
 
-/* y = bias + H + creep, H = sum of weighted play outputs; creep low-passes H or V (PFX_CREEP_ON_H). */
+/* y = bias + H + creep, H = sum of weighted play pieces; creep low-passes H or V (PFX_CREEP_ON_H). */
 static double PFX_predict(const PFX_state* st, double v) {
   double h = 0.0, u, y;
   int i;
-  for (i = 0; i < PFX_NP; ++i) h += PFX_w[i] * PFX_play(v, PFX_r[i], st->p[i]);
+  for (i = 0; i < PFX_NP; ++i) h += PFX_pieces(PFX_play(v, PFX_r[i], st->p[i]), i);
   u = PFX_CREEP_ON_H ? h : v;
   y = PFX_bias_nm + h;
   for (i = 0; i < PFX_NMODE_USED; ++i) y += PFX_g[i] * (PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * u);
@@ -182,7 +198,7 @@ static void PFX_commit(PFX_state* st, double v, double position_nm) {
   double h = 0.0, u;
   int i;
   (void)position_nm;
-  for (i = 0; i < PFX_NP; ++i) { st->p[i] = PFX_play(v, PFX_r[i], st->p[i]); h += PFX_w[i] * st->p[i]; }
+  for (i = 0; i < PFX_NP; ++i) { st->p[i] = PFX_play(v, PFX_r[i], st->p[i]); h += PFX_pieces(st->p[i], i); }
   u = PFX_CREEP_ON_H ? h : v;
   for (i = 0; i < PFX_NMODE_USED; ++i) st->l[i] = PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * u;
 }
@@ -195,31 +211,35 @@ static double PFX_step(PFX_state* st, double voltage_v, double measured_nm) {
 }
 
 #define PFX_HAS_INVERSE 1
-/* Exact inverse for the current state: the prediction is piecewise linear in V with kinks at p_i -/+ r_i. */
+/* Exact inverse for the current state: the prediction is piecewise linear in V with kinks at p_i -/+ r_i and where
+ * a moving play output crosses a knot; affine outside them. */
 static double PFX_inverse(const PFX_state* st, double target_nm) {
-  double k[2 * PFX_NP];
+  double k[2 * PFX_NP + 2 * PFX_NKNOT];
   int n = 0, i, j;
-  double slope = 0.0, x_prev, f_prev;
+  double slope_lo, slope_hi, f_last, x_prev, f_prev;
   for (i = 0; i < PFX_NP; ++i) {
     k[n++] = st->p[i] - PFX_r[i];
     if (PFX_r[i] > 0.0) k[n++] = st->p[i] + PFX_r[i];
+#if PFX_NKNOT > 0
+    for (j = 0; j < PFX_nk[i]; ++j) {
+      double c = PFX_knots[PFX_k0[i] + j];
+      if (c >= st->p[i]) k[n++] = c + PFX_r[i];
+      if (c <= st->p[i]) k[n++] = c - PFX_r[i];
+    }
+#endif
   }
   for (i = 1; i < n; ++i) { double x = k[i]; j = i - 1; while (j >= 0 && k[j] > x) { k[j + 1] = k[j]; --j; } k[j + 1] = x; }
-  {
-    double sum_w = 0.0, creep = 0.0;
-    for (i = 0; i < PFX_NP; ++i) sum_w += PFX_w[i];
-    for (i = 0; i < PFX_NMODE_USED; ++i) creep += PFX_g[i] * (1.0 - PFX_a[i]);
-    slope = PFX_CREEP_ON_H ? sum_w * (1.0 + creep) : sum_w + creep;
-  }
-  x_prev = k[0]; f_prev = PFX_predict(st, k[0]);
-  if (target_nm <= f_prev) return slope > 0.0 ? k[0] + (target_nm - f_prev) / slope : k[0];
+  x_prev = k[0]; f_prev = PFX_predict(st, k[0]); f_last = PFX_predict(st, k[n - 1]);
+  slope_lo = f_prev - PFX_predict(st, k[0] - 1.0);
+  slope_hi = PFX_predict(st, k[n - 1] + 1.0) - f_last;
+  if (target_nm <= f_prev) return slope_lo > 0.0 ? k[0] + (target_nm - f_prev) / slope_lo : k[0];
   for (i = 1; i < n; ++i) {
-    double f = PFX_predict(st, k[i]);
+    double f = i + 1 == n ? f_last : PFX_predict(st, k[i]);
     if (target_nm <= f && f > f_prev) return x_prev + (target_nm - f_prev) * (k[i] - x_prev) / (f - f_prev);
     if (target_nm <= f) return 0.5 * (x_prev + k[i]);
     x_prev = k[i]; f_prev = f;
   }
-  return slope > 0.0 ? x_prev + (target_nm - f_prev) / slope : x_prev;
+  return slope_hi > 0.0 ? x_prev + (target_nm - f_prev) / slope_hi : x_prev;
 }
 )C";
 
@@ -388,12 +408,29 @@ std::string export_c99_pi(const Model& model, const std::string& prefix) {
   const auto* m = dynamic_cast<const PiCreepModel*>(&model);
   if (!m) throw std::runtime_error("C export: model of kind '" + model.kind() + "' is not a PI model");
   std::ostringstream os;
-  os << header_open(prefix, model, "Prandtl-Ishlinskii hysteresis" +
+  os << header_open(prefix, model, std::string(m->preisach() ? "discrete Preisach (play pieces)" : "Prandtl-Ishlinskii") +
+                                       " hysteresis" +
                                        std::string(m->creep().kind == CreepKind::kNone ? "" : " with creep modes"));
   const std::size_t nm = m->mode_taus_s().size();
   os << "#define PFX_NP " << m->thresholds_v().size() << "\n#define PFX_NMODE " << std::max<std::size_t>(1, nm)
      << "\n#define PFX_NMODE_USED " << nm << "\n#define PFX_CREEP_ON_H " << (m->creep().on_hysteresis ? 1 : 0) << "\n";
   os << "static const double PFX_bias_nm = " << num(m->bias_nm()) << ";\n";
+  // Knot tables (the preisach kinds; zero knots everywhere for PI: one weight per play).
+  std::vector<std::string> nk, k0, w0;
+  std::vector<double> knots;
+  std::size_t at_w = 0;
+  for (std::size_t i = 0; i < m->thresholds_v().size(); ++i) {
+    const std::size_t n = m->preisach() ? m->knots_v()[i].size() : 0;
+    nk.push_back(std::to_string(n));
+    k0.push_back(std::to_string(knots.size()));
+    w0.push_back(std::to_string(at_w));
+    if (n) knots.insert(knots.end(), m->knots_v()[i].begin(), m->knots_v()[i].end());
+    at_w += n + 1;
+  }
+  os << "#define PFX_NKNOT " << knots.size() << "\n";
+  if (!knots.empty())  // PI needs none of the knot tables
+    os << table("int", "PFX_nk", nk) << table("int", "PFX_k0", k0) << table("int", "PFX_w0", w0)
+       << table("double", "PFX_knots", nums(knots));
   os << table("double", "PFX_r", nums(m->thresholds_v())) << table("double", "PFX_w", nums(m->weights()))
      << "/* creep modes: time constants [s] " ;
   for (double t : m->mode_taus_s()) os << num(t) << " ";

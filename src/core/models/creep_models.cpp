@@ -5,7 +5,12 @@
 
 namespace piezo::models {
 
-std::string creep_kind_name(CreepKind k) {
+std::string creep_kind_name(CreepKind k, bool preisach) {
+  if (preisach) {
+    if (k == CreepKind::kNone) return "preisach";
+    if (k == CreepKind::kProny) return "preisach_creep_prony";
+    throw std::runtime_error("the preisach kinds have prony creep or none, not " + creep_kind_name(k));
+  }
   switch (k) {
     case CreepKind::kNone: return "pi";
     case CreepKind::kLog: return "pi_creep_log";
@@ -16,7 +21,10 @@ std::string creep_kind_name(CreepKind k) {
   return "pi";
 }
 
-CreepKind creep_kind_from_name(const std::string& kind) {
+CreepKind creep_kind_from_name(const std::string& kind, bool* preisach) {
+  if (preisach) *preisach = kind == "preisach" || kind == "preisach_creep_prony";
+  if (kind == "preisach" && preisach) return CreepKind::kNone;
+  if (kind == "preisach_creep_prony" && preisach) return CreepKind::kProny;
   if (kind == "pi") return CreepKind::kNone;
   if (kind == "pi_creep_log") return CreepKind::kLog;
   if (kind == "pi_creep_lti") return CreepKind::kLti;

@@ -16,17 +16,42 @@ using features::play;
 }  // namespace
 
 PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights, double bias_nm,
-                           CreepParams creep, double sample_rate_hz)
-    : r_(std::move(thresholds_v)), w_(std::move(weights)), b_(bias_nm), creep_(std::move(creep)), rate_hz_(sample_rate_hz) {
+                           CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v)
+    : r_(std::move(thresholds_v)), w_(std::move(weights)), knots_(std::move(knots_v)), b_(bias_nm),
+      creep_(std::move(creep)), rate_hz_(sample_rate_hz) {
   if (r_.empty()) throw std::runtime_error("PI model: no play operators");
-  if (r_.size() != w_.size())
-    throw std::runtime_error("PI model: " + std::to_string(w_.size()) + " weights for " + std::to_string(r_.size()) +
-                             " thresholds");
+  if (r_.size() > static_cast<std::size_t>(kMaxPlayOperators))
+    throw std::runtime_error("PI model: " + std::to_string(r_.size()) + " play operators (at most " +
+                             std::to_string(kMaxPlayOperators) + ")");
+  if (preisach()) creep_kind_name(creep_.kind, true);  // throws for a creep law the preisach kinds do not have
+  if (preisach() && knots_.size() != r_.size())
+    throw std::runtime_error("preisach model: " + std::to_string(knots_.size()) + " knot lists for " +
+                             std::to_string(r_.size()) + " thresholds");
+  std::size_t pieces = 0;
+  for (std::size_t i = 0; i < r_.size(); ++i) {
+    first_.push_back(pieces);
+    const std::vector<double> none;
+    const std::vector<double>& k = preisach() ? knots_[i] : none;
+    if (k.size() > static_cast<std::size_t>(kMaxKnotsPerPlay))
+      throw std::runtime_error("preisach model: " + std::to_string(k.size()) + " knots on one play operator (at most " +
+                               std::to_string(kMaxKnotsPerPlay) + ")");
+    for (std::size_t j = 0; j < k.size(); ++j)
+      if (!std::isfinite(k[j]) || (j > 0 && !(k[j] > k[j - 1])))
+        throw std::runtime_error("preisach model: the knots of each play operator must be finite and increase");
+    pieces += features::play_piece_count(k.size());
+  }
+  if (pieces > static_cast<std::size_t>(kMaxPieces))
+    throw std::runtime_error("preisach model: " + std::to_string(pieces) + " pieces (at most " +
+                             std::to_string(kMaxPieces) + ")");
+  if (pieces != w_.size())
+    throw std::runtime_error("PI model: " + std::to_string(w_.size()) + " weights for " + std::to_string(pieces) +
+                             (preisach() ? " pieces" : " thresholds"));
   for (std::size_t i = 0; i < r_.size(); ++i) {
     if (!(r_[i] >= 0) || !std::isfinite(r_[i])) throw std::runtime_error("PI model: thresholds must be >= 0");
     if (i > 0 && !(r_[i] > r_[i - 1])) throw std::runtime_error("PI model: thresholds must increase");
-    if (!std::isfinite(w_[i])) throw std::runtime_error("PI model: non-finite weight");
   }
+  for (double w : w_)
+    if (!std::isfinite(w)) throw std::runtime_error("PI model: non-finite weight");
   if (!std::isfinite(b_)) throw std::runtime_error("PI model: non-finite bias");
   if (!(rate_hz_ > 0)) throw std::runtime_error("PI model: sample rate must be > 0");
   creep_.modes(taus_, gains_);
@@ -35,16 +60,24 @@ PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double>
   reset(0.0, 0.0);
 }
 
+double PiCreepModel::hysteresis(double v, const std::vector<double>& p, std::vector<double>* p_next) const {
+  double h = 0;
+  for (std::size_t i = 0; i < r_.size(); ++i) {
+    const double q = play(v, r_[i], p[i]);
+    if (p_next) (*p_next)[i] = q;
+    h += preisach() ? features::play_pieces_dot(q, knots_[i].data(), knots_[i].size(), &w_[first_[i]]) : w_[i] * q;
+  }
+  return h;
+}
+
 void PiCreepModel::reset(double voltage_v, double /*position_nm*/) {
   p_.assign(r_.size(), voltage_v);
-  double h = 0;
-  for (double w : w_) h += w * voltage_v;
+  const double h = hysteresis(voltage_v, p_);
   l_.assign(taus_.size(), creep_.on_hysteresis ? h : voltage_v);
 }
 
 double PiCreepModel::predict_v(double v) const {
-  double h = 0;
-  for (std::size_t i = 0; i < r_.size(); ++i) h += w_[i] * play(v, r_[i], p_[i]);
+  const double h = hysteresis(v, p_);
   const double u = creep_.on_hysteresis ? h : v;
   double y = b_ + h;
   for (std::size_t j = 0; j < taus_.size(); ++j) y += gains_[j] * (poles_[j] * l_[j] + (1 - poles_[j]) * u);
@@ -53,38 +86,38 @@ double PiCreepModel::predict_v(double v) const {
 
 void PiCreepModel::commit(const ModelInput& in, double) {
   const double v = in.voltage_v;
-  double h = 0;
-  for (std::size_t i = 0; i < r_.size(); ++i) {
-    p_[i] = play(v, r_[i], p_[i]);
-    h += w_[i] * p_[i];
-  }
+  const double h = hysteresis(v, p_, &p_);
   const double u = creep_.on_hysteresis ? h : v;
   for (std::size_t j = 0; j < taus_.size(); ++j) l_[j] = poles_[j] * l_[j] + (1 - poles_[j]) * u;
 }
 
 double PiCreepModel::inverse(double target) const {
-  // predict_v is piecewise linear with kinks at p_i ± r_i; walk the sorted kinks.
+  // predict_v is piecewise linear with kinks at p_i ± r_i and, for the preisach kinds, where a play output that
+  // moves crosses a knot (c + r above the state, c − r below it); walk the sorted kinks.
   std::vector<double> k;
   for (std::size_t i = 0; i < r_.size(); ++i) {
     k.push_back(p_[i] - r_[i]);
     if (r_[i] > 0) k.push_back(p_[i] + r_[i]);
+    if (preisach())
+      for (double c : knots_[i]) {
+        if (c >= p_[i]) k.push_back(c + r_[i]);
+        if (c <= p_[i]) k.push_back(c - r_[i]);
+      }
   }
   std::sort(k.begin(), k.end());
-  double sum_w = 0, creep_slope = 0;
-  for (double w : w_) sum_w += w;
-  for (std::size_t j = 0; j < taus_.size(); ++j) creep_slope += gains_[j] * (1 - poles_[j]);
-  const double slope_out = creep_.on_hysteresis ? sum_w * (1 + creep_slope) : sum_w + creep_slope;
-  const double f0 = predict_v(k.front());
-  if (target <= f0) return slope_out > 0 ? k.front() + (target - f0) / slope_out : k.front();
+  // Outside the kinks the prediction is affine: its slopes from one volt beyond them.
+  const double f0 = predict_v(k.front()), f_last = predict_v(k.back());
+  const double slope_lo = f0 - predict_v(k.front() - 1.0), slope_hi = predict_v(k.back() + 1.0) - f_last;
+  if (target <= f0) return slope_lo > 0 ? k.front() + (target - f0) / slope_lo : k.front();
   double x_prev = k.front(), f_prev = f0;
   for (std::size_t n = 1; n < k.size(); ++n) {
-    const double f = predict_v(k[n]);
+    const double f = n + 1 == k.size() ? f_last : predict_v(k[n]);
     if (target <= f && f > f_prev) return x_prev + (target - f_prev) * (k[n] - x_prev) / (f - f_prev);
     if (target <= f) return 0.5 * (x_prev + k[n]);
     x_prev = k[n];
     f_prev = f;
   }
-  return slope_out > 0 ? x_prev + (target - f_prev) / slope_out : x_prev;
+  return slope_hi > 0 ? x_prev + (target - f_prev) / slope_hi : x_prev;
 }
 
 std::size_t PiCreepModel::num_parameters() const {
@@ -100,6 +133,18 @@ YAML::Node PiCreepModel::to_yaml() const {
   n["thresholds_v"] = yaml_list(r_);
   n["weights_nm_per_v"] = yaml_list(w_);
   n["bias_nm"] = b_;
+  if (preisach()) {
+    // Flat, with a count per play operator: [[...], []] would read as a list of lists everywhere else.
+    std::vector<double> counts, flat;
+    for (const auto& k : knots_) {
+      counts.push_back(static_cast<double>(k.size()));
+      flat.insert(flat.end(), k.begin(), k.end());
+    }
+    YAML::Node pn;
+    pn["knot_counts"] = yaml_list(counts);
+    pn["knots_v"] = yaml_list(flat);
+    n["preisach"] = pn;
+  }
   if (creep_.kind != CreepKind::kNone) {
     YAML::Node c;
     c["input"] = creep_.on_hysteresis ? "hysteresis" : "voltage";
@@ -147,10 +192,42 @@ YAML::Node PiCreepModel::to_yaml() const {
 ModelPtr PiCreepModel::load(const YAML::Node& node) {
   const double rate = yaml_number(node, "sample_rate_hz");
   const auto r = yaml_numbers(node, "thresholds_v");
-  const auto w = yaml_numbers(node, "weights_nm_per_v", static_cast<long>(r.size()));
+  if (r.size() > static_cast<std::size_t>(kMaxPlayOperators))
+    throw std::runtime_error("model.thresholds_v: " + std::to_string(r.size()) + " play operators (at most " +
+                             std::to_string(kMaxPlayOperators) + ")");
+  bool preisach = false;
+  const CreepKind expected =
+      node["kind"] ? creep_kind_from_name(yaml_string(node, "kind"), &preisach) : CreepKind::kNone;
+  if (node["kind"] && preisach != bool(node["preisach"]))
+    throw std::runtime_error(std::string("model.preisach: kind ") + yaml_string(node, "kind") +
+                             (preisach ? " needs" : " has no") + " a preisach mapping (knot_counts, knots_v)");
+  std::vector<std::vector<double>> knots;
+  std::size_t pieces = r.size();
+  if (node["preisach"]) {
+    const YAML::Node pn = node["preisach"];
+    if (!pn.IsMap()) throw std::runtime_error("model.preisach: expected a mapping");
+    const auto counts = yaml_numbers(pn, "knot_counts", static_cast<long>(r.size()), "model.preisach");
+    std::size_t total = 0;
+    for (double c : counts) {
+      if (!(c >= 0 && c <= kMaxKnotsPerPlay && c == std::floor(c)))
+        throw std::runtime_error("model.preisach.knot_counts: expected whole numbers in 0.." +
+                                 std::to_string(kMaxKnotsPerPlay));
+      total += static_cast<std::size_t>(c);
+    }
+    const auto flat = yaml_numbers(pn, "knots_v", static_cast<long>(total), "model.preisach");
+    std::size_t at = 0;
+    for (double c : counts) {
+      knots.emplace_back(flat.begin() + at, flat.begin() + at + static_cast<std::size_t>(c));
+      at += static_cast<std::size_t>(c);
+    }
+    pieces = total + r.size();
+    if (pieces > static_cast<std::size_t>(kMaxPieces))
+      throw std::runtime_error("model.preisach: " + std::to_string(pieces) + " pieces (at most " +
+                               std::to_string(kMaxPieces) + ")");
+  }
+  const auto w = yaml_numbers(node, "weights_nm_per_v", static_cast<long>(pieces));
   const double b = yaml_number(node, "bias_nm");
   CreepParams cp;
-  const CreepKind expected = node["kind"] ? creep_kind_from_name(yaml_string(node, "kind")) : CreepKind::kNone;
   if (node["creep"]) {
     const YAML::Node c = node["creep"];
     if (!c.IsMap()) throw std::runtime_error("model.creep: expected a mapping");
@@ -199,13 +276,13 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
     }
   }
   if (node["kind"] && cp.kind != expected)
-    throw std::runtime_error("model.creep: kind " + creep_kind_name(expected) + " needs " +
+    throw std::runtime_error("model.creep: kind " + creep_kind_name(expected, preisach) + " needs " +
                              (expected == CreepKind::kNone      ? std::string("no creep key")
                               : expected == CreepKind::kLog     ? std::string("gamma_nm_per_v, t1_s, ...")
                               : expected == CreepKind::kLti     ? std::string("taus_s, gains_nm_per_v")
                               : expected == CreepKind::kProny   ? std::string("mode_gains, tau_min_s, ...")
                                                                 : std::string("alpha, b_nm_per_v, ...")));
-  return std::make_unique<PiCreepModel>(r, w, b, cp, rate);
+  return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots);
 }
 
 // ---- classical inverse -------------------------------------------------------------------------

@@ -133,29 +133,89 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   return g;
 }
 
-// Least squares on the Gram sums; columns flagged constrained stay ≥ 0, column 0 ≥ min_w0 when constrained.
-// Solved on unit-diagonal (Jacobi-scaled) normal equations with a small ridge, so volts, nanometres and slow
-// near-collinear mode columns do not set the conditioning, and no pair of columns can cancel at huge values.
-EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, double min_w0) {
+// Least squares on the Gram sums; columns flagged constrained stay ≥ their lower bound (`lower`, 0 where it is
+// shorter). Solved on unit-diagonal (Jacobi-scaled) normal equations with a small ridge, so volts, nanometres and
+// slow near-collinear mode columns do not set the conditioning, and no pair of columns can cancel at huge values.
+// `pairs` (optional): column pairs whose weight difference is penalised by `smoothing` × the mean diagonal of those
+// columns (the preisach pieces of one play: a smooth map of the play output, PI when the data show nothing else).
+EvalResult solve(const training::GramStats& g, std::vector<bool> constrained, const std::vector<double>& lower = {},
+                 const std::vector<std::pair<std::size_t, std::size_t>>& pairs = {}, double smoothing = 0.0) {
   const std::size_t used = constrained.size();
   constrained.resize(static_cast<std::size_t>(g.sx.size()), false);  // initial-state columns are free
   Eigen::MatrixXd G = g.centered_xx();
+  if (smoothing > 0 && !pairs.empty()) {
+    double diag = 0;
+    for (const auto& pr : pairs) diag += G(pr.first, pr.first) + G(pr.second, pr.second);
+    const double lambda = smoothing * diag / (2.0 * pairs.size());
+    for (const auto& pr : pairs) {
+      const auto a = static_cast<Eigen::Index>(pr.first), b = static_cast<Eigen::Index>(pr.second);
+      G(a, a) += lambda, G(b, b) += lambda, G(a, b) -= lambda, G(b, a) -= lambda;
+    }
+  }
   Eigen::VectorXd c = g.centered_xy();
-  const double shift = constrained[0] ? min_w0 : 0.0;
-  c -= shift * G.col(0);  // w_0 = min_w0 + w_0' with w_0' ≥ 0 keeps the inverse well defined
   const Eigen::Index P = G.rows();
+  Eigen::VectorXd lo = Eigen::VectorXd::Zero(P);
+  for (std::size_t j = 0; j < lower.size() && j < used; ++j)
+    if (constrained[j]) lo(static_cast<Eigen::Index>(j)) = lower[j];
+  c -= G * lo;  // w = lower + w' with w' ≥ 0 (a minimum slope keeps the inverse well defined)
   Eigen::VectorXd s(P);
   for (Eigen::Index j = 0; j < P; ++j) s(j) = G(j, j) > 0 ? 1.0 / std::sqrt(G(j, j)) : 1.0;
   Eigen::MatrixXd Gs = s.asDiagonal() * G * s.asDiagonal();
   Gs.diagonal().array() += 1e-9;
   Eigen::VectorXd x = s.asDiagonal() * nnls_gram(Gs, s.asDiagonal() * c, constrained);
-  x(0) += shift;
+  x += lo;
   EvalResult res;
   res.b = g.mean_y() - g.mean_x().dot(x);
   res.sse = g.sse(x, res.b);
   res.theta.assign(x.data(), x.data() + used);  // caller splits; initial-state terms are dropped
   return res;
 }
+
+// The hysteresis basis of a fit: play thresholds and, for the preisach kinds, the knots of each play output.
+struct Basis {
+  std::vector<double> r;
+  std::vector<std::vector<double>> knots;  // empty: PI (one piece per play)
+  std::size_t pieces() const {
+    if (knots.empty()) return r.size();
+    std::size_t n = 0;
+    for (const auto& k : knots) n += features::play_piece_count(k.size());
+    return n;
+  }
+  // Advances the play states p by v and writes every piece to x.
+  void columns(double v, std::vector<double>& p, double* x) const {
+    for (std::size_t i = 0; i < r.size(); ++i) {
+      p[i] = play(v, r[i], p[i]);
+      if (knots.empty()) {
+        *x++ = p[i];
+      } else {
+        features::play_pieces(p[i], knots[i].data(), knots[i].size(), x);
+        x += features::play_piece_count(knots[i].size());
+      }
+    }
+  }
+  // The minimum slope applies to every piece of the threshold-0 play (the one without memory).
+  std::vector<double> lower(double min_w0) const {
+    std::vector<double> lo(pieces(), 0.0);
+    const std::size_t n0 = knots.empty() ? 1 : features::play_piece_count(knots[0].size());
+    std::fill(lo.begin(), lo.begin() + static_cast<std::ptrdiff_t>(n0), min_w0);
+    return lo;
+  }
+  // Neighbouring pieces of each play (the smoothing penalty's pairs).
+  std::vector<std::pair<std::size_t, std::size_t>> neighbours() const {
+    std::vector<std::pair<std::size_t, std::size_t>> out;
+    std::size_t at = 0;
+    for (const auto& k : knots) {
+      for (std::size_t j = 0; j < k.size(); ++j) out.emplace_back(at + j, at + j + 1);
+      at += features::play_piece_count(k.size());
+    }
+    return out;
+  }
+  double smoothing = 0;  // weight of the penalty on neighbouring pieces' differences (solve)
+  std::unique_ptr<PiCreepModel> model(const std::vector<double>& w, double b, const CreepParams& cp,
+                                      double rate) const {
+    return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots);
+  }
+};
 
 std::vector<double> poles_of(const std::vector<double>& taus, double rate) {
   std::vector<double> a;
@@ -188,24 +248,24 @@ void creep_columns(const std::vector<double>& a, std::vector<double>& l, double 
   }
 }
 
-// Creep on the voltage: play outputs and creep basis columns, all weights at once (play weights ≥ 0).
-EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepParams& cp, double min_w0) {
+// Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
+EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
   std::vector<double> taus;
   std::vector<std::vector<double>> B;
   cp.basis(taus, B);
-  const std::size_t np = r.size(), nm = taus.size(), nk = B.size();
+  const std::size_t np = hb.pieces(), nm = taus.size(), nk = B.size();
   const std::vector<double> a = poles_of(taus, d.rate);
   const std::vector<double>& V = *d.v;
-  std::vector<double> p(np, V[0]), l(nm, V[0]);
+  std::vector<double> p(hb.r.size(), V[0]), l(nm, V[0]);
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
-    for (std::size_t i = 0; i < np; ++i) x[i] = p[i] = play(v, r[i], p[i]);
+    hb.columns(v, p, x);
     creep_columns(a, l, v, B, x + np);
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
   std::vector<bool> constrained(np + nk, signed_creep(cp));
   for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
-  EvalResult res = solve(g, constrained, min_w0);
+  EvalResult res = solve(g, constrained, hb.lower(min_w0), hb.neighbours(), hb.smoothing);
   res.w.assign(res.theta.begin(), res.theta.begin() + np);
   res.theta.erase(res.theta.begin(), res.theta.begin() + np);
   return res;
@@ -214,28 +274,33 @@ EvalResult evaluate(const FitData& d, const std::vector<double>& r, const CreepP
 // Creep on H with the play weights fixed up to a common scale: y = b + s·H + Σ_k θ_k·(basis of LP_j(H)).
 // The free scale s lets the alternation move along the valley where a larger H and a smaller fast-creep gain
 // explain the data almost equally well. Returns w·s and θ/s (gains relative to the rescaled H).
-EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& r, const std::vector<double>& w,
+EvalResult evaluate_creep_on_h(const FitData& d, const Basis& hb, const std::vector<double>& w,
                                const CreepParams& cp) {
   std::vector<double> taus;
   std::vector<std::vector<double>> B;
   cp.basis(taus, B);
-  const std::size_t np = r.size(), nm = taus.size(), nk = B.size();
+  const std::size_t np = hb.pieces(), nm = taus.size(), nk = B.size();
   const std::vector<double> a = poles_of(taus, d.rate);
   const std::vector<double>& V = *d.v;
-  std::vector<double> p(np, V[0]);
-  double h0 = 0;
-  for (double wi : w) h0 += wi * V[0];
-  std::vector<double> l(nm, h0);
-  const auto g = stream_gram(V.size(), nk + 1, [&](std::size_t t, double* x) {
+  std::vector<double> p(hb.r.size(), V[0]), f(np);
+  auto h_of = [&](double v) {
+    hb.columns(v, p, f.data());
     double h = 0;
-    for (std::size_t i = 0; i < np; ++i) h += w[i] * (p[i] = play(V[t], r[i], p[i]));
+    for (std::size_t i = 0; i < np; ++i) h += w[i] * f[i];
+    return h;
+  };
+  const double h0 = h_of(V[0]);
+  std::vector<double> l(nm, h0);
+  p.assign(hb.r.size(), V[0]);
+  const auto g = stream_gram(V.size(), nk + 1, [&](std::size_t t, double* x) {
+    const double h = h_of(V[t]);
     x[0] = h;
     creep_columns(a, l, h, B, x + 1);
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
   std::vector<bool> constrained(nk + 1, signed_creep(cp));
   constrained[0] = false;
-  EvalResult res = solve(g, constrained, 0.0);
+  EvalResult res = solve(g, constrained);
   const double scale = res.theta[0] > 1e-6 ? res.theta[0] : 1.0;  // a non-positive scale would break invertibility
   res.w = w;
   for (double& x : res.w) x *= scale;
@@ -244,29 +309,32 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& r, c
   return res;
 }
 
-// Creep on H with the creep gains fixed: y = b + Σ_i w_i·(F_i + Σ_j g_j·LP_j(F_i)), play weights ≥ 0.
-EvalResult evaluate_w_given_creep_on_h(const FitData& d, const std::vector<double>& r, const CreepParams& cp,
-                                       double min_w0) {
+// Creep on H with the creep gains fixed: y = b + Σ_i w_i·(F_i + Σ_j g_j·LP_j(F_i)), F_i the play pieces, w_i ≥ 0.
+EvalResult evaluate_w_given_creep_on_h(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
   std::vector<double> taus, gains;
   cp.modes(taus, gains);
-  const std::size_t np = r.size(), nm = taus.size();
+  const std::size_t np = hb.pieces(), nm = taus.size();
   const std::vector<double> a = poles_of(taus, d.rate);
   const std::vector<double>& V = *d.v;
-  std::vector<double> p(np, V[0]), l(np * nm, V[0]);
+  std::vector<double> p(hb.r.size(), V[0]), f(np);
+  hb.columns(V[0], p, f.data());
+  std::vector<double> l(np * nm);
+  for (std::size_t i = 0; i < np; ++i) std::fill(l.begin() + i * nm, l.begin() + (i + 1) * nm, f[i]);
+  p.assign(hb.r.size(), V[0]);
   const auto g = stream_gram(V.size(), np, [&](std::size_t t, double* x) {
+    hb.columns(V[t], p, f.data());
     for (std::size_t i = 0; i < np; ++i) {
-      p[i] = play(V[t], r[i], p[i]);
-      double s = p[i];
+      double s = f[i];
       for (std::size_t j = 0; j < nm; ++j) {
         double& lj = l[i * nm + j];
-        lj = a[j] * lj + (1 - a[j]) * p[i];
+        lj = a[j] * lj + (1 - a[j]) * f[i];
         s += gains[j] * lj;
       }
       x[i] = s;
     }
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
-  EvalResult res = solve(g, std::vector<bool>(np, true), min_w0);
+  EvalResult res = solve(g, std::vector<bool>(np, true), hb.lower(min_w0), hb.neighbours(), hb.smoothing);
   res.w = res.theta;
   res.theta.clear();
   return res;
@@ -368,13 +436,34 @@ std::vector<double> thresholds_for(const std::vector<double>& v, int n) {
   return r;
 }
 
+// The preisach kinds' knots: play i moves within [v_min + r_i, v_max − r_i] once the data has swept the span, cut
+// there into about K·(its width / the span) equal intervals (at least one), so the ramp hysterons tile the Preisach
+// triangle evenly; knots at the inner interval ends only, so the outer pieces stay identified and extrapolate.
+Basis basis_for(const std::vector<double>& v, std::vector<double> r, bool preisach, int knots_per_span) {
+  Basis hb;
+  hb.r = std::move(r);
+  if (!preisach) return hb;
+  const auto [mn, mx] = std::minmax_element(v.begin(), v.end());
+  const double span = std::max(1e-6, *mx - *mn);
+  for (double ri : hb.r) {
+    const double lo = *mn + ri, hi = *mx - ri;
+    const int m = std::max(1, static_cast<int>(std::lround(knots_per_span * (hi - lo) / span)));
+    std::vector<double> k;
+    for (int j = 1; j < m; ++j) k.push_back(lo + (hi - lo) * j / m);
+    hb.knots.push_back(k);
+  }
+  return hb;
+}
+
 }  // namespace
 
 // Scale-free by construction: thresholds from the data's own voltage span, normal equations solved on unit
 // diagonal, creep time constants only where the data can identify them (≥ 2 samples, ≤ the training duration).
 // With a validation part, the number of play operators, the creep input (V or H) and hold weighting are chosen by
 // free-run validation error, unless given as options.
-models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
+// The preisach kinds cut each play output at knots (basis_for); K, the knot intervals over the span, is the number of
+// play operators unless given (knots_per_span), so the plane is tiled by an n × n triangle of ramp hysterons.
+models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, bool preisach) {
   using namespace training;
   if (!req.train) throw std::runtime_error("PI fit: no training data");
   const io::AxisSeries& ax = req.train->axis(req.axis);
@@ -432,7 +521,7 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
 
   // One fit for given thresholds, creep input and sample weights (the former single-path fit).
   // With on_h, the voltage-input model it starts from is handed out through v_model (auto input costs nothing extra).
-  auto fit_with = [&](const std::vector<double>& r, bool on_h, const std::vector<double>* weight,
+  auto fit_with = [&](const Basis& r, bool on_h, const std::vector<double>* weight,
                       std::unique_ptr<PiCreepModel>* v_model = nullptr) {
     FitData dd = d;
     dd.weight = weight;
@@ -503,8 +592,9 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
     search([&](const CreepParams& c) { return evaluate(dd, r, c, min_w0).sse; }, false);
     EvalResult best = evaluate(dd, r, cp, min_w0);
     cp.set_coefficients(best.theta);
-    if (v_model) *v_model = std::make_unique<PiCreepModel>(r, best.w, best.b, cp, rate);
-    const int iters = kind == CreepKind::kNone || !on_h ? 0 : option_int(o, "alternations", 6);
+    if (v_model) *v_model = r.model(best.w, best.b, cp, rate);
+    // Preisach: 3 (each alternation is a Gram of ~n²/2 piece columns; 6 changed the hold MAE by < 0.4 nm).
+    const int iters = kind == CreepKind::kNone || !on_h ? 0 : option_int(o, "alternations", preisach ? 3 : 6);
     if (iters > 0) {
       // Creep on H is bilinear (w and g): alternate the two linear problems, refining the law's nonlinear
       // parameters once, starting from the voltage-input solution.
@@ -527,7 +617,7 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
         w = best.w;
       }
     }
-    return std::make_unique<PiCreepModel>(r, best.w, best.b, cp, rate);
+    return r.model(best.w, best.b, cp, rate);
   };
 
   const std::string input = option_str(o, "creep_input", val && kind != CreepKind::kNone ? "auto" : "hysteresis");
@@ -538,14 +628,26 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
   total = (per_search * 3 + 6 * (per_search + 2)) * (val ? 2 : 1) + 8;
 
   // Thresholds: given, or n_play given, or chosen by the plain PI's validation error (fewest within 1 %).
-  std::vector<double> r;
+  const int knots_option = option_int(o, "knots_per_span", 0);
+  if (knots_option < 0 || knots_option > kMaxKnotsPerPlay + 1)
+    throw std::runtime_error("option 'knots_per_span': expected 1.." + std::to_string(kMaxKnotsPerPlay + 1));
+  auto basis_n = [&](std::vector<double> thresholds) {
+    const int n = static_cast<int>(thresholds.size());
+    Basis b = basis_for(ax.voltage_v, std::move(thresholds), preisach,
+                        knots_option > 0 ? knots_option : std::min(n, 12));
+    // Measured on the PI-hysteresis and Preisach creep-protocol stages (docs/models.md): 0.1 beats 0 on both.
+    b.smoothing = option_num(o, "piece_smoothing", 0.1);
+    if (!(b.smoothing >= 0 && b.smoothing <= 1e6)) throw std::runtime_error("option 'piece_smoothing': expected 0..1e6");
+    return b;
+  };
+  Basis r;
   double chosen_n = 0;
   if (o && o["thresholds_v"]) {
-    r = yaml_numbers(o, "thresholds_v");
+    r = basis_n(yaml_numbers(o, "thresholds_v"));
   } else if ((o && o["n_play"]) || !val) {
     const int n = option_int(o, "n_play", 12);
-    if (n < 1 || n > 200) throw std::runtime_error("option 'n_play': expected 1..200");
-    r = thresholds_for(ax.voltage_v, n);
+    if (n < 1 || n > kMaxPlayOperators) throw std::runtime_error("option 'n_play': expected 1..200");
+    r = basis_n(thresholds_for(ax.voltage_v, n));
   } else {
     // Proxy for every creep kind: PI + a prony spectrum on the voltage (one linear solve per candidate), so the
     // choice is not blurred by creep the plain PI cannot follow.
@@ -557,14 +659,16 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
       proxy.modes_per_decade = 1;
     }
     std::vector<std::pair<int, double>> tried;
-    for (int n : {4, 6, 8, 12, 16, 24, 32}) {
-      if (static_cast<std::size_t>(n) * 20 > ax.voltage_v.size()) break;
-      const auto rn = thresholds_for(ax.voltage_v, n);
+    // The preisach kinds have ~n·K/2 pieces: up to 20 play operators (K ≤ 12: 138 pieces).
+    for (int n : {4, 6, 8, 12, 16, 20, 24, 32}) {
+      if (static_cast<std::size_t>(n) * 20 > ax.voltage_v.size() || (preisach && n > 20)) break;
+      if (!preisach && n == 20) continue;
+      const Basis rn = basis_n(thresholds_for(ax.voltage_v, n));
       const EvalResult e = evaluate(d, rn, proxy, min_w0);
       report("PI thresholds");
       CreepParams c = proxy;
       c.set_coefficients(e.theta);
-      tried.emplace_back(n, validation_score(PiCreepModel(rn, e.w, e.b, c, rate), ax, *val, val_hold).all);
+      tried.emplace_back(n, validation_score(*rn.model(e.w, e.b, c, rate), ax, *val, val_hold).all);
     }
     if (tried.empty()) tried.emplace_back(4, 0.0);
     double best = INFINITY;
@@ -574,7 +678,7 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
         chosen_n = t.first;
         break;
       }
-    r = thresholds_for(ax.voltage_v, static_cast<int>(chosen_n));
+    r = basis_n(thresholds_for(ax.voltage_v, static_cast<int>(chosen_n)));
   }
 
   // Creep input by validation (auto), else as given.
@@ -620,9 +724,34 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind) {
     if (keep) m = std::move(mw), used_factor = factor;
   }
 
+  // Optionally (refit_with_validation: true), with everything chosen, the final weights from the training and
+  // validation parts together (one recording in time): slow creep modes get hours more data. Off by default: the
+  // validation metrics stored with the model and compared by --model auto would then be in-sample. Only for the
+  // kinds linear in their parameters (no creep-law search that the validation part no longer checks).
+  const bool linear_kind = kind == CreepKind::kNone || kind == CreepKind::kProny;
+  const std::string refit_opt = option_str(o, "refit_with_validation", "false");
+  if (refit_opt != "true" && refit_opt != "false")
+    throw std::runtime_error("option 'refit_with_validation': expected true or false, got '" + refit_opt + "'");
+  if (refit_opt == "true" && !linear_kind)
+    throw std::runtime_error("option 'refit_with_validation': only for pi, pi_creep_prony and the preisach kinds");
+  const bool refit = val && refit_opt == "true";
+  std::vector<double> all_v, all_y, all_w;
+  if (refit) {
+    all_v = ax.voltage_v, all_y = ax.position_nm;
+    all_v.insert(all_v.end(), val->voltage_v.begin(), val->voltage_v.end());
+    all_y.insert(all_y.end(), val->position_nm.begin(), val->position_nm.end());
+    for (std::size_t t = 0; t < all_v.size(); ++t) {
+      const bool hold = t < train_hold.size() ? train_hold[t] : val_hold[t - train_hold.size()];
+      all_w.push_back(hold ? used_factor : 1.0);
+    }
+    d.v = &all_v, d.y = &all_y;
+    m = fit_with(r, m->creep().on_hysteresis, used_factor > 1.0 ? &all_w : nullptr);
+  }
+
   m->meta = make_meta(req);
   m->meta.validation["fit_hold_weight"] = used_factor;
-  m->meta.validation["fit_play_operators"] = static_cast<double>(r.size());
+  m->meta.validation["fit_play_operators"] = static_cast<double>(r.r.size());
+  if (preisach) m->meta.validation["fit_preisach_pieces"] = static_cast<double>(r.pieces());
   if (kind != CreepKind::kNone) m->meta.validation["fit_creep_on_hysteresis"] = m->creep().on_hysteresis ? 1 : 0;
   return m;
 }

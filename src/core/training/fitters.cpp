@@ -21,6 +21,8 @@ const std::map<std::string, FitFn>& fitters() {
       {"pi_creep_lti", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kLti); }},
       {"pi_creep_fractional", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kFractional); }},
       {"pi_creep_prony", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kProny); }},
+      {"preisach", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kNone, true); }},
+      {"preisach_creep_prony", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kProny, true); }},
       {"dense", [](const FitRequest& r) -> ModelPtr { return fit_dense(r); }},
       {"lstm", [](const FitRequest& r) -> ModelPtr { return fit_lstm(r); }},
       {"kan", [](const FitRequest& r) -> ModelPtr { return fit_kan(r); }},
