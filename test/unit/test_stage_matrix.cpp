@@ -41,9 +41,6 @@ const std::map<std::string, std::string> kKnownFailing = {
     {"mm3e_preisach/dense", "60.8 %, refused (free-run drift of the position-history features)"},
     {"mm3e_preisach_creep/dense", "55.3 %, refused (free-run drift of the position-history features)"},
     {"mm3e_preisach_creep/kan", "107 %, refused (free-run drift of the position-history features)"},
-    // auto's candidates are linear, pi and pi_creep_*: on the low-voltage Preisach stages a neural kind is better.
-    {"lowvolt_preisach/auto", "auto 730 nm (linear), lstm 471 nm"},
-    {"lowvolt_preisach_creep/auto", "auto 856 nm (pi_creep_log), kan 480 nm"},
 };
 
 }  // namespace
