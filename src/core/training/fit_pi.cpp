@@ -234,8 +234,10 @@ std::vector<double> init_poles(const std::vector<double>& taus, const FitData& d
   return out;
 }
 
-// Creep coefficients with a physical sign: the prony spectrum's weights (creep follows its input).
-bool signed_creep(const CreepParams& cp) { return cp.kind == CreepKind::kProny; }
+// Creep coefficients with a physical sign: the prony spectrum's weights and the LTI pairs' compliances g_j = 1/k_j
+// (creep follows its input). Signed LTI gains let two poles the record cannot separate cancel at huge values
+// (−1.9e5 nm/V pairs on the 40-s creep-free lowvolt_pi recording).
+bool signed_creep(const CreepParams& cp) { return cp.kind == CreepKind::kProny || cp.kind == CreepKind::kLti; }
 
 // Advances the first-order creep modes l (poles a) by input u and writes the basis projections Σ_j B[k][j]·l[j].
 void creep_columns(const std::vector<double>& a, std::vector<double>& l, double u,
