@@ -638,8 +638,8 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
   text << std::fixed << std::setprecision(0);
   for (const auto& a : axes_) {
     const PredictorAxis& l = *a->logic;
-    const int i = l.axis()[0] - 'a';
-    if (!l.compensator().started()) continue;
+    const int i = io::axis_index_or_none(l.axis());
+    if (i < 0 || !l.compensator().started()) continue;
     measured[i] = l.has_measurement() ? l.measured_nm() : std::nan("");
     predicted[i] = l.predicted_nm();
     intended[i] = l.intended_nm();

@@ -18,6 +18,7 @@
 #include <thread>
 #include <vector>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/IntendedMotion.h"
@@ -65,7 +66,7 @@ class UnavailableModel : public models::Model {
 models::ModelPtr load_model_file(const std::string& path);
 
 struct PredictorSettings {
-  std::vector<std::string> axes{"a", "b", "c"};
+  std::vector<std::string> axes{io::kAxisNames.begin(), io::kAxisNames.end()};
   std::map<std::string, std::string> model_files;   // per axis
   bool compensation = true;
   bool forward_when_off = true;      // compensation off: still pass the intent on to the driver, uncorrected
