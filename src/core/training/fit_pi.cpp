@@ -250,13 +250,24 @@ void creep_columns(const std::vector<double>& a, std::vector<double>& l, double 
   }
 }
 
+// The creep basis of `cp` on the data's sample clock: mode time constants, basis matrix and discrete poles
+// (shared by the creep-on-V and creep-on-H evaluations).
+struct CreepBasis {
+  std::vector<double> taus, poles;
+  std::vector<std::vector<double>> B;
+  CreepBasis(const CreepParams& cp, double rate) {
+    cp.basis(taus, B);
+    poles = poles_of(taus, rate);
+  }
+};
+
 // Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
 EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
-  std::vector<double> taus;
-  std::vector<std::vector<double>> B;
-  cp.basis(taus, B);
+  const CreepBasis cb(cp, d.rate);
+  const std::vector<double>& taus = cb.taus;
+  const std::vector<std::vector<double>>& B = cb.B;
+  const std::vector<double>& a = cb.poles;
   const std::size_t np = hb.pieces(), nm = taus.size(), nk = B.size();
-  const std::vector<double> a = poles_of(taus, d.rate);
   const std::vector<double>& V = *d.v;
   std::vector<double> p(hb.r.size(), V[0]), l(nm, V[0]);
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
@@ -278,11 +289,11 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
 // explain the data almost equally well. Returns w·s and θ/s (gains relative to the rescaled H).
 EvalResult evaluate_creep_on_h(const FitData& d, const Basis& hb, const std::vector<double>& w,
                                const CreepParams& cp) {
-  std::vector<double> taus;
-  std::vector<std::vector<double>> B;
-  cp.basis(taus, B);
+  const CreepBasis cb(cp, d.rate);
+  const std::vector<double>& taus = cb.taus;
+  const std::vector<std::vector<double>>& B = cb.B;
+  const std::vector<double>& a = cb.poles;
   const std::size_t np = hb.pieces(), nm = taus.size(), nk = B.size();
-  const std::vector<double> a = poles_of(taus, d.rate);
   const std::vector<double>& V = *d.v;
   std::vector<double> p(hb.r.size(), V[0]), f(np);
   auto h_of = [&](double v) {
