@@ -264,18 +264,15 @@ struct CreepBasis {
 // Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
 EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
   const CreepBasis cb(cp, d.rate);
-  const std::vector<double>& taus = cb.taus;
-  const std::vector<std::vector<double>>& B = cb.B;
-  const std::vector<double>& a = cb.poles;
-  const std::size_t np = hb.pieces(), nm = taus.size(), nk = B.size();
+  const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
   const std::vector<double>& V = *d.v;
   std::vector<double> p(hb.r.size(), V[0]), l(nm, V[0]);
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
     hb.columns(v, p, x);
-    creep_columns(a, l, v, B, x + np);
+    creep_columns(cb.poles, l, v, cb.B, x + np);
     return (*d.y)[t];
-  }, init_poles(taus, d), d.weight);
+  }, init_poles(cb.taus, d), d.weight);
   std::vector<bool> constrained(np + nk, signed_creep(cp));
   for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
   EvalResult res = solve(g, constrained, hb.lower(min_w0), hb.neighbours(), hb.smoothing);
@@ -290,10 +287,7 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
 EvalResult evaluate_creep_on_h(const FitData& d, const Basis& hb, const std::vector<double>& w,
                                const CreepParams& cp) {
   const CreepBasis cb(cp, d.rate);
-  const std::vector<double>& taus = cb.taus;
-  const std::vector<std::vector<double>>& B = cb.B;
-  const std::vector<double>& a = cb.poles;
-  const std::size_t np = hb.pieces(), nm = taus.size(), nk = B.size();
+  const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
   const std::vector<double>& V = *d.v;
   std::vector<double> p(hb.r.size(), V[0]), f(np);
   auto h_of = [&](double v) {
@@ -308,9 +302,9 @@ EvalResult evaluate_creep_on_h(const FitData& d, const Basis& hb, const std::vec
   const auto g = stream_gram(V.size(), nk + 1, [&](std::size_t t, double* x) {
     const double h = h_of(V[t]);
     x[0] = h;
-    creep_columns(a, l, h, B, x + 1);
+    creep_columns(cb.poles, l, h, cb.B, x + 1);
     return (*d.y)[t];
-  }, init_poles(taus, d), d.weight);
+  }, init_poles(cb.taus, d), d.weight);
   std::vector<bool> constrained(nk + 1, signed_creep(cp));
   constrained[0] = false;
   EvalResult res = solve(g, constrained);
