@@ -1,20 +1,17 @@
 #include "piezo_compensation/ros/recorder_bag.h"
 
-#include <fcntl.h>
 #include <rosbag/view.h>
 #include <sys/statvfs.h>
-#include <unistd.h>
 
 #include <algorithm>
-#include <cerrno>
 #include <cstdio>
-#include <cstring>
 #include <filesystem>
 #include <set>
 #include <tuple>
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ProtocolPhase.h"
+#include "piezo_compensation/io/durable.h"
 
 namespace fs = std::filesystem;
 
@@ -47,20 +44,11 @@ std::string chunk_name(std::size_t i) {
   return buf;
 }
 
-// Durability: data of a file, then the directory entry that names it (after a rename), must reach the disk
-// before anything that depends on them (deleting the chunks a merged bag holds).
-void fsync_path(const std::string& path, bool directory) {
-  const int fd = ::open(path.c_str(), (directory ? O_DIRECTORY : 0) | O_RDONLY | O_CLOEXEC);
-  if (fd < 0) throw RecorderBagError(path + ": cannot open to sync: " + std::strerror(errno));
-  const int rc = ::fsync(fd);
-  const int err = errno;
-  ::close(fd);
-  if (rc != 0) throw RecorderBagError(path + ": fsync failed: " + std::strerror(err));
+void fsync_file(const std::string& path) {
+  if (const std::string e = io::fsync_path(path, false); !e.empty()) throw RecorderBagError(path + ": " + e);
 }
-void fsync_file(const std::string& path) { fsync_path(path, false); }
 void fsync_parent(const std::string& path) {
-  const fs::path parent = fs::absolute(path).parent_path();
-  fsync_path(parent.empty() ? "." : parent.string(), true);
+  if (const std::string e = io::fsync_parent(path); !e.empty()) throw RecorderBagError(path + ": directory " + e);
 }
 
 // A message's identity for de-duplication: the same topic, time and bytes is the same message (what a merge

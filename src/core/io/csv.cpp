@@ -1,5 +1,4 @@
 // CSV reading and writing with one-line, located error messages.
-#include <fcntl.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -8,7 +7,6 @@
 #include <cmath>
 #include <cstdio>
 #include <cstring>
-#include <filesystem>
 #include <fstream>
 #include <memory>
 #include <sstream>
@@ -16,6 +14,7 @@
 
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/io/durable.h"
 
 namespace piezo::io {
 
@@ -232,13 +231,7 @@ void write_csv(const std::string& path, const Dataset& d) {
   // Rename only when complete, so a crash never leaves a half-written data file under the real name.
   if (std::rename(tmp.c_str(), path.c_str()) != 0) throw DataError(path + ": cannot rename " + tmp);
   // Then the directory entry that names it.
-  const std::string dir = std::filesystem::path(path).parent_path().string();
-  const int fd = ::open(dir.empty() ? "." : dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
-  if (fd < 0) throw DataError(path + ": cannot open its directory to fsync it: " + std::strerror(errno));
-  const int rc = ::fsync(fd);
-  const int err = errno;
-  ::close(fd);
-  if (rc != 0) throw DataError(path + ": fsync of its directory failed: " + std::strerror(err));
+  if (const std::string e = fsync_parent(path); !e.empty()) throw DataError(path + ": directory " + e);
 }
 
 }  // namespace piezo::io
