@@ -1,7 +1,7 @@
 // The residual loop on simulator data (test_residual_sim_cases.h): thermal drift traced to the temperature
 // column, and no false discoveries without an extra effect (nothing may be added that gains < 2 % TEST MAE).
-// Cross-axis and rate-dependent effects: test_residual_sim_coupling.cpp; periodic ones:
-// test_residual_sim_periodic.cpp (split so each file stays under the unit-test time rule).
+// Cross-axis and rate-dependent effects: test_residual_sim_coupling.cpp; periodic ones: test_residual_sim_periodic.cpp
+// and test_residual_sim_disturbance.cpp (split so each file stays under the unit-test time rule).
 #include "test_residual_sim_cases.h"
 
 using namespace residual_sim;

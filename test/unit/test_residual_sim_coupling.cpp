@@ -1,5 +1,6 @@
 // The residual loop on simulator data (test_residual_sim_cases.h): cross-axis coupling and rate-dependent
-// hysteresis. The other effects: test_residual_sim.cpp, test_residual_sim_periodic.cpp.
+// hysteresis. The other effects: test_residual_sim.cpp, test_residual_sim_periodic.cpp,
+// test_residual_sim_disturbance.cpp.
 #include "test_residual_sim_cases.h"
 
 using namespace residual_sim;
