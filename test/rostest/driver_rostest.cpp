@@ -506,6 +506,48 @@ TEST(Driver, StuckAmplifierHolds) {
   expect_slew_limited(b.voltage(1), stuck_s, slew, "after the stuck amplifier");
 }
 
+// The controller's socket is closed for 0.5 s mid-ramp: the kernel refuses the driver's sends (ECONNREFUSED)
+// and the device hears nothing. Afterwards the ramp goes on from the voltage the device reports, not from where
+// the lost and refused frames would have put it.
+TEST(Driver, RefusedSendsDoNotJumpAfterwards) {
+  Bench b;
+  b.wait_ready();
+  ros::NodeHandle p("mm1/mm3e_driver");
+  double slew = 0;
+  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  ros::ServiceClient port = ros::NodeHandle().serviceClient<std_srvs::SetBool>("/mm1/mm3e_sim/inject_closed_port");
+  ASSERT_TRUE(port.waitForExistence(ros::Duration(10.0)));
+  ASSERT_TRUE(b.wait([&] { return !b.diag("axis c", "frames refused by the transport").empty(); }, 5.0));
+  const double refused_before = b.diag_number("axis c", "frames refused by the transport");
+  Commander commander(b, 2, 40.0);
+  ASSERT_TRUE(b.wait([&] { return b.last_voltage(2) > 10.0; }, 10.0 / slew + 3.0)) << b.last_voltage(2);
+  std_srvs::SetBool sb;
+  sb.request.data = true;
+  ASSERT_TRUE(port.call(sb) && sb.response.success);
+  const double closed_s = ros::WallTime::now().toSec();
+  ros::WallDuration(0.5).sleep();
+  sb.request.data = false;
+  ASSERT_TRUE(port.call(sb) && sb.response.success);
+  const double reopened_s = ros::WallTime::now().toSec();
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(2) - 40.0) < 1e-3; }, 40.0 / slew + 5.0))
+      << b.last_voltage(2);
+  const auto v = b.voltage(2);
+  double last_before = std::nan(""), first_after = std::nan("");
+  for (const auto& s : v) {
+    if (s.receive_s < closed_s) last_before = s.value;
+    if (s.receive_s > reopened_s && std::isnan(first_after)) first_after = s.value;
+  }
+  ASSERT_FALSE(std::isnan(last_before) || std::isnan(first_after));
+  EXPECT_LT(last_before, 40.0 - 10.0) << "the ramp was over before the socket closed";
+  // The device heard at most the frames written before the kernel reported the closed port.
+  EXPECT_LE(first_after, last_before + slew * 0.2 + 0.5) << "the device moved while its socket was closed";
+  // No jump: every report interval from the reopening on is within the slew limit (11 Hz samples).
+  expect_slew_limited(v, reopened_s - 0.2, slew, "after the refused sends");
+  ASSERT_TRUE(b.wait([&] { return b.diag_number("axis c", "frames refused by the transport") > refused_before; }, 3.0))
+      << "no send was refused: " << b.diag("axis c", "frames refused by the transport");
+  EXPECT_TRUE(b.diag("axis c", "device fault").empty()) << b.diag("axis c", "device fault");
+}
+
 int second_commander(int argc, char** argv) {
   ros::init(argc, argv, "second_commander");
   const std::string axis = argc > 2 ? argv[2] : "a";
