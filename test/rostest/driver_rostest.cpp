@@ -141,6 +141,13 @@ class Bench {
   std::map<std::string, std::map<std::string, std::string>> diag_;
 };
 
+// The driver's ~slew_rate_v_per_s as the .test file set it (0 if missing).
+double driver_slew_v_per_s() {
+  double slew = 0;
+  ros::NodeHandle("mm1/mm3e_driver").getParam("slew_rate_v_per_s", slew);
+  return slew;
+}
+
 double rate_hz(const std::vector<Sample>& s, bool by_stamp) {
   if (s.size() < 2) return 0.0;
   const double span = by_stamp ? s.back().stamp_s - s.front().stamp_s : s.back().receive_s - s.front().receive_s;
@@ -213,9 +220,8 @@ TEST(Driver, ClampsToTheLimits) {
 TEST(Driver, SlewLimited) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   b.clear();
   const ros::WallTime t0 = ros::WallTime::now();
   b.command_for(1, 30.0, 30.0 / slew + 1.0);
@@ -425,9 +431,8 @@ void expect_slew_limited(const std::vector<Sample>& v, double from_s, double sle
 TEST(Driver, ControllerRestartHoldsAndRampsFromPowerUp) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   Commander commander(b, 0, 20.0);
   ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(0) - 20.0) < 1e-3; }, 20.0 / slew + 3.0))
       << b.last_voltage(0);
@@ -463,9 +468,8 @@ TEST(Driver, ControllerRestartHoldsAndRampsFromPowerUp) {
 TEST(Driver, StuckAmplifierHolds) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   {
     Commander commander(b, 1, 10.0);
     ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(1) - 10.0) < 1e-3; }, 10.0 / slew + 3.0));
@@ -512,9 +516,8 @@ TEST(Driver, StuckAmplifierHolds) {
 TEST(Driver, RefusedSendsDoNotJumpAfterwards) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   ros::ServiceClient port = ros::NodeHandle().serviceClient<std_srvs::SetBool>("/mm1/mm3e_sim/inject_closed_port");
   ASSERT_TRUE(port.waitForExistence(ros::Duration(10.0)));
   ASSERT_TRUE(b.wait([&] { return !b.diag("axis c", "frames refused by the transport").empty(); }, 5.0));
