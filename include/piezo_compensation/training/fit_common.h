@@ -82,6 +82,14 @@ std::string utc_now_iso8601();
 double option_num(const YAML::Node& options, const std::string& key, double def);
 int option_int(const YAML::Node& options, const std::string& key, int def);
 std::string option_str(const YAML::Node& options, const std::string& key, const std::string& def);
+// Least-squares y ≈ βᵀx + intercept over the columns of x (features × samples, standardised), with a tiny
+// fixed ridge that only settles collinear columns: the linear start of the dense and KAN kinds.
+struct ColumnLinearFit {
+  Eigen::VectorXd beta;
+  double intercept = 0.0;
+};
+ColumnLinearFit linear_fit_columns(const Eigen::MatrixXd& x, const Eigen::VectorXd& y);
+
 // Option `init` of the dense and KAN kinds: "linear" (default: start at the least-squares linear fit of the
 // features) → true, "random" (the plain random start) → false; throws naming the option otherwise.
 bool neural_linear_init(const YAML::Node& options);

@@ -243,6 +243,18 @@ std::string option_str(const YAML::Node& o, const std::string& key, const std::s
   return o[key].as<std::string>();
 }
 
+ColumnLinearFit linear_fit_columns(const Eigen::MatrixXd& x, const Eigen::VectorXd& y) {
+  const Eigen::Index n = x.cols();
+  const Eigen::VectorXd mx = x.rowwise().mean();
+  const Eigen::MatrixXd xc = x.colwise() - mx;
+  const Eigen::MatrixXd g = xc * xc.transpose() / static_cast<double>(n);
+  const Eigen::VectorXd c = xc * (y.array() - y.mean()).matrix() / static_cast<double>(n);
+  ColumnLinearFit f;
+  f.beta = solve_normal(g, c, 1e-6);
+  f.intercept = y.mean() - f.beta.dot(mx);
+  return f;
+}
+
 bool neural_linear_init(const YAML::Node& options) {
   const std::string init = option_str(options, "init", "linear");
   if (init != "linear" && init != "random")

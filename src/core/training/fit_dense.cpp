@@ -28,25 +28,19 @@ using DenseTrial = NeuralTrial<DenseModel>;
 Eigen::VectorXd linear_start(const DenseNet& net, std::uint64_t seed, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) {
   const DenseShape& s = net.shape();
   Eigen::VectorXd p = net.initial_params(seed);
-  const Eigen::Index n_in = x.rows(), n = x.cols();
-  const Eigen::VectorXd mx = x.rowwise().mean();
-  const Eigen::MatrixXd xc = x.colwise() - mx;
-  const Eigen::MatrixXd g = xc * xc.transpose() / static_cast<double>(n);
-  const Eigen::VectorXd c = xc * (y.array() - y.mean()).matrix() / static_cast<double>(n);
-  // The features are standardised (unit variance): a small fixed ridge only settles collinear columns.
-  const Eigen::VectorXd beta = solve_normal(g, c, 1e-6);
-  const double intercept = y.mean() - beta.dot(mx);
+  const Eigen::Index n_in = x.rows();
+  const ColumnLinearFit fit = linear_fit_columns(x, y);
+  const Eigen::VectorXd& beta = fit.beta;
+  const double intercept = fit.intercept;
   const Eigen::VectorXd lin = beta.transpose() * x;
-  const double k = std::max(0.0, -lin.minCoeff()) + 1.0;
+  const double k = s.depth > 0 ? std::max(0.0, -lin.minCoeff()) + 1.0 : 0.0;
   Eigen::Index o = 0;
   int in = static_cast<int>(n_in);
   for (int l = 0; l <= s.depth; ++l) {
     const int out = l < s.depth ? s.width : 1;
     for (int i = 0; i < in; ++i) p[o + i * out] = l == 0 ? beta[i] : (i == 0 ? 1.0 : 0.0);  // row 0 of W
-    if (l == s.depth)
-      for (int i = 1; i < in; ++i) p[o + i * out] = 0.0;
     o += static_cast<Eigen::Index>(in) * out;
-    p[o] = l == 0 ? k : (l < s.depth ? 0.0 : intercept - k);  // bias of unit 0
+    p[o] = (l == 0 ? k : 0.0) + (l == s.depth ? intercept - k : 0.0);  // bias of unit 0
     o += out;
     in = out;
   }

@@ -38,22 +38,18 @@ void set_linear_edge(const KanNet& net, Eigen::VectorXd& p, int layer, int input
 // every other edge into the output is zero; the other edges keep their random draws. The grids are placed on
 // the data before and after, so the lines hold over the training range.
 void linear_start(KanNet& net, Eigen::VectorXd& p, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) {
-  const Eigen::Index n = x.cols();
-  const Eigen::VectorXd mx = x.rowwise().mean();
-  const Eigen::MatrixXd xc = x.colwise() - mx;
-  const Eigen::VectorXd beta =
-      solve_normal(xc * xc.transpose() / static_cast<double>(n),
-                   xc * (y.array() - y.mean()).matrix() / static_cast<double>(n), 1e-6);
+  const ColumnLinearFit fit = linear_fit_columns(x, y);
+  const Eigen::VectorXd& beta = fit.beta;
   const std::vector<int>& w = net.shape().widths;
   for (int i = 0; i < w[0]; ++i) set_linear_edge(net, p, 0, i, 0, beta[i]);
-  p[net.bias_offset(0)] = 0.0;
+  p[net.bias_offset(0)] = net.num_layers() == 1 ? fit.intercept : 0.0;
   for (int l = 1; l < net.num_layers(); ++l) {
     net.update_grids(p, x);  // layer l's grid onto node 0's new range (the functions stay)
     const bool last = l + 1 == net.num_layers();
     set_linear_edge(net, p, l, 0, 0, 1.0);
     for (int i = 1; i < w[static_cast<std::size_t>(l)]; ++i)
       p.segment(net.edge_offset(l, i, 0), 1 + net.num_basis()).setZero();
-    p[net.bias_offset(l)] = last ? y.mean() - beta.dot(mx) : 0.0;
+    p[net.bias_offset(l)] = last ? fit.intercept : 0.0;
   }
   net.update_grids(p, x);
 }
