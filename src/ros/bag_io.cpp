@@ -6,6 +6,8 @@
 #include <ros/time.h>
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
+#include <roslz4/lz4s.h>
+#include <bzlib.h>
 
 #include <algorithm>
 #include <cmath>
@@ -157,18 +159,24 @@ boost::shared_ptr<Msg> instantiate(const rosbag::MessageInstance& m, const std::
   return p;
 }
 
-// rosbag trusts every length field it reads and allocates that much (a flipped bit asks for gigabytes, found by
-// fuzz/fuzz_bag.cpp). Before rosbag sees the file, walk its records (format 2.0: header length, header, data
-// length, data; inside uncompressed chunks the same) and refuse lengths that run past their container, and
-// declared chunk sizes beyond kMaxChunkBytes.
-void check_bag_records(const std::string& path) {
+// rosbag trusts every length field and every position it reads (a flipped bit asks for gigabytes, an index
+// entry into the wrong place of a chunk reads past the chunk buffer: found by fuzz/fuzz_bag.cpp). Before rosbag
+// sees the file, walk its records (format 2.0: header length, header, data length, data) and refuse what rosbag
+// would not survive: lengths that run past their container (also inside chunks, decompressed as rosbag does),
+// fixed-size fields of the wrong size, chunks declared beyond kMaxChunkBytes, connection headers whose fields run
+// past them, positions (index_pos, chunk_pos) that are not record starts, and index entries that do not point at
+// a message record of the chunk before them.
+}  // namespace
+
+void check_bag_file(const std::string& path) {
   std::ifstream in(path, std::ios::binary);
   if (!in) return;  // rosbag's open says what is wrong
   in.seekg(0, std::ios::end);
   const std::uint64_t file_size = static_cast<std::uint64_t>(in.tellg());
   in.seekg(0);
   std::uint64_t offset = 0;  // of the stream: sequential reads keep its buffer (a plan bag has millions of records)
-  auto read = [&](std::uint64_t at, std::size_t n) {
+  using Reader = std::function<std::string(std::uint64_t, std::size_t)>;
+  const Reader read_file = [&](std::uint64_t at, std::size_t n) {
     std::string b(n, '\0');
     if (at != offset) {
       in.clear();
@@ -184,13 +192,19 @@ void check_bag_records(const std::string& path) {
     for (int i = 3; i >= 0; --i) v = (v << 8) | static_cast<unsigned char>(b[at + i]);
     return std::uint64_t{v};
   };
+  auto u64 = [](const std::string& b) {
+    std::uint64_t v = 0;
+    for (int i = 7; i >= 0; --i) v = (v << 8) | static_cast<unsigned char>(b[i]);
+    return v;
+  };
   constexpr std::uint64_t kMaxChunkBytes = 256ull << 20, kMaxHeaderBytes = 1ull << 20;
+  std::string where;  // "" at the top level, " (chunk at byte N)" inside a chunk
   auto bad = [&](std::uint64_t at, const std::string& what) {
-    return io::DataError(path + ": not a valid bag: record at byte " + std::to_string(at) + " " + what +
+    return io::DataError(path + ": not a valid bag: record at byte " + std::to_string(at) + where + " " + what +
                          " (a bag cut short may be fixed by `rosbag reindex`)");
   };
   // rosbag takes any first line it can scan as "#ROS... V<major>.<minor>"; the records start after it
-  const std::string head = read(0, static_cast<std::size_t>(std::min<std::uint64_t>(file_size, 4096)));
+  const std::string head = read_file(0, static_cast<std::size_t>(std::min<std::uint64_t>(file_size, 4096)));
   if (head.rfind("#ROS", 0) != 0) return;  // rosbag says what it is (or is not)
   const auto newline = head.find('\n');
   if (newline == std::string::npos || newline > 64) throw bad(0, "has no version line");
@@ -198,67 +212,143 @@ void check_bag_records(const std::string& path) {
   static const std::map<std::string, std::size_t> kFixed = {
       {"op", 1},        {"index_pos", 8}, {"conn_count", 4}, {"chunk_count", 4}, {"conn", 4}, {"time", 8},
       {"ver", 4},       {"chunk_pos", 8}, {"start_time", 8}, {"end_time", 8},    {"count", 4}, {"size", 4}};
+  // A header: fields of "length, name=value" (ros::Header::parse reads each length without a bound).
+  auto fields_of = [&](std::uint64_t at, const std::string& header, bool fixed_sizes) {
+    std::map<std::string, std::string> fields;
+    for (std::size_t f = 0; f < header.size();) {
+      if (header.size() - f < 4) throw bad(at, "has a field cut short");
+      const std::uint64_t len = u32(header, f);
+      f += 4;
+      if (len > header.size() - f) throw bad(at, "has a field longer than its header");
+      const std::string field = header.substr(f, len);
+      f += len;
+      const auto eq = field.find('=');
+      if (eq == std::string::npos) throw bad(at, "has a header field without '='");
+      const std::string name = field.substr(0, eq), value = field.substr(eq + 1);
+      const auto fixed = kFixed.find(name);
+      if (fixed_sizes && fixed != kFixed.end() && value.size() != fixed->second)
+        throw bad(at, "has a " + std::to_string(value.size()) + "-byte field " + name + " (expected " +
+                          std::to_string(fixed->second) + ")");
+      fields[name] = value;
+    }
+    return fields;
+  };
+  struct Record {
+    std::uint64_t at, data_pos, data_len;
+    std::map<std::string, std::string> fields;
+    char op = 0;
+  };
+  // Walks the records in [pos, end) of `read`; throws on a length that runs past it.
+  auto walk = [&](const Reader& read, std::uint64_t pos, std::uint64_t end, const std::function<void(const Record&)>& visit) {
+    while (pos < end) {
+      Record r;
+      r.at = pos;
+      if (end - pos < 4) throw bad(r.at, "is cut short");
+      const std::uint64_t header_len = u32(read(pos, 4), 0);
+      pos += 4;
+      if (header_len > end - pos || header_len > kMaxHeaderBytes)
+        throw bad(r.at, "claims a " + std::to_string(header_len) + "-byte header");
+      r.fields = fields_of(r.at, read(pos, header_len), true);
+      pos += header_len;
+      if (end - pos < 4) throw bad(r.at, "has no data length");
+      r.data_len = u32(read(pos, 4), 0);
+      pos += 4;
+      if (r.data_len > end - pos) throw bad(r.at, "claims " + std::to_string(r.data_len) + " bytes of data");
+      r.data_pos = pos;
+      const auto op = r.fields.find("op");
+      if (op != r.fields.end()) r.op = op->second[0];
+      visit(r);
+      pos += r.data_len;
+    }
+  };
   // Where top-level records start, and the positions rosbag will seek to (index_pos of the file header,
   // chunk_pos of the chunk infos): those must be record starts too.
   std::set<std::uint64_t> starts;
   std::vector<std::pair<std::uint64_t, std::uint64_t>> seeks;  // (record, position)
-  auto u64 = [](const std::string& b) {
-    std::uint64_t v = 0;
-    for (int i = 7; i >= 0; --i) v = (v << 8) | static_cast<unsigned char>(b[i]);
-    return v;
+  std::set<std::uint64_t> chunk_messages;  // offsets of message records in the last chunk (uncompressed)
+  bool in_chunk = false;
+  auto check_connection = [&](const Reader& read, const Record& r) {
+    fields_of(r.at, read(r.data_pos, static_cast<std::size_t>(r.data_len)), false);
   };
-  // Walks the records in [pos, end); throws on a length that runs past it.
-  std::function<void(std::uint64_t, std::uint64_t, int)> walk = [&](std::uint64_t pos, std::uint64_t end, int depth) {
-    while (pos < end) {
-      const std::uint64_t at = pos;
-      if (depth == 0) starts.insert(at);
-      if (end - pos < 4) throw bad(at, "is cut short");
-      const std::uint64_t header_len = u32(read(pos, 4), 0);
-      pos += 4;
-      if (header_len > end - pos || header_len > kMaxHeaderBytes)
-        throw bad(at, "claims a " + std::to_string(header_len) + "-byte header");
-      const std::string header = read(pos, header_len);
-      std::string op, compression;
-      std::uint64_t chunk_size = 0;
-      for (std::size_t f = 0; f < header.size();) {  // fields: length, "name=value"
-        if (header.size() - f < 4) throw bad(at, "has a field cut short");
-        const std::uint64_t len = u32(header, f);
-        f += 4;
-        if (len > header.size() - f) throw bad(at, "has a field longer than its header");
-        const std::string field = header.substr(f, len);
-        f += len;
-        const auto eq = field.find('=');
-        if (eq == std::string::npos) throw bad(at, "has a header field without '='");
-        const std::string name = field.substr(0, eq), value = field.substr(eq + 1);
-        const auto fixed = kFixed.find(name);
-        if (fixed != kFixed.end() && value.size() != fixed->second)
-          throw bad(at, "has a " + std::to_string(value.size()) + "-byte field " + name + " (expected " +
-                            std::to_string(fixed->second) + ")");
-        if (name == "op") op = value;
-        if (name == "compression") compression = value;
-        if (name == "size") chunk_size = u32(value, 0);
-        if (depth == 0 && (name == "index_pos" || name == "chunk_pos")) seeks.emplace_back(at, u64(value));
-      }
-      pos += header_len;
-      if (end - pos < 4) throw bad(at, "has no data length");
-      const std::uint64_t data_len = u32(read(pos, 4), 0);
-      pos += 4;
-      if (data_len > end - pos) throw bad(at, "claims " + std::to_string(data_len) + " bytes of data");
-      if (op == std::string(1, '\x05')) {  // chunk
-        if (chunk_size > kMaxChunkBytes) throw bad(at, "declares a chunk of " + std::to_string(chunk_size) + " bytes");
-        if (compression == "none" && depth == 0) walk(pos, pos + data_len, depth + 1);
-      }
-      pos += data_len;
+  walk(read_file, newline + 1, file_size, [&](const Record& r) {
+    starts.insert(r.at);
+    for (const char* name : {"index_pos", "chunk_pos"}) {
+      const auto f = r.fields.find(name);
+      if (f != r.fields.end()) seeks.emplace_back(r.at, u64(f->second));
     }
-  };
-  walk(newline + 1, file_size, 0);
+    if (r.op == '\x05') {  // chunk: its records, as rosbag sees them after decompression
+      const auto size = r.fields.find("size");
+      const auto compression = r.fields.find("compression");
+      if (size == r.fields.end() || compression == r.fields.end()) throw bad(r.at, "is a chunk without size or compression");
+      const std::uint64_t chunk_size = u32(size->second, 0);
+      if (chunk_size > kMaxChunkBytes) throw bad(r.at, "declares a chunk of " + std::to_string(chunk_size) + " bytes");
+      chunk_messages.clear();
+      in_chunk = true;
+      std::string buffer;
+      Reader read_chunk;
+      std::uint64_t base = r.data_pos;
+      if (compression->second == "none") {
+        if (r.data_len != chunk_size) throw bad(r.at, "is an uncompressed chunk whose size is not its data length");
+        read_chunk = read_file;
+      } else {
+        std::string packed = read_file(r.data_pos, static_cast<std::size_t>(r.data_len));
+        buffer.assign(static_cast<std::size_t>(chunk_size), '\0');
+        bool ok = false;
+        if (compression->second == "lz4") {
+          unsigned int out_size = static_cast<unsigned int>(chunk_size);
+          ok = roslz4_buffToBuffDecompress(packed.data(), static_cast<unsigned int>(packed.size()), buffer.data(),
+                                           &out_size) == ROSLZ4_OK &&
+               out_size == chunk_size;
+        } else if (compression->second == "bz2") {
+          unsigned int out_size = static_cast<unsigned int>(chunk_size);
+          ok = BZ2_bzBuffToBuffDecompress(buffer.data(), &out_size, packed.data(),
+                                          static_cast<unsigned int>(packed.size()), 0, 0) == BZ_OK &&
+               out_size == chunk_size;
+        } else {
+          throw bad(r.at, "is a chunk compressed with '" + compression->second + "' (rosbag knows none, lz4, bz2)");
+        }
+        if (!ok) throw bad(r.at, "is a " + compression->second + " chunk that does not decompress to its size");
+        read_chunk = [&buffer, &path](std::uint64_t at, std::size_t n) {
+          if (at > buffer.size() || n > buffer.size() - at) throw io::DataError(path + ": chunk read out of range");
+          return buffer.substr(static_cast<std::size_t>(at), n);
+        };
+        base = 0;
+      }
+      where = " (in the chunk at byte " + std::to_string(r.at) + ")";
+      walk(read_chunk, base, base + chunk_size, [&](const Record& c) {
+        if (c.op == '\x02') chunk_messages.insert(c.at - base);
+        else if (c.op == '\x07') check_connection(read_chunk, c);
+        else throw bad(c.at, "is neither a message nor a connection record");
+      });
+      where.clear();
+    } else if (r.op == '\x04') {  // index data of the chunk before it: entries (time, offset into the chunk)
+      const auto ver = r.fields.find("ver"), count = r.fields.find("count");
+      if (ver == r.fields.end() || count == r.fields.end() || u32(ver->second, 0) != 1)
+        throw bad(r.at, "is an index record without count or of a version other than 1");
+      if (!in_chunk) throw bad(r.at, "is an index record before any chunk");
+      if (u32(count->second, 0) * 12 != r.data_len) throw bad(r.at, "is an index record whose count is not its length");
+      const std::string entries = read_file(r.data_pos, static_cast<std::size_t>(r.data_len));
+      for (std::size_t e = 0; e < entries.size(); e += 12)
+        if (!chunk_messages.count(u32(entries, e + 8)))
+          throw bad(r.at, "has an index entry to byte " + std::to_string(u32(entries, e + 8)) +
+                              " of its chunk, which is not the start of a message record");
+    } else if (r.op == '\x07') {
+      check_connection(read_file, r);
+    } else if (r.op == '\x06') {  // chunk info: (connection, count) pairs
+      const auto count = r.fields.find("count");
+      if (count != r.fields.end() && u32(count->second, 0) * 8 != r.data_len)
+        throw bad(r.at, "is a chunk info whose count is not its length");
+    }
+  });
   for (const auto& [at, target] : seeks)
     if (target != file_size && !starts.count(target))
       throw bad(at, "points at byte " + std::to_string(target) + ", which is not the start of a record");
 }
 
+namespace {
+
 io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
-  check_bag_records(path);
+  check_bag_file(path);
   rosbag::Bag bag;
   try {
     bag.open(path, rosbag::bagmode::Read);

@@ -80,6 +80,7 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   restart_srv_ = pnh_.advertiseService("inject_restart", &SimNode::on_restart, this);
   stuck_srv_ = pnh_.advertiseService("inject_stuck_amplifier", &SimNode::on_stuck, this);
   thermal_srv_ = pnh_.advertiseService("set_thermal_drift", &SimNode::on_thermal, this);
+  closed_port_srv_ = pnh_.advertiseService("inject_closed_port", &SimNode::on_closed_port, this);
   ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
                                              << " Hz, "
                                              << (sync_mode_ ? std::string("synchronous: one sample per SYNC")
@@ -94,7 +95,7 @@ SimNode::~SimNode() {
 }
 
 void SimNode::send_all(const std::vector<can_frame>& frames) {
-  if (wall_now_s() < silent_until_wall_s_) return;
+  if (wall_now_s() < silent_until_wall_s_ || !transport_->is_open()) return;
   for (const auto& f : frames) {
     try {
       transport_->send(f);
@@ -180,6 +181,10 @@ void SimNode::run() {
       wait_s = next_sample_s - sim_now_s;
     wait_s = std::clamp(wait_s, 0.0002, 0.05);
     in.clear();
+    if (!port_open()) {
+      std::this_thread::sleep_for(std::chrono::duration<double>(wait_s));
+      continue;
+    }
     try {
       transport_->receive(in, static_cast<int>(std::ceil(wait_s * 1000.0)));
     } catch (const can::TransportError& e) {
@@ -199,6 +204,10 @@ void SimNode::run_synchronous() {
   std::vector<can::ReceivedFrame> in;
   while (running_ && ros::ok()) {
     in.clear();
+    if (!port_open()) {
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+      continue;
+    }
     try {
       transport_->receive(in, 50);
     } catch (const can::TransportError& e) {
@@ -251,6 +260,27 @@ bool SimNode::on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Respo
                          : "amplifiers released";
   ROS_WARN_STREAM("mm3e_sim: " << res.message);
   return true;
+}
+
+// Test hook: the controller stops listening (socket closed, so the driver's sends are refused by the kernel)
+// and stops reporting, until called with false. Physics and the sequence counter run on meanwhile.
+bool SimNode::on_closed_port(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  port_closed_ = req.data;
+  res.success = true;
+  res.message = req.data ? "controller socket closed: frames to it are refused" : "controller socket reopened";
+  ROS_WARN_STREAM("mm3e_sim: " << res.message);
+  return true;
+}
+
+bool SimNode::port_open() {
+  std::lock_guard<std::mutex> lock(mutex_);
+  try {
+    if (port_closed_ && transport_->is_open()) transport_->close();
+    if (!port_closed_ && !transport_->is_open()) transport_->open();
+  } catch (const can::TransportError& e) {
+    ROS_ERROR_STREAM_THROTTLE(1.0, "mm3e_sim: cannot reopen: " << e.what());
+  }
+  return transport_->is_open();
 }
 
 bool SimNode::on_thermal(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {

@@ -12,6 +12,7 @@
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ProtocolPhase.h"
 #include "piezo_compensation/io/durable.h"
+#include "piezo_compensation/ros/data_file.h"
 
 namespace fs = std::filesystem;
 
@@ -91,9 +92,12 @@ class Deduplicator {
 
 bool opens(const std::string& path) {
   try {
+    check_bag_file(path);  // a torn or damaged file must not reach rosbag's unchecked reads
     rosbag::Bag b(path, rosbag::bagmode::Read);
     return true;
   } catch (const rosbag::BagException&) {
+    return false;
+  } catch (const io::DataError&) {
     return false;
   }
 }

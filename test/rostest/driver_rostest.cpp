@@ -141,6 +141,13 @@ class Bench {
   std::map<std::string, std::map<std::string, std::string>> diag_;
 };
 
+// The driver's ~slew_rate_v_per_s as the .test file set it (0 if missing).
+double driver_slew_v_per_s() {
+  double slew = 0;
+  ros::NodeHandle("mm1/mm3e_driver").getParam("slew_rate_v_per_s", slew);
+  return slew;
+}
+
 double rate_hz(const std::vector<Sample>& s, bool by_stamp) {
   if (s.size() < 2) return 0.0;
   const double span = by_stamp ? s.back().stamp_s - s.front().stamp_s : s.back().receive_s - s.front().receive_s;
@@ -213,9 +220,8 @@ TEST(Driver, ClampsToTheLimits) {
 TEST(Driver, SlewLimited) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   b.clear();
   const ros::WallTime t0 = ros::WallTime::now();
   b.command_for(1, 30.0, 30.0 / slew + 1.0);
@@ -425,9 +431,8 @@ void expect_slew_limited(const std::vector<Sample>& v, double from_s, double sle
 TEST(Driver, ControllerRestartHoldsAndRampsFromPowerUp) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   Commander commander(b, 0, 20.0);
   ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(0) - 20.0) < 1e-3; }, 20.0 / slew + 3.0))
       << b.last_voltage(0);
@@ -463,9 +468,8 @@ TEST(Driver, ControllerRestartHoldsAndRampsFromPowerUp) {
 TEST(Driver, StuckAmplifierHolds) {
   Bench b;
   b.wait_ready();
-  ros::NodeHandle p("mm1/mm3e_driver");
-  double slew = 0;
-  ASSERT_TRUE(p.getParam("slew_rate_v_per_s", slew));
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
   {
     Commander commander(b, 1, 10.0);
     ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(1) - 10.0) < 1e-3; }, 10.0 / slew + 3.0));
@@ -504,6 +508,47 @@ TEST(Driver, StuckAmplifierHolds) {
         << b.last_voltage(1);
   }
   expect_slew_limited(b.voltage(1), stuck_s, slew, "after the stuck amplifier");
+}
+
+// The controller's socket is closed for 0.5 s mid-ramp: the kernel refuses the driver's sends (ECONNREFUSED)
+// and the device hears nothing. Afterwards the ramp goes on from the voltage the device reports, not from where
+// the lost and refused frames would have put it.
+TEST(Driver, RefusedSendsDoNotJumpAfterwards) {
+  Bench b;
+  b.wait_ready();
+  const double slew = driver_slew_v_per_s();
+  ASSERT_GT(slew, 0.0) << "driver ~slew_rate_v_per_s not set";
+  ros::ServiceClient port = ros::NodeHandle().serviceClient<std_srvs::SetBool>("/mm1/mm3e_sim/inject_closed_port");
+  ASSERT_TRUE(port.waitForExistence(ros::Duration(10.0)));
+  ASSERT_TRUE(b.wait([&] { return !b.diag("axis c", "frames refused by the transport").empty(); }, 5.0));
+  const double refused_before = b.diag_number("axis c", "frames refused by the transport");
+  Commander commander(b, 2, 40.0);
+  ASSERT_TRUE(b.wait([&] { return b.last_voltage(2) > 10.0; }, 10.0 / slew + 3.0)) << b.last_voltage(2);
+  std_srvs::SetBool sb;
+  sb.request.data = true;
+  ASSERT_TRUE(port.call(sb) && sb.response.success);
+  const double closed_s = ros::WallTime::now().toSec();
+  ros::WallDuration(0.5).sleep();
+  sb.request.data = false;
+  ASSERT_TRUE(port.call(sb) && sb.response.success);
+  const double reopened_s = ros::WallTime::now().toSec();
+  ASSERT_TRUE(b.wait([&] { return std::abs(b.last_voltage(2) - 40.0) < 1e-3; }, 40.0 / slew + 5.0))
+      << b.last_voltage(2);
+  const auto v = b.voltage(2);
+  double last_before = std::nan(""), first_after = std::nan("");
+  for (const auto& s : v) {
+    if (s.receive_s < closed_s) last_before = s.value;
+    if (s.receive_s > reopened_s && std::isnan(first_after)) first_after = s.value;
+  }
+  ASSERT_FALSE(std::isnan(last_before) || std::isnan(first_after));
+  EXPECT_LT(last_before, 40.0 - 10.0) << "the ramp was over before the socket closed";
+  // The device heard at most the frames written before the kernel reported the closed port.
+  EXPECT_LE(first_after, last_before + slew * 0.2 + 0.5) << "the device moved while its socket was closed";
+  // No jump: every report interval from the reopening on is within the slew limit (11 Hz samples).
+  expect_slew_limited(v, reopened_s - 0.2, slew, "after the refused sends");
+  ASSERT_TRUE(b.wait([&] { return b.diag_number("axis c", "frames refused by the transport") > refused_before; }, 3.0))
+      << "no send was refused: " << b.diag("axis c", "frames refused by the transport");
+  EXPECT_TRUE(b.diag("axis c", "device fault").empty()) << b.diag("axis c", "device fault");
 }
 
 int second_commander(int argc, char** argv) {

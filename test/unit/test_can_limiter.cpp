@@ -179,6 +179,35 @@ TEST(CanLimiter, OnlyAWrittenFrameMovesTheAppliedVoltage) {
   EXPECT_NEAR(*v, 1.0, 1e-9);
 }
 
+// ECONNREFUSED: the frame written just before the refusal may have been lost too. Nothing is proposed until the
+// device reports again; that report is checked as usual and the ramp goes on one step at a time.
+TEST(CanLimiter, ARefusedFrameWaitsForTheNextReport) {
+  CommandLimiter l(config());
+  l.on_reported_voltage(0.0, 0.0);
+  l.step(0.0);
+  l.command(50.0, 0.0);
+  for (int k = 1; k <= 10; ++k) ASSERT_TRUE(send(l, 0.01 * k).has_value());
+  EXPECT_NEAR(l.applied_v(), 10.0, 1e-9);
+  l.refused();
+  EXPECT_TRUE(l.paused());
+  for (int k = 11; k <= 60; ++k) {
+    l.command(50.0, 0.01 * k);
+    EXPECT_FALSE(l.step(0.01 * k).has_value()) << "proposed a frame before the device reported";
+  }
+  EXPECT_NEAR(l.applied_v(), 10.0, 1e-9);
+  l.on_reported_voltage(10.0, 0.6);
+  EXPECT_FALSE(l.paused());
+  l.command(50.0, 0.61);
+  const auto v = l.step(0.61);
+  ASSERT_TRUE(v.has_value());
+  EXPECT_NEAR(*v, 11.0, 1e-9) << "the first frame after the refusal is one step, not the refused half second";
+  // A device that lost frames before the refusal reports less than was written: that pauses, then trips.
+  l.sent(*v, 0.61);
+  l.refused();
+  for (int k = 0; k < 3; ++k) l.on_reported_voltage(9.0, 0.7 + 0.1 * k);
+  EXPECT_TRUE(l.held_for(HoldReason::kDeviceFault)) << l.fault();
+}
+
 TEST(CanLimiter, FutureStampsAreRefusedAndStampsNeverAfterNow) {
   CommandLimiter l(config());
   l.on_reported_voltage(0.0, 0.0);

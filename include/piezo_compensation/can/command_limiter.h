@@ -7,7 +7,8 @@
 // (step() only proposes, sent() accepts), and every fresh voltage report is checked against the values written
 // within report_lag_s. A report that matches none of them pauses the ramp; report_mismatch_count in a row trip
 // a device fault that holds the axis until clear_fault(), and the reports become the baseline again. The ramp
-// never runs more than max_unconfirmed_v ahead of the last report that matched (or the baseline).
+// never runs more than max_unconfirmed_v ahead of the last report that matched (or the baseline). After a
+// refused frame nothing is proposed until the device reports again.
 #pragma once
 
 #include <cstdint>
@@ -76,6 +77,10 @@ class CommandLimiter {
   std::optional<double> step(double now_s);
   // The frame carrying voltage_v (as encoded) was written at now_s.
   void sent(double voltage_v, double now_s);
+  // The transport refused a frame (queue full, or ECONNREFUSED: nobody listening, so a frame written just before
+  // it may be lost too). No proposal until the next fresh report, which is checked like any other: at most one
+  // lost frame per refusal, and a report that matches nothing written pauses and then trips as below.
+  void refused();
   // Whether a frame with this value may go on the bus: within [min, max], or a ramp-in step from a baseline
   // outside them towards the inside; never more than max_frame_step_v from the applied voltage.
   bool sendable(double voltage_v) const;
@@ -96,7 +101,8 @@ class CommandLimiter {
   double applied_v() const { return applied_v_; }
   double target_v() const { return target_v_; }
   bool timed_out() const { return timed_out_; }
-  bool paused() const { return mismatches_ > 0; }
+  bool paused() const { return mismatches_ > 0 || awaiting_report_; }
+  bool awaiting_report() const { return awaiting_report_; }
   std::uint64_t timeouts() const { return timeouts_; }
   std::uint64_t report_mismatches() const { return mismatch_total_; }
   const LimiterConfig& config() const { return config_; }
@@ -111,6 +117,7 @@ class CommandLimiter {
   LimiterConfig config_;
   bool has_applied_ = false;
   bool sent_once_ = false;   // a frame was written since the last baseline
+  bool awaiting_report_ = false;  // a frame was refused: the next report is the baseline
   double applied_v_ = 0.0;   // last voltage written (or reported, before the first frame)
   double confirmed_v_ = 0.0; // last report that matched (or the baseline)
   double target_v_ = 0.0;

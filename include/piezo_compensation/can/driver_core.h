@@ -117,6 +117,7 @@ class DriverCore {
   struct Pending;
   void send_locked(int axis, double voltage_v, double now_s, std::vector<Pending>& events);
   void trip_locked(int axis, const std::string& why, std::vector<Pending>& events);
+  void refused_locked(Axis& a);
   void close_locked(const std::string& reason, BusState state, std::vector<Pending>& events);
   void flush(std::vector<Pending>& events);
   double since(Clock::time_point t) const;

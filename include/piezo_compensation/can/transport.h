@@ -31,8 +31,9 @@ class Transport {
   virtual void open() = 0;
   virtual void close() = 0;
   virtual bool is_open() const = 0;
-  // Sends one frame. Returns false when the kernel queue is full (ENOBUFS/EAGAIN: the frame is dropped and
-  // the caller counts it); throws TransportError when the link is gone (interface down, socket error).
+  // Sends one frame. Returns false when the kernel refuses it (queue full: ENOBUFS/EAGAIN; UDP peer not
+  // listening: ECONNREFUSED, reported on the send after the lost one); the frame is dropped and
+  // the caller counts it. Throws TransportError when the link is gone (interface down, socket error).
   virtual bool send(const can_frame& frame) = 0;
   // Waits up to timeout_ms for frames and appends every frame available. Returns the number appended;
   // throws TransportError when the link is gone.

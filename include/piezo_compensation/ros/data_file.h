@@ -21,6 +21,9 @@ struct BagOptions {
 };
 
 io::Dataset read_bag(const std::string& path, const BagOptions& options = {});
+// The record structure of a bag checked before rosbag opens it (rosbag trusts every length and position it
+// reads; docs/security.md): throws io::DataError naming the file and the record. read_bag calls it.
+void check_bag_file(const std::string& path);
 void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options = {});
 
 // Dispatch on the extension: ".bag" → bag, anything else → CSV. Throws io::DataError with one clear line.

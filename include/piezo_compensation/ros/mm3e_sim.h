@@ -36,6 +36,8 @@ class SimNode {
   bool on_restart(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res);
   bool on_stuck(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
   bool on_thermal(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
+  bool on_closed_port(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
+  bool port_open();  // applies ~inject_closed_port on the loop thread (the one that receives)
   void send_all(const std::vector<can_frame>& frames);
 
   ros::NodeHandle nh_, pnh_;
@@ -54,9 +56,10 @@ class SimNode {
   std::array<ros::Publisher, can::kAxisCount> truth_pub_;
   ros::Publisher temperature_pub_;  // the simulated temperature [°C] (ambient while thermal drift is off)
   ros::Publisher clock_pub_;
-  ros::ServiceServer bus_off_srv_, garbage_srv_, restart_srv_, stuck_srv_, thermal_srv_;
+  ros::ServiceServer bus_off_srv_, garbage_srv_, restart_srv_, stuck_srv_, thermal_srv_, closed_port_srv_;
   std::atomic<bool> running_{true};
   std::atomic<double> silent_until_wall_s_{0.0};
+  std::atomic<bool> port_closed_{false};  // ~inject_closed_port: the device's socket is closed
   std::thread thread_;
 };
 

@@ -72,6 +72,7 @@ bool CommandLimiter::matches_written(double voltage_v) const {
 
 void CommandLimiter::on_reported_voltage(double voltage_v, double now_s) {
   if (!std::isfinite(voltage_v)) return;
+  awaiting_report_ = false;
   if (!sent_once_ || held()) {
     take_baseline(voltage_v, now_s);
     return;
@@ -120,7 +121,7 @@ std::optional<double> CommandLimiter::step(double now_s) {
     ++timeouts_;
     target_v_ = applied_v_;  // hold where it is: never fall back to 0 V
   }
-  if (!has_applied_ || held() || paused() || target_v_ == applied_v_) return std::nullopt;
+  if (!has_applied_ || held() || paused() || target_v_ == applied_v_) return std::nullopt;  // paused: awaiting a report too
   const double max_delta = std::min(config_.slew_rate_v_per_s * dt, config_.max_frame_step_v);
   // The target is always inside the limits, so from a baseline outside them this ramps in.
   double next = applied_v_ + std::clamp(target_v_ - applied_v_, -max_delta, max_delta);
@@ -146,6 +147,10 @@ void CommandLimiter::sent(double voltage_v, double now_s) {
   sent_once_ = true;
   written_.emplace_back(now_s, voltage_v);
   prune(now_s);
+}
+
+void CommandLimiter::refused() {
+  if (has_applied_) awaiting_report_ = true;
 }
 
 void CommandLimiter::set_hold(HoldReason reason, bool on) {
@@ -174,6 +179,7 @@ void CommandLimiter::clear_fault() {
 void CommandLimiter::rebaseline() {
   has_applied_ = false;
   sent_once_ = false;
+  awaiting_report_ = false;
   has_command_ = false;
   timed_out_ = false;
   mismatches_ = 0;

@@ -143,15 +143,21 @@ void DriverCore::send_locked(int axis, double voltage_v, double now_s, std::vect
       ++a.status.frames_sent;
       a.limiter.sent(encoded_v, now_s);  // only a written frame moves the applied voltage
     } else {
-      ++bus_.send_failures;
-      ++a.status.frames_refused;
+      refused_locked(a);
     }
   } catch (const TransportError& e) {
-    ++bus_.send_failures;
-    ++a.status.frames_refused;
+    refused_locked(a);
     // The receive thread owns reconnection; it sees the same failure on its next poll.
     bus_.last_error = e.what();
   }
+}
+
+void DriverCore::refused_locked(Axis& a) {
+  ++bus_.send_failures;
+  ++a.status.frames_refused;
+  // A refusal can stand for earlier frames of any axis that were lost as well (UDP: the ICMP error of one
+  // datagram fails the next send): every axis waits for the device's next report and slews on from there.
+  for (auto& axis : axes_) axis->limiter.refused();
 }
 
 void DriverCore::trip_locked(int axis, const std::string& why, std::vector<Pending>& events) {

@@ -48,6 +48,7 @@ class SocketTransport : public Transport {
   void close() override {
     if (fd_ >= 0) ::close(fd_);
     fd_ = -1;
+    peer_refused_ = false;
   }
   bool is_open() const override { return fd_ >= 0; }
   std::uint64_t malformed_count() const override { return malformed_; }
@@ -67,6 +68,8 @@ class SocketTransport : public Transport {
       getsockopt(fd_, SOL_SOCKET, SO_ERROR, &err, &len);
       if (p.revents & POLLNVAL) throw TransportError(describe() + ": socket closed");
       if (err != 0 && err != ECONNREFUSED) throw TransportError(describe() + ": " + errno_text(err));
+      if (err == ECONNREFUSED) peer_refused_ = true;
+      drain_error_queue();
     }
     int n = 0;
     for (int i = 0; i < 256; ++i) {  // bounded so a flood cannot starve the caller's other work
@@ -82,7 +85,10 @@ class SocketTransport : public Transport {
       const ssize_t got = ::recvmsg(fd_, &msg, MSG_DONTWAIT);
       if (got < 0) {
         if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR) break;
-        if (errno == ECONNREFUSED) continue;  // UDP: the peer was not listening for an earlier send
+        if (errno == ECONNREFUSED) {  // UDP: the peer was not listening for an earlier send
+          peer_refused_ = true;
+          continue;
+        }
         throw TransportError(describe() + ": receive failed: " + errno_text(errno));
       }
       if (static_cast<std::size_t>(got) != sizeof(can_frame) || (msg.msg_flags & MSG_TRUNC)) {
@@ -112,8 +118,25 @@ class SocketTransport : public Transport {
     close();
     throw TransportError(describe() + ": " + what + ": " + errno_text(err));
   }
+  // IP_RECVERR queues one message per ICMP error; left there it would keep poll() reporting POLLERR.
+  void drain_error_queue() {
+    for (int i = 0; i < 256; ++i) {
+      unsigned char buf[sizeof(can_frame)];
+      alignas(cmsghdr) char control[512];
+      iovec iov{buf, sizeof buf};
+      msghdr msg{};
+      msg.msg_iov = &iov;
+      msg.msg_iovlen = 1;
+      msg.msg_control = control;
+      msg.msg_controllen = sizeof control;
+      if (::recvmsg(fd_, &msg, MSG_ERRQUEUE | MSG_DONTWAIT) < 0) break;
+    }
+  }
   bool send_bytes(const void* data, std::size_t size, const sockaddr* to, socklen_t to_len) {
     if (fd_ < 0) throw TransportError(describe() + ": not open");
+    // The kernel fails the next send with a pending ICMP error; when the receive thread took that error first
+    // (SO_ERROR clears it), this send stands for it, as the kernel's would have.
+    if (peer_refused_.exchange(false)) return false;
     const ssize_t sent = to ? ::sendto(fd_, data, size, MSG_DONTWAIT, to, to_len)
                             : ::send(fd_, data, size, MSG_DONTWAIT);
     if (sent == static_cast<ssize_t>(size)) return true;
@@ -125,6 +148,7 @@ class SocketTransport : public Transport {
 
   int fd_ = -1;
   std::atomic<std::uint64_t> malformed_{0};  // read by status queries on other threads
+  std::atomic<bool> peer_refused_{false};    // the receive thread saw ECONNREFUSED: refuse the next send
 };
 
 class SocketCanTransport : public SocketTransport {
@@ -212,6 +236,9 @@ class UdpTransport : public SocketTransport {
     }
     const int on = 1;
     setsockopt(fd_, SOL_SOCKET, SO_REUSEADDR, &on, sizeof on);
+    // Without it Linux drops the ICMP "port unreachable" of an unconnected UDP socket: with it the next send
+    // fails with ECONNREFUSED, so a peer that is not listening shows as refused sends (like a full CAN queue).
+    if (setsockopt(fd_, IPPROTO_IP, IP_RECVERR, &on, sizeof on) < 0) fail("cannot set IP_RECVERR", errno);
     enable_timestamps();
     sockaddr_in local{};
     local.sin_family = AF_INET;
