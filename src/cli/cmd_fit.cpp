@@ -32,7 +32,7 @@ int run(int argc, char** argv) {
       .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, scored\n"
                 "free-run on the validation part; the table is printed and stored in the file")
       .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm, kan)", "", true)
-      .option("features", "SET", "study | candidates | physics | lasso (lasso on the candidates, λ_1se survivors)")
+      .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
       .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")
       .option("set", "KEY=VALUE", "kind option (YAML value, e.g. method=lasso, thresholds_v=[0,10,20])", "", true)
@@ -128,7 +128,7 @@ int run(int argc, char** argv) {
                   << " candidate features (λ_1se)\n";
         options["features"] = o["features"];
       } else {
-        features::named_features(set);  // validates the name
+        features::check_feature_set_name(set);  // validates the name
         options["features"] = set;
       }
     }

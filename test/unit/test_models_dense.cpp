@@ -76,7 +76,7 @@ TEST(DenseModel, FitsLearnsAndRoundTripsThroughRegistry) {
   const models::ModelPtr m = training::fit_model("dense", req);
   ASSERT_TRUE(m);
   EXPECT_EQ(m->kind(), "dense");
-  EXPECT_TRUE(m->uses_position_history());
+  EXPECT_FALSE(m->uses_position_history());  // default features: voltage history only (one-step = free-run)
   // One-step MAE on the data well below the position spread (the model learned something).
   const double mae = test_data::one_step_mae(*m, data, "c");
   const double spread = test_data::mean_abs_deviation(data.axis("c").position_nm);
@@ -133,6 +133,46 @@ TEST(DenseModel, MalformedNodesGiveOneClearError) {
   YAML::Node opts;
   opts["widht"] = 3;
   req.options = opts;
+  EXPECT_THROW(training::fit_model("dense", req), std::runtime_error);
+}
+
+TEST(DenseModel, DefaultFeaturesArePlacedOnTheDataSpanAndReadNoPositions) {
+  const features::FeatureSpec s = features::voltage_history_features({0.0, 4.0, 40.0, 200.0});
+  EXPECT_FALSE(s.uses_positions());
+  std::vector<double> thresholds, taus;
+  for (const auto& f : s.features) {
+    if (f.type == "play") thresholds.push_back(f.threshold_v);
+    if (f.type == "play_lowpass") taus.push_back(f.time_constant_s);
+  }
+  ASSERT_EQ(thresholds.size(), 4u);
+  EXPECT_NEAR(thresholds[0], 0.12, 1e-12);
+  EXPECT_NEAR(thresholds[3], 1.6, 1e-12);
+  ASSERT_EQ(taus.size(), 4u);
+  EXPECT_NEAR(taus[0], 40.0 / 3000, 1e-12);  // above two samples (0.01 s)
+  EXPECT_NEAR(taus[3], 40.0 / 3, 1e-12);     // below the duration
+  // Ten times the voltage: ten times the thresholds (scale-free); at 11 Hz the fastest time constant is 2 samples.
+  const features::FeatureSpec s10 = features::voltage_history_features({-20.0, 20.0, 40.0, 11.0});
+  EXPECT_NEAR(s10.features[2].threshold_v, 1.2, 1e-12);
+  EXPECT_NEAR(s10.features[6].time_constant_s, 2.0 / 11.0, 1e-12);
+  EXPECT_THROW(features::voltage_history_features({1.0, 1.0, 40.0, 200.0}), std::runtime_error);  // no span
+  EXPECT_THROW(features::named_features("voltage_history"), std::runtime_error);                 // no data
+  EXPECT_NO_THROW(features::check_feature_set_name("voltage_history"));
+  EXPECT_THROW(features::check_feature_set_name("volts"), std::runtime_error);
+}
+
+TEST(DenseModel, LinearStartFitsFasterThanTheRandomStart) {
+  const io::Dataset data = test_data::hysteretic_dataset(4000, 17);
+  training::FitRequest req;
+  req.train = &data;
+  req.seed = 4;
+  req.threads = 2;
+  req.options["steps"] = 100;
+  req.options["patience"] = 0;
+  const double linear = test_data::one_step_mae(*training::fit_model("dense", req), data, "c");
+  req.options["init"] = "random";
+  const double random = test_data::one_step_mae(*training::fit_model("dense", req), data, "c");
+  EXPECT_LT(linear, 0.5 * random);
+  req.options["init"] = "zero";
   EXPECT_THROW(training::fit_model("dense", req), std::runtime_error);
 }
 

@@ -27,19 +27,12 @@ const std::vector<std::string> kNeural = {"dense", "lstm", "kan"};
 constexpr int kNeuralSteps = 800;
 
 // Cells known to fail the 10 % criterion, with the measured figure and the reason (docs/models.md); every other
-// cell must pass, and a listed cell that passes is reported.
+// cell must pass, and a listed cell that passes is reported. No kind's cell is listed: the neural kinds' default
+// features are voltage history only (features::voltage_history_features) and dense/KAN start at the linear fit.
 const std::map<std::string, std::string> kKnownFailing = {
-    // The neural kinds read the measured position history (study features: D(t-0.9 s), its 0.9-s mean), are
-    // trained one-step and kept at their best one-step validation epoch; run free, their own errors feed back.
-    {"lowvolt_pi/dense", "19.0 % free-run (one-step training, position-history features)"},
-    {"lowvolt_pi_creep/dense", "21.3 % free-run (one-step training, position-history features)"},
-    {"lowvolt_preisach_creep/lstm", "14.1 % free-run (one-step training, position-history features)"},
-    {"mm3e_pi/dense", "60.6 %, refused (free-run drift of the position-history features)"},
-    {"mm3e_pi_creep/dense", "68.3 %, refused (free-run drift of the position-history features)"},
-    {"mm3e_pi_creep/kan", "101 %, refused (free-run drift of the position-history features)"},
-    {"mm3e_preisach/dense", "60.8 %, refused (free-run drift of the position-history features)"},
-    {"mm3e_preisach_creep/dense", "55.3 %, refused (free-run drift of the position-history features)"},
-    {"mm3e_preisach_creep/kan", "107 %, refused (free-run drift of the position-history features)"},
+    // auto's candidates (linear, pi, pi_creep_*, preisach*) leave 88.6 nm; the KAN (not an auto candidate
+    // unless --auto-extra kan) reaches 64.1 nm. auto itself is at 0.19 % of range.
+    {"lowvolt_pi_creep/auto", "auto 88.6 nm vs kan 64.1 nm: the best kind is not among auto's default candidates"},
 };
 
 }  // namespace

@@ -22,8 +22,22 @@ FeatureSpec candidate_features();
 // Includes V² (asymmetry) and low-passed play outputs at 1 s … 8.3 h (creep of the hysteretic displacement).
 FeatureSpec physics_features();
 
-// "study", "candidates" or "physics"; throws std::runtime_error listing the names otherwise.
-FeatureSpec named_features(const std::string& name);
+// What a data-placed feature set is placed on: the training data's voltage extremes, length and rate.
+struct DataSpan {
+  double voltage_min_v = 0, voltage_max_v = 0, duration_s = 0, sample_rate_hz = 0;
+};
+
+// Only voltage history, placed on the data itself (the neural kinds' default): V, ΔV, play operators at 3, 10,
+// 20 and 40 % of the voltage span, and low-passes of the 10 % play output with time constants at 1/3000, 1/300,
+// 1/30 and 1/3 of the duration (at least 2 samples). No positions, so one-step = free-run, and 10 columns (the
+// 53 of `physics` cost 8–9× the training time).
+FeatureSpec voltage_history_features(const DataSpan& span);
+
+// "study", "candidates", "physics" or "voltage_history" (needs `span`: placed on the data); throws
+// std::runtime_error listing the names otherwise.
+FeatureSpec named_features(const std::string& name, const DataSpan* span = nullptr);
 std::vector<std::string> feature_set_names();
+// Throws the error of named_features for a name that is no set (the data-placed sets need no data here).
+void check_feature_set_name(const std::string& name);
 
 }  // namespace piezo::features

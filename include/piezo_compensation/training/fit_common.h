@@ -9,6 +9,7 @@
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
@@ -64,7 +65,11 @@ Design build_design(const features::FeatureSpec& spec, const io::Dataset& data, 
 // Solves (G + ridge·I) β = c robustly (LDLT, falls back to a pseudo-inverse for singular G).
 Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, double ridge);
 
-// The feature spec a fit uses: options["features"] may be a set name ("study", "candidates", "physics"),
+// The voltage extremes, duration and rate of one axis of `data` (what voltage_history is placed on).
+features::DataSpan data_span(const io::Dataset& data, const std::string& axis);
+
+// The feature spec a fit uses: options["features"] may be a set name ("study", "candidates", "physics",
+// "voltage_history": placed on req.train),
 // "lasso" (lasso with time-block CV over the candidates; the λ_1se survivors), or a full spec mapping.
 // Missing = `default_set`. The result is standardised on req.train.
 features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set);
@@ -77,5 +82,16 @@ std::string utc_now_iso8601();
 double option_num(const YAML::Node& options, const std::string& key, double def);
 int option_int(const YAML::Node& options, const std::string& key, int def);
 std::string option_str(const YAML::Node& options, const std::string& key, const std::string& def);
+// Least-squares y ≈ βᵀx + intercept over the columns of x (features × samples, standardised), with a tiny
+// fixed ridge that only settles collinear columns: the linear start of the dense and KAN kinds.
+struct ColumnLinearFit {
+  Eigen::VectorXd beta;
+  double intercept = 0.0;
+};
+ColumnLinearFit linear_fit_columns(const Eigen::MatrixXd& x, const Eigen::VectorXd& y);
+
+// Option `init` of the dense and KAN kinds: "linear" (default: start at the least-squares linear fit of the
+// features) → true, "random" (the plain random start) → false; throws naming the option otherwise.
+bool neural_linear_init(const YAML::Node& options);
 
 }  // namespace piezo::training

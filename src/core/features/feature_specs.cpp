@@ -1,6 +1,9 @@
 #include "piezo_compensation/features/feature_specs.h"
 
+#include <algorithm>
+#include <cmath>
 #include <stdexcept>
+#include <string>
 
 namespace piezo::features {
 
@@ -92,13 +95,52 @@ FeatureSpec candidate_features() {
   return s;
 }
 
-FeatureSpec named_features(const std::string& name) {
+FeatureSpec voltage_history_features(const DataSpan& span) {
+  const double width_v = span.voltage_max_v - span.voltage_min_v;
+  if (!(std::isfinite(width_v) && width_v > 0))
+    throw std::runtime_error("feature set 'voltage_history': the data's voltage does not vary (span " +
+                             std::to_string(width_v) + " V); nothing to place the play operators on");
+  if (!(span.duration_s > 0 && span.sample_rate_hz > 0))
+    throw std::runtime_error("feature set 'voltage_history': the data has no duration or sample rate");
+  FeatureSpec s;
+  s.features.push_back(def("voltage"));
+  s.features.push_back(def("voltage_step"));  // the LSTM's rate input: 10 % of range on the 5 kHz stages without it, 4 % with
+  for (double f : {0.03, 0.10, 0.20, 0.40}) {
+    FeatureDef p = def("play");
+    p.threshold_v = f * width_v;
+    s.features.push_back(p);
+  }
+  // Creep of the hysteretic displacement, none slower than the data can show nor faster than two samples.
+  const double tau_min_s = 2.0 / span.sample_rate_hz;
+  double last_tau_s = 0;
+  for (double f : {1.0 / 3000, 1.0 / 300, 1.0 / 30, 1.0 / 3}) {
+    const double tau_s = std::max(f * span.duration_s, tau_min_s);
+    if (tau_s <= last_tau_s) continue;
+    last_tau_s = tau_s;
+    FeatureDef p = def("play_lowpass");
+    p.threshold_v = 0.10 * width_v;
+    p.time_constant_s = tau_s;
+    s.features.push_back(p);
+  }
+  return s;
+}
+
+FeatureSpec named_features(const std::string& name, const DataSpan* span) {
   if (name == "study") return study_features();
   if (name == "candidates") return candidate_features();
   if (name == "physics") return physics_features();
-  throw std::runtime_error("unknown feature set '" + name + "' (known: study, candidates, physics)");
+  if (name == "voltage_history") {
+    if (!span) throw std::runtime_error("feature set 'voltage_history' is placed on the training data; none given");
+    return voltage_history_features(*span);
+  }
+  throw std::runtime_error("unknown feature set '" + name + "' (known: study, candidates, physics, voltage_history)");
 }
 
-std::vector<std::string> feature_set_names() { return {"study", "candidates", "physics"}; }
+std::vector<std::string> feature_set_names() { return {"study", "candidates", "physics", "voltage_history"}; }
+
+void check_feature_set_name(const std::string& name) {
+  const auto names = feature_set_names();
+  if (std::find(names.begin(), names.end(), name) == names.end()) named_features(name);
+}
 
 }  // namespace piezo::features

@@ -161,12 +161,26 @@ Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c,
   return A.completeOrthogonalDecomposition().solve(c);
 }
 
+features::DataSpan data_span(const io::Dataset& data, const std::string& axis) {
+  const auto& v = data.axis(axis).voltage_v;
+  features::DataSpan s;
+  s.sample_rate_hz = data.sample_rate_hz();
+  s.duration_s = static_cast<double>(data.size()) / s.sample_rate_hz;
+  if (!v.empty()) {
+    const auto [lo, hi] = std::minmax_element(v.begin(), v.end());
+    s.voltage_min_v = *lo;
+    s.voltage_max_v = *hi;
+  }
+  return s;
+}
+
 features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set) {
   if (!req.train) throw std::runtime_error("fit: no training data");
+  const features::DataSpan span = data_span(*req.train, req.axis);
   const YAML::Node f = req.options ? req.options["features"] : YAML::Node();
   features::FeatureSpec spec;
   if (!f || (f.IsScalar() && f.as<std::string>().empty())) {
-    spec = features::named_features(default_set);
+    spec = features::named_features(default_set, &span);
   } else if (f.IsScalar()) {
     const std::string name = f.as<std::string>();
     if (name == "lasso") {
@@ -175,12 +189,12 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
       spec.mean.clear();
       spec.scale.clear();
     } else {
-      spec = features::named_features(name);
+      spec = features::named_features(name, &span);
     }
   } else if (f.IsMap()) {
     spec = features::FeatureSpec::from_yaml(f);
   } else {
-    throw std::runtime_error("option 'features': expected a set name (study, candidates, physics, lasso) or a spec");
+    throw std::runtime_error("option 'features': expected a set name (study, candidates, physics, voltage_history, lasso) or a spec");
   }
   if (spec.size() == 0) throw std::runtime_error("option 'features': the feature set is empty");
   return fit_standardisation(spec, *req.train, req.axis);
@@ -227,6 +241,26 @@ std::string option_str(const YAML::Node& o, const std::string& key, const std::s
   if (!o || !o[key]) return def;
   if (!o[key].IsScalar()) throw std::runtime_error("option '" + key + "': expected a string");
   return o[key].as<std::string>();
+}
+
+ColumnLinearFit linear_fit_columns(const Eigen::MatrixXd& x, const Eigen::VectorXd& y) {
+  const Eigen::Index n = x.cols();
+  const Eigen::VectorXd mx = x.rowwise().mean();
+  const Eigen::MatrixXd xc = x.colwise() - mx;
+  const Eigen::MatrixXd g = xc * xc.transpose() / static_cast<double>(n);
+  const Eigen::VectorXd c = xc * (y.array() - y.mean()).matrix() / static_cast<double>(n);
+  ColumnLinearFit f;
+  f.beta = solve_normal(g, c, 1e-6);
+  f.intercept = y.mean() - f.beta.dot(mx);
+  return f;
+}
+
+bool neural_linear_init(const YAML::Node& options) {
+  const std::string init = option_str(options, "init", "linear");
+  if (init != "linear" && init != "random")
+    throw std::runtime_error("option 'init': expected linear (start at the least-squares fit of the features) or "
+                             "random, got '" + init + "'");
+  return init == "linear";
 }
 
 }  // namespace piezo::training
