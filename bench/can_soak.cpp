@@ -187,6 +187,9 @@ int main(int argc, char** argv) {
           win.late += us > 10000.0;
           sent_at.erase(it);
         }
+        // Run under SCHED_FIFO (docs/driver.md, Soak), two busy controller threads would otherwise keep the
+        // main thread off both cores once it stops sleeping between commands.
+        std::this_thread::yield();
       }
     });
 

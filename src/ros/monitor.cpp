@@ -16,6 +16,15 @@ namespace {
 
 using analysis::ChartPrimitive;
 
+// The chart names the model by its folder and file ("models/mm3e_sim_c.yaml"): the full path is on the
+// predictor's diagnostics, and a checkout's absolute path would fill the headline.
+std::string model_label(const std::string& path) {
+  const auto last = path.find_last_of('/');
+  if (last == std::string::npos || last == 0) return path;
+  const auto parent = path.find_last_of('/', last - 1);
+  return parent == std::string::npos ? path : path.substr(parent + 1);
+}
+
 visualization_msgs::Marker to_marker(const ChartPrimitive& p, const std::string& frame, const ros::Time& stamp) {
   visualization_msgs::Marker m;
   m.header.frame_id = frame;
@@ -104,7 +113,7 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
           for (double d : m->drift) s.drift_nm.push_back(d * 1e9);
           s.compensation_active = m->compensation_active;
           s.fallback = m->fallback;
-          s.model = m->model;
+          s.model = model_label(m->model);
           s.status = m->status;
           chart->add(std::move(s));
         }));

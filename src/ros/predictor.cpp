@@ -19,10 +19,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/compensation/ideal_line.h"
-#if __has_include("piezo_compensation/models/model_file.h")
 #include "piezo_compensation/models/model_file.h"
-#define PIEZO_HAVE_MODEL_FILE 1
-#endif
 
 namespace piezo::predictor {
 namespace {
@@ -44,7 +41,6 @@ compensation::IdealLine line_for(const models::Model& m, const PredictorSettings
 models::ModelPtr load_model_file(const std::string& path) {
   if (path.empty()) throw std::runtime_error("no model file given");
   if (!std::ifstream(path)) throw std::runtime_error(path + ": cannot open model file");
-#ifdef PIEZO_HAVE_MODEL_FILE
   models::ModelPtr m;
   try {
     m = models::load_model(path);
@@ -60,9 +56,6 @@ models::ModelPtr load_model_file(const std::string& path) {
   }
   if (!(m->meta.sample_rate_hz > 0.0)) throw std::runtime_error(path + ": model has no positive sample_rate_hz");
   return m;
-#else
-  throw std::runtime_error(path + ": model files are not supported by this build (models/model_file.h missing)");
-#endif
 }
 
 std::map<std::string, std::string> read_model_files(const ros::NodeHandle& pnh, const std::vector<std::string>& axes) {

@@ -66,14 +66,16 @@ class LowpassLinearModel : public models::Model {
   double lp_ = 0.0;
 };
 
-// A fast physics base for the simulator tests (PI hysteresis + LTI creep); PIEZO_RESIDUAL_BASE=<kind> tries another.
-inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val) {
+// A physics base for the simulator tests (by default the fast PI hysteresis + LTI creep) on axis c;
+// PIEZO_RESIDUAL_BASE=<kind> tries another by hand.
+inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val,
+                                         const std::string& default_kind = "pi_creep_lti") {
   training::FitRequest req;
   req.train = &fit;
   req.validation = &val;
   req.axis = "c";
   const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
-  return training::fit_model(kind ? kind : "pi_creep_lti", req);
+  return training::fit_model(kind ? kind : default_kind, req);
 }
 
 inline void register_test_kind() {

@@ -1,110 +1,12 @@
-// The residual loop on simulator data: each extra effect switched on in turn (never declared to the tool); the
-// right family must be found and the TEST MAE after must be within 15 % of what the same model reaches on the
-// same protocol without the effect. Without any extra effect nothing may be added that gains < 2 % TEST MAE.
-#include <gtest/gtest.h>
+// The residual loop on simulator data (test_residual_sim_cases.h): thermal drift traced to the temperature
+// column, and no false discoveries without an extra effect (nothing may be added that gains < 2 % TEST MAE).
+// Cross-axis and rate-dependent effects: test_residual_sim_coupling.cpp; periodic ones: test_residual_sim_periodic.cpp
+// and test_residual_sim_disturbance.cpp (split so each file stays under the unit-test time rule).
+#include "test_residual_sim_cases.h"
 
-#include <cstdlib>
-#include <iostream>
-
-#include "piezo_compensation/analysis/residual.h"
-#include "piezo_compensation/models/registry.h"
-#include "piezo_compensation/protocols/protocol.h"
-#include "piezo_compensation/sim/manipulator_simulator.h"
-#include "piezo_compensation/sim/simulator_config.h"
-#include "piezo_compensation/training/fitters.h"
-
-#include "test_residual_common.h"
-
-namespace pa = piezo::analysis;
-
-namespace {
-constexpr double kHours = 6.0;       // 4 h TRAIN, 2 h TEST of 11 Hz random walk
-constexpr std::uint64_t kSeed = 8;
-
-piezo::io::Dataset simulate(const std::string& effect) {
-  YAML::Node p;
-  p["duration_s"] = kHours * 3600.0;
-  const auto proto = piezo::protocols::make_protocol("random_walk", p, 11.0, kSeed);
-  piezo::sim::SimulatorConfig cfg = piezo::sim::default_simulator_config();
-  if (!effect.empty()) piezo::sim::enable_effect(cfg, effect);
-  piezo::sim::ManipulatorSimulator sim(cfg, kSeed);
-  return sim.run(proto->program());
-}
-
-struct Split {
-  piezo::io::Dataset train, test;
-};
-Split split(const piezo::io::Dataset& d) {
-  const std::size_t cut = d.size() * 2 / 3;
-  return {d.slice(0, cut), d.slice(cut, d.size())};
-}
-
-pa::ResidualOptions options() {
-  pa::ResidualOptions o;
-  o.axis = "c";
-  if (std::getenv("PIEZO_RESIDUAL_VERBOSE")) o.log = [](const std::string& s) { std::cerr << s << "\n"; };
-  return o;
-}
-
-piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val);
-piezo::models::ModelPtr fit_base(const piezo::io::Dataset& train, const pa::ResidualOptions& o) {
-  const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
-  return fit_base(train.slice(0, n_fit), train.slice(n_fit, train.size()));
-}
-
-piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val) {
-  return piezo::test::fit_physics_base(fit, val);
-}
-
-double clean_mae() {
-  static const double mae = [] {
-    const Split s = split(simulate(""));
-    const auto base = fit_base(s.train, options());
-    const auto pred = [&] { piezo::models::StreamOptions so; so.warmup = &s.train; return piezo::models::stream_model(*base, s.test, "c", so).prediction; }();
-    return pa::error_stats(pred, s.test.axis("c").position_nm).mae_nm;
-  }();
-  return mae;
-}
-
-pa::ResidualResult trace(const std::string& effect) {
-  const Split s = split(simulate(effect));
-  pa::ResidualOptions o = options();
-  o.refit_base = [&](const piezo::io::Dataset& fit, const piezo::io::Dataset& val) { return fit_base(fit, val); };
-  const auto base = fit_base(s.train, o);
-  return pa::trace_residual(*base, s.train, s.test, o);
-}
-
-void expect_found(const std::string& effect, const std::string& family) {
-  const pa::ResidualResult r = trace(effect);
-  const double clean = clean_mae();
-  std::cerr << effect << ": TEST MAE " << r.before_test.mae_nm << " -> " << r.after_test.mae_nm << " nm (clean " << clean
-            << " nm), effects:";
-  for (const auto& e : r.effects) std::cerr << " " << e.family;
-  std::cerr << "\n";
-  EXPECT_TRUE(r.warm_started);
-  if (r.effects.empty())
-    for (const auto& f : r.final_ranking)
-      std::cerr << "  " << f.family << ": significant " << f.significant << ", p " << f.p_value << ", validation gain "
-                << f.validation_gain << ", " << f.note << "\n";
-  ASSERT_FALSE(r.effects.empty()) << effect << ": nothing found";
-  EXPECT_EQ(r.effects.front().family, family) << effect;
-  EXPECT_LT(r.after_test.mae_nm, 1.15 * clean) << effect << ": before " << r.before_test.mae_nm << " nm";
-}
-}  // namespace
+using namespace residual_sim;
 
 TEST(ResidualSim, ThermalDriftIsTracedToTheTemperatureColumn) { expect_found("thermal_drift", "aux_signal"); }
-TEST(ResidualSim, CrossAxisCoupling) { expect_found("cross_axis", "cross_axis"); }
-TEST(ResidualSim, EncoderInterpolationErrorIsPeriodicInPosition) { expect_found("encoder_periodic", "position_periodic"); }
-TEST(ResidualSim, PeriodicDisturbance) { expect_found("periodic_disturbance", "periodic_disturbance"); }
-TEST(ResidualSim, RateDependentHysteresis) {
-  // Known regression, open: with the scale-free PI fits (operator count chosen by validation) the pi_creep_lti base
-  // leaves 20.7 nm against 18.1 nm clean and the rate family is not significant (p 0.34); with pi_creep_fractional it
-  // is significant (p 1e-54) but gains 2.2 % on validation, under the 3 % gate. Run with PIEZO_RESIDUAL_RATE_TEST=1.
-  if (!std::getenv("PIEZO_RESIDUAL_RATE_TEST"))
-    GTEST_SKIP() << "rate-dependent hysteresis is not traced since the scale-free PI fits (see comment)";
-  expect_found("rate_dependent", "rate_dependent");
-}
-
 TEST(ResidualSim, NoFalseDiscoveriesWithoutAnExtraEffect) {
   const pa::ResidualResult r = trace("");
   double prev = r.before_test.mae_nm;

@@ -8,6 +8,7 @@
 #include <functional>
 #include <map>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "piezo_compensation/analysis/metrics.h"
@@ -55,6 +56,7 @@ struct FamilyScore {
   bool significant = false;
   double validation_gain = 0.0; // relative validation-MAE improvement when added (0 if not tried)
   double hold_validation_gain = 0.0;  // the same inside holds (0 without holds)
+  std::pair<double, double> validation_gain_halves{0.0, 0.0};  // the same in the first and second half of validation
   std::size_t parameters = 0;   // fitted weights of the best variant
   std::size_t variants = 0;     // how many parameter variants were searched
   std::string verdict;          // "kept", or why it was not (competing explanation, hold guard, too small)
@@ -94,6 +96,7 @@ struct ResidualOptions {
   // (aux_signal, time_drift, cross_axis) only with validation gain ≥ margin × the additive's + min_validation_gain.
   double gain_margin = 1.2;
   double hold_tolerance = 0.005;       // an effect may not raise the validation MAE inside holds by more than this
+  double half_tolerance = 0.0;         // … nor in either half of the validation part (it must generalise in time)
   std::size_t max_score_samples = 24000;  // statistics on a decimated grid (the residual is strongly autocorrelated)
   std::vector<std::string> families;   // empty = all
   std::uint64_t seed = 1;

@@ -68,6 +68,12 @@ double mae_of(const std::vector<double>& r, std::size_t a, std::size_t b) {
   return b > a ? s / static_cast<double>(b - a) : 0.0;
 }
 
+double mae_of_abs(const std::vector<double>& a, const std::vector<double>& b, std::size_t i0, std::size_t i1) {
+  double s = 0;
+  for (std::size_t i = i0; i < i1; ++i) s += std::fabs(a[i] - b[i]);
+  return i1 > i0 ? s / static_cast<double>(i1 - i0) : 0.0;
+}
+
 bool reads_position(const std::vector<EffectTerm>& terms) {
   for (const auto& t : terms)
     if (t.signal == models::kSignalPosition) return true;
@@ -420,7 +426,9 @@ void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size
       // f(s) = w·g(s)/(q − ref) per unit of the centred signal: relative gain change per signal unit.
       const std::string sig = t.signal == models::kSignalTime ? "per_h" : "per_unit";
       const double k = t.signal == models::kSignalTime ? 3600.0 : 1.0;
-      e.parameters[pre + "gain_change_" + sig] = w(0) / t.pre_scale * k;
+      // On the voltage the change is in nm per volt (the relative change is that over the stage's nm/V).
+      e.parameters[pre + (t.scales == models::kSignalVoltage ? "gain_change_nm_per_v_" : "gain_change_") + sig] =
+          w(0) / t.pre_scale * k;
       if (t.type == "gain_quadratic") e.parameters[pre + "gain_change_quadratic"] = t.weight[1] / t.scale[1];
       e.labels["scales"] = t.scales;
       e.labels["form"] = t.type == "gain" ? "linear" : "quadratic";
@@ -522,7 +530,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   std::size_t n_val_hold = 0;
   for (std::size_t i = n_fit; i < n; ++i) n_val_hold += holds[i] != 0;
   struct Val {
-    double mae = 0, hold_mae = 0;
+    double mae = 0, hold_mae = 0, mae1 = 0, mae2 = 0;
   };
   auto validate = [&](std::vector<EffectTerm> t) {
     double off = 0.0;
@@ -535,6 +543,9 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       v.mae += e;
       if (holds[i]) sh += e;
     }
+    const std::size_t mid = n_fit + (n - n_fit) / 2;
+    v.mae1 = mae_of_abs(c.measured, pred, n_fit, mid);
+    v.mae2 = mae_of_abs(c.measured, pred, mid, n);
     v.mae /= static_cast<double>(n - n_fit);
     v.hold_mae = n_val_hold ? sh / static_cast<double>(n_val_hold) : 0.0;
     return v;
@@ -544,6 +555,44 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - c.x_base[i];
     res.before_validation.mae_nm = mae_of(r, n_fit, n);
   }
+  // Validation MAE of `fixed` plus the family's best variant; a gain's form (on the output or, to first order,
+  // on the voltage; f linear or quadratic) is chosen here, a quadratic must gain 1 % more than the linear form.
+  auto validate_family = [&](FamilyScore& s, const std::vector<EffectTerm>& fixed, const Val& now) {
+    auto score = [&](const Candidate& cand) {
+      std::vector<EffectTerm> trial = fixed;
+      for (const auto& t : cand.terms) trial.push_back(t);
+      return validate(trial);
+    };
+    Val v = score(s.best);
+    if (is_gain_family(s.family)) {
+      const Candidate base_cand = s.best;
+      for (const char* scales : {models::kSignalPosition, models::kSignalVoltage})
+        for (const char* form : {"gain", "gain_quadratic"}) {
+          Candidate alt = base_cand;
+          alt.terms[0].scales = scales;
+          alt.terms[0].type = form;
+          alt.terms[0].reference = std::string(scales) == models::kSignalVoltage ? 0.0 : c.x_at_zero_v;
+          alt.terms[0].center.clear(), alt.terms[0].scale.clear(), alt.terms[0].weight.clear();
+          if (alt.terms[0].scales == base_cand.terms[0].scales && alt.terms[0].type == base_cand.terms[0].type) continue;
+          const Val va = score(alt);
+          const double need = std::string(form) == "gain_quadratic" ? 0.99 : 1.0;
+          if (va.mae < need * v.mae) {
+            v = va;
+            s.best = alt;
+            s.best.labels["scales"] = scales;
+          }
+        }
+      s.best.labels["form"] = s.best.terms[0].type == "gain" ? "linear" : "quadratic";
+    }
+    s.validation_gain = 1.0 - v.mae / now.mae;
+    s.hold_validation_gain = n_val_hold ? 1.0 - v.hold_mae / now.hold_mae : 0.0;
+    s.validation_gain_halves = {1.0 - v.mae1 / now.mae1, 1.0 - v.mae2 / now.mae2};
+    s.parameters = 0;
+    for (const auto& t : s.best.terms) s.parameters += t.num_regressors();
+    log("  validation MAE gain of " + s.family + ": " + std::to_string(100.0 * s.validation_gain) + " %" +
+        (n_val_hold ? ", in holds " + std::to_string(100.0 * s.hold_validation_gain) + " %" : "") + " (halves " +
+        std::to_string(100.0 * s.validation_gain_halves.first) + " / " + std::to_string(100.0 * s.validation_gain_halves.second) + " %)");
+  };
 
   for (int step = 0; step < o.max_effects; ++step) {
     const std::vector<double> pred = corrected(c, terms, offset);
@@ -565,43 +614,8 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     });
     const Val now = validate(terms);
     // Every significant family is validated: competing explanations are compared on data they were not fitted on.
-    for (auto& s : ranking) {
-      if (!s.available || !s.significant) continue;
-      auto score = [&](const Candidate& cand) {
-        std::vector<EffectTerm> trial = terms;
-        for (const auto& t : cand.terms) trial.push_back(t);
-        return validate(trial);
-      };
-      Val v = score(s.best);
-      if (is_gain_family(s.family)) {
-        // Gain on the output or (to first order) on the voltage; f linear or quadratic: chosen by validation,
-        // a quadratic must gain 1 % more than the linear form to be kept.
-        const Candidate base_cand = s.best;
-        for (const char* scales : {models::kSignalPosition, models::kSignalVoltage})
-          for (const char* form : {"gain", "gain_quadratic"}) {
-            Candidate alt = base_cand;
-            alt.terms[0].scales = scales;
-            alt.terms[0].type = form;
-            alt.terms[0].reference = std::string(scales) == models::kSignalVoltage ? 0.0 : c.x_at_zero_v;
-            alt.terms[0].center.clear(), alt.terms[0].scale.clear(), alt.terms[0].weight.clear();
-            if (alt.terms[0].scales == base_cand.terms[0].scales && alt.terms[0].type == base_cand.terms[0].type) continue;
-            const Val va = score(alt);
-            const double need = std::string(form) == "gain_quadratic" ? 0.99 : 1.0;
-            if (va.mae < need * v.mae) {
-              v = va;
-              s.best = alt;
-              s.best.labels["scales"] = scales;
-            }
-          }
-        s.best.labels["form"] = s.best.terms[0].type == "gain" ? "linear" : "quadratic";
-      }
-      s.validation_gain = 1.0 - v.mae / now.mae;
-      s.hold_validation_gain = n_val_hold ? 1.0 - v.hold_mae / now.hold_mae : 0.0;
-      s.parameters = 0;
-      for (const auto& t : s.best.terms) s.parameters += t.num_regressors();
-      log("  validation MAE gain of " + s.family + ": " + std::to_string(100.0 * s.validation_gain) + " %" +
-          (n_val_hold ? ", in holds " + std::to_string(100.0 * s.hold_validation_gain) + " %" : ""));
-    }
+    for (auto& s : ranking)
+      if (s.available && s.significant) validate_family(s, terms, now);
     // Eligible: enough validation gain and, where the validation part has holds, no worse inside them.
     FamilyScore* best_phys = nullptr;
     FamilyScore* best_op = nullptr;
@@ -611,6 +625,11 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
         s.verdict = "validation gain below " + std::to_string(100.0 * o.min_validation_gain).substr(0, 4) + " %";
       } else if (n_val_hold && s.hold_validation_gain < -o.hold_tolerance) {
         s.verdict = "worsens the validation error inside holds";
+      } else if (std::min(s.validation_gain_halves.first, s.validation_gain_halves.second) < -o.half_tolerance) {
+        // Slow structure the base misses (creep modes longer than the fit part, a slow thermal wander) lets a
+        // trend or slow term fitted on the fit part win just after it and lose further on: a real effect keeps
+        // helping in both halves of the validation part.
+        s.verdict = "does not generalise in time: worsens one half of the validation part";
       }
     }
     // A gain on a signal against the additive term on the same signal: where the base output varies little
@@ -683,6 +702,30 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       cur_base = std::move(nb);
       fit_terms(c, terms, offset, 0, n);
       log("  backfit " + std::to_string(it + 1) + ": base refitted without the effect terms' part");
+      // The first base absorbed the part of the effect its own regressors could express (a slow gain change
+      // projects onto long creep modes), which shifts the residual's apparent lag and shape. On the refitted
+      // base's residual the effect's variant (lag, low-pass, form) is chosen again.
+      if (winner->variants > 1 || is_gain_family(winner->family)) {
+        const std::size_t first = effect_first.back();
+        std::vector<EffectTerm> others(terms.begin(), terms.begin() + static_cast<long>(first));
+        double off_o = 0.0;
+        if (!others.empty()) fit_terms(c, others, off_o, 0, n);
+        const std::vector<double> p_o = corrected(c, others, off_o);
+        std::vector<double> r_o(n);
+        for (std::size_t i = 0; i < n; ++i) r_o[i] = c.measured[i] - p_o[i];
+        ResidualOptions o_again = o;
+        o_again.permutations = 0;  // the family is already accepted: only its variant is chosen again
+        FamilyScore again = score_family(winner->family, c, others, off_o, r_o, p_o, o_again, rng);
+        if (!again.available) continue;
+        validate_family(again, others, validate(others));
+        if (again.best.parameters != winner->best.parameters || again.best.labels != winner->best.labels) {
+          log("  " + winner->family + " chosen again on the refitted base's residual");
+          winner->best = again.best;
+          terms.resize(first);
+          for (const auto& t : again.best.terms) terms.push_back(t);
+          fit_terms(c, terms, offset, 0, n);
+        }
+      }
     }
 
     FoundEffect e;

@@ -119,6 +119,7 @@ void json_score(util::JsonWriter& j, const FamilyScore& s) {
   j.begin_object().kv("family", s.family).kv("available", s.available).kv("explained_variance", s.explained_variance);
   j.kv("p_value", s.p_value).kv("significant", s.significant).kv("validation_gain", s.validation_gain);
   j.kv("hold_validation_gain", s.hold_validation_gain).kv("parameters", s.parameters).kv("variants", s.variants);
+  j.kv("validation_gain_first_half", s.validation_gain_halves.first).kv("validation_gain_second_half", s.validation_gain_halves.second);
   j.kv("operating_point", is_operating_point_family(s.family)).kv("verdict", s.verdict).kv("note", s.note);
   j.key("labels").begin_object();
   for (const auto& [k, v] : s.best.labels) j.kv(k, v);
@@ -321,12 +322,15 @@ void write_residual_report(const std::string& dir, const ResidualReportContext& 
       f << ".\n";
     }
     auto table = [&](const std::vector<FamilyScore>& r) {
-      f << "| family | explained variance (CV) | p | significant | validation gain | parameters | verdict | note |\n"
+      f << "| family | explained variance (CV) | p | significant | validation gain (halves) | parameters | verdict | note |\n"
            "|---|---|---|---|---|---|---|---|\n";
       for (const auto& s : r)
         f << "| " << s.family << " | " << (s.available ? num(s.explained_variance) : "—") << " | "
           << (s.available ? num(s.p_value) : "—") << " | " << (s.significant ? "yes" : "no") << " | "
-          << (s.validation_gain != 0 ? num(100 * s.validation_gain) + " %" : "") << " | " << (s.parameters ? std::to_string(s.parameters) : "")
+          << (s.validation_gain != 0 ? num(100 * s.validation_gain) + " % (" + num(100 * s.validation_gain_halves.first) + " / " +
+                                           num(100 * s.validation_gain_halves.second) + " %)"
+                                     : "")
+          << " | " << (s.parameters ? std::to_string(s.parameters) : "")
           << " | " << s.verdict << " | " << s.note << " |\n";
     };
     for (std::size_t i = 0; i < res.effects.size(); ++i) {
