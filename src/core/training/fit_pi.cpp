@@ -261,6 +261,18 @@ struct CreepBasis {
   }
 };
 
+// Play pieces (≥ their lower bounds, smoothed) then nk creep columns (then initial-state columns): w and θ.
+EvalResult solve_pieces_and_creep(const training::GramStats& g, const Basis& hb, std::size_t nk, const CreepParams& cp,
+                                  double min_w0) {
+  const std::size_t np = hb.pieces();
+  std::vector<bool> constrained(np + nk, signed_creep(cp));
+  for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
+  EvalResult res = solve(g, constrained, hb.lower(min_w0), hb.neighbours(), hb.smoothing);
+  res.w.assign(res.theta.begin(), res.theta.begin() + np);
+  res.theta.erase(res.theta.begin(), res.theta.begin() + np);
+  return res;
+}
+
 // Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
 EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
   const CreepBasis cb(cp, d.rate);
@@ -273,12 +285,7 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
     creep_columns(cb.poles, l, v, cb.B, x + np);
     return (*d.y)[t];
   }, init_poles(cb.taus, d), d.weight);
-  std::vector<bool> constrained(np + nk, signed_creep(cp));
-  for (std::size_t i = 0; i < np; ++i) constrained[i] = true;
-  EvalResult res = solve(g, constrained, hb.lower(min_w0), hb.neighbours(), hb.smoothing);
-  res.w.assign(res.theta.begin(), res.theta.begin() + np);
-  res.theta.erase(res.theta.begin(), res.theta.begin() + np);
-  return res;
+  return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
 // Creep on H with the play weights fixed up to a common scale: y = b + s·H + Σ_k θ_k·(basis of LP_j(H)).
@@ -314,6 +321,38 @@ EvalResult evaluate_creep_on_h(const FitData& d, const Basis& hb, const std::vec
   res.theta.erase(res.theta.begin());
   for (double& x : res.theta) x /= scale;
   return res;
+}
+
+// Creep on H, all weights at once given the previous play weights w_prev: y = b + Σ_i w_i·F_i + Σ_k θ_k·(basis of
+// LP_j(H_prev) − H_prev), H_prev = Σ_i w_prev,i·F_i. The creep columns are the modes' lags behind H, so a fast mode
+// cannot stand in for H itself. Iterated to w ∝ w_prev it is the creep-on-H model (fit_with converts the gains);
+// each step is one Gram of the voltage-input size (the alternation's w-step needs n_pieces × n_modes filter states
+// per sample). θ is per nm of H_prev.
+EvalResult evaluate_joint_on_h(const FitData& d, const Basis& hb, const std::vector<double>& w_prev,
+                               const CreepParams& cp, double min_w0) {
+  const CreepBasis cb(cp, d.rate);
+  const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
+  const std::vector<double>& V = *d.v;
+  std::vector<double> p(hb.r.size(), V[0]);
+  std::vector<double> f(np);
+  hb.columns(V[0], p, f.data());
+  double h0 = 0;
+  for (std::size_t i = 0; i < np; ++i) h0 += w_prev[i] * f[i];
+  std::vector<double> l(nm, h0);
+  p.assign(hb.r.size(), V[0]);
+  const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
+    hb.columns(V[t], p, x);
+    double h = 0;
+    for (std::size_t i = 0; i < np; ++i) h += w_prev[i] * x[i];
+    creep_columns(cb.poles, l, h, cb.B, x + np);
+    for (std::size_t k = 0; k < nk; ++k) {
+      double bk = 0;
+      for (std::size_t j = 0; j < nm; ++j) bk += cb.B[k][j];
+      x[np + k] -= bk * h;
+    }
+    return (*d.y)[t];
+  }, init_poles(cb.taus, d), d.weight);
+  return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
 // Creep on H with the creep gains fixed: y = b + Σ_i w_i·(F_i + Σ_j g_j·LP_j(F_i)), F_i the play pieces, w_i ≥ 0.
@@ -510,6 +549,12 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
   cp0.tau_min_s = clamp_tau(option_num(o, "tau_min_s", kind == CreepKind::kProny ? tau_lo : 1.0));
   cp0.tau_max_s = clamp_tau(option_num(o, "tau_max_s", tau_hi));
   if (kind == CreepKind::kFractional && !(cp0.tau_max_s > cp0.tau_min_s)) cp0.tau_min_s = tau_lo;
+  if (kind == CreepKind::kProny && cp0.modes_per_decade >= 1 && cp0.tau_max_s > cp0.tau_min_s) {
+    // The grid's last mode on or below tau_max_s (log_tau_grid rounds the decade count: 3 per decade on 8 h of
+    // data put a mode at 39 000 s).
+    const double steps = std::floor(std::log10(cp0.tau_max_s / cp0.tau_min_s) * cp0.modes_per_decade + 1e-9);
+    cp0.tau_max_s = cp0.tau_min_s * std::pow(10.0, steps / cp0.modes_per_decade);
+  }
   if (kind == CreepKind::kLog) {
     cp0.t1_s = clamp_tau(option_num(o, "t1_s", 1.0));
     cp0.decades = std::max(1, std::min(cp0.decades, static_cast<int>(std::floor(std::log10(tau_hi / tau_lo)))));
@@ -526,6 +571,12 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
     if (req.progress) req.progress(std::min<double>(evals, total), total, what);
   };
 
+  // The joint fixed point is exact where the hysteresis is representable, but with a misfit it is not the least-squares
+  // solution the alternation converges to: on Preisach physics it was better on one seed and worse on another
+  // (docs/models.md, issue 12), so the alternation stays the default.
+  const std::string creep_on_h_fit = option_str(o, "creep_on_h_fit", "alternate");
+  if (creep_on_h_fit != "alternate" && creep_on_h_fit != "joint")
+    throw std::runtime_error("option 'creep_on_h_fit': expected alternate or joint, got '" + creep_on_h_fit + "'");
   // One fit for given thresholds, creep input and sample weights (the former single-path fit).
   // With on_h, the voltage-input model it starts from is handed out through v_model (auto input costs nothing extra).
   auto fit_with = [&](const Basis& r, bool on_h, const std::vector<double>* weight,
@@ -600,9 +651,40 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
     EvalResult best = evaluate(dd, r, cp, min_w0);
     cp.set_coefficients(best.theta);
     if (v_model) *v_model = r.model(best.w, best.b, cp, rate);
-    // Preisach: 3 (each alternation is a Gram of ~n²/2 piece columns; 6 changed the hold MAE by < 0.4 nm).
+    // Alternations: preisach 3, else 6. Prony can use the joint iteration below instead (creep_on_h_fit: joint).
     const int iters = kind == CreepKind::kNone || !on_h ? 0 : option_int(o, "alternations", preisach ? 3 : 6);
-    if (iters > 0) {
+    if (iters > 0 && kind == CreepKind::kProny && creep_on_h_fit == "joint") {
+      // Prony creep on H (linear in its gains): iterate the joint solve to its fixed point, from the voltage-input
+      // play weights; stops once the weights' shape moves by < 0.1 % (their scale does not change the solve).
+      const CreepParams on_v = cp;
+      cp.on_hysteresis = true;
+      std::vector<double> w = best.w;
+      const int steps = option_int(o, "joint_iterations", 12);
+      if (steps < 1 || steps > 100) throw std::runtime_error("option 'joint_iterations': expected 1..100");
+      bool moved = false;
+      for (int it = 0; it < steps; ++it) {
+        EvalResult cr = evaluate_joint_on_h(dd, r, w, cp, min_w0);
+        report("PI + creep fit");
+        double sw = 0, sn = 0, diff = 0, lag_gain = 0;
+        for (std::size_t i = 0; i < w.size(); ++i) sw += w[i], sn += cr.w[i];
+        if (!(sw > 0 && sn > 0)) break;
+        for (std::size_t i = 0; i < w.size(); ++i) diff += std::abs(cr.w[i] / sn - w[i] / sw);
+        // With A = Σ w'·F and H_prev = c·A (c = sw/sn once the shapes agree): y = (1 − c·G)·A + c·Σ θ_j·LP_j(A),
+        // G = Σθ; so the model's weights are (1 − c·G)·w' and its gains c·θ/(1 − c·G).
+        const double c = sw / sn;
+        for (double x : cr.theta) lag_gain += x;
+        const double direct = 1.0 - c * lag_gain;
+        if (!(direct > 0.05)) break;  // creep as large as H itself: not a creep the iteration can represent
+        for (double& x : cr.w) x *= direct;
+        for (double& x : cr.theta) x *= c / direct;
+        cp.set_coefficients(cr.theta);
+        w = cr.w;
+        best = cr;
+        moved = true;
+        if (diff < 1e-3) break;
+      }
+      if (!moved) cp = on_v;  // the voltage-input solution stands
+    } else if (iters > 0) {
       // Creep on H is bilinear (w and g): alternate the two linear problems, refining the law's nonlinear
       // parameters once, starting from the voltage-input solution.
       cp.on_hysteresis = true;
