@@ -232,11 +232,6 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
 }
 
 namespace {
-double median_of(std::vector<double> v) {
-  if (v.empty()) return 0.0;
-  std::nth_element(v.begin(), v.begin() + v.size() / 2, v.end());
-  return v[v.size() / 2];
-}
 double corr(const std::vector<double>& a, const std::vector<double>& b) {
   const std::size_t n = a.size();
   if (n < 3) return 0.0;
