@@ -31,7 +31,7 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis to model", "c")
       .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, scored\n"
                 "free-run on the validation part; the table is printed and stored in the file")
-      .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm, kan)", "", true)
+      .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm; kan is a default candidate)", "", true)
       .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
       .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")

@@ -29,11 +29,7 @@ constexpr int kNeuralSteps = 800;
 // Cells known to fail the 10 % criterion, with the measured figure and the reason (docs/models.md); every other
 // cell must pass, and a listed cell that passes is reported. No kind's cell is listed: the neural kinds' default
 // features are voltage history only (features::voltage_history_features) and dense/KAN start at the linear fit.
-const std::map<std::string, std::string> kKnownFailing = {
-    // auto's candidates (linear, pi, pi_creep_*, preisach*) leave 88.6 nm; the KAN (not an auto candidate
-    // unless --auto-extra kan) reaches 64.1 nm. auto itself is at 0.19 % of range.
-    {"lowvolt_pi_creep/auto", "auto 88.6 nm vs kan 64.1 nm: the best kind is not among auto's default candidates"},
-};
+const std::map<std::string, std::string> kKnownFailing = {};
 
 }  // namespace
 
