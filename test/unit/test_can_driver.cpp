@@ -401,11 +401,12 @@ TEST(CanDriver, SendsRefusedForHalfASecondDoNotJumpAfterwards) {
     }
   };
   run_for(150ms);  // ramping from 3 V
+  refuse = true;
+  run_for(30ms);  // a frame sent just before the refusal may still be on its way to the device
   const double before = device.voltages()[2];
   EXPECT_GT(before, 5.0);
   EXPECT_LT(before, 40.0);
-  refuse = true;
-  run_for(500ms);  // the ramp would have moved 50 V meanwhile
+  run_for(470ms);  // the ramp would have moved 50 V in the half second
   // after a refusal the axis waits for the next report (100 Hz here) before it tries again
   EXPECT_GT(driver.axis_status(2).frames_refused, 20u);
   EXPECT_NEAR(device.voltages()[2], before, 1e-9);
