@@ -68,12 +68,6 @@ double mae_of(const std::vector<double>& r, std::size_t a, std::size_t b) {
   return b > a ? s / static_cast<double>(b - a) : 0.0;
 }
 
-double mae_of_abs(const std::vector<double>& a, const std::vector<double>& b, std::size_t i0, std::size_t i1) {
-  double s = 0;
-  for (std::size_t i = i0; i < i1; ++i) s += std::fabs(a[i] - b[i]);
-  return i1 > i0 ? s / static_cast<double>(i1 - i0) : 0.0;
-}
-
 bool reads_position(const std::vector<EffectTerm>& terms) {
   for (const auto& t : terms)
     if (t.signal == models::kSignalPosition) return true;
@@ -538,14 +532,15 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     const std::vector<double> pred = corrected(c, t, off);
     Val v;
     double sh = 0;
+    const std::size_t mid = n_fit + (n - n_fit) / 2;
     for (std::size_t i = n_fit; i < n; ++i) {
       const double e = std::fabs(c.measured[i] - pred[i]);
       v.mae += e;
+      (i < mid ? v.mae1 : v.mae2) += e;  // the two halves of the validation part, in the same pass
       if (holds[i]) sh += e;
     }
-    const std::size_t mid = n_fit + (n - n_fit) / 2;
-    v.mae1 = mae_of_abs(c.measured, pred, n_fit, mid);
-    v.mae2 = mae_of_abs(c.measured, pred, mid, n);
+    if (mid > n_fit) v.mae1 /= static_cast<double>(mid - n_fit);
+    if (n > mid) v.mae2 /= static_cast<double>(n - mid);
     v.mae /= static_cast<double>(n - n_fit);
     v.hold_mae = n_val_hold ? sh / static_cast<double>(n_val_hold) : 0.0;
     return v;
