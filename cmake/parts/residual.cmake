@@ -10,6 +10,7 @@ piezo_unit_test(test_residual_sim_disturbance test/unit/test_residual_sim_distur
 piezo_unit_test(test_residual_gain test/unit/test_residual_gain.cpp)
 piezo_unit_test(test_residual_gain_drift test/unit/test_residual_gain_drift.cpp)
 piezo_unit_test(test_residual_preisach test/unit/test_residual_preisach.cpp)
+piezo_unit_test(test_residual_mid_history test/unit/test_residual_mid_history.cpp)
 piezo_unit_test(test_eval_stream test/unit/test_eval_stream.cpp)
 if(TARGET test_residual_augmented)
   target_compile_definitions(test_residual_augmented PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")

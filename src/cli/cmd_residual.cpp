@@ -57,6 +57,8 @@ int run(int argc, char** argv) {
       .option("seed", "N", "random seed", "1")
       .option("anchor-s", "S", "the first S seconds of TEST's measurement fix the offset; TEST is scored after them", "0")
       .option("refit-base", "", "with a model file: refit its kind (default options) while backfitting")
+      .option("mid-history", "", "TRAIN starts on a stage already in use (a ~snapshot): fit the decay of the base's "
+              "unknown initial creep state alongside the effects (not put in the model)")
       .option("no-plots", "", "skip the PNGs")
       .required("out", "DIR", "output directory");
   if (!args.parse(argc, argv)) return 0;
@@ -91,6 +93,7 @@ int run(int argc, char** argv) {
   o.permutations = static_cast<int>(args.integer("permutations"));
   o.seed = static_cast<std::uint64_t>(args.integer("seed"));
   o.anchor_s = args.num("anchor-s");
+  o.start_transients = args.flag("mid-history");
   if (!(o.anchor_s >= 0)) throw UsageError("residual: --anchor-s must be ≥ 0");
   if (o.permutations < 10) throw UsageError("residual: --permutations must be ≥ 10");
   if (args.has("families")) {

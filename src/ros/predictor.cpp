@@ -19,6 +19,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/compensation/ideal_line.h"
+#include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 
 namespace piezo::predictor {
@@ -249,6 +250,9 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   const compensation::SampleUpdate u =
       comp_->on_sample(applied, valid ? sample.position_nm : std::nan(""), valid, inputs);
   predicted_nm_ = u.predicted_nm;
+  out.sequence = sample.sequence;
+  out.stamp_s = sample.stamp_s;
+  if (u.ok) out.base_predicted_nm = u.base_predicted_nm;
   // free-run residual for the watch (one-step mode remembers the encoder: no free-run figure to watch)
   if (watch_ && u.ok && valid && !s_.axis.position_feedback && model_error_.empty())
     watch_->add(sample.stamp_s > 0.0 ? sample.stamp_s : now.toSec(), sample.position_nm - u.predicted_nm);
@@ -398,8 +402,11 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
       "reload_model", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
         // ~model_file is read again (an operator points it at the augmented model `piezo residual` wrote).
         // All or nothing: a broken file leaves every axis on its current model.
+        const auto t_start = std::chrono::steady_clock::now();
+        const auto secs = [](auto a, auto b) { return std::chrono::duration<double>(b - a).count(); };
         std::vector<models::ModelPtr> fresh;
         std::map<std::string, std::string> files;
+        std::string timing;
         try {
           files = read_model_files(pnh_, s_.axes);
           for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis())));
@@ -415,15 +422,29 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
               no_recent = e.what();
             }
           }
+          // An augmented model on the running base (`piezo residual` keeps a model file's weights) continues
+          // from the running base, which has seen the true history, not from the window's start.
+          std::vector<std::string> handover(axes_.size());
+          const auto t_loaded = std::chrono::steady_clock::now();
           for (std::size_t i = 0; i < axes_.size(); ++i)
-            cold[i] = recent ? warm_model(*fresh[i], axes_[i]->logic->axis(), *recent, nh_.getNamespace()) : no_recent;
+            cold[i] = recent ? warm_model(*fresh[i], axes_[i]->logic->axis(), *recent, nh_.getNamespace(),
+                                          &axes_[i]->logic->compensator().model(), &handover[i])
+                             : no_recent;
+          const auto t_warm = std::chrono::steady_clock::now();
           for (std::size_t i = 0; i < axes_.size(); ++i)
             axes_[i]->logic->reload(files.at(axes_[i]->logic->axis()), std::move(fresh[i]), cold[i].empty());
+          const auto t_done = std::chrono::steady_clock::now();
+          std::ostringstream took;
+          took << std::fixed << std::setprecision(2) << "; took " << secs(t_start, t_done) << " s (load "
+               << secs(t_start, t_loaded) << ", warm-up " << secs(t_loaded, t_warm) << ", ideal line "
+               << secs(t_warm, t_done) << ")";
+          timing = took.str();
           res.message.clear();
           for (std::size_t i = 0; i < axes_.size(); ++i)
             res.message += "; " + axes_[i]->logic->axis() + ": " +
                            (cold[i].empty() ? "warm, on the last " + std::to_string(static_cast<int>(
-                                                  recent->end_s - recent->begin_s)) + " s"
+                                                  recent->end_s - recent->begin_s)) + " s" +
+                                                  (handover[i].empty() ? "" : ", " + handover[i])
                                             : "cold start (" + cold[i] + ")");
         } catch (const std::exception& e) {
           res.success = false;
@@ -436,7 +457,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
         std::string warmth = res.message;
         res.message = "models reloaded:";
         for (const auto& [axis, path] : files) res.message += " " + axis + " " + path;
-        res.message += warmth;
+        res.message += warmth + timing;
         ROS_INFO("%s", res.message.c_str());
         return true;
       });
@@ -587,6 +608,8 @@ void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
 
 void PredictorNode::emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now) {
   for (auto& out : outs) {
+    if (snapshot_ && std::isfinite(out.base_predicted_nm) && out.stamp_s > 0.0)
+      snapshot_->add_prediction(a.logic->axis(), out.sequence, out.base_predicted_nm, out.stamp_s);
     if (out.send) a.pub_command.publish(out.command);
     a.pub_prediction.publish(out.prediction);
     if (out.forecast_due) start_forecast(a);

@@ -157,9 +157,11 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   const std::string bag = snap.response.message.substr(0, snap.response.message.find(" ("));
   fs::remove_all(out_dir);
   // Every family, the gain families included: the additive thermal effect must win against aux_gain on the same
-  // signal (ResidualOptions::gain_margin; docs/closing-the-loop.md, "Live loop").
+  // signal (ResidualOptions::gain_margin; docs/closing-the-loop.md, "Live loop"). The snapshot starts ~500 s into
+  // the device's history: --mid-history fits the base's unknown initial creep state (without it the cold start
+  // confounds the thermal term and the loop adds time_gain and rate_dependent, TEST MAE 50 → 58 nm).
   std::vector<std::string> argv{piezo_binary(), "residual", "--data", bag, "--model", clean, "--axis", "c",
-                                "--permutations", "200", "--no-plots", "--out", out_dir};
+                                "--permutations", "200", "--mid-history", "--no-plots", "--out", out_dir};
   if (!families.empty()) argv.insert(argv.end(), {"--families", families});
   std::cout << "[live_loop] (3) " << piezo::util::command_line(argv) << "\n";
   std::atomic<bool> finished{false};
@@ -213,11 +215,15 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
     }
     return false;
   }, 120.0);
-  // Printed, not asserted: in 1 of 5 runs the rolling MAE rose again after coming under the threshold (mean
-  // 52 nm over these 120 s, docs/closing-the-loop.md "Live loop"); the cause is open.
+  // The rolling MAE once rose again after the reload (mean 35–52 nm over these 120 s in some runs): the snapshot
+  // bag was written stream by stream, reading it took 12.5 s, the reload stalled the callback thread for that
+  // long (~4000 samples lost at 30×), and the base was warmed from rest. Now it stays near the floor (16.8 nm).
   if (loop.watch_warned) std::cout << "[live_loop] (4) the watch warned again after the reload: " << loop.diag_message << "\n";
   std::cout << "[live_loop] (4) rolling MAE over the next 120 s: mean " << (n ? sum / n : std::nan("")) << " nm, worst "
             << worst << " nm (" << n << " figures)\n";
+  EXPECT_GT(n, 50) << "too few rolling-MAE figures after the reload";
+  EXPECT_LT(worst, threshold_nm) << "the rolling MAE rose above the watch threshold again after the reload";
+  EXPECT_FALSE(loop.watch_warned) << loop.diag_message;
   std::cout << "[live_loop] total " << loop.now() - t_start << " s simulated, wall " << wall() << " s\n";
 }
 

@@ -3,11 +3,17 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <iostream>
 
 #include "piezo_compensation/compensation/axis_compensator.h"
+#include "piezo_compensation/compensation/base_handover.h"
 #include "piezo_compensation/compensation/drift_forecast.h"
 #include "piezo_compensation/compensation/ideal_line.h"
 #include "piezo_compensation/compensation/inverse.h"
+#include "piezo_compensation/compensation/live_inputs.h"
+#include "piezo_compensation/models/augmented_model.h"
+#include "piezo_compensation/models/model_stream.h"
 #include "test_compensation_models.h"
 
 using namespace piezo;
@@ -113,6 +119,98 @@ TEST(CompensationIdealLine, LongHoldGainOfLinearCreepModel) {
   EXPECT_NEAR(line.voltage_v(line.position_nm(33.0)), 33.0, 1e-12);
   test::FailingModel bad(test::make_pi_creep(), 3);
   EXPECT_THROW(ideal_line_from_model(bad, o), std::runtime_error);
+}
+
+// A gain on ROS time (the residual tool's time_gain, fitted on a ~snapshot) is read at its training centre: the
+// live loop once computed the line at time 0, i.e. 7·10⁶ standard deviations away, and got 10⁸ nm targets.
+TEST(CompensationIdealLine, GainOnTimeIsReadAtItsTrainingCentre) {
+  auto base = std::make_unique<test::LinearCreepModel>(12.0, 2.0, 60.0, 11.0);
+  IdealLineOptions o;
+  o.hold_s = 1800.0;
+  const IdealLine base_line = ideal_line_from_model(*base, o);
+  models::EffectTerm g;
+  g.type = "gain";
+  g.signal = models::kSignalTime;
+  g.scales = models::kSignalPosition;
+  g.pre_center = 1795564646.5;
+  g.pre_scale = 242.5;
+  g.center = {-83.5};
+  g.scale = {649.6};
+  g.weight = {18.6};
+  models::AugmentedModel aug(std::move(base), {g}, 0.0, 11.0);
+  EXPECT_DOUBLE_EQ(neutral_input(aug, models::kSignalTime), 1795564646.5);
+  const IdealLine line = ideal_line_from_model(aug, o);
+  EXPECT_NEAR(line.gain_nm_per_v, base_line.gain_nm_per_v, 1e-9);
+}
+
+// ~reload_model onto the running base: the stage is the base + 20 nm. The fresh augmented model's offset was fitted
+// (as `piezo residual` does) against the base started at rest at the window's first voltage, so it carries that
+// cold start's error. After the hand-over its base is the running one and its offset the true 20 nm, so it
+// predicts the stage exactly from then on; warmed from rest alone it is off.
+TEST(CompensationBaseHandover, TakesTheRunningBaseAndReestimatesTheOffset) {
+  const double fs = 11.0;
+  const std::size_t n_hist = 3000, n_win = 2000, n_after = 1500;
+  std::vector<double> v(n_hist + n_win + n_after);
+  double x = 0.0;
+  std::uint64_t st = 7;
+  for (auto& vi : v) {  // a seeded random walk in ±60 V
+    st = st * 6364136223846793005ULL + 1442695040888963407ULL;
+    x = std::clamp(x + ((st >> 33) % 2001 / 1000.0 - 1.0) * 2.0, -60.0, 60.0);
+    vi = x;
+  }
+  // the running model: the base since the stage's rest, up to the reload at the window's end
+  auto run_base = test::make_pi_creep(fs);
+  run_base->reset(v[0], 0.0);
+  for (std::size_t i = 0; i < n_hist + n_win; ++i) {
+    const models::ModelInput in{v[i], nullptr};
+    run_base->commit(in, run_base->predict(in));
+  }
+  std::vector<double> truth(v.size());
+  auto stage = test::make_pi_creep(fs);
+  stage->reset(v[0], 0.0);
+  for (std::size_t i = 0; i < v.size(); ++i) {
+    const models::ModelInput in{v[i], nullptr};
+    truth[i] = stage->predict(in) + 20.0;
+    stage->commit(in, truth[i] - 20.0);
+  }
+  io::Dataset win;
+  io::AxisSeries& c = win.add_axis("c");
+  for (std::size_t i = n_hist; i < n_hist + n_win; ++i) {
+    win.time_s.push_back(static_cast<double>(i) / fs);
+    c.voltage_v.push_back(v[i]);
+    c.position_nm.push_back(truth[i]);
+  }
+  std::vector<double> running_base(n_win);
+  for (std::size_t i = 0; i < n_win; ++i) running_base[i] = truth[n_hist + i] - 20.0;
+  // the offset a fit against the cold-started base would give: mean of measured − cold base over the window
+  std::vector<double> cold;
+  {
+    auto b = test::make_pi_creep(fs);
+    cold = models::stream_model(*b, win, "c").prediction;
+  }
+  double off = 0.0;
+  for (std::size_t i = 0; i < n_win; ++i) off += (truth[n_hist + i] - cold[i]) / n_win;
+  models::AugmentedModel fresh(test::make_pi_creep(fs), {}, off, fs);
+  const std::vector<double> warm = models::stream_model(fresh, win, "c").prediction;
+  std::unique_ptr<models::Model> from_rest = fresh.clone();
+  const BaseHandover h = hand_over_base(fresh, *run_base, win, "c", warm, running_base);
+  ASSERT_TRUE(h.done) << h.why;
+  EXPECT_NEAR(fresh.offset_nm() , 20.0, 1e-6);
+  double worst = 0.0, worst_rest = 0.0;
+  for (std::size_t i = n_hist + n_win; i < v.size(); ++i) {
+    const models::ModelInput in{v[i], nullptr};
+    const double p = fresh.predict(in), q = from_rest->predict(in);
+    fresh.commit(in, p);
+    from_rest->commit(in, q);
+    worst = std::max(worst, std::abs(p - truth[i]));
+    worst_rest = std::max(worst_rest, std::abs(q - truth[i]));
+  }
+  EXPECT_LT(worst, 1e-6);
+  EXPECT_GT(worst_rest, 1.0) << "the window's cold start should matter in this test";
+  std::cout << "after the reload, worst error: hand-over " << worst << " nm, warmed from rest " << worst_rest << " nm\n";
+  // another base is not taken
+  models::AugmentedModel other(std::make_unique<test::LinearCreepModel>(12.0, 2.0, 60.0, fs), {}, off, fs);
+  EXPECT_FALSE(hand_over_base(other, *run_base, win, "c", warm, running_base).done);
 }
 
 // With a perfect model the compensated plant follows the ideal line; uncompensated it shows the hysteresis.

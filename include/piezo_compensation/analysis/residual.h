@@ -109,6 +109,10 @@ struct ResidualOptions {
   // When TEST continues TRAIN in time, TEST predictions run on from TRAIN instead of restarting from a reset
   // (a reset "rested at the first measured position" is wrong while creep from the past is still going on).
   bool warm_start = true;
+  // TRAIN begins mid-history (a ~snapshot, a recording started on a stage already in use): the base started "at
+  // rest at the first voltage" is off by the unknown initial state of its creep modes. A decaying exp(−t/τ) per
+  // base mode (5 s ≤ τ ≤ twice TRAIN) is fitted alongside the terms as a nuisance and left out of the model.
+  bool start_transients = false;
   // > 0: the first anchor_s seconds of TEST's measurement fix the prediction offset; TEST is scored after them.
   double anchor_s = 0.0;
 };

@@ -4,12 +4,14 @@
 // measurement and the tests all drive this same class.
 #pragma once
 
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
 
 #include "piezo_compensation/compensation/ideal_line.h"
 #include "piezo_compensation/compensation/inverse.h"
+#include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
 
 namespace piezo::compensation {
@@ -33,6 +35,9 @@ struct AxisCompensatorConfig {
 // Result of one encoder sample.
 struct SampleUpdate {
   double predicted_nm = 0.0;   // model position for the applied voltage, history up to the previous sample
+  // The base model's part of it (an augmented model's base; the whole prediction otherwise); NaN when the sample
+  // gave no prediction. Kept with the ~snapshot so a reloaded model on the same base can take the base's state.
+  double base_predicted_nm = std::numeric_limits<double>::quiet_NaN();
   bool ok = true;              // false: the prediction failed (the model was reset at the measurement)
   std::string status;          // why, when !ok
 };
@@ -93,6 +98,7 @@ class AxisCompensator {
   bool in_range(double position_nm) const;
 
   models::ModelPtr model_;
+  const models::AugmentedModel* augmented_ = nullptr;   // model_ when it is augmented (for its base's part)
   IdealLine line_;
   AxisCompensatorConfig config_;
   bool started_ = false;

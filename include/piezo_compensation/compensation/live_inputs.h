@@ -84,8 +84,9 @@ class InputFeeder {
   std::string own_axis_;
 };
 
-// The value an input is fed before any fresh one: for an augmented model, the training center of the first term
-// on that signal (its regressor is then 0); otherwise 0.
+// The value an input is fed before any fresh one, and while the ideal line is computed: for an augmented model, the
+// training value of the first term on that signal (a linear or play term's regressor is then 0, a gain's factor 1);
+// otherwise 0.
 double neutral_input(const models::Model& model, const std::string& name);
 
 }  // namespace piezo::compensation

@@ -33,6 +33,14 @@ struct SnapshotReading {
   double position_nm = 0.0;
 };
 
+// The running model's base prediction of one sample (compensation::SampleUpdate::base_predicted_nm), stamped like
+// its reading: what a reloaded model on the same base takes its state and offset from (predictor ~reload_model).
+struct SnapshotPrediction {
+  double stamp_s = 0.0;
+  std::uint32_t sequence = 0;
+  double base_nm = 0.0;
+};
+
 struct SnapshotAux {
   double stamp_s = 0.0;
   double value = 0.0;
@@ -42,6 +50,7 @@ struct Snapshot {
   struct Axis {
     std::vector<SnapshotVoltage> voltages;
     std::vector<SnapshotReading> readings;
+    std::vector<SnapshotPrediction> base_predictions;  // from the window's first reading on; not in the bag
   };
   std::map<std::string, Axis> axes;                         // by axis name
   std::map<std::string, std::vector<SnapshotAux>> aux;      // by input name (e.g. temperature_c)
@@ -62,6 +71,7 @@ class SnapshotBuffer {
   void add_voltage(const std::string& axis, std::uint32_t sequence, double voltage_v, double stamp_s);
   void add_reading(const std::string& axis, std::uint32_t sequence, double position_nm, bool valid, double stamp_s);
   void add_aux(const std::string& name, double value, double stamp_s);
+  void add_prediction(const std::string& axis, std::uint32_t sequence, double base_nm, double stamp_s);
 
   // The last duration_s up to the newest reading. Throws std::runtime_error with the reason when there is no
   // complete sample (no reading with its voltage report, or an axis without one).
@@ -78,6 +88,7 @@ class SnapshotBuffer {
   struct AxisStreams {
     std::deque<SnapshotVoltage> voltages;
     std::deque<Reading> readings;
+    std::deque<SnapshotPrediction> predictions;
   };
   template <class Q>
   void trim(Q& q, double newest_s, bool keep_one_before) const;

@@ -108,6 +108,13 @@ class AugmentedModel : public Model {
 
   static ModelPtr from_yaml(const YAML::Node& model_node);
 
+  // Whether `running` (or its base, when it is augmented itself) is this model's base — kind and every parameter —
+  // and reads no inputs: then adopt_base_state takes its state (compensation/base_handover.h).
+  bool can_adopt_base_state(const Model& running) const;
+  // The base becomes a copy of running's (state included); offset_change_nm is added to the offset.
+  // Throws std::invalid_argument unless can_adopt_base_state(running).
+  void adopt_base_state(const Model& running, double offset_change_nm);
+
  private:
   void split(const ModelInput& in, std::vector<double>& base_aux, std::vector<double>& cols) const;
 

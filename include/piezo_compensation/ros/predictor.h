@@ -7,6 +7,7 @@
 #include <topic_tools/shape_shifter.h>
 
 #include <chrono>
+#include <limits>
 #include <cmath>
 #include <condition_variable>
 #include <deque>
@@ -106,9 +107,11 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
                         const std::string& frame_id);
 // Streams `model` (free-run, from rest at the first row) over the snapshot, read through the one bag reader, so a
 // reloaded model starts with the state of a model that had been running (low-pass and lag terms, creep).
-// Returns "" or why it could not (the caller then starts the model at rest).
+// Returns "" or why it could not (the caller then starts the model at rest). With `running` (the model running
+// now) and an augmented `model` on the same base, the base's state and the offset are then taken from the running
+// model (compensation/base_handover.h); `handover` says what was done.
 std::string warm_model(models::Model& model, const std::string& axis, const compensation::Snapshot& s,
-                       const std::string& ns);
+                       const std::string& ns, const models::Model* running = nullptr, std::string* handover = nullptr);
 
 // One axis at message level, without a NodeHandle: the node, the replay measurement and the tests drive it.
 class PredictorAxis {
@@ -130,6 +133,10 @@ class PredictorAxis {
     bool send = false;        // a command for the driver
     VoltageCommand command;
     bool forecast_due = false;  // caller should start a drift forecast (async mode)
+    // the sample and the running model's base part of its prediction (NaN: none), for the ~snapshot buffer
+    std::uint32_t sequence = 0;
+    double stamp_s = 0.0;
+    double base_predicted_nm = std::numeric_limits<double>::quiet_NaN();
   };
   // Command right now from the current state (used when a new intent arrives between samples).
   bool command_now(bool compensate, VoltageCommand& out, const ros::Time& now);

@@ -2,6 +2,8 @@
 #include "piezo_compensation/analysis/residual.h"
 
 #include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/models/augmented_model.h"
+#include "piezo_compensation/models/pi_model.h"
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -83,6 +85,18 @@ struct Context {
   std::vector<std::string> other_axes;            // other axes' voltage and position column names
   std::vector<std::string> aux_names;             // auxiliary columns
   double x_at_zero_v = 0.0;                       // base output at rest at 0 V: where a stroke gain acts about
+  // Start-state transients (ResidualOptions::start_transients): exp(−(t − t₀)/τ_j) per row, one column per τ_j.
+  // A base started "at rest at the first voltage" on data that begins mid-history is wrong by the unknown initial
+  // state of each of its creep modes, which decays with that mode's τ: fitted as nuisance terms, never put in the
+  // model (the live model has the true history).
+  std::vector<double> transient_taus_s;
+  std::vector<std::vector<double>> transient;
+};
+
+// The fitted level of the base residual besides the effect terms: a constant and the start-state transients.
+struct Level {
+  double offset_nm = 0.0;
+  std::vector<double> transient_nm;  // weight per Context::transient column [nm at t₀]
 };
 
 // Raw regressors of `terms` over all rows (streamed from row 0). `fixed` terms (already weighted) run in the
@@ -110,10 +124,13 @@ std::vector<double> regressors(const Context& c, const std::vector<EffectTerm>& 
 
 // Fits centre/scale and weights of `terms` (jointly, with an offset) to the base residual on rows [a, b).
 // Position terms depend on the other weights, so the fit is repeated until it settles.
-void fit_terms(const Context& c, std::vector<EffectTerm>& terms, double& offset, std::size_t a, std::size_t b) {
+void fit_terms(const Context& c, std::vector<EffectTerm>& terms, Level& level, std::size_t a, std::size_t b) {
   const std::size_t n = c.x_base.size();
   const int passes = reads_position(terms) ? 3 : 1;
+  const std::size_t m = c.transient.size();
+  double& offset = level.offset_nm;
   offset = 0.0;
+  level.transient_nm.assign(m, 0.0);
   for (auto& t : terms) {
     const std::size_t k = t.num_regressors();
     if (t.weight.size() != k) t.weight.assign(k, 0.0);
@@ -136,19 +153,22 @@ void fit_terms(const Context& c, std::vector<EffectTerm>& terms, double& offset,
       sd[j] = std::sqrt(sd[j] / static_cast<double>(b - a));
       if (!(sd[j] > 1e-12)) sd[j] = 1.0;  // constant on the fit rows: weight will be ~0
     }
-    Eigen::MatrixXd G = Eigen::MatrixXd::Zero(k + 1, k + 1);
-    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(k + 1);
-    Eigen::VectorXd x(k + 1);
+    const std::size_t kk = k + 1 + m;  // offset, the terms' regressors, the start-state transients
+    Eigen::MatrixXd G = Eigen::MatrixXd::Zero(kk, kk);
+    Eigen::VectorXd rhs = Eigen::VectorXd::Zero(kk);
+    Eigen::VectorXd x(kk);
     for (std::size_t i = a; i < b; ++i) {
       x[0] = 1.0;
       for (std::size_t j = 0; j < k; ++j) x[j + 1] = (Z[i * k + j] - mu[j]) / sd[j];
+      for (std::size_t j = 0; j < m; ++j) x[k + 1 + j] = c.transient[j][i];
       G.selfadjointView<Eigen::Lower>().rankUpdate(x);
       rhs += x * (c.measured[i] - c.x_base[i]);
     }
     G = G.selfadjointView<Eigen::Lower>();
-    for (std::size_t j = 1; j <= k; ++j) G(j, j) += 1e-6 * static_cast<double>(b - a);
+    for (std::size_t j = 1; j < kk; ++j) G(j, j) += 1e-6 * static_cast<double>(b - a);
     const Eigen::VectorXd beta = G.ldlt().solve(rhs);
     offset = beta[0];
+    for (std::size_t j = 0; j < m; ++j) level.transient_nm[j] = beta[static_cast<Eigen::Index>(k + 1 + j)];
     std::size_t j = 0;
     for (auto& t : terms)
       for (std::size_t q = 0; q < t.num_regressors(); ++q, ++j) {
@@ -163,13 +183,14 @@ void fit_terms(const Context& c, std::vector<EffectTerm>& terms, double& offset,
 
 // Model prediction on TRAIN rows from x_base plus the terms (exact in free-run, where the base never sees the
 // correction; in one-step the base is committed with measurement − correction, a second-order difference).
-std::vector<double> corrected(const Context& c, const std::vector<EffectTerm>& terms, double offset) {
-  EffectTermStream stream(terms, c.fs, offset);
+std::vector<double> corrected(const Context& c, const std::vector<EffectTerm>& terms, const Level& level) {
+  EffectTermStream stream(terms, c.fs, level.offset_nm);
   models::InputResolver cols(*c.data, stream.column_signals(), c.axis);
   std::vector<double> out(c.x_base.size()), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < out.size(); ++i) {
     cols.fill(i, colv.data());
     out[i] = c.x_base[i] + stream.correction(c.voltage[i], c.x_base[i], colv.data());
+    for (std::size_t j = 0; j < level.transient_nm.size(); ++j) out[i] += level.transient_nm[j] * c.transient[j][i];
     stream.commit(c.voltage[i], c.x_base[i], colv.data());
   }
   return out;
@@ -332,7 +353,7 @@ FamilyCandidates candidates(const std::string& family, const Context& c, const s
 
 double normal_tail(double z) { return 0.5 * std::erfc(z / std::sqrt(2.0)); }
 
-FamilyScore score_family(const std::string& family, const Context& c, const std::vector<EffectTerm>& fixed, double offset,
+FamilyScore score_family(const std::string& family, const Context& c, const std::vector<EffectTerm>& fixed, const Level& level,
                          const std::vector<double>& residual, const std::vector<double>& position,
                          const ResidualOptions& o, std::mt19937_64& rng) {
   FamilyScore fs;
@@ -358,7 +379,7 @@ FamilyScore score_family(const std::string& family, const Context& c, const std:
   double best = -1e300;
   for (const auto& cand : fc.variants) {
     std::size_t k = 0;
-    const std::vector<double> Z = regressors(c, fixed, offset, cand.terms, k);
+    const std::vector<double> Z = regressors(c, fixed, level.offset_nm, cand.terms, k);
     std::vector<double> Zd;
     Zd.reserve(nd * k);
     for (std::size_t i = 0; i < n; i += stride) Zd.insert(Zd.end(), Z.begin() + static_cast<long>(i * k), Z.begin() + static_cast<long>((i + 1) * k));
@@ -433,6 +454,23 @@ void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size
   }
 }
 
+// Time constants of the start-state transients: the base's own creep modes that TRAIN can see decay (τ from 5 s
+// to twice its duration; longer ones are an offset over TRAIN), or, for a base without modes, a decade grid in
+// the same range.
+std::vector<double> start_transient_taus(const models::Model& base, const io::Dataset& train) {
+  const double duration = train.time_s.back() - train.time_s.front();
+  const models::Model* m = &base;
+  if (const auto* aug = dynamic_cast<const models::AugmentedModel*>(m)) m = &aug->base();
+  std::vector<double> taus;
+  if (const auto* pi = dynamic_cast<const models::PiCreepModel*>(m)) taus = pi->mode_taus_s();
+  if (taus.empty()) taus = {10.0, 100.0, 1000.0};
+  std::vector<double> out;
+  for (double t : taus)
+    if (t >= 5.0 && t <= 2.0 * duration) out.push_back(t);
+  std::sort(out.begin(), out.end());
+  return out;
+}
+
 std::vector<double> truth_or_empty(const io::Dataset& d, const std::string& axis) {
   const auto& ax = d.axis(axis);
   return ax.has_truth() ? ax.true_position_nm : std::vector<double>{};
@@ -485,6 +523,14 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   }
   for (const auto& a : train.aux)
     if (test.find_aux(a.name)) c.aux_names.push_back(a.name);
+  if (o.start_transients) {
+    c.transient_taus_s = start_transient_taus(base, train);
+    for (double tau : c.transient_taus_s) {
+      std::vector<double> col(train.size());
+      for (std::size_t i = 0; i < col.size(); ++i) col[i] = std::exp(-(train.time_s[i] - train.time_s[0]) / tau);
+      c.transient.push_back(std::move(col));
+    }
+  }
 
   const std::size_t n = train.size();
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(n) * (1.0 - o.validation_fraction)));
@@ -498,14 +544,32 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   test_run.mode = o.mode;
   test_run.warmup = res.warm_started ? &train : nullptr;
   test_run.anchor_s = o.anchor_s;
-  auto run_test = [&](models::Model& m) {
+  // With start transients and TEST continuing TRAIN, the transients fitted on TRAIN run on into TEST: the base's
+  // cold-start error is not the model's (a live model has the true history), so it is not scored against it.
+  auto run_test = [&](models::Model& m, const Level& lv) {
     const models::StreamResult r = models::stream_model(m, test, o.axis, test_run);
     res.test_first_scored = r.first_scored;
-    return r.prediction;
+    std::vector<double> p = r.prediction;
+    if (res.warm_started)
+      for (std::size_t j = 0; j < lv.transient_nm.size(); ++j)
+        for (std::size_t i = 0; i < p.size(); ++i)
+          p[i] += lv.transient_nm[j] * std::exp(-(test.time_s[i] - train.time_s[0]) / c.transient_taus_s[j]);
+    return p;
   };
   {
+    Level lv0;  // the transients alone (no effect terms): the base's TEST error without its cold start
+    if (!c.transient.empty()) {
+      std::vector<EffectTerm> none;
+      fit_terms(c, none, lv0, 0, n);
+      lv0.offset_nm = 0.0;  // an offset is not the base's: only the decays are carried
+      std::ostringstream os;
+      os << "start transients (mid-history): τ";
+      for (std::size_t j = 0; j < lv0.transient_nm.size(); ++j)
+        os << (j ? ", " : " ") << c.transient_taus_s[j] << " s: " << lv0.transient_nm[j] << " nm";
+      log(os.str());
+    }
     models::ModelPtr b = base.clone();
-    res.test_pred_before = run_test(*b);
+    res.test_pred_before = run_test(*b, lv0);
   }
   res.test_mask.assign(test.size(), 1);
   for (std::size_t i = 0; i < res.test_first_scored && i < test.size(); ++i) res.test_mask[i] = 0;
@@ -515,7 +579,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   models::ModelPtr cur_base = base.clone();  // refitted by backfitting when options.refit_base is set
   std::vector<EffectTerm> terms;           // accepted, fitted on all of TRAIN
   std::vector<std::size_t> effect_first;   // first term index of each effect
-  double offset = 0.0;
+  Level level;
   std::mt19937_64 rng(o.seed);
   const auto& fams = o.families.empty() ? residual_family_names() : o.families;
 
@@ -527,7 +591,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     double mae = 0, hold_mae = 0, mae1 = 0, mae2 = 0;
   };
   auto validate = [&](std::vector<EffectTerm> t) {
-    double off = 0.0;
+    Level off;
     fit_terms(c, t, off, 0, n_fit);
     const std::vector<double> pred = corrected(c, t, off);
     Val v;
@@ -579,6 +643,48 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
         }
       s.best.labels["form"] = s.best.terms[0].type == "gain" ? "linear" : "quadratic";
     }
+    // The grid's low-pass is a factor ~3 off at worst (a 20-s thermal lag read through 30 s leaves a phase error
+    // of ~11° on a 200-s cycle, ~10 nm on a 90-nm swing): each term's time constant is refined by a pattern search
+    // in log τ (factor 2, then √2, … down to 1.1; within a factor 4 of the grid's choice) on the RMS of the joint
+    // fit over all of TRAIN — more rows than the validation part, so τ is not chosen on its noise. The family's
+    // significance stays that of the grid search; its validation gain is that of the refined τ.
+    bool refined = false;
+    for (std::size_t q = 0; q < s.best.terms.size(); ++q) {
+      if (!(s.best.terms[q].time_constant_s > 0.0)) continue;
+      auto train_ms = [&](const Candidate& cand) {
+        std::vector<EffectTerm> trial = fixed;
+        for (const auto& t : cand.terms) trial.push_back(t);
+        Level lv;
+        fit_terms(c, trial, lv, 0, n);
+        const std::vector<double> p = corrected(c, trial, lv);
+        double ss = 0.0;
+        for (std::size_t i = 0; i < n; ++i) ss += (c.measured[i] - p[i]) * (c.measured[i] - p[i]);
+        return ss / static_cast<double>(n);
+      };
+      const double tau0 = s.best.terms[q].time_constant_s;
+      double best_ms = train_ms(s.best);
+      for (double f = 2.0; f > 1.1; f = std::sqrt(f)) {
+        for (bool moved = true; moved;) {
+          moved = false;
+          for (double k : {f, 1.0 / f}) {
+            const double tau = s.best.terms[q].time_constant_s * k;
+            if (tau > 4.0 * tau0 * (1 + 1e-9) || tau < tau0 / 4.0 * (1 - 1e-9)) continue;
+            Candidate alt = s.best;
+            alt.terms[q].time_constant_s = tau;
+            alt.terms[q].center.clear(), alt.terms[q].scale.clear(), alt.terms[q].weight.clear();
+            const double ms = train_ms(alt);
+            if (ms < best_ms * (1.0 - 1e-4)) {
+              best_ms = ms;
+              s.best = alt;
+              moved = refined = true;
+              break;
+            }
+          }
+        }
+      }
+      if (s.best.terms.size() == 1 || q == 0) s.best.parameters["time_constant_s"] = s.best.terms[q].time_constant_s;
+    }
+    if (refined) v = score(s.best);
     s.validation_gain = 1.0 - v.mae / now.mae;
     s.hold_validation_gain = n_val_hold ? 1.0 - v.hold_mae / now.hold_mae : 0.0;
     s.validation_gain_halves = {1.0 - v.mae1 / now.mae1, 1.0 - v.mae2 / now.mae2};
@@ -590,12 +696,12 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
   };
 
   for (int step = 0; step < o.max_effects; ++step) {
-    const std::vector<double> pred = corrected(c, terms, offset);
+    const std::vector<double> pred = corrected(c, terms, level);
     std::vector<double> r(n);
     for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - pred[i];
     std::vector<FamilyScore> ranking;
     for (const auto& f : fams) {
-      ranking.push_back(score_family(f, c, terms, offset, r, pred, o, rng));
+      ranking.push_back(score_family(f, c, terms, level, r, pred, o, rng));
       const auto& s = ranking.back();
       std::ostringstream os;
       os << "step " << step + 1 << ": " << f;
@@ -682,9 +788,9 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     winner->verdict = "kept";
     effect_first.push_back(terms.size());
     for (const auto& t : winner->best.terms) terms.push_back(t);
-    fit_terms(c, terms, offset, 0, n);
+    fit_terms(c, terms, level, 0, n);
     for (int it = 0; o.refit_base && it < o.backfit_iterations; ++it) {
-      const std::vector<double> p = corrected(c, terms, offset);
+      const std::vector<double> p = corrected(c, terms, level);
       io::Dataset adj = train;
       auto& pos = adj.axis(o.axis).position_nm;
       for (std::size_t i = 0; i < n; ++i) pos[i] = c.measured[i] - (p[i] - c.x_base[i]);
@@ -695,7 +801,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
         c.x_base = run_model(*runner, adj, o.axis, o.mode);
       }
       cur_base = std::move(nb);
-      fit_terms(c, terms, offset, 0, n);
+      fit_terms(c, terms, level, 0, n);
       log("  backfit " + std::to_string(it + 1) + ": base refitted without the effect terms' part");
       // The first base absorbed the part of the effect its own regressors could express (a slow gain change
       // projects onto long creep modes), which shifts the residual's apparent lag and shape. On the refitted
@@ -703,8 +809,8 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       if (winner->variants > 1 || is_gain_family(winner->family)) {
         const std::size_t first = effect_first.back();
         std::vector<EffectTerm> others(terms.begin(), terms.begin() + static_cast<long>(first));
-        double off_o = 0.0;
-        if (!others.empty()) fit_terms(c, others, off_o, 0, n);
+        Level off_o;
+        if (!others.empty() || !c.transient.empty()) fit_terms(c, others, off_o, 0, n);
         const std::vector<double> p_o = corrected(c, others, off_o);
         std::vector<double> r_o(n);
         for (std::size_t i = 0; i < n; ++i) r_o[i] = c.measured[i] - p_o[i];
@@ -718,7 +824,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
           winner->best = again.best;
           terms.resize(first);
           for (const auto& t : again.best.terms) terms.push_back(t);
-          fit_terms(c, terms, offset, 0, n);
+          fit_terms(c, terms, level, 0, n);
         }
       }
     }
@@ -733,8 +839,8 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     e.ranking = ranking;
     e.competitors = competitors;
     e.hold_validation_gain = winner->hold_validation_gain;
-    models::AugmentedModel m(cur_base->clone(), terms, offset, fs);
-    const std::vector<double> pt = run_test(m);
+    models::AugmentedModel m(cur_base->clone(), terms, level.offset_nm, fs);
+    const std::vector<double> pt = run_test(m, level);
     e.test_after = error_stats(pt, meas_test, res.test_mask);
     e.test_prediction = pt;
     if (!truth_test.empty()) e.test_after_truth = error_stats(pt, truth_test, res.test_mask);
@@ -749,12 +855,12 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     const std::size_t last = q + 1 < effect_first.size() ? effect_first[q + 1] : terms.size();
     describe(terms, first, last - first, res.effects[q]);
   }
-  auto model = std::make_unique<models::AugmentedModel>(cur_base->clone(), terms, offset, fs);
-  res.test_pred_after = run_test(*model);
+  auto model = std::make_unique<models::AugmentedModel>(cur_base->clone(), terms, level.offset_nm, fs);
+  res.test_pred_after = run_test(*model, level);
   res.after_test = error_stats(res.test_pred_after, meas_test, res.test_mask);
   if (!truth_test.empty()) res.after_test_truth = error_stats(res.test_pred_after, truth_test, res.test_mask);
   {
-    const std::vector<double> p = corrected(c, terms, offset);
+    const std::vector<double> p = corrected(c, terms, level);
     std::vector<double> r(n);
     for (std::size_t i = 0; i < n; ++i) r[i] = c.measured[i] - p[i];
     res.after_validation.mae_nm = mae_of(r, n_fit, n);

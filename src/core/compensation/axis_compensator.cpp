@@ -31,6 +31,7 @@ void AxisCompensator::set_inputs_for(const models::Model& model) {
   time_index_.clear();
   for (std::size_t k = 0; k < names.size(); ++k)
     if (names[k] == "time_s") time_index_.push_back(k);
+  augmented_ = dynamic_cast<const models::AugmentedModel*>(&model);
 }
 
 std::vector<double> AxisCompensator::next_inputs() const {
@@ -91,6 +92,7 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
   }
   const models::ModelInput in{applied_v, aux_now_.empty() ? nullptr : aux_now_.data()};
   const double p = model_->predict(in);
+  u.base_predicted_nm = augmented_ ? augmented_->base_prediction(in) : p;
   last_applied_v_ = applied_v;
   if (!std::isfinite(p) || !in_range(p)) {
     std::ostringstream s;

@@ -49,9 +49,15 @@ const LiveInputs::Aux* LiveInputs::aux(const std::string& name) const {
 }
 
 double neutral_input(const models::Model& model, const std::string& name) {
+  // The training data's typical value of the signal: there a term adds only its constant part and a gain scales
+  // by 1. Linear and play terms standardise their output by its training mean; gains and powers centre the
+  // signal itself (pre_center). A time gain read at time 0 would scale the motion by ~10⁷ (seconds since 1970).
   if (const auto* aug = dynamic_cast<const models::AugmentedModel*>(&model))
-    for (const auto& t : aug->terms())
-      if (t.signal == name && !t.center.empty() && (t.type == "linear" || t.type == "play")) return t.center.front();
+    for (const auto& t : aug->terms()) {
+      if (t.signal != name) continue;
+      if (t.is_gain() || t.type == "powers") return t.pre_center;
+      if (!t.center.empty() && (t.type == "linear" || t.type == "play")) return t.center.front();
+    }
   return 0.0;
 }
 

@@ -83,6 +83,13 @@ void SnapshotBuffer::add_reading(const std::string& axis, std::uint32_t sequence
   trim(q, stamp_s, false);
 }
 
+void SnapshotBuffer::add_prediction(const std::string& axis, std::uint32_t sequence, double base_nm, double stamp_s) {
+  if (!std::isfinite(base_nm) || !std::isfinite(stamp_s)) return;
+  auto& q = axes_[axis].predictions;
+  q.push_back({stamp_s, sequence, base_nm});
+  trim(q, stamp_s, false);
+}
+
 void SnapshotBuffer::add_aux(const std::string& name, double value, double stamp_s) {
   if (!std::isfinite(value) || !std::isfinite(stamp_s)) return;
   auto& q = aux_[name];
@@ -92,7 +99,7 @@ void SnapshotBuffer::add_aux(const std::string& name, double value, double stamp
 
 std::size_t SnapshotBuffer::messages() const {
   std::size_t n = 0;
-  for (const auto& [name, a] : axes_) n += a.voltages.size() + a.readings.size();
+  for (const auto& [name, a] : axes_) n += a.voltages.size() + a.readings.size() + a.predictions.size();
   for (const auto& [name, q] : aux_) n += q.size();
   return n;
 }
@@ -151,6 +158,9 @@ Snapshot SnapshotBuffer::take() const {
       if (a.readings[i].valid) out.readings.push_back(a.readings[i].r);
       else ++s.invalid_readings;
     }
+    const double first_s = a.readings[ri].r.stamp_s - kSameSampleS;
+    for (const auto& p : a.predictions)
+      if (p.stamp_s >= first_s) out.base_predictions.push_back(p);
   }
   for (auto& [name, a] : s.axes) {
     restamp(a, s);

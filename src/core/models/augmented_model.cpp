@@ -348,6 +348,29 @@ void AugmentedModel::split(const ModelInput& in, std::vector<double>& base_aux, 
   for (std::size_t j = 0; j < col_index_.size(); ++j) cols[j] = in.aux[col_index_[j]];
 }
 
+namespace {
+const Model& base_of(const Model& m) {
+  if (const auto* aug = dynamic_cast<const AugmentedModel*>(&m)) return aug->base();
+  return m;
+}
+}  // namespace
+
+bool AugmentedModel::can_adopt_base_state(const Model& running) const {
+  const Model& src = base_of(running);
+  if (src.kind() != base_->kind() || !src.aux_inputs().empty() || !base_->aux_inputs().empty()) return false;
+  YAML::Emitter a, b;
+  a << src.to_yaml();
+  b << base_->to_yaml();
+  return std::string(a.c_str()) == std::string(b.c_str());
+}
+
+void AugmentedModel::adopt_base_state(const Model& running, double offset_change_nm) {
+  if (!can_adopt_base_state(running) || !std::isfinite(offset_change_nm))
+    throw std::invalid_argument("augmented model: the running model's base is not this model's base");
+  base_ = base_of(running).clone();
+  stream_.set_offset_nm(stream_.offset_nm() + offset_change_nm);
+}
+
 void AugmentedModel::reset(double voltage_v, double position_nm) {
   base_->reset(voltage_v, position_nm);
   stream_.reset();
