@@ -465,6 +465,15 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     compensation::SnapshotOptions so;
     so.duration_s = s_.snapshot_duration_s;
     so.max_messages = static_cast<std::size_t>(s_.snapshot_max_messages);
+    so.expected_rate_hz = 0.0;  // the fastest axis' sample rate (~sample_rate_hz, else its model's, else 11 Hz)
+    for (const auto& a : axes_) {
+      so.axes.push_back(a->logic->axis());
+      const double model_hz = a->logic->compensator().model().meta.sample_rate_hz;
+      so.expected_rate_hz = std::max(so.expected_rate_hz, s_.sample_rate_hz > 0 ? s_.sample_rate_hz
+                                                                                 : model_hz > 0 ? model_hz : 11.0);
+    }
+    if (!(so.expected_rate_hz > 0.0)) so.expected_rate_hz = 11.0;
+    for (const auto& [name, topic] : s_.aux_topics) so.aux.push_back(name);
     snapshot_ = std::make_unique<compensation::SnapshotBuffer>(so);
     srv_snapshot_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
         "snapshot", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {

@@ -79,6 +79,53 @@ TEST(SnapshotBuffer, KeepsTheLastDurationBoundedAndCutsOnCompleteSamples) {
   EXPECT_NO_THROW(capped.take());
 }
 
+TEST(SnapshotBuffer, AllocatesItsCapacityAtConstructionAndDoesNotGrowAtTheExpectedRate) {
+  compensation::SnapshotOptions o{60.0, 100000};
+  o.expected_rate_hz = 11.0;
+  o.axes = {"a", "c"};
+  o.aux = {"temperature_c"};
+  compensation::SnapshotBuffer b(o);
+  // 2 axes × (voltage, encoder, prediction) + 1 aux, each sized for 61 s at 11 Hz before anything arrives
+  const std::size_t allocated = b.capacity();
+  EXPECT_EQ(b.messages(), 0u);
+  EXPECT_GE(allocated, 7u * 61u * 11u);
+  EXPECT_LE(allocated, 7u * (61u * 11u * 11u / 10u + 8u));
+  feed(b, 1000.0, 11 * 600);  // 10 min at 11 Hz (with receive jitter and a late reading) into the 1 min window
+  for (std::size_t i = 0; i < 11 * 600; ++i)
+    b.add_prediction("c", static_cast<std::uint32_t>(i), 1.0, 1000.0 + static_cast<double>(i) / 11.0);
+  EXPECT_EQ(b.capacity(), allocated);
+  EXPECT_EQ(b.grown(), 0u);
+  EXPECT_GE(b.messages(), 5u * 11u * 60u);  // full: a, c voltages and readings, c predictions
+  EXPECT_NO_THROW(b.take());
+
+  // 4× faster than expected: the rings double (counted), bounded by max_messages per stream, nothing lost
+  compensation::SnapshotBuffer fast({60.0, 4000});
+  const std::size_t fast_allocated = fast.capacity();
+  for (std::size_t i = 0; i < 44 * 120; ++i) {
+    const double t = static_cast<double>(i) / 44.0;
+    fast.add_voltage("c", static_cast<std::uint32_t>(i), 1.0, t);
+    fast.add_reading("c", static_cast<std::uint32_t>(i), 2.0, true, t);
+  }
+  EXPECT_GT(fast.grown(), 0u);
+  EXPECT_GT(fast.capacity(), fast_allocated);
+  EXPECT_LE(fast.capacity(), 3u * 4000u);
+  const compensation::Snapshot s = fast.take();
+  // 60 s at 44 Hz (the first one on the window's edge, in or out by rounding)
+  EXPECT_NEAR(static_cast<double>(s.axes.at("c").readings.size()), 44.0 * 60.0, 1.0);
+
+  // one clear error for a rate that cannot size a ring
+  for (double bad : {0.0, -1.0, std::nan(""), HUGE_VAL, 1e6}) {
+    compensation::SnapshotOptions b_o{60.0, 1000};
+    b_o.expected_rate_hz = bad;
+    try {
+      compensation::SnapshotBuffer x(b_o);
+      FAIL() << "expected_rate_hz " << bad << " accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("expected_rate_hz"), std::string::npos) << e.what();
+    }
+  }
+}
+
 TEST(SnapshotBuffer, AStreamThatStartsLateMovesTheStart) {
   compensation::SnapshotBuffer b({60.0, 100000});
   feed(b, 1000.0, 11 * 30);

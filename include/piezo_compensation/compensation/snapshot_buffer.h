@@ -6,7 +6,6 @@
 
 #include <cstddef>
 #include <cstdint>
-#include <deque>
 #include <map>
 #include <string>
 #include <vector>
@@ -15,7 +14,12 @@ namespace piezo::compensation {
 
 struct SnapshotOptions {
   double duration_s = 1800.0;           // keep this much of the newest data [s]
-  std::size_t max_messages = 1000000;   // per stream (axis voltage, axis encoder, aux signal): the memory bound
+  std::size_t max_messages = 1000000;   // per stream (axis voltage, encoder, base prediction, aux signal): the bound
+  // Each stream's ring is sized at construction for duration_s at this rate (with 5 % and 1 s headroom), capped by
+  // max_messages, so its memory is committed at start-up and the callbacks that fill it do not allocate.
+  double expected_rate_hz = 11.0;       // messages per second per stream [Hz] (0 < rate <= 100000)
+  std::vector<std::string> axes{};      // axes whose streams are allocated at construction
+  std::vector<std::string> aux{};       // aux signals allocated at construction (others on their first value)
 };
 
 // stamp_s: the sample clock (see Snapshot); received_s: the stamp the message came with (receive time).
@@ -64,6 +68,40 @@ struct Snapshot {
   std::size_t invalid_readings = 0;  // readings the controller flagged invalid: left out (the reader makes no row)
 };
 
+// A FIFO on one allocation of fixed capacity; grow() re-lays it out in a larger one.
+template <class T>
+class SnapshotRing {
+ public:
+  SnapshotRing() = default;
+  // Value-initialised: every element is written here, so the pages are committed now, not while filling.
+  explicit SnapshotRing(std::size_t capacity) : buf_(capacity) {}
+  std::size_t size() const { return size_; }
+  std::size_t capacity() const { return buf_.size(); }
+  bool empty() const { return size_ == 0; }
+  const T& operator[](std::size_t i) const { return buf_[wrap(head_ + i)]; }
+  const T& front() const { return (*this)[0]; }
+  const T& back() const { return (*this)[size_ - 1]; }
+  void pop_front() {
+    head_ = wrap(head_ + 1);
+    --size_;
+  }
+  void push_back(const T& e) {  // requires size() < capacity()
+    buf_[wrap(head_ + size_)] = e;
+    ++size_;
+  }
+  void grow(std::size_t capacity) {
+    std::vector<T> bigger(capacity);
+    for (std::size_t i = 0; i < size_; ++i) bigger[i] = (*this)[i];
+    buf_.swap(bigger);
+    head_ = 0;
+  }
+
+ private:
+  std::size_t wrap(std::size_t i) const { return i >= buf_.size() ? i - buf_.size() : i; }
+  std::vector<T> buf_;
+  std::size_t head_ = 0, size_ = 0;
+};
+
 class SnapshotBuffer {
  public:
   explicit SnapshotBuffer(const SnapshotOptions& o);  // throws std::invalid_argument naming the bad option
@@ -78,6 +116,8 @@ class SnapshotBuffer {
   Snapshot take() const;
 
   std::size_t messages() const;  // held now, all streams
+  std::size_t capacity() const;  // allocated, all streams [messages]
+  std::size_t grown() const { return grown_; }  // times a stream outgrew its ring (arrived faster than expected)
   const SnapshotOptions& options() const { return o_; }
 
  private:
@@ -86,16 +126,20 @@ class SnapshotBuffer {
     bool valid = true;
   };
   struct AxisStreams {
-    std::deque<SnapshotVoltage> voltages;
-    std::deque<Reading> readings;
-    std::deque<SnapshotPrediction> predictions;
+    SnapshotRing<SnapshotVoltage> voltages;
+    SnapshotRing<Reading> readings;
+    SnapshotRing<SnapshotPrediction> predictions;
   };
-  template <class Q>
-  void trim(Q& q, double newest_s, bool keep_one_before) const;
+  AxisStreams& axis_streams(const std::string& axis);
+  SnapshotRing<SnapshotAux>& aux_stream(const std::string& name);
+  template <class T>
+  void push(SnapshotRing<T>& q, const T& e, bool keep_one_before);
 
   SnapshotOptions o_;
+  std::size_t initial_capacity_ = 0;  // per stream
+  std::size_t grown_ = 0;
   std::map<std::string, AxisStreams> axes_;
-  std::map<std::string, std::deque<SnapshotAux>> aux_;
+  std::map<std::string, SnapshotRing<SnapshotAux>> aux_;
 };
 
 }  // namespace piezo::compensation

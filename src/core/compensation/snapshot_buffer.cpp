@@ -52,55 +52,88 @@ SnapshotBuffer::SnapshotBuffer(const SnapshotOptions& o) : o_(o) {
   if (!(o_.duration_s > 0.0) || !std::isfinite(o_.duration_s))
     throw std::invalid_argument("snapshot duration_s must be finite and > 0");
   if (o_.max_messages < 2) throw std::invalid_argument("snapshot max_messages must be at least 2");
+  if (!(o_.expected_rate_hz > 0.0) || !(o_.expected_rate_hz <= 100000.0))
+    throw std::invalid_argument("snapshot expected_rate_hz must be > 0 and <= 100000");
+  // What push() keeps at the expected rate (duration_s plus its 1 s headroom), 5 % more for a controller clock
+  // running fast and receive jitter, and the one aux value before the window.
+  const double need = std::ceil((o_.duration_s + kSameSampleS) * o_.expected_rate_hz * 1.05) + 2.0;
+  initial_capacity_ = need >= static_cast<double>(o_.max_messages) ? o_.max_messages : static_cast<std::size_t>(need);
+  for (const auto& axis : o_.axes) axis_streams(axis);
+  for (const auto& name : o_.aux) aux_stream(name);
 }
 
-template <class Q>
-void SnapshotBuffer::trim(Q& q, double newest_s, bool keep_one_before) const {
+SnapshotBuffer::AxisStreams& SnapshotBuffer::axis_streams(const std::string& axis) {
+  auto it = axes_.find(axis);
+  if (it == axes_.end()) {  // allocates: an axis not named in the options, once, on its first message
+    AxisStreams a{SnapshotRing<SnapshotVoltage>(initial_capacity_), SnapshotRing<Reading>(initial_capacity_),
+                  SnapshotRing<SnapshotPrediction>(initial_capacity_)};
+    it = axes_.emplace(axis, std::move(a)).first;
+  }
+  return it->second;
+}
+
+SnapshotRing<SnapshotAux>& SnapshotBuffer::aux_stream(const std::string& name) {
+  auto it = aux_.find(name);
+  if (it == aux_.end()) it = aux_.emplace(name, SnapshotRing<SnapshotAux>(initial_capacity_)).first;
+  return it->second;
+}
+
+template <class T>
+void SnapshotBuffer::push(SnapshotRing<T>& q, const T& e, bool keep_one_before) {
   // Some headroom beyond duration_s, so take() still finds the report of the first reading it keeps.
-  const double cut = newest_s - o_.duration_s - kSameSampleS;
-  const auto stamp = [](const auto& e) {
-    if constexpr (std::is_same_v<std::decay_t<decltype(e)>, Reading>) return e.r.stamp_s;
-    else return e.stamp_s;
+  const auto stamp = [](const auto& x) {
+    if constexpr (std::is_same_v<std::decay_t<decltype(x)>, Reading>) return x.r.stamp_s;
+    else return x.stamp_s;
   };
-  while (q.size() > o_.max_messages) q.pop_front();
+  const double cut = stamp(e) - o_.duration_s - kSameSampleS;
   while (!q.empty() && stamp(q.front()) < cut && (!keep_one_before || (q.size() > 1 && stamp(q[1]) < cut)))
     q.pop_front();
+  if (q.size() == q.capacity()) {
+    if (q.capacity() < o_.max_messages) {
+      // A stream faster than expected_rate_hz (or a burst) outgrows its ring: double it, up to max_messages. This
+      // allocates in the callback, and is counted (grown()).
+      q.grow(std::min(o_.max_messages, std::max<std::size_t>(2 * q.capacity(), 2)));
+      ++grown_;
+    } else {
+      q.pop_front();  // the memory bound: the oldest goes
+    }
+  }
+  q.push_back(e);
 }
 
 void SnapshotBuffer::add_voltage(const std::string& axis, std::uint32_t sequence, double voltage_v, double stamp_s) {
   if (!std::isfinite(voltage_v) || !std::isfinite(stamp_s)) return;
-  auto& q = axes_[axis].voltages;
-  q.push_back({stamp_s, stamp_s, sequence, voltage_v});
-  trim(q, stamp_s, false);
+  push(axis_streams(axis).voltages, SnapshotVoltage{stamp_s, stamp_s, sequence, voltage_v}, false);
 }
 
 void SnapshotBuffer::add_reading(const std::string& axis, std::uint32_t sequence, double position_nm, bool valid,
                                  double stamp_s) {
   if (!std::isfinite(stamp_s)) return;
   if (!std::isfinite(position_nm)) valid = false;
-  auto& q = axes_[axis].readings;
-  q.push_back({{stamp_s, stamp_s, sequence, valid ? position_nm : 0.0}, valid});
-  trim(q, stamp_s, false);
+  push(axis_streams(axis).readings, Reading{{stamp_s, stamp_s, sequence, valid ? position_nm : 0.0}, valid}, false);
 }
 
 void SnapshotBuffer::add_prediction(const std::string& axis, std::uint32_t sequence, double base_nm, double stamp_s) {
   if (!std::isfinite(base_nm) || !std::isfinite(stamp_s)) return;
-  auto& q = axes_[axis].predictions;
-  q.push_back({stamp_s, sequence, base_nm});
-  trim(q, stamp_s, false);
+  push(axis_streams(axis).predictions, SnapshotPrediction{stamp_s, sequence, base_nm}, false);
 }
 
 void SnapshotBuffer::add_aux(const std::string& name, double value, double stamp_s) {
   if (!std::isfinite(value) || !std::isfinite(stamp_s)) return;
-  auto& q = aux_[name];
-  q.push_back({stamp_s, value});
-  trim(q, stamp_s, true);  // the value in force at the window's start
+  push(aux_stream(name), SnapshotAux{stamp_s, value}, true);  // the value in force at the window's start
 }
 
 std::size_t SnapshotBuffer::messages() const {
   std::size_t n = 0;
   for (const auto& [name, a] : axes_) n += a.voltages.size() + a.readings.size() + a.predictions.size();
   for (const auto& [name, q] : aux_) n += q.size();
+  return n;
+}
+
+std::size_t SnapshotBuffer::capacity() const {
+  std::size_t n = 0;
+  for (const auto& [name, a] : axes_) n += a.voltages.capacity() + a.readings.capacity() + a.predictions.capacity();
+  for (const auto& [name, q] : aux_) n += q.capacity();
   return n;
 }
 
@@ -153,14 +186,14 @@ Snapshot SnapshotBuffer::take() const {
       throw std::runtime_error(os.str());
     }
     Snapshot::Axis& out = s.axes[name];
-    out.voltages.assign(a.voltages.begin() + static_cast<std::ptrdiff_t>(vi), a.voltages.end());
+    for (std::size_t i = vi; i < a.voltages.size(); ++i) out.voltages.push_back(a.voltages[i]);
     for (std::size_t i = ri; i < a.readings.size(); ++i) {
       if (a.readings[i].valid) out.readings.push_back(a.readings[i].r);
       else ++s.invalid_readings;
     }
     const double first_s = a.readings[ri].r.stamp_s - kSameSampleS;
-    for (const auto& p : a.predictions)
-      if (p.stamp_s >= first_s) out.base_predictions.push_back(p);
+    for (std::size_t i = 0; i < a.predictions.size(); ++i)
+      if (a.predictions[i].stamp_s >= first_s) out.base_predictions.push_back(a.predictions[i]);
   }
   for (auto& [name, a] : s.axes) {
     restamp(a, s);
@@ -170,7 +203,8 @@ Snapshot SnapshotBuffer::take() const {
     if (q.empty()) continue;
     std::size_t k = 0;
     while (k + 1 < q.size() && q[k + 1].stamp_s <= s.begin_s) ++k;  // the value in force at the first row
-    s.aux[name].assign(q.begin() + static_cast<std::ptrdiff_t>(k), q.end());
+    auto& out = s.aux[name];
+    for (std::size_t i = k; i < q.size(); ++i) out.push_back(q[i]);
   }
   return s;
 }
