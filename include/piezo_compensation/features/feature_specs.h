@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "piezo_compensation/features/feature_stream.h"
+#include "piezo_compensation/io/dataset.h"
 
 namespace piezo::features {
 
@@ -23,9 +24,7 @@ FeatureSpec candidate_features();
 FeatureSpec physics_features();
 
 // What a data-placed feature set is placed on: the training data's voltage extremes, length and rate.
-struct DataSpan {
-  double voltage_min_v = 0, voltage_max_v = 0, duration_s = 0, sample_rate_hz = 0;
-};
+using DataSpan = io::DataSpan;
 
 // Only voltage history, placed on the data itself (the neural kinds' default): V, ΔV, play operators at 3, 10,
 // 20 and 40 % of the voltage span, and low-passes of the 10 % play output with time constants at 1/3000, 1/300,

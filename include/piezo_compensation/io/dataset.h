@@ -70,6 +70,15 @@ struct Dataset {
   void validate() const;
 };
 
+// The voltage extremes, length and rate of one axis' recording: what data-placed features (features/
+// feature_specs.h, voltage_history) are placed on and what the fit gates (analysis/model_selection.h) scale by.
+struct DataSpan {
+  double voltage_min_v = 0, voltage_max_v = 0, duration_s = 0, sample_rate_hz = 0;
+  double voltage_span_v() const { return voltage_max_v - voltage_min_v; }
+};
+// duration_s = rows / rate (rows × sample period). Throws DataError like sample_period_s() on fewer than 2 rows.
+DataSpan data_span(const Dataset& data, const std::string& axis);
+
 // Column name helpers.
 std::string voltage_column(const std::string& axis);        // "<axis>_voltage_v"
 std::string position_column(const std::string& axis);       // "<axis>_position_nm"

@@ -65,9 +65,6 @@ Design build_design(const features::FeatureSpec& spec, const io::Dataset& data, 
 // Solves (G + ridge·I) β = c robustly (LDLT, falls back to a pseudo-inverse for singular G).
 Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c, double ridge);
 
-// The voltage extremes, duration and rate of one axis of `data` (what voltage_history is placed on).
-features::DataSpan data_span(const io::Dataset& data, const std::string& axis);
-
 // The feature spec a fit uses: options["features"] may be a set name ("study", "candidates", "physics",
 // "voltage_history": placed on req.train),
 // "lasso" (lasso with time-block CV over the candidates; the λ_1se survivors), or a full spec mapping.

@@ -63,11 +63,11 @@ DataScale data_scale(const io::Dataset& data, const std::string& axis) {
   for (double x : ax.position_nm)
     if (std::isfinite(x)) y.push_back(x), s.position_abs_max_nm = std::max(s.position_abs_max_nm, std::fabs(x));
   if (!y.empty()) s.position_range_nm = percentile(y, 0.999) - percentile(y, 0.001);
-  if (!ax.voltage_v.empty()) {
-    const auto [lo, hi] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
-    s.voltage_span_v = *hi - *lo;
+  if (data.size() > 1) {
+    const io::DataSpan span = io::data_span(data, axis);
+    s.voltage_span_v = span.voltage_span_v();
+    s.duration_s = span.duration_s;
   }
-  if (data.size() > 1) s.duration_s = data.time_s.back() - data.time_s.front() + data.sample_period_s();
   return s;
 }
 

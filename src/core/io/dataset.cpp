@@ -150,4 +150,17 @@ void Dataset::validate() const {
   if (!phase.empty() && phase.size() != n) throw DataError(where(*this) + ": column phase has the wrong length");
 }
 
+DataSpan data_span(const Dataset& data, const std::string& axis) {
+  const auto& v = data.axis(axis).voltage_v;
+  DataSpan s;
+  s.sample_rate_hz = data.sample_rate_hz();
+  s.duration_s = static_cast<double>(data.size()) / s.sample_rate_hz;
+  if (!v.empty()) {
+    const auto [lo, hi] = std::minmax_element(v.begin(), v.end());
+    s.voltage_min_v = *lo;
+    s.voltage_max_v = *hi;
+  }
+  return s;
+}
+
 }  // namespace piezo::io

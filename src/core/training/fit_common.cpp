@@ -161,22 +161,9 @@ Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c,
   return A.completeOrthogonalDecomposition().solve(c);
 }
 
-features::DataSpan data_span(const io::Dataset& data, const std::string& axis) {
-  const auto& v = data.axis(axis).voltage_v;
-  features::DataSpan s;
-  s.sample_rate_hz = data.sample_rate_hz();
-  s.duration_s = static_cast<double>(data.size()) / s.sample_rate_hz;
-  if (!v.empty()) {
-    const auto [lo, hi] = std::minmax_element(v.begin(), v.end());
-    s.voltage_min_v = *lo;
-    s.voltage_max_v = *hi;
-  }
-  return s;
-}
-
 features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set) {
   if (!req.train) throw std::runtime_error("fit: no training data");
-  const features::DataSpan span = data_span(*req.train, req.axis);
+  const features::DataSpan span = io::data_span(*req.train, req.axis);
   const YAML::Node f = req.options ? req.options["features"] : YAML::Node();
   features::FeatureSpec spec;
   if (!f || (f.IsScalar() && f.as<std::string>().empty())) {

@@ -30,17 +30,15 @@ Eigen::VectorXd linear_start(const DenseNet& net, std::uint64_t seed, const Eige
   Eigen::VectorXd p = net.initial_params(seed);
   const Eigen::Index n_in = x.rows();
   const ColumnLinearFit fit = linear_fit_columns(x, y);
-  const Eigen::VectorXd& beta = fit.beta;
-  const double intercept = fit.intercept;
-  const Eigen::VectorXd lin = beta.transpose() * x;
+  const Eigen::VectorXd lin = fit.beta.transpose() * x;
   const double k = s.depth > 0 ? std::max(0.0, -lin.minCoeff()) + 1.0 : 0.0;
   Eigen::Index o = 0;
   int in = static_cast<int>(n_in);
   for (int l = 0; l <= s.depth; ++l) {
     const int out = l < s.depth ? s.width : 1;
-    for (int i = 0; i < in; ++i) p[o + i * out] = l == 0 ? beta[i] : (i == 0 ? 1.0 : 0.0);  // row 0 of W
+    for (int i = 0; i < in; ++i) p[o + i * out] = l == 0 ? fit.beta[i] : (i == 0 ? 1.0 : 0.0);  // row 0 of W
     o += static_cast<Eigen::Index>(in) * out;
-    p[o] = (l == 0 ? k : 0.0) + (l == s.depth ? intercept - k : 0.0);  // bias of unit 0
+    p[o] = (l == 0 ? k : 0.0) + (l == s.depth ? fit.intercept - k : 0.0);  // bias of unit 0
     o += out;
     in = out;
   }
