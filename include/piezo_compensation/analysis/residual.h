@@ -106,6 +106,9 @@ struct ResidualOptions {
   // base that absorbed part of the effect when first fitted gives it back. Empty = the base stays as given.
   std::function<models::ModelPtr(const io::Dataset& fit_part, const io::Dataset& validation_part)> refit_base;
   int backfit_iterations = 2;
+  // Refits after a gain family is added (a gain is absorbed by the base more than an additive term; each refit
+  // after the first takes out the secant estimate of the joint fit's gain, see trace_residual).
+  int gain_backfit_iterations = 4;
   // When TEST continues TRAIN in time, TEST predictions run on from TRAIN instead of restarting from a reset
   // (a reset "rested at the first measured position" is wrong while creep from the past is still going on).
   bool warm_start = true;
