@@ -162,9 +162,18 @@ std::string warm_model(models::Model& model, const std::string& axis, const comp
     std::error_code ec;
     fs::remove(tmp, ec);
     // on failure the reload resets it (cold)
-    const std::vector<double> warm = models::stream_model(model, d, axis, models::StreamOptions{}).prediction;
     auto* aug = dynamic_cast<models::AugmentedModel*>(&model);
-    if (running && aug && handover) {
+    const bool hand_over = running && aug && handover;
+    std::vector<double> warm, warm_base;  // the hand-over takes the base part from this one stream
+    if (hand_over) aug->set_base_trace(&warm_base);
+    try {
+      warm = models::stream_model(model, d, axis, models::StreamOptions{}).prediction;
+    } catch (...) {
+      if (hand_over) aug->set_base_trace(nullptr);
+      throw;
+    }
+    if (hand_over) {
+      aug->set_base_trace(nullptr);
       // the running base's recorded prediction per row: the rows are the window's valid readings, in order
       const auto& ax = s.axes.at(axis);
       std::vector<double> base(d.size(), std::nan(""));
@@ -176,7 +185,7 @@ std::string warm_model(models::Model& model, const std::string& axis, const comp
           if (it != by_seq.end()) base[i] = it->second;
         }
       }
-      const compensation::BaseHandover h = compensation::hand_over_base(*aug, *running, d, axis, warm, base);
+      const compensation::BaseHandover h = compensation::hand_over_base(*aug, *running, d, axis, warm, warm_base, base);
       std::ostringstream os;
       if (h.done)
         os << "base state from the running model, offset " << std::showpos << h.offset_change_nm << std::noshowpos

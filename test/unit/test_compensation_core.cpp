@@ -191,9 +191,15 @@ TEST(CompensationBaseHandover, TakesTheRunningBaseAndReestimatesTheOffset) {
   double off = 0.0;
   for (std::size_t i = 0; i < n_win; ++i) off += (truth[n_hist + i] - cold[i]) / n_win;
   models::AugmentedModel fresh(test::make_pi_creep(fs), {}, off, fs);
+  std::vector<double> warm_base;  // the base part of the warm-up stream
+  fresh.set_base_trace(&warm_base);
   const std::vector<double> warm = models::stream_model(fresh, win, "c").prediction;
+  fresh.set_base_trace(nullptr);
+  ASSERT_EQ(warm_base.size(), n_win);
+  // the base inside the augmented model ran its own free run: what streaming the base alone again gives
+  for (std::size_t i = 0; i < n_win; ++i) ASSERT_EQ(warm_base[i], cold[i]) << "row " << i;
   std::unique_ptr<models::Model> from_rest = fresh.clone();
-  const BaseHandover h = hand_over_base(fresh, *run_base, win, "c", warm, running_base);
+  const BaseHandover h = hand_over_base(fresh, *run_base, win, "c", warm, warm_base, running_base);
   ASSERT_TRUE(h.done) << h.why;
   EXPECT_NEAR(fresh.offset_nm() , 20.0, 1e-6);
   double worst = 0.0, worst_rest = 0.0;
@@ -210,7 +216,7 @@ TEST(CompensationBaseHandover, TakesTheRunningBaseAndReestimatesTheOffset) {
   std::cout << "after the reload, worst error: hand-over " << worst << " nm, warmed from rest " << worst_rest << " nm\n";
   // another base is not taken
   models::AugmentedModel other(std::make_unique<test::LinearCreepModel>(12.0, 2.0, 60.0, fs), {}, off, fs);
-  EXPECT_FALSE(hand_over_base(other, *run_base, win, "c", warm, running_base).done);
+  EXPECT_FALSE(hand_over_base(other, *run_base, win, "c", warm, warm_base, running_base).done);
 }
 
 // With a perfect model the compensated plant follows the ideal line; uncompensated it shows the hysteresis.

@@ -22,11 +22,13 @@ struct BaseHandover {
   std::string why;                // why not, when !done
 };
 
-// fresh: already streamed (free-run, from rest) over `data`, which gave `warm_prediction` per row. running: the
-// model running now. running_base: its base's prediction per row of `data` (NaN where none was recorded). The
-// offset is estimated on the rows after the first tenth of the window (the terms' low-passes settle there).
+// fresh: already streamed (free-run, from rest) over `data`, which gave `warm_prediction` per row and, as its base
+// part, `warm_base` (AugmentedModel::set_base_trace during that stream: the base started at rest on the window).
+// running: the model running now. running_base: its base's prediction per row of `data` (NaN where none was
+// recorded). The offset is estimated on the rows after the first tenth of the window (the terms' low-passes settle
+// there).
 BaseHandover hand_over_base(models::AugmentedModel& fresh, const models::Model& running, const io::Dataset& data,
                             const std::string& axis, const std::vector<double>& warm_prediction,
-                            const std::vector<double>& running_base);
+                            const std::vector<double>& warm_base, const std::vector<double>& running_base);
 
 }  // namespace piezo::compensation

@@ -108,6 +108,11 @@ class AugmentedModel : public Model {
 
   static ModelPtr from_yaml(const YAML::Node& model_node);
 
+  // While set (non-null), commit() appends the base part of the sample's prediction — the base model's own
+  // prediction — to *trace, so one stream gives the model's predictions and its base's (compensation/
+  // base_handover.h). The caller keeps *trace alive while it is set; a copy or clone() starts without one.
+  void set_base_trace(std::vector<double>* trace) { base_trace_ = trace; }
+
   // Whether `running` (or its base, when it is augmented itself) is this model's base — kind and every parameter —
   // and reads no inputs: then adopt_base_state takes its state (compensation/base_handover.h).
   bool can_adopt_base_state(const Model& running) const;
@@ -124,6 +129,7 @@ class AugmentedModel : public Model {
   std::size_t n_base_aux_ = 0;
   std::vector<std::string> aux_names_;
   std::vector<int> col_index_;  // term column j → index into ModelInput::aux
+  std::vector<double>* base_trace_ = nullptr;
 };
 
 }  // namespace piezo::models

@@ -2,35 +2,25 @@
 
 #include <cmath>
 
-#include "piezo_compensation/models/model_stream.h"
-
 namespace piezo::compensation {
 
 BaseHandover hand_over_base(models::AugmentedModel& fresh, const models::Model& running, const io::Dataset& data,
                             const std::string& axis, const std::vector<double>& warm_prediction,
-                            const std::vector<double>& running_base) {
+                            const std::vector<double>& warm_base, const std::vector<double>& running_base) {
   BaseHandover h;
   if (!fresh.can_adopt_base_state(running)) {
     h.why = "its base is not the running model's";
     return h;
   }
   const std::size_t n = data.size();
-  if (warm_prediction.size() != n || running_base.size() != n) {
+  if (warm_prediction.size() != n || warm_base.size() != n || running_base.size() != n) {
     h.why = "the window's rows and the recorded predictions differ in number";
-    return h;
-  }
-  std::vector<double> cold;
-  try {
-    models::ModelPtr b = fresh.base().clone();
-    cold = models::stream_model(*b, data, axis, models::StreamOptions{}).prediction;
-  } catch (const std::exception& e) {
-    h.why = std::string("the base did not run over the window: ") + e.what();
     return h;
   }
   const auto& measured = data.axis(axis).position_nm;
   double sum = 0.0;
   for (std::size_t i = n / 10; i < n; ++i) {
-    const double e = measured[i] - (warm_prediction[i] - cold[i] + running_base[i]);
+    const double e = measured[i] - (warm_prediction[i] - warm_base[i] + running_base[i]);
     if (!std::isfinite(e)) continue;
     sum += e;
     ++h.samples;

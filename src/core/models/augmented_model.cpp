@@ -399,6 +399,7 @@ void AugmentedModel::commit(const ModelInput& in, double position_nm) {
   const double corr = stream_.correction(in.voltage_v, x, cols.data());
   base_->commit(bi, position_nm - corr);
   stream_.commit(in.voltage_v, x, cols.data());
+  if (base_trace_) base_trace_->push_back(x);
 }
 
 std::unique_ptr<Model> AugmentedModel::clone() const { return std::make_unique<AugmentedModel>(*this); }
