@@ -440,6 +440,11 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
                << secs(t_warm, t_done) << ")";
           timing = took.str();
           res.message.clear();
+          if (recent && !recent->gaps.empty()) {
+            // the running model skipped the same samples: the warm-up runs across the gaps as it did
+            res.message += "; the window has " + compensation::describe_gaps(*recent) +
+                           ": warmed across them as the running model ran";
+          }
           for (std::size_t i = 0; i < axes_.size(); ++i)
             res.message += "; " + axes_[i]->logic->axis() + ": " +
                            (cold[i].empty() ? "warm, on the last " + std::to_string(static_cast<int>(
@@ -478,7 +483,11 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     srv_snapshot_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
         "snapshot", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
           try {
-            const compensation::Snapshot snap = snapshot_->take();
+            // the offline tools refuse a time column with missing samples: a stretch without one is written
+            const auto& so = snapshot_->options();
+            const compensation::SnapshotStretch cut =
+                compensation::gap_free_stretch(snapshot_->take(), so.prefer_recent_fraction, so.min_fraction);
+            const compensation::Snapshot& snap = cut.snapshot;
             const std::string path = snapshot_path(snapshot_directory(s_.snapshot_dir), snap.end_s);
             write_snapshot_bag(path, nh_.getNamespace(), snap, s_.frame_prefix + "base");
             std::size_t readings = 0;
@@ -490,9 +499,11 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
                << snap.max_restamp_s * 1e3 << " ms of it";
             if (snap.invalid_readings > 0) os << ", " << snap.invalid_readings << " invalid readings left out";
             os << ")";
+            if (!cut.message.empty()) os << "; " << cut.message;
             res.success = true;
             res.message = os.str();
-            ROS_INFO("snapshot: %s", res.message.c_str());
+            if (cut.message.empty()) ROS_INFO("snapshot: %s", res.message.c_str());
+            else ROS_WARN("snapshot: %s", res.message.c_str());
           } catch (const std::exception& e) {
             res.success = false;
             res.message = std::string("no snapshot written: ") + e.what();

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <iostream>
 
 #include "piezo_compensation/analysis/residual.h"
@@ -21,18 +22,24 @@ using namespace piezo;
 namespace {
 
 // Feeds n samples at 11 Hz from t0 as the driver publishes them: per axis the voltage report then the reading,
-// the temperature once a second. The reading of axis c lags its report by 2 ms.
-void feed(compensation::SnapshotBuffer& b, double t0, std::size_t n, std::uint32_t seq0 = 0) {
+// the temperature once a second. The reading of axis c lags its report by 2 ms. `lost(axis, i)`: sample i of the
+// axis never arrives (report and reading dropped beyond the predictor's queues).
+void feed(compensation::SnapshotBuffer& b, double t0, std::size_t n, std::uint32_t seq0 = 0,
+          const std::function<bool(const char*, std::size_t)>& lost = nullptr) {
   for (std::size_t i = 0; i < n; ++i) {
     const double t = t0 + static_cast<double>(i) / 11.0;
     const auto seq = static_cast<std::uint32_t>(seq0 + i);
     const double va = 10.0 * std::sin(0.01 * i), vc = 20.0 * std::cos(0.013 * i);
-    b.add_voltage("a", seq, va, t);
-    b.add_reading("a", seq, 12.0 * va, true, t);
+    if (!lost || !lost("a", i)) {
+      b.add_voltage("a", seq, va, t);
+      b.add_reading("a", seq, 12.0 * va, true, t);
+    }
     // receive stamps jitter (host load): up to ±4 ms on c, one reading 0.3 s late
     const double jitter = (i == 1100 ? 0.3 : 0.004 * std::sin(1.7 * static_cast<double>(i)));
-    b.add_voltage("c", seq, vc, t + jitter);
-    b.add_reading("c", seq, 13.0 * vc, true, t + jitter + 0.002);
+    if (!lost || !lost("c", i)) {
+      b.add_voltage("c", seq, vc, t + jitter);
+      b.add_reading("c", seq, 13.0 * vc, true, t + jitter + 0.002);
+    }
     if (i % 11 == 5) b.add_aux("temperature_c", 22.0 + 0.001 * static_cast<double>(i), t);
   }
 }
@@ -145,6 +152,7 @@ TEST(SnapshotBuffer, InvalidReadingsAreLeftOutAndCounted) {
   feed(b, 1009.1, 5, 101);
   const compensation::Snapshot s = b.take();
   EXPECT_EQ(s.invalid_readings, 2u);
+  EXPECT_EQ(s.gaps.size(), 2u) << "a reading left out is a missing sample on the sample clock";
   EXPECT_EQ(s.axes.at("a").readings.size(), 100u);  // 105 valid, less the 5 before the first temperature
   // only invalid readings in the window: nothing to write, said so
   compensation::SnapshotBuffer only_invalid({60.0, 1000});
@@ -164,6 +172,7 @@ TEST(SnapshotBag, ReadsAsItIsWithTheOneBagReader) {
   predictor::write_snapshot_bag(path, "/mm1", s, "base");
   EXPECT_NE(predictor::snapshot_path(dir, s.end_s), path) << "a second snapshot must not overwrite the first";
 
+  EXPECT_TRUE(s.gaps.empty()) << "a late reading is no gap";
   const io::Dataset d = ros_io::read_bag(path);
   // the sample clock: constant rate (what every offline tool requires) though the receive stamps jitter
   EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);
@@ -180,6 +189,78 @@ TEST(SnapshotBag, ReadsAsItIsWithTheOneBagReader) {
   ASSERT_EQ(d.aux.size(), 1u);
   EXPECT_EQ(d.aux[0].name, "temperature_c");
   EXPECT_NEAR(d.aux[0].values.back(), s.aux.at("temperature_c").back().value, 1e-12);
+}
+
+// Samples lost beyond the predictor's queues leave a gap on the sample clock, which every offline tool refuses
+// (io::Dataset::sample_period_s). ~snapshot writes a stretch without one — never filled in — and says what it cut.
+TEST(SnapshotBag, AGapIsCutOutAndTheStretchWrittenReadsAsItIs) {
+  const std::string dir = ::testing::TempDir() + "snapshot_gap";
+  std::filesystem::remove_all(dir);
+  struct Case {
+    const char* name;
+    std::size_t lost_from, lost_n;  // samples lost on both axes (the window holds samples 659 or 660 to 1319)
+    const char* which;              // the stretch written
+    bool before_gap;                // it ends at the gap (else it starts there)
+  };
+  // gap 49 s into the 60 s window: the recent 10.5 s are under 60 % of it, the 49 s before are written;
+  // gap 4 s in: the most recent 55.7 s are
+  for (const Case& k : {Case{"late gap", 1200, 3, "longest", true}, Case{"early gap", 704, 2, "most recent", false}}) {
+    SCOPED_TRACE(k.name);
+    compensation::SnapshotBuffer b({60.0, 100000});
+    feed(b, 1.7e9, 11 * 120, 0, [&](const char*, std::size_t i) { return i >= k.lost_from && i < k.lost_from + k.lost_n; });
+    const compensation::Snapshot s = b.take();
+    std::size_t rows = 0;  // samples of the stretch, per axis
+    for (const auto& r : s.axes.at("a").readings)
+      rows += (k.before_gap ? r.sequence < k.lost_from : r.sequence >= k.lost_from + k.lost_n) ? 1 : 0;
+    ASSERT_EQ(s.gaps.size(), 2u);  // one per axis
+    for (const auto& g : s.gaps) {
+      EXPECT_EQ(g.missing, k.lost_n);
+      EXPECT_NEAR(g.before_s - g.after_s, (k.lost_n + 1) / 11.0, 1e-3);  // on the sample clock: whole periods
+    }
+    // the whole window, as it was heard: the offline reader refuses it
+    const std::string whole = dir + "/whole_" + std::to_string(k.lost_from) + ".bag";
+    std::filesystem::create_directories(dir);
+    predictor::write_snapshot_bag(whole, "/mm1", s, "base");
+    EXPECT_THROW(ros_io::read_bag(whole).sample_period_s(), io::DataError);
+
+    const compensation::SnapshotStretch cut = compensation::gap_free_stretch(s);
+    EXPECT_TRUE(cut.snapshot.gaps.empty());
+    std::cout << "[snapshot gap] " << k.name << ": " << cut.message << "\n";
+    EXPECT_NE(cut.message.find(k.which), std::string::npos) << cut.message;
+    EXPECT_NE(cut.message.find(std::to_string(k.lost_n) + " on c after +"), std::string::npos) << cut.message;
+    const std::size_t held = s.axes.at("a").readings.size() + s.axes.at("c").readings.size();
+    EXPECT_EQ(cut.dropped_readings, held - 2 * rows);
+    EXPECT_NE(cut.message.find(std::to_string(cut.dropped_readings) + " readings left out"), std::string::npos)
+        << cut.message;
+    const std::string path = predictor::snapshot_path(dir, cut.snapshot.end_s);
+    predictor::write_snapshot_bag(path, "/mm1", cut.snapshot, "base");
+    const io::Dataset d = ros_io::read_bag(path);
+    EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);  // contiguous: every step one period
+    ASSERT_EQ(d.size(), rows);
+    const double gap_at = s.gaps[0].after_s;
+    EXPECT_TRUE(d.time_s.back() <= gap_at + 1e-6 || d.time_s.front() > gap_at) << "the gap is inside the bag";
+    const auto& c = d.axis("c");
+    for (std::size_t i = 0; i < d.size(); ++i)
+      ASSERT_NEAR(c.position_nm[i], 13.0 * c.voltage_v[i], 1e-6) << "row " << i << " paired with another sample";
+    const auto& temp = cut.snapshot.aux.at("temperature_c");
+    EXPECT_LE(temp.front().stamp_s, cut.snapshot.begin_s) << "no temperature in force at the first row";
+    EXPECT_LE(temp.back().stamp_s, cut.snapshot.end_s + 0.05);
+  }
+
+  // gaps every 10 s of a 60 s window, on c only: no stretch of 15 s (25 %), one error naming the gaps
+  compensation::SnapshotBuffer b({60.0, 100000});
+  feed(b, 1.7e9, 11 * 120, 0, [](const char* axis, std::size_t i) { return axis[0] == 'c' && i % 110 == 50; });
+  const compensation::Snapshot s = b.take();
+  EXPECT_GE(s.gaps.size(), 5u);
+  try {
+    compensation::gap_free_stretch(s);
+    FAIL() << "a window in 10-s pieces was written";
+  } catch (const std::runtime_error& e) {
+    const std::string m = e.what();
+    std::cout << "[snapshot gap] refused: " << m << "\n";
+    EXPECT_NE(m.find("no stretch without a missing sample"), std::string::npos) << m;
+    EXPECT_NE(m.find("1 on c after +"), std::string::npos) << m;
+  }
 }
 
 TEST(SnapshotBag, RefusesADirectoryItCannotCreate) {

@@ -20,6 +20,10 @@ struct SnapshotOptions {
   double expected_rate_hz = 11.0;       // messages per second per stream [Hz] (0 < rate <= 100000)
   std::vector<std::string> axes{};      // axes whose streams are allocated at construction
   std::vector<std::string> aux{};       // aux signals allocated at construction (others on their first value)
+  // gap_free_stretch (the ~snapshot bag): the most recent stretch without a missing sample is written when it spans
+  // at least prefer_recent_fraction of the window, else the longest when it spans at least min_fraction.
+  double prefer_recent_fraction = 0.6;
+  double min_fraction = 0.25;
 };
 
 // stamp_s: the sample clock (see Snapshot); received_s: the stamp the message came with (receive time).
@@ -50,6 +54,15 @@ struct SnapshotAux {
   double value = 0.0;
 };
 
+// Samples missing between two consecutive readings of one axis (frames lost beyond the predictor's queues, readings
+// the controller flagged invalid, a controller restart), on the sample clock (Snapshot).
+struct SnapshotGap {
+  std::string axis;
+  double after_s = 0.0;   // stamp of the reading before the gap
+  double before_s = 0.0;  // stamp of the reading after it
+  std::size_t missing = 0;
+};
+
 struct Snapshot {
   struct Axis {
     std::vector<SnapshotVoltage> voltages;
@@ -66,7 +79,24 @@ struct Snapshot {
   double period_s = 0.0;                                    // the mean sample period
   double max_restamp_s = 0.0;                               // largest |sample clock − receive stamp| of a reading
   std::size_t invalid_readings = 0;  // readings the controller flagged invalid: left out (the reader makes no row)
+  std::vector<SnapshotGap> gaps;     // by after_s; the offline tools refuse a time column with one
 };
+
+// "2 gaps, 7 samples missing (3 on c after +355.2 s, t = 1700000355.20 s; 4 on a after …)"
+std::string describe_gaps(const Snapshot& s);
+
+// What ~snapshot writes: `s` itself when it has no gap, else one stretch of it without a missing sample on any axis
+// (the offline tools refuse gaps by design, io::Dataset::sample_period_s; gaps are never filled). `message` ("" without
+// gaps) says which stretch, how many readings were left out and where the gaps are.
+struct SnapshotStretch {
+  Snapshot snapshot;
+  std::size_t dropped_readings = 0;  // readings of the window left out, all axes
+  std::string message;
+};
+// The most recent gap-free stretch when it spans at least prefer_recent_fraction of the window, else the longest
+// when it spans at least min_fraction (fractions of end_s − begin_s). Throws std::runtime_error naming the gaps and
+// the longest stretch when none is long enough.
+SnapshotStretch gap_free_stretch(const Snapshot& s, double prefer_recent_fraction = 0.6, double min_fraction = 0.25);
 
 // A FIFO on one allocation of fixed capacity; grow() re-lays it out in a larger one.
 template <class T>

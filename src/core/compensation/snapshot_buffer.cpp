@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <iomanip>
 #include <limits>
 #include <sstream>
 #include <stdexcept>
@@ -12,8 +13,8 @@ namespace piezo::compensation {
 namespace {
 
 // Puts one axis' samples on the sample clock (Snapshot): readings by sequence distance from the newest, reports
-// onto the stamp of their reading (or shifted like the reading before them when theirs was lost).
-void restamp(Snapshot::Axis& a, Snapshot& s) {
+// onto the stamp of their reading (or shifted like the reading before them when theirs was lost). Records the gaps.
+void restamp(const std::string& axis, Snapshot::Axis& a, Snapshot& s) {
   auto& r = a.readings;
   if (r.empty()) return;
   const std::size_t n = r.size();
@@ -35,6 +36,9 @@ void restamp(Snapshot::Axis& a, Snapshot& s) {
     shift[r[i].sequence] = clock - r[i].received_s;
     r[i].stamp_s = clock;
   }
+  for (std::size_t i = 1; i < n; ++i)
+    if (index[i] - index[i - 1] > 1.0)
+      s.gaps.push_back({axis, r[i - 1].stamp_s, r[i].stamp_s, static_cast<std::size_t>(index[i] - index[i - 1] - 1.0)});
   double last = 0.0;
   for (auto& v : a.voltages) {
     const auto it = shift.find(v.sequence);
@@ -54,6 +58,8 @@ SnapshotBuffer::SnapshotBuffer(const SnapshotOptions& o) : o_(o) {
   if (o_.max_messages < 2) throw std::invalid_argument("snapshot max_messages must be at least 2");
   if (!(o_.expected_rate_hz > 0.0) || !(o_.expected_rate_hz <= 100000.0))
     throw std::invalid_argument("snapshot expected_rate_hz must be > 0 and <= 100000");
+  if (!(o_.min_fraction > 0.0) || !(o_.min_fraction <= o_.prefer_recent_fraction) || !(o_.prefer_recent_fraction <= 1.0))
+    throw std::invalid_argument("snapshot fractions must satisfy 0 < min_fraction <= prefer_recent_fraction <= 1");
   // What push() keeps at the expected rate (duration_s plus its 1 s headroom), 5 % more for a controller clock
   // running fast and receive jitter, and the one aux value before the window.
   const double need = std::ceil((o_.duration_s + kSameSampleS) * o_.expected_rate_hz * 1.05) + 2.0;
@@ -196,9 +202,10 @@ Snapshot SnapshotBuffer::take() const {
       if (a.predictions[i].stamp_s >= first_s) out.base_predictions.push_back(a.predictions[i]);
   }
   for (auto& [name, a] : s.axes) {
-    restamp(a, s);
+    restamp(name, a, s);
     s.begin_s = std::min(s.begin_s, a.readings.front().stamp_s);
   }
+  std::sort(s.gaps.begin(), s.gaps.end(), [](const SnapshotGap& x, const SnapshotGap& y) { return x.after_s < y.after_s; });
   for (const auto& [name, q] : aux_) {
     if (q.empty()) continue;
     std::size_t k = 0;
@@ -207,6 +214,126 @@ Snapshot SnapshotBuffer::take() const {
     for (std::size_t i = k; i < q.size(); ++i) out.push_back(q[i]);
   }
   return s;
+}
+
+std::string describe_gaps(const Snapshot& s) {
+  std::size_t missing = 0;
+  for (const auto& g : s.gaps) missing += g.missing;
+  std::ostringstream os;
+  os << std::fixed << std::setprecision(1) << s.gaps.size() << (s.gaps.size() == 1 ? " gap" : " gaps") << ", "
+     << missing << " samples missing (";
+  const std::size_t shown = std::min<std::size_t>(s.gaps.size(), 4);
+  for (std::size_t i = 0; i < shown; ++i) {
+    const SnapshotGap& g = s.gaps[i];
+    os << (i ? "; " : "") << g.missing << " on " << g.axis << " after +" << g.after_s - s.begin_s << " s, t = "
+       << std::setprecision(2) << g.after_s << std::setprecision(1) << " s";
+  }
+  if (shown < s.gaps.size()) os << "; " << s.gaps.size() - shown << " more";
+  os << ")";
+  return os.str();
+}
+
+SnapshotStretch gap_free_stretch(const Snapshot& s, double prefer_recent_fraction, double min_fraction) {
+  SnapshotStretch out;
+  if (s.gaps.empty()) {
+    out.snapshot = s;
+    return out;
+  }
+  // the stretches between the gaps of all axes (gaps of different axes may overlap)
+  struct Span {
+    double begin, end;
+    double length() const { return end - begin; }
+  };
+  std::vector<Span> spans;
+  double start = s.begin_s;
+  for (const auto& g : s.gaps) {  // by after_s
+    if (g.after_s >= start) spans.push_back({start, g.after_s});
+    start = std::max(start, g.before_s);
+  }
+  spans.push_back({start, s.end_s});
+  const double window = s.end_s - s.begin_s;
+  const Span& recent = spans.back();
+  const Span* longest = &spans.front();
+  for (const auto& sp : spans)
+    if (sp.length() >= longest->length()) longest = &sp;  // the later of equal ones
+  const bool take_recent = recent.length() >= prefer_recent_fraction * window;
+  const Span chosen = take_recent ? recent : *longest;
+  std::ostringstream os;
+  os << std::fixed << std::setprecision(1);
+  if (!take_recent && chosen.length() < min_fraction * window) {
+    os << "the " << window << " s window has no stretch without a missing sample of at least " << min_fraction * window
+       << " s (" << min_fraction * 100.0 << " % of it): " << describe_gaps(s) << "; the longest runs "
+       << longest->length() << " s from +" << longest->begin - s.begin_s << " s";
+    throw std::runtime_error(os.str());
+  }
+
+  // Every sample of the stretch on every axis: readings (and their reports) within half a period of it, the
+  // axes' sample clocks being ms apart.
+  const double tol = 0.5 * s.period_s;
+  Snapshot& c = out.snapshot;
+  c.period_s = s.period_s;
+  c.invalid_readings = s.invalid_readings;
+  std::size_t before = 0, after = 0;
+  const auto within = [&](double t) { return t >= chosen.begin - tol && t <= chosen.end + tol; };
+  for (const auto& [name, a] : s.axes) {
+    Snapshot::Axis& b = c.axes[name];
+    for (const auto& r : a.readings)
+      if (within(r.stamp_s)) b.readings.push_back(r);
+    for (const auto& v : a.voltages)
+      if (within(v.stamp_s)) b.voltages.push_back(v);
+    before += a.readings.size();
+  }
+  // The first row needs its report on every axis, and every axis a reading there (as take() cuts).
+  for (bool changed = true; changed;) {
+    changed = false;
+    double first = -std::numeric_limits<double>::infinity();
+    for (const auto& [name, b] : c.axes) {
+      if (b.readings.empty())
+        throw std::runtime_error("axis " + name + ": no encoder reading with its voltage report in the stretch without "
+                                 "a missing sample (" + describe_gaps(s) + ")");
+      first = std::max(first, b.readings.front().stamp_s);
+    }
+    for (auto& [name, b] : c.axes) {
+      auto& r = b.readings;
+      auto& v = b.voltages;
+      const auto r_keep = std::find_if(r.begin(), r.end(), [&](const SnapshotReading& x) { return x.stamp_s >= first - tol; });
+      if (r_keep != r.begin()) r.erase(r.begin(), r_keep), changed = true;
+      if (r.empty()) continue;
+      const auto v_keep = std::find_if(v.begin(), v.end(), [&](const SnapshotVoltage& x) { return x.stamp_s >= r.front().stamp_s - tol; });
+      v.erase(v.begin(), v_keep);
+      if (v.empty() || v.front().sequence != r.front().sequence) r.erase(r.begin()), changed = true;
+    }
+  }
+  c.begin_s = std::numeric_limits<double>::infinity();
+  c.end_s = -std::numeric_limits<double>::infinity();
+  for (auto& [name, b] : c.axes) {
+    c.begin_s = std::min(c.begin_s, b.readings.front().stamp_s);
+    c.end_s = std::max(c.end_s, b.readings.back().stamp_s);
+    after += b.readings.size();
+    std::vector<std::uint32_t> seqs;
+    for (const auto& r : b.readings) {
+      c.max_restamp_s = std::max(c.max_restamp_s, std::fabs(r.stamp_s - r.received_s));
+      seqs.push_back(r.sequence);
+    }
+    std::sort(seqs.begin(), seqs.end());
+    for (const auto& p : s.axes.at(name).base_predictions)
+      if (std::binary_search(seqs.begin(), seqs.end(), p.sequence)) b.base_predictions.push_back(p);
+  }
+  for (const auto& [name, q] : s.aux) {
+    std::size_t k = 0;
+    while (k + 1 < q.size() && q[k + 1].stamp_s <= c.begin_s) ++k;  // the value in force at the first row
+    auto& o = c.aux[name];
+    for (std::size_t i = k; i < q.size() && (i == k || q[i].stamp_s <= c.end_s + tol); ++i) o.push_back(q[i]);
+  }
+  out.dropped_readings = before - after;
+  os << "the " << window << " s window has " << describe_gaps(s) << ": wrote the "
+     << (take_recent ? "most recent" : "longest") << " stretch without one, " << c.end_s - c.begin_s << " s from +"
+     << c.begin_s - s.begin_s << " s";
+  if (!take_recent)
+    os << " (the most recent runs " << recent.length() << " s, under " << prefer_recent_fraction * 100.0 << " % of the window)";
+  os << "; " << out.dropped_readings << " readings left out";
+  out.message = os.str();
+  return out;
 }
 
 }  // namespace piezo::compensation
