@@ -519,6 +519,23 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     Axis* ap = a.get();
     diag_->add("axis " + a->logic->axis(), [this, ap](diagnostic_updater::DiagnosticStatusWrapper& st) { diagnose(*ap, st); });
   }
+  if (snapshot_) {
+    diag_->add("snapshot buffer", [this](diagnostic_updater::DiagnosticStatusWrapper& st) {
+      // a ring that outgrew its start-up allocation re-allocated in a message callback
+      const std::size_t grown = snapshot_->grown();
+      if (grown > 0)
+        st.summary(diagnostic_msgs::DiagnosticStatus::WARN,
+                   "a snapshot ring grew " + std::to_string(grown) + " time(s) (an allocation in the message callback): "
+                   "a stream came faster than the rate the rings were sized for (~sample_rate_hz or the model's)");
+      else
+        st.summary(diagnostic_msgs::DiagnosticStatus::OK, "rings within their start-up allocation");
+      st.add("rings grown", grown);
+      st.add("capacity [messages]", snapshot_->capacity());
+      st.add("held [messages]", snapshot_->messages());
+      st.add("sized for [Hz]", snapshot_->options().expected_rate_hz);
+      st.add("duration [s]", snapshot_->options().duration_s);
+    });
+  }
   diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { diag_->update(); });
   if (s_.watch.noise_floor_nm > 0.0) {
     // rolling free-run MAE per axis [m] (SI), once a second

@@ -40,6 +40,7 @@ struct Loop {
   std::ofstream trace;  // every prediction of axis c, for reading a failed run
   double mae_nm = std::nan(""), mae_stamp = 0.0;
   std::string diag_message;
+  std::string snapshot_diag;  // the predictor's "snapshot buffer" status: rings grown, capacity
   int diag_level = -1;
   bool watch_warned = false;
   std::size_t readings = 0;
@@ -71,6 +72,11 @@ struct Loop {
     diag = nh.subscribe<diagnostic_msgs::DiagnosticArray>(
         "/diagnostics", 20, [this](const diagnostic_msgs::DiagnosticArray::ConstPtr& a) {
           for (const auto& s : a->status) {
+            if (s.hardware_id == "piezo_predictor" && s.name.find("snapshot buffer") != std::string::npos) {
+              snapshot_diag = s.message;
+              for (const auto& kv : s.values)
+                if (kv.key == "rings grown" || kv.key == "capacity [messages]") snapshot_diag += ", " + kv.key + " " + kv.value;
+            }
             if (s.hardware_id != "piezo_predictor" || s.name.find("axis c") == std::string::npos) continue;
             diag_level = s.level;
             diag_message = s.message;
@@ -224,6 +230,8 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   EXPECT_GT(n, 50) << "too few rolling-MAE figures after the reload";
   EXPECT_LT(worst, threshold_nm) << "the rolling MAE rose above the watch threshold again after the reload";
   EXPECT_FALSE(loop.watch_warned) << loop.diag_message;
+  std::cout << "[live_loop] snapshot buffer diagnostics: '" << loop.snapshot_diag << "'\n";
+  EXPECT_FALSE(loop.snapshot_diag.empty()) << "no \"snapshot buffer\" status on /diagnostics";
   std::cout << "[live_loop] total " << loop.now() - t_start << " s simulated, wall " << wall() << " s\n";
 }
 
