@@ -443,7 +443,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
           if (recent && !recent->gaps.empty()) {
             // the running model skipped the same samples: the warm-up runs across the gaps as it did
             res.message += "; the window has " + compensation::describe_gaps(*recent) +
-                           ": warmed across them as the running model ran";
+                           ": warmed across the gap(s) as the running model ran";
           }
           for (std::size_t i = 0; i < axes_.size(); ++i)
             res.message += "; " + axes_[i]->logic->axis() + ": " +

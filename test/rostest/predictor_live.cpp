@@ -1,11 +1,16 @@
 // The predictor against a fake driver: with compensation on it sends the model-inverted voltage (different
 // from the intent on a hysteretic model), with it off the intent itself; the prediction says which; the tf
-// frames of the measured, predicted and intended tip exist under the base frame.
+// frames of the measured, predicted and intended tip exist under the base frame. With 3 samples lost, ~snapshot
+// writes the stretch after them and ~reload_model warms across them, each saying so.
 #include <gtest/gtest.h>
 #include <std_srvs/SetBool.h>
+#include <std_srvs/Trigger.h>
 #include <tf2_ros/buffer.h>
 #include <tf2_ros/transform_listener.h>
 
+#include <iostream>
+
+#include "piezo_compensation/ros/data_file.h"
 #include "predictor_test_driver.h"
 
 TEST(PredictorLive, CompensationOnOffAndTfFrames) {
@@ -52,6 +57,31 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   }
   const auto t = tf.lookupTransform("mm1/base", "mm1/tip_measured", ros::Time(0));
   EXPECT_NEAR(t.transform.translation.z, drv.predictions.back().measured_position, 1e-7);  // axis c → z
+
+  // 3 samples lost, then 60 more: ~snapshot writes the 60 after the gap (over 60 % of the window) and says so;
+  // the bag reads at a constant rate, as the offline tools require
+  drv.lose(3);
+  for (int i = 0; i < 60; ++i) drv.cycle();
+  std_srvs::Trigger snap;
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(5)));
+  ASSERT_TRUE(ros::service::call("/mm1/predictor/snapshot", snap));
+  ASSERT_TRUE(snap.response.success) << snap.response.message;
+  std::cout << "[predictor_live] snapshot: " << snap.response.message << "\n";
+  EXPECT_NE(snap.response.message.find("1 gap, 3 samples missing (3 on c after +"), std::string::npos)
+      << snap.response.message;
+  EXPECT_NE(snap.response.message.find("wrote the most recent stretch without one"), std::string::npos)
+      << snap.response.message;
+  const std::string path = snap.response.message.substr(0, snap.response.message.find(" ("));
+  const piezo::io::Dataset d = piezo::ros_io::read_bag(path);
+  EXPECT_NO_THROW(d.sample_period_s());
+  EXPECT_EQ(d.size(), 60u);
+  // the reload's warm-up keeps the whole window (the running model skipped the same samples) and says so
+  std_srvs::Trigger reload;
+  ASSERT_TRUE(ros::service::call("/mm1/predictor/reload_model", reload));
+  ASSERT_TRUE(reload.response.success) << reload.response.message;
+  std::cout << "[predictor_live] reload: " << reload.response.message << "\n";
+  EXPECT_NE(reload.response.message.find("the window has 1 gap, 3 samples missing"), std::string::npos)
+      << reload.response.message;
 }
 
 int main(int argc, char** argv) {

@@ -73,6 +73,9 @@ class FakeDriver {
     if (!commands.empty()) applied_v = commands.back().voltage;
   }
 
+  // n samples lost on the way (never published): a gap in the sequence numbers
+  void lose(std::uint32_t n) { seq_ += n; }
+
   double applied_v = 0.0;   // what the plant holds next (the last command)
   double reported_v = 0.0;  // what the last published sample held
   std::vector<piezo_compensation::VoltageCommand> commands;
