@@ -13,6 +13,7 @@
 #include <cmath>
 #include <fstream>
 #include <functional>
+#include <iomanip>
 #include <limits>
 #include <map>
 #include <set>
@@ -72,19 +73,14 @@ struct Paired {
   std::vector<io::PairedSample> samples;
   std::vector<std::pair<std::uint32_t, std::uint32_t>> by_seq;  // (sequence, index), sorted
   std::uint64_t dropped = 0;
-  // By sequence number when that sample is within one period of t, else the latest reading at or before t.
+  // The sample with this sequence number within one period of t (a restart or a wrap reuses numbers), or null.
+  // Never a neighbour: a sample this axis lost has no value to give.
   const io::PairedSample* match(std::uint32_t seq, double t, double period_s) const {
     auto it = std::lower_bound(by_seq.begin(), by_seq.end(), seq,
                                [](const auto& e, std::uint32_t s) { return e.first < s; });
     for (; it != by_seq.end() && it->first == seq; ++it)
       if (std::fabs(samples[it->second].stamp_s - t) <= period_s) return &samples[it->second];
-    const io::PairedSample* best = nullptr;
-    for (const auto& p : samples) {  // rare: only when another axis lost this reading
-      if (p.reading_lost) continue;
-      if (p.stamp_s <= t + 1e-9) best = &p;
-      else if (!best && p.stamp_s - t <= period_s) return &p;
-    }
-    return best;
+    return nullptr;
   }
 };
 
@@ -434,15 +430,74 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
     voltage[k] = Series(), encoder[k] = Series(), truth[k] = Series();  // free what the pairing consumed
   }
 
-  // rows: the first axis' samples that have a reading (lost readings have no row)
-  std::vector<std::uint32_t> row_of;
+  // rows: the first axis' samples that have a reading (lost readings have no row) and whose sample every other
+  // axis has. A sample another axis lost is not filled from a neighbour: its row is left out, so the time column
+  // shows the gap as when the first axis lost it, which the offline tools refuse (io::Dataset::sample_period_s);
+  // at the ends (one axis started or stopped a sample later) that cuts the rows without a partner.
+  std::vector<std::uint32_t> candidates;
   for (std::uint32_t i = 0; i < paired[first].samples.size(); ++i)
-    if (!paired[first].samples[i].reading_lost) row_of.push_back(i);
+    if (!paired[first].samples[i].reading_lost) candidates.push_back(i);
+  double period = 1.0;
+  if (candidates.size() >= 2)
+    period = (paired[first].samples[candidates.back()].stamp_s - paired[first].samples[candidates.front()].stamp_s) /
+             static_cast<double>(candidates.size() - 1);
+  if (!(period > 0.0)) period = 1.0;
+  const auto partner = [&](int k, std::uint32_t i) {
+    const io::PairedSample& row = paired[first].samples[i];
+    return k == first ? &row : paired[k].match(row.sequence, row.stamp_s, period);
+  };
+  std::vector<std::uint32_t> row_of;
+  std::size_t matched[3] = {};
+  for (std::uint32_t i : candidates) {
+    bool complete = true;
+    for (int k = 0; k < 3; ++k) {
+      if (!has_topic[k][1]) continue;
+      const io::PairedSample* e = partner(k, i);
+      if (e) ++matched[k];
+      if (!e || e->reading_lost) complete = false;
+    }
+    if (complete) row_of.push_back(i);
+  }
+  for (int k = 0; k < 3; ++k)
+    if (has_topic[k][1] && k != first && !candidates.empty() && matched[k] == 0)
+      throw io::DataError(path + ": axis " + io::kAxisNames[k] + ": none of its " +
+                          std::to_string(paired[k].samples.size()) + " samples has the sequence number of a reading of axis " +
+                          io::kAxisNames[first] + " within one sample period (" + std::to_string(period) +
+                          " s) of it: the axes were not recorded together");
   const std::size_t n = row_of.size();
   const auto row_t = [&](std::size_t i) { return paired[first].samples[row_of[i]].stamp_s; };
-  double period = 1.0;
-  if (n >= 2) period = (row_t(n - 1) - row_t(0)) / static_cast<double>(n - 1);
-  if (!(period > 0.0)) period = 1.0;
+  if (options.refuse_gaps && n >= 2) {
+    // the sample clock: the median step of the first axis' readings (a gap does not move it)
+    std::vector<double> steps;
+    for (std::size_t j = 1; j < candidates.size(); ++j)
+      steps.push_back(paired[first].samples[candidates[j]].stamp_s - paired[first].samples[candidates[j - 1]].stamp_s);
+    std::nth_element(steps.begin(), steps.begin() + steps.size() / 2, steps.end());
+    const double clock_s = steps[steps.size() / 2];
+    for (std::size_t r = 1; clock_s > 0.0 && r < n; ++r) {
+      const double step = row_t(r) - row_t(r - 1);
+      const long missing = std::lround(step / clock_s) - 1;
+      if (missing < 1) continue;  // jitter is sample_period_s's to judge
+      // who lost them: per axis, the steps in between without a reading of it (stamps within half a step)
+      const io::PairedSample& before = paired[first].samples[row_of[r - 1]];
+      long lacking[3] = {};
+      for (int k = 0; k < 3; ++k) {
+        if (!has_topic[k][1]) continue;
+        long heard = 0;
+        for (const auto& e : paired[k].samples)
+          heard += !e.reading_lost && e.stamp_s > before.stamp_s + 0.5 * clock_s && e.stamp_s < row_t(r) - 0.5 * clock_s;
+        lacking[k] = std::max(0L, missing - heard);
+      }
+      std::ostringstream os;
+      os << path << ": " << missing << " sample(s) missing after t = " << std::fixed << std::setprecision(6)
+         << before.stamp_s << " s (row " << r + 1 << ", sequence " << before.sequence << "): ";
+      std::string sep;
+      for (int k = 0; k < 3; ++k)
+        if (lacking[k] > 0) os << sep << "axis " << io::kAxisNames[k] << " lost " << lacking[k], sep = ", ";
+      os << "; the offline tools need every axis' sample at every step of the sample clock (" << std::setprecision(6)
+         << clock_s << " s), and the reader fills none";
+      throw io::DataError(os.str());
+    }
+  }
 
   io::Dataset d;
   d.source = path;
@@ -454,26 +509,21 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
     auto& ax = d.add_axis(io::kAxisNames[k]);
     const bool with_truth = has_topic[k][2];
     if (with_truth) ax.true_position_nm.resize(n);
-    const Paired& pk = paired[k];
     for (std::size_t i = 0; i < n; ++i) {
-      const io::PairedSample& row = paired[first].samples[row_of[i]];
-      const io::PairedSample* e = k == first ? &row : pk.match(row.sequence, row.stamp_s, period);
-      if (!e) throw io::DataError(row_col(path, i, io::position_column(io::kAxisNames[k])) + "no encoder message at t=" +
-                                  std::to_string(row.stamp_s) + " s");
+      const io::PairedSample* e = partner(k, row_of[i]);
       if (!e->measured)
-        throw io::DataError(row_col(path, i, io::position_column(io::kAxisNames[k])) +
-                            (e->reading_lost ? "encoder reading lost" : "encoder reading flagged invalid"));
+        throw io::DataError(row_col(path, i, io::position_column(io::kAxisNames[k])) + "encoder reading flagged invalid");
       ax.position_nm[i] = e->position_nm;
       ax.voltage_v[i] = e->voltage_v;
       if (with_truth) {
         if (!std::isfinite(e->truth_nm))
           throw io::DataError(row_col(path, i, io::true_position_column(io::kAxisNames[k])) + "no message at or before t=" +
-                              std::to_string(row.stamp_s) + " s");
+                              std::to_string(row_t(i)) + " s");
         ax.true_position_nm[i] = e->truth_nm;
       }
     }
-    if (pk.dropped > 0)
-      throw io::DataError(path + ": axis " + io::kAxisNames[k] + ": " + std::to_string(pk.dropped) +
+    if (paired[k].dropped > 0)
+      throw io::DataError(path + ": axis " + io::kAxisNames[k] + ": " + std::to_string(paired[k].dropped) +
                           " encoder reading(s) with no voltage message at or before them");
   }
   for (const auto& kv : aux) {

@@ -7,7 +7,9 @@ bool is_bag(const std::string& path) { return path.size() >= 4 && path.compare(p
 }  // namespace
 
 io::Dataset read_data(const std::string& path) {
-  io::Dataset d = is_bag(path) ? read_bag(path) : io::read_csv(path);
+  BagOptions bag;
+  bag.refuse_gaps = true;
+  io::Dataset d = is_bag(path) ? read_bag(path, bag) : io::read_csv(path);
   d.validate();
   return d;
 }

@@ -8,6 +8,7 @@
 #include <cmath>
 #include <fstream>
 #include <iostream>
+#include <set>
 
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
@@ -28,6 +29,15 @@ io::Dataset simulated(bool thermal) {
                                     11.0, 3);
   sim::ManipulatorSimulator s(cfg, 3);
   return s.run(p->program());
+}
+
+std::string read_data_error(const std::string& path) {
+  try {
+    ros_io::read_data(path);
+  } catch (const io::DataError& e) {
+    return e.what();
+  }
+  return "";
 }
 
 std::string error_of(const std::string& path, const ros_io::BagOptions& o = {}) {
@@ -61,6 +71,36 @@ void expect_same(const io::Dataset& a, const io::Dataset& b) {
   }
   EXPECT_EQ(a.segment, b.segment);
   EXPECT_EQ(a.phase, b.phase);
+}
+
+// A driver-like two-axis bag: per axis a voltage report 10 ms before its reading, axis c's clock `c_offset_s`
+// after axis a's; the samples whose number is in `lost_a` / `lost_c` (reading and report) are missing on that
+// axis; `c_reading_only` loses only c's reading of those numbers (its report arrives).
+std::string two_axis_bag(const std::string& name, std::uint32_t n, std::set<std::uint32_t> lost_a,
+                         std::set<std::uint32_t> lost_c, double c_offset_s = 0.002, bool c_reading_only = false) {
+  const std::string path = tmp(name);
+  rosbag::Bag bag(path, rosbag::bagmode::Write);
+  for (std::uint32_t i = 0; i < n; ++i) {
+    for (const char* axis : {"a", "c"}) {
+      const bool c = axis[0] == 'c';
+      const bool lost = (c ? lost_c : lost_a).count(i) > 0;
+      const ros::Time t(1000.0 + i / 11.0 + (c ? c_offset_s : 0.0));
+      piezo_compensation::AxisVoltage v;
+      v.header.stamp = t - ros::Duration(0.01);
+      v.axis = axis;
+      v.sequence = 500 + i;
+      v.voltage = (c ? 1000.0 : 0.0) + i;  // the sample's number in every value: a fill shows
+      if (!lost || (c && c_reading_only)) bag.write(std::string("/mm1/") + axis + "/voltage", v.header.stamp, v);
+      piezo_compensation::EncoderPosition e;
+      e.header.stamp = t;
+      e.axis = axis;
+      e.sequence = 500 + i;
+      e.position = ((c ? 1000.0 : 0.0) + i) * 1e-9;
+      e.valid = true;
+      if (!lost) bag.write(std::string("/mm1/") + axis + "/encoder", t, e);
+    }
+  }
+  return path;
 }
 
 }  // namespace
@@ -121,6 +161,86 @@ TEST(BagIo, MatchesBySequenceThenByStamp) {
   EXPECT_NEAR(d.axis("c").position_nm[19], 19.0, 1e-9);
   EXPECT_FALSE(d.axis("c").has_truth());
   EXPECT_TRUE(d.segment.empty());
+}
+
+// Samples missing on one axis are never filled from a neighbour: the rows of the reference axis (a) without
+// their sample on c are left out, so the time column has the same gap as when a itself lost them, which every
+// offline tool refuses (io::Dataset::sample_period_s). Rows of a bag without gaps read as before.
+TEST(BagIo, ASampleMissingOnAnotherAxisIsNotFilled) {
+  const std::uint32_t n = 40;
+  const auto expect_rows = [&](const io::Dataset& d, const std::set<std::uint32_t>& missing) {
+    ASSERT_EQ(d.size(), n - missing.size());
+    std::size_t row = 0;
+    for (std::uint32_t i = 0; i < n; ++i) {
+      if (missing.count(i)) continue;
+      SCOPED_TRACE("sample " + std::to_string(i) + ", row " + std::to_string(row));
+      ASSERT_NEAR(d.time_s[row], 1000.0 + i / 11.0, 1e-6);
+      for (const char* axis : {"a", "c"}) {
+        const double own = (axis[0] == 'c' ? 1000.0 : 0.0) + i;
+        ASSERT_EQ(d.axis(axis).voltage_v[row], own) << axis;
+        ASSERT_NEAR(d.axis(axis).position_nm[row], own, 1e-6) << axis;
+      }
+      ++row;
+    }
+  };
+  // no gap: every sample, each axis its own (c's clock 2 ms after a's, then 40 ms: under one period)
+  for (double offset : {0.002, 0.04}) {
+    const io::Dataset d = ros_io::read_bag(two_axis_bag("full.bag", n, {}, {}, offset));
+    expect_rows(d, {});
+    EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);
+  }
+  // 3 samples lost on a: no rows for them, the gap stays in the time column
+  std::string a_gap;
+  {
+    const io::Dataset d = ros_io::read_bag(two_axis_bag("gap_a.bag", n, {20, 21, 22}, {}));
+    expect_rows(d, {20, 21, 22});
+    try {
+      d.sample_period_s();
+    } catch (const io::DataError& e) {
+      a_gap = e.what();
+    }
+    EXPECT_NE(a_gap.find("sample rate is not constant"), std::string::npos) << a_gap;
+    // the offline tools' reader says where and who
+    const std::string e = read_data_error(tmp("gap_a.bag"));
+    std::cout << "[gap on a] read_data: " << e << "\n";
+    EXPECT_NE(e.find("3 sample(s) missing after t = 1001.727273 s (row 21, sequence 519): axis a lost 3;"),
+              std::string::npos) << e;
+  }
+  // the same 3 lost on c only (reading and report, or the reading alone): the same rows, the same refusal
+  for (bool reading_only : {false, true}) {
+    SCOPED_TRACE(reading_only ? "c lost its readings" : "c lost its readings and reports");
+    const io::Dataset d = ros_io::read_bag(two_axis_bag("gap_c.bag", n, {}, {20, 21, 22}, 0.002, reading_only));
+    for (std::size_t row = 18; row < 22 && row < d.size(); ++row)
+      std::cout << "[gap on c] row " << row << ": t = " << d.time_s[row] - 1000.0 << " s, a " << d.axis("a").voltage_v[row]
+                << " V " << d.axis("a").position_nm[row] << " nm, c " << d.axis("c").voltage_v[row] << " V "
+                << d.axis("c").position_nm[row] << " nm\n";
+    expect_rows(d, {20, 21, 22});
+    std::string c_gap;
+    try {
+      d.sample_period_s();
+    } catch (const io::DataError& e) {
+      c_gap = e.what();
+    }
+    std::cout << "[gap on c] " << c_gap << "\n";
+    EXPECT_EQ(c_gap.substr(c_gap.find(": row")), a_gap.substr(a_gap.find(": row"))) << c_gap;
+    const std::string e = read_data_error(tmp("gap_c.bag"));
+    std::cout << "[gap on c] read_data: " << e << "\n";
+    EXPECT_NE(e.find("3 sample(s) missing after t = 1001.727273 s (row 21, sequence 519): axis c lost 3;"),
+              std::string::npos) << e;
+  }
+  {  // lost on both, overlapping
+    two_axis_bag("gap_ac.bag", n, {20, 21}, {21, 22});
+    const std::string e = read_data_error(tmp("gap_ac.bag"));
+    EXPECT_NE(e.find("3 sample(s) missing after t = 1001.727273 s (row 21, sequence 519): axis a lost 2, axis c lost 2;"),
+              std::string::npos) << e;
+  }
+  // c starts one sample late and ends one early: the first and last rows have no partner and are cut
+  two_axis_bag("edges.bag", n, {}, {0, n - 1});
+  for (const io::Dataset& d : {ros_io::read_bag(tmp("edges.bag")), ros_io::read_data(tmp("edges.bag"))}) {
+    expect_rows(d, {0, n - 1});
+    EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);
+  }
+  expect_rows(ros_io::read_data(two_axis_bag("full.bag", n, {}, {})), {});
 }
 
 TEST(BagIo, MalformedBagsGiveOneClearError) {

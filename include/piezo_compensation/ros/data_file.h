@@ -14,10 +14,15 @@ namespace piezo::ros_io {
 //   <ns>/<axis>/true_position  piezo_compensation/EncoderPosition  simulator ground truth [m] (optional)
 //   <ns>/aux                   piezo_compensation/AuxSignal        auxiliary signals (optional)
 //   <ns>/protocol_phase        piezo_compensation/ProtocolPhase    segment/phase markers (optional)
-// One data row per encoder message of the first axis; the other topics are matched by sequence number
-// (falling back to the latest message at or before the encoder stamp).
+// One data row per encoder reading of the first axis whose sample (same sequence number, within one sample
+// period) every other axis has; a sample an axis lost is never filled from a neighbour (docs/data_formats.md).
 struct BagOptions {
   std::string ns;  // manipulator namespace; "" = auto-detect the single one in the bag
+  // false: the rows of samples an axis lost are left out and the time column shows the gap (which
+  // io::Dataset::sample_period_s refuses); the predictor's warm-up runs across it, as the running model did.
+  // true (read_data, i.e. the offline tools): such a gap inside the data is one io::DataError naming the time,
+  // the number of samples and the axes that lost them. Rows at the start or end without a partner are cut either way.
+  bool refuse_gaps = false;
 };
 
 io::Dataset read_bag(const std::string& path, const BagOptions& options = {});
@@ -26,7 +31,8 @@ io::Dataset read_bag(const std::string& path, const BagOptions& options = {});
 void check_bag_file(const std::string& path);
 void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options = {});
 
-// Dispatch on the extension: ".bag" → bag, anything else → CSV. Throws io::DataError with one clear line.
+// Dispatch on the extension: ".bag" → bag (with refuse_gaps: every reader of it needs a constant rate), anything
+// else → CSV. Throws io::DataError with one clear line.
 io::Dataset read_data(const std::string& path);
 void write_data(const std::string& path, const io::Dataset& data);
 
