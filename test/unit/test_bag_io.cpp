@@ -73,11 +73,13 @@ void expect_same(const io::Dataset& a, const io::Dataset& b) {
   EXPECT_EQ(a.phase, b.phase);
 }
 
-// A driver-like two-axis bag: per axis a voltage report 10 ms before its reading, axis c's clock `c_offset_s`
+// A driver-like two-axis bag: per axis a voltage report `report_lead_s` before its reading (< 0: after it), axis c's clock `c_offset_s`
 // after axis a's; the samples whose number is in `lost_a` / `lost_c` (reading and report) are missing on that
-// axis; `c_reading_only` loses only c's reading of those numbers (its report arrives).
+// axis; `c_reading_only` loses only c's reading of those numbers (its report arrives). Sample i has number
+// 500 + i on a, c_first_sequence + i on c.
 std::string two_axis_bag(const std::string& name, std::uint32_t n, std::set<std::uint32_t> lost_a,
-                         std::set<std::uint32_t> lost_c, double c_offset_s = 0.002, bool c_reading_only = false) {
+                         std::set<std::uint32_t> lost_c, double c_offset_s = 0.002, bool c_reading_only = false,
+                         std::uint32_t c_first_sequence = 500, double report_lead_s = 0.01) {
   const std::string path = tmp(name);
   rosbag::Bag bag(path, rosbag::bagmode::Write);
   for (std::uint32_t i = 0; i < n; ++i) {
@@ -86,15 +88,15 @@ std::string two_axis_bag(const std::string& name, std::uint32_t n, std::set<std:
       const bool lost = (c ? lost_c : lost_a).count(i) > 0;
       const ros::Time t(1000.0 + i / 11.0 + (c ? c_offset_s : 0.0));
       piezo_compensation::AxisVoltage v;
-      v.header.stamp = t - ros::Duration(0.01);
+      v.header.stamp = ros::Time(t.toSec() - report_lead_s);
       v.axis = axis;
-      v.sequence = 500 + i;
+      v.sequence = (c ? c_first_sequence : 500) + i;
       v.voltage = (c ? 1000.0 : 0.0) + i;  // the sample's number in every value: a fill shows
       if (!lost || (c && c_reading_only)) bag.write(std::string("/mm1/") + axis + "/voltage", v.header.stamp, v);
       piezo_compensation::EncoderPosition e;
       e.header.stamp = t;
       e.axis = axis;
-      e.sequence = 500 + i;
+      e.sequence = (c ? c_first_sequence : 500) + i;
       e.position = ((c ? 1000.0 : 0.0) + i) * 1e-9;
       e.valid = true;
       if (!lost) bag.write(std::string("/mm1/") + axis + "/encoder", t, e);
@@ -183,9 +185,10 @@ TEST(BagIo, ASampleMissingOnAnotherAxisIsNotFilled) {
       ++row;
     }
   };
-  // no gap: every sample, each axis its own (c's clock 2 ms after a's, then 40 ms: under one period)
-  for (double offset : {0.002, 0.04}) {
-    const io::Dataset d = ros_io::read_bag(two_axis_bag("full.bag", n, {}, {}, offset));
+  // no gap: every sample, each axis its own (c's clock 2 ms after a's, then 40 ms: under one period; the
+  // reports 10 ms before their readings, then 5 ms after)
+  for (const auto& [offset, lead] : {std::pair{0.002, 0.01}, std::pair{0.04, 0.01}, std::pair{0.002, -0.005}}) {
+    const io::Dataset d = ros_io::read_bag(two_axis_bag("full.bag", n, {}, {}, offset, false, 500, lead));
     expect_rows(d, {});
     EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);
   }
@@ -241,6 +244,10 @@ TEST(BagIo, ASampleMissingOnAnotherAxisIsNotFilled) {
     EXPECT_NEAR(d.sample_period_s(), 1.0 / 11.0, 1e-9);
   }
   expect_rows(ros_io::read_data(two_axis_bag("full.bag", n, {}, {})), {});
+  // c numbered apart from a: no stamp is taken for a number
+  const std::string e = error_of(two_axis_bag("apart.bag", n, {}, {}, 0.002, false, 9000));
+  EXPECT_NE(e.find("axis c: none of its 40 samples has the sequence number of a reading of axis a within one sample "
+                   "period (0.090909 s) of it"), std::string::npos) << e;
 }
 
 TEST(BagIo, MalformedBagsGiveOneClearError) {
