@@ -94,6 +94,16 @@ TEST(Csv, NonConstantRateIsReported) {
   } catch (const DataError& e) {
     EXPECT_NE(std::string(e.what()).find("sample rate is not constant"), std::string::npos) << e.what();
   }
+  // A gap late in a long file is named where it is (the mean step it pulls off would flag row 3).
+  std::string text = "time_s,c_voltage_v,c_position_nm\n";
+  for (int i = 0; i < 40; ++i) text += std::to_string(0.1 * (i < 30 ? i : i + 3)) + ",1,2\n";
+  try {
+    read_csv(write_file("gap.csv", text)).sample_rate_hz();
+    FAIL() << "expected DataError";
+  } catch (const DataError& e) {
+    EXPECT_NE(std::string(e.what()).find("row 32, column time_s"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("usual step 0.1 s"), std::string::npos) << e.what();
+  }
 }
 
 TEST(Csv, MissingFileIsOneClearError) {

@@ -86,7 +86,8 @@ std::string true_position_column(const std::string& axis);  // "<axis>_true_posi
 
 // CSV I/O. read_csv throws DataError with file, row (1-based, header = row 1) and column on:
 // missing time_s, an axis with voltage but no position (or vice versa), no axis at all, a non-numeric
-// or empty cell, NaN/Inf, a short or long row, non-increasing time, a non-constant sample rate.
+// or empty cell, NaN/Inf, a short or long row, non-increasing time. A non-constant sample rate (a gap) is
+// refused where the rate is needed: sample_period_s(), which every offline tool calls, names the row.
 Dataset read_csv(const std::string& path);
 void write_csv(const std::string& path, const Dataset& data);
 
