@@ -476,19 +476,6 @@ Score validation_score(const PiCreepModel& fitted, const io::AxisSeries& train, 
   return sc;
 }
 
-// Whether the errors a are lower than b by more than twice the standard error of the mean paired difference,
-// taken over blocks of block samples (errors of a free run are correlated over minutes; at least 4 blocks).
-bool clearly_lower(const std::vector<double>& a, const std::vector<double>& b, std::size_t block) {
-  const std::size_t n = std::min(a.size(), b.size()), k = block ? n / block : 0;
-  if (k < 4) return false;
-  std::vector<double> m(k, 0.0);
-  for (std::size_t t = 0; t < k * block; ++t) m[t / block] += (a[t] - b[t]) / double(block);
-  double mean = 0, var = 0;
-  for (double x : m) mean += x / double(k);
-  for (double x : m) var += (x - mean) * (x - mean) / double(k - 1);
-  return mean < -2.0 * std::sqrt(var / double(k));
-}
-
 std::vector<double> thresholds_for(const std::vector<double>& v, int n) {
   const auto [mn, mx] = std::minmax_element(v.begin(), v.end());
   const double half_range = std::max(1e-6, 0.5 * (*mx - *mn));
