@@ -31,20 +31,20 @@ io::Dataset slice(const io::Dataset& d, std::size_t b, std::size_t e) {
 }
 
 struct HoldScore {
-  double mae_nm = 0, worst_end_nm = 0;
+  double mae_nm = 0, worst_end_nm = 0, walk_mae_nm = 0;  // walk: samples ≥ from outside holds
   int holds = 0;
   std::vector<double> start_nm, end_nm, voltage_v;  // per hold: signed mean error of its first and last 5 s, voltage
 };
 
 // Free-run over all of `d` from rest at its first voltage; scored against the true position inside the holds of
-// samples ≥ from: MAE, and per hold the mean error of its last 5 s.
+// samples ≥ from: MAE, and per hold the mean error of its last 5 s (and the MAE outside the holds).
 HoldScore score_holds(const models::Model& fitted, const io::Dataset& d, std::size_t from, double rate_hz) {
   auto m = fitted.clone();
   const io::AxisSeries& ax = d.axis("c");
   m->reset(ax.voltage_v[0], ax.position_nm[0]);
   HoldScore s;
-  double sum = 0;
-  std::size_t n = 0;
+  double sum = 0, walk = 0;
+  std::size_t n = 0, n_walk = 0;
   std::vector<double> err(ax.voltage_v.size(), 0.0);
   for (std::size_t t = 0; t < ax.voltage_v.size(); ++t) {
     models::ModelInput in{ax.voltage_v[t], nullptr};
@@ -52,8 +52,10 @@ HoldScore score_holds(const models::Model& fitted, const io::Dataset& d, std::si
     m->commit(in, y);
     err[t] = y - ax.true_position_nm[t];
     if (t >= from && d.phase[t] == 1) sum += std::abs(err[t]), ++n;
+    if (t >= from && d.phase[t] != 1) walk += std::abs(err[t]), ++n_walk;
   }
   s.mae_nm = n ? sum / n : INFINITY;
+  s.walk_mae_nm = n_walk ? walk / n_walk : INFINITY;
   const std::size_t last = static_cast<std::size_t>(5 * rate_hz);
   for (std::size_t t = from; t < err.size(); ++t) {
     const bool end_of_hold = d.phase[t] == 1 && (t + 1 == err.size() || d.phase[t + 1] != 1);

@@ -80,6 +80,11 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
   auto& axis = stage.simulator.axes[2];
   axis.creep_spectrum_tau_s = {5.0, 45.0, 500.0, 3600.0, 15000.0};
   axis.creep_spectrum_weights = {0.05, 0.03, 0.07, 0.06, 0.11};
+  // 200 switching voltages (0.8 V apart) instead of the stage's 40 (4 V): the stage's relays switch in rows of up
+  // to 30.6 nm (40 bins, loop width 10 %), a staircase no continuous hysteresis model follows; fitted without creep
+  // or noise the `preisach` kind alone is 17.1 nm off at a test hold of seed 7 and 4.1 nm on this seed, and with
+  // 200 bins (rows ≤ 5.9 nm) 4.5 and 1.0 nm (docs/models.md, issue 12). The target is the creep, not that grid.
+  axis.preisach_grid_count = 200;
   const double rate = stage.simulator.sample_rate_hz;
   const io::Dataset d = sim::simulate_stage(stage, 4242);
   const std::size_t per = d.time_s.size() / 15, n_train = 8 * per, n_val = 10 * per;
@@ -93,7 +98,8 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
     auto m = training::fit_model(kind, req);
     const HoldScore s = score_holds(*m, d, n_val, rate);
     std::cout << kind << ": test-hold MAE vs truth " << s.mae_nm << " nm, worst end-of-hold " << s.worst_end_nm
-              << " nm over " << s.holds << " holds (" << m->num_parameters() << " parameters)\n";
+              << " nm, walk MAE vs truth " << s.walk_mae_nm << " nm over " << s.holds << " holds ("
+              << m->num_parameters() << " parameters)\n";
     for (std::size_t h = 0; h < s.start_nm.size(); ++h)
       std::cout << "  hold " << 11 + h << " at " << s.voltage_v[h] << " V: error " << s.start_nm[h] << " nm in its first 5 s, " << s.end_nm[h]
                 << " nm in its last 5 s\n";
@@ -105,12 +111,12 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
     for (double tau : pm.mode_taus_s()) EXPECT_LE(tau, n_train / rate * 1.001);
     for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
   }
-  // Issue 12: hold MAE ≤ 5 nm (measured 4.69 nm; pi_creep_prony 46.4 nm). It also asks ≤ 5 nm at every end of
-  // hold: measured 16.1 nm (drift inside holds 11, 12, 15; creep_on_h_fit: joint gives 8.4 nm here but 21.1 instead
-  // of 10.2 nm on seed 12), so that bound holds the gain made (pi_creep_prony: 115.2 nm) and docs/models.md reports
-  // the miss and its source (the slow modes' gains, biased by the Preisach pieces' error).
+  // Issue 12: hold MAE ≤ 5 nm (measured 1.64 nm; pi_creep_prony 41.8 nm). The end-of-hold target (≤ 5 nm) is met
+  // here (3.04 nm) but not on seeds 7 and 12 (6.42 and 6.68 nm; 6.48 and 6.19 with another spectrum), so the bound
+  // is the worst of those (docs/models.md, issue 12), not this seed's value.
   EXPECT_LE(got["preisach_creep_prony"].mae_nm, 5.0);
-  EXPECT_LE(got["preisach_creep_prony"].worst_end_nm, 20.0);
+  EXPECT_LE(got["preisach_creep_prony"].worst_end_nm, 7.0);
+  EXPECT_LE(got["preisach_creep_prony"].walk_mae_nm, 3.0);  // measured 1.78 nm: holds not bought with the walk
   EXPECT_LT(got["preisach_creep_prony"].mae_nm, 0.25 * got["pi_creep_prony"].mae_nm);
 }
 // Issue 12's residual-loop item on this kind of data: test/unit/test_residual_preisach.cpp.

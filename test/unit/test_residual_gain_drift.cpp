@@ -9,9 +9,9 @@ using namespace piezo::test::gain;
 TEST(ResidualGainDrift, StrokeGainDriftingLinearlyInTime) {
   expect_gain(Gain::kTime, "(b) time gain", "time_gain", "", clean_base_truth_mae());
 }
-// Short of the 1.10 × (open): measured 33.6 → 4.98 nm = 1.23 × (d)'s 4.05 nm (the gain 1.49 %/µm against
-// 1.5 %/µm after the secant backfit; 1.35 %/µm and 1.52 × with two plain refits); held to 1.40 ×, which fails if
-// the backfit falls back to the plain rounds (1.52 ×) or the gain is not found (8.3 ×).
+// Measured 37.9 → 4.41 nm = 1.09 × (d)'s 4.05 nm (the gain 1.49 %/µm against 1.5 %/µm, on the output). Before
+// another form had to be clearly better than the output gain, the voltage form won by 0.005 nm of 17.5 nm
+// validation MAE and this ended at 12.3 nm (3.0 ×).
 TEST(ResidualGainDrift, GainDrivenByAnotherAxisPosition) {
-  expect_gain(Gain::kOtherAxis, "(c) other-axis gain", "cross_axis_gain", "a_", clean_base_truth_mae(), 1.40);
+  expect_gain(Gain::kOtherAxis, "(c) other-axis gain", "cross_axis_gain", "a_", clean_base_truth_mae());
 }

@@ -91,4 +91,9 @@ ColumnLinearFit linear_fit_columns(const Eigen::MatrixXd& x, const Eigen::Vector
 // features) → true, "random" (the plain random start) → false; throws naming the option otherwise.
 bool neural_linear_init(const YAML::Node& options);
 
+// Whether the errors a are lower than b by more than twice the standard error of the mean paired difference,
+// taken over blocks of `block` samples (errors of a free run are correlated over minutes; at least 4 blocks):
+// how a choice between two fitted variants is made on validation without choosing on noise.
+bool clearly_lower(const std::vector<double>& a, const std::vector<double>& b, std::size_t block);
+
 }  // namespace piezo::training

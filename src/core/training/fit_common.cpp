@@ -250,4 +250,15 @@ bool neural_linear_init(const YAML::Node& options) {
   return init == "linear";
 }
 
+bool clearly_lower(const std::vector<double>& a, const std::vector<double>& b, std::size_t block) {
+  const std::size_t n = std::min(a.size(), b.size()), k = block ? n / block : 0;
+  if (k < 4) return false;
+  std::vector<double> m(k, 0.0);
+  for (std::size_t t = 0; t < k * block; ++t) m[t / block] += (a[t] - b[t]) / double(block);
+  double mean = 0, var = 0;
+  for (double x : m) mean += x / double(k);
+  for (double x : m) var += (x - mean) * (x - mean) / double(k - 1);
+  return mean < -2.0 * std::sqrt(var / double(k));
+}
+
 }  // namespace piezo::training
