@@ -91,9 +91,10 @@ ColumnLinearFit linear_fit_columns(const Eigen::MatrixXd& x, const Eigen::Vector
 // features) → true, "random" (the plain random start) → false; throws naming the option otherwise.
 bool neural_linear_init(const YAML::Node& options);
 
-// Whether the errors a are lower than b by more than twice the standard error of the mean paired difference,
-// taken over blocks of `block` samples (errors of a free run are correlated over minutes; at least 4 blocks):
-// how a choice between two fitted variants is made on validation without choosing on noise.
-bool clearly_lower(const std::vector<double>& a, const std::vector<double>& b, std::size_t block);
+// Whether validation prefers the variant with errors a over the one with errors b (per sample, same rows): with at
+// least 4 blocks of `block` samples, only when a's mean paired difference is lower by more than twice its standard
+// error over the block means (errors of a free run are correlated over minutes), so a choice is not made on noise;
+// with fewer blocks the paired test has no power and the lower mean error wins, as a plain validation choice.
+bool validation_prefers(const std::vector<double>& a, const std::vector<double>& b, std::size_t block);
 
 }  // namespace piezo::training

@@ -642,7 +642,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
           if (alt.terms[0].scales == base_cand.terms[0].scales && alt.terms[0].type == base_cand.terms[0].type) continue;
           const Val va = score(alt);
           const double need = std::string(form) == "gain_quadratic" ? 0.99 : 1.0;
-          if (va.mae < need * v.mae && training::clearly_lower(va.abs_err, v.abs_err, block)) {
+          if (va.mae < need * v.mae && training::validation_prefers(va.abs_err, v.abs_err, block)) {
             v = va;
             s.best = alt;
             s.best.labels["scales"] = scales;

@@ -250,9 +250,13 @@ bool neural_linear_init(const YAML::Node& options) {
   return init == "linear";
 }
 
-bool clearly_lower(const std::vector<double>& a, const std::vector<double>& b, std::size_t block) {
+bool validation_prefers(const std::vector<double>& a, const std::vector<double>& b, std::size_t block) {
   const std::size_t n = std::min(a.size(), b.size()), k = block ? n / block : 0;
-  if (k < 4) return false;
+  if (k < 4) {
+    double d = 0.0;
+    for (std::size_t t = 0; t < n; ++t) d += a[t] - b[t];
+    return d < 0.0;
+  }
   std::vector<double> m(k, 0.0);
   for (std::size_t t = 0; t < k * block; ++t) m[t / block] += (a[t] - b[t]) / double(block);
   double mean = 0, var = 0;
