@@ -20,6 +20,7 @@
 #include <sstream>
 
 #include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
@@ -468,11 +469,9 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   const auto row_t = [&](std::size_t i) { return paired[first].samples[row_of[i]].stamp_s; };
   if (options.refuse_gaps && n >= 2) {
     // the sample clock: the median step of the first axis' readings (a gap does not move it)
-    std::vector<double> steps;
-    for (std::size_t j = 1; j < candidates.size(); ++j)
-      steps.push_back(paired[first].samples[candidates[j]].stamp_s - paired[first].samples[candidates[j - 1]].stamp_s);
-    std::nth_element(steps.begin(), steps.begin() + steps.size() / 2, steps.end());
-    const double clock_s = steps[steps.size() / 2];
+    std::vector<double> reading_s;
+    for (std::uint32_t i : candidates) reading_s.push_back(paired[first].samples[i].stamp_s);
+    const double clock_s = io::median_step_s(reading_s);
     for (std::size_t r = 1; clock_s > 0.0 && r < n; ++r) {
       const double step = row_t(r) - row_t(r - 1);
       const long missing = std::lround(step / clock_s) - 1;

@@ -79,6 +79,10 @@ struct DataSpan {
 // duration_s = rows / rate (rows × sample period). Throws DataError like sample_period_s() on fewer than 2 rows.
 DataSpan data_span(const Dataset& data, const std::string& axis);
 
+// The usual step of a time column: the median of its steps (a gap or a late sample does not move it); 0 with
+// fewer than 2 times. Where a gap is named (sample_period_s, the bag reader's refusal).
+double median_step_s(const std::vector<double>& time_s);
+
 // Column name helpers.
 std::string voltage_column(const std::string& axis);        // "<axis>_voltage_v"
 std::string position_column(const std::string& axis);       // "<axis>_position_nm"

@@ -58,24 +58,28 @@ double Dataset::sample_period_s() const {
     const double d = time_s[i] - time_s[i - 1];
     if (std::fabs(d - dt) > 0.01 * dt + 1e-9) {
       // A gap pulls the mean step off every step: name the first step that differs from the usual (median) one.
-      std::vector<double> steps(time_s.size() - 1);
-      for (std::size_t j = 1; j < time_s.size(); ++j) steps[j - 1] = time_s[j] - time_s[j - 1];
-      std::vector<double> sorted = steps;
-      std::nth_element(sorted.begin(), sorted.begin() + static_cast<long>(sorted.size() / 2), sorted.end());
-      const double usual = sorted[sorted.size() / 2];
+      const double usual = median_step_s(time_s);
       std::size_t row = i;
-      for (std::size_t j = 0; j < steps.size(); ++j)
-        if (std::fabs(steps[j] - usual) > 0.01 * std::fabs(usual) + 1e-9) {
-          row = j + 1;
+      for (std::size_t j = 1; j < time_s.size(); ++j)
+        if (std::fabs(time_s[j] - time_s[j - 1] - usual) > 0.01 * std::fabs(usual) + 1e-9) {
+          row = j;
           break;
         }
       std::ostringstream os;
       os << where(*this) << ": row " << row + 2 << ", column time_s: sample rate is not constant (step "
-         << steps[row - 1] << " s after t = " << time_s[row - 1] << " s, usual step " << usual << " s)";
+         << time_s[row] - time_s[row - 1] << " s after t = " << time_s[row - 1] << " s, usual step " << usual << " s)";
       throw DataError(os.str());
     }
   }
   return dt;
+}
+
+double median_step_s(const std::vector<double>& time_s) {
+  if (time_s.size() < 2) return 0.0;
+  std::vector<double> steps(time_s.size() - 1);
+  for (std::size_t j = 1; j < time_s.size(); ++j) steps[j - 1] = time_s[j] - time_s[j - 1];
+  std::nth_element(steps.begin(), steps.begin() + static_cast<long>(steps.size() / 2), steps.end());
+  return steps[steps.size() / 2];
 }
 
 Dataset Dataset::slice(std::size_t begin, std::size_t end) const {
