@@ -344,7 +344,7 @@ void check_bag_file(const std::string& path) {
 
 namespace {
 
-io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
+io::Dataset read_bag_impl(const std::string& path, const BagOptions& options, std::vector<std::uint32_t>* row_sequences) {
   check_bag_file(path);
   rosbag::Bag bag;
   try {
@@ -503,6 +503,10 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
   d.time_clock = "ros";  // stamps are ROS time (sim time under use_sim_time)
   d.time_s.resize(n);
   for (std::size_t i = 0; i < n; ++i) d.time_s[i] = row_t(i);
+  if (row_sequences) {
+    row_sequences->resize(n);
+    for (std::size_t i = 0; i < n; ++i) (*row_sequences)[i] = paired[first].samples[row_of[i]].sequence;
+  }
   for (int k = 0; k < 3; ++k) {
     if (!has_topic[k][1]) continue;
     auto& ax = d.add_axis(io::kAxisNames[k]);
@@ -552,9 +556,9 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options) {
 
 }  // namespace
 
-io::Dataset read_bag(const std::string& path, const BagOptions& options) {
+io::Dataset read_bag(const std::string& path, const BagOptions& options, std::vector<std::uint32_t>* row_sequences) {
   try {
-    return read_bag_impl(path, options);
+    return read_bag_impl(path, options, row_sequences);
   } catch (const io::DataError&) {
     throw;
   } catch (const std::exception& e) {  // rosbag and message deserialisation errors on a damaged file

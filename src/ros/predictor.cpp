@@ -445,12 +445,25 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
             res.message += "; the window has " + compensation::describe_gaps(*recent) +
                            ": warmed across the gap(s) as the running model ran";
           }
-          for (std::size_t i = 0; i < axes_.size(); ++i)
-            res.message += "; " + axes_[i]->logic->axis() + ": " +
-                           (cold[i].empty() ? "warm, on the last " + std::to_string(static_cast<int>(
-                                                  recent->end_s - recent->begin_s)) + " s" +
-                                                  (handover[i].empty() ? "" : ", " + handover[i])
-                                            : "cold start (" + cold[i] + ")");
+          for (std::size_t i = 0; i < axes_.size(); ++i) {
+            const std::string& axis = axes_[i]->logic->axis();
+            res.message += "; " + axis + ": ";
+            if (!cold[i].empty()) {
+              res.message += "cold start (" + cold[i] + ")";
+              continue;
+            }
+            // the span buffered, not the window: a node up for less than ~snapshot_duration_s (or a ring at
+            // ~snapshot_max_messages) holds less, and the reply says so rather than read as a short window
+            const double span_s = recent->end_s - recent->begin_s;
+            const double window_s = snapshot_->options().duration_s;
+            std::ostringstream os;
+            os << std::fixed << std::setprecision(1) << "warm, on the buffered " << span_s << " s ("
+               << recent->axes.at(axis).readings.size() << " readings";
+            if (span_s < window_s - 2.0 * recent->period_s - recent->max_restamp_s)
+              os << ", less than the " << window_s << " s window";
+            os << ")";
+            res.message += os.str() + (handover[i].empty() ? "" : ", " + handover[i]);
+          }
         } catch (const std::exception& e) {
           res.success = false;
           res.message = std::string("reload failed, models unchanged: ") + e.what();

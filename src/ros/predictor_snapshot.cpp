@@ -36,6 +36,52 @@ std::string topic(const std::string& ns, const std::string& rest) {
   return (ns.front() == '/' ? ns : "/" + ns) + (ns.back() == '/' ? "" : "/") + rest;
 }
 
+// AugmentedModel::set_base_trace for one scope: the trace is cleared on every way out (a stream that throws too).
+class BaseTraceScope {
+ public:
+  BaseTraceScope(models::AugmentedModel* m, std::vector<double>* trace) : m_(m) {
+    if (m_) m_->set_base_trace(trace);
+  }
+  ~BaseTraceScope() {
+    if (m_) m_->set_base_trace(nullptr);
+  }
+  BaseTraceScope(const BaseTraceScope&) = delete;
+  BaseTraceScope& operator=(const BaseTraceScope&) = delete;
+
+ private:
+  models::AugmentedModel* m_;
+};
+
+// The running base's recorded prediction per row of `d` (NaN where none). Row i is the sample with sequence
+// number row_seq[i] on every axis (the reader's pairing); a sample another axis lost has no row, so matching by
+// index would shift every later row. A controller restart reuses numbers: of equal numbers, the axis' reading on
+// the sample clock nearest the row, and the prediction stamped nearest its receive stamp (the same stamp).
+std::vector<double> running_base_per_row(const compensation::Snapshot::Axis& ax, const io::Dataset& d,
+                                         const std::vector<std::uint32_t>& row_seq) {
+  constexpr double kSameSampleS = 1.0;  // as SnapshotBuffer::take pairs a report with its reading
+  std::vector<double> base(d.size(), std::nan(""));
+  if (row_seq.size() != d.size()) return base;
+  // the one with number `seq` whose stamp(x) is nearest t, within kSameSampleS, or null
+  const auto nearest = [](const auto& by_seq, std::uint32_t seq, double t, auto stamp) {
+    const auto [lo, hi] = by_seq.equal_range(seq);
+    decltype(lo->second) found = nullptr;
+    double best = kSameSampleS;
+    for (auto it = lo; it != hi; ++it)
+      if (const double dt = std::fabs(stamp(*it->second) - t); dt <= best) best = dt, found = it->second;
+    return found;
+  };
+  std::multimap<std::uint32_t, const compensation::SnapshotReading*> readings;
+  std::multimap<std::uint32_t, const compensation::SnapshotPrediction*> predictions;
+  for (const auto& r : ax.readings) readings.emplace(r.sequence, &r);
+  for (const auto& p : ax.base_predictions) predictions.emplace(p.sequence, &p);
+  for (std::size_t i = 0; i < d.size(); ++i) {
+    const auto* r = nearest(readings, row_seq[i], d.time_s[i], [](const auto& x) { return x.stamp_s; });
+    const auto* p = r ? nearest(predictions, row_seq[i], r->received_s, [](const auto& x) { return x.stamp_s; }) : nullptr;
+    if (p) base[i] = p->base_nm;
+  }
+  return base;
+}
+
 }  // namespace
 
 std::string snapshot_directory(const std::string& configured) {
@@ -133,33 +179,21 @@ std::string warm_model(models::Model& model, const std::string& axis, const comp
   const fs::path tmp = fs::temp_directory_path() / ("piezo_warmup_" + std::to_string(::getpid()) + ".bag");
   try {
     write_snapshot_bag(tmp.string(), ns, s, "base");
-    const io::Dataset d = ros_io::read_bag(tmp.string());
+    std::vector<std::uint32_t> row_seq;
+    const io::Dataset d = ros_io::read_bag(tmp.string(), {}, &row_seq);
     std::error_code ec;
     fs::remove(tmp, ec);
     // on failure the reload resets it (cold)
     auto* aug = dynamic_cast<models::AugmentedModel*>(&model);
     const bool hand_over = running && aug && handover;
     std::vector<double> warm, warm_base;  // the hand-over takes the base part from this one stream
-    if (hand_over) aug->set_base_trace(&warm_base);
-    try {
+    {
+      const BaseTraceScope trace(hand_over ? aug : nullptr, &warm_base);
       warm = models::stream_model(model, d, axis, models::StreamOptions{}).prediction;
-    } catch (...) {
-      if (hand_over) aug->set_base_trace(nullptr);
-      throw;
     }
     if (hand_over) {
-      aug->set_base_trace(nullptr);
-      // the running base's recorded prediction per row: the rows are the window's valid readings, in order
       const auto& ax = s.axes.at(axis);
-      std::vector<double> base(d.size(), std::nan(""));
-      if (ax.readings.size() == d.size()) {
-        std::map<std::uint32_t, double> by_seq;
-        for (const auto& p : ax.base_predictions) by_seq[p.sequence] = p.base_nm;
-        for (std::size_t i = 0; i < d.size(); ++i) {
-          const auto it = by_seq.find(ax.readings[i].sequence);
-          if (it != by_seq.end()) base[i] = it->second;
-        }
-      }
+      const std::vector<double> base = running_base_per_row(ax, d, row_seq);
       const compensation::BaseHandover h = compensation::hand_over_base(*aug, *running, d, axis, warm, warm_base, base);
       std::ostringstream os;
       if (h.done)
@@ -167,6 +201,11 @@ std::string warm_model(models::Model& model, const std::string& axis, const comp
            << " nm on " << h.samples << " samples";
       else
         os << "base warmed from rest (" << h.why << ")";
+      // readings of this axis without a row: samples another axis lost or has not yet (the reader fills none); the
+      // rest are matched by sequence number, so they cost only their own rows
+      if (ax.readings.size() > d.size())
+        os << " (" << ax.readings.size() - d.size() << " of " << axis << "'s " << ax.readings.size()
+           << " readings have no row, their sample missing on another axis; rows matched by sequence number)";
       *handover = os.str();
     }
   } catch (const std::exception& e) {

@@ -8,7 +8,9 @@
 #include <tf2_ros/buffer.h>
 #include <tf2_ros/transform_listener.h>
 
+#include <iomanip>
 #include <iostream>
+#include <sstream>
 
 #include "piezo_compensation/ros/data_file.h"
 #include "predictor_test_driver.h"
@@ -75,13 +77,23 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   const piezo::io::Dataset d = piezo::ros_io::read_bag(path);
   EXPECT_NO_THROW(d.sample_period_s());
   EXPECT_EQ(d.size(), 60u);
-  // the reload's warm-up keeps the whole window (the running model skipped the same samples) and says so
+  // the reload's warm-up keeps the whole window (the running model skipped the same samples) and says so; the
+  // node has run about 1 s of the 1800 s ~snapshot_duration_s, so the window is every sample sent, and the reply
+  // says it holds less than the window rather than reading as a short one
   std_srvs::Trigger reload;
   ASSERT_TRUE(ros::service::call("/mm1/predictor/reload_model", reload));
   ASSERT_TRUE(reload.response.success) << reload.response.message;
   std::cout << "[predictor_live] reload: " << reload.response.message << "\n";
   EXPECT_NE(reload.response.message.find("the window has 1 gap, 3 samples missing"), std::string::npos)
       << reload.response.message;
+  double window_s = 0.0;
+  ASSERT_TRUE(ros::param::get("/mm1/predictor/snapshot_duration_s", window_s));
+  std::ostringstream warm;
+  warm << std::fixed << std::setprecision(1) << " s (" << drv.samples_sent << " readings, less than the " << window_s
+       << " s window)";
+  EXPECT_NE(reload.response.message.find("c: warm, on the buffered "), std::string::npos) << reload.response.message;
+  EXPECT_NE(reload.response.message.find(warm.str()), std::string::npos)
+      << "expected '" << warm.str() << "' in: " << reload.response.message;
 }
 
 int main(int argc, char** argv) {

@@ -49,6 +49,7 @@ class FakeDriver {
   void cycle() {
     const std::size_t before = predictions.size();
     ++seq_;
+    ++samples_sent;
     piezo_compensation::AxisVoltage v;
     v.header.stamp = ros::Time::now();
     v.axis = "c";
@@ -78,6 +79,7 @@ class FakeDriver {
 
   double applied_v = 0.0;   // what the plant holds next (the last command)
   double reported_v = 0.0;  // what the last published sample held
+  std::size_t samples_sent = 0;  // voltage/encoder pairs published (lost ones not counted)
   std::vector<piezo_compensation::VoltageCommand> commands;
   std::vector<piezo_compensation::Prediction> predictions;
 

@@ -150,28 +150,15 @@ TEST(CompensationIdealLine, GainOnTimeIsReadAtItsTrainingCentre) {
 TEST(CompensationBaseHandover, TakesTheRunningBaseAndReestimatesTheOffset) {
   const double fs = 11.0;
   const std::size_t n_hist = 3000, n_win = 2000, n_after = 1500;
-  std::vector<double> v(n_hist + n_win + n_after);
-  double x = 0.0;
-  std::uint64_t st = 7;
-  for (auto& vi : v) {  // a seeded random walk in ±60 V
-    st = st * 6364136223846793005ULL + 1442695040888963407ULL;
-    x = std::clamp(x + ((st >> 33) % 2001 / 1000.0 - 1.0) * 2.0, -60.0, 60.0);
-    vi = x;
-  }
+  const test::PiCreepWalk stage = test::pi_creep_walk(n_hist + n_win + n_after, fs, 20.0);
+  const std::vector<double>& v = stage.voltage_v;
+  const std::vector<double>& truth = stage.position_nm;
   // the running model: the base since the stage's rest, up to the reload at the window's end
   auto run_base = test::make_pi_creep(fs);
   run_base->reset(v[0], 0.0);
   for (std::size_t i = 0; i < n_hist + n_win; ++i) {
     const models::ModelInput in{v[i], nullptr};
     run_base->commit(in, run_base->predict(in));
-  }
-  std::vector<double> truth(v.size());
-  auto stage = test::make_pi_creep(fs);
-  stage->reset(v[0], 0.0);
-  for (std::size_t i = 0; i < v.size(); ++i) {
-    const models::ModelInput in{v[i], nullptr};
-    truth[i] = stage->predict(in) + 20.0;
-    stage->commit(in, truth[i] - 20.0);
   }
   io::Dataset win;
   io::AxisSeries& c = win.add_axis("c");

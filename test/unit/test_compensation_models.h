@@ -3,7 +3,9 @@
 // gain-plus-creep model (affine), and a model that turns NaN on demand.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <limits>
 #include <memory>
 #include <vector>
@@ -50,6 +52,30 @@ class PiCreepModel : public models::Model {
 inline std::unique_ptr<PiCreepModel> make_pi_creep(double rate_hz = 11.0) {
   return std::make_unique<PiCreepModel>(std::vector<double>{0.0, 5.0, 10.0, 20.0, 40.0},
                                         std::vector<double>{8.0, 1.5, 1.2, 1.0, 0.8}, 1.5, 300.0, rate_hz);
+}
+
+// The reload hand-over tests' stage: a seeded random walk in ±60 V (steps up to ±2 V) driving make_pi_creep
+// from rest at the walk's first voltage; its position is the plant's plus offset_nm.
+struct PiCreepWalk {
+  std::vector<double> voltage_v, position_nm;
+};
+inline PiCreepWalk pi_creep_walk(std::size_t n, double rate_hz, double offset_nm, std::uint64_t seed = 7) {
+  PiCreepWalk w{std::vector<double>(n), std::vector<double>(n)};
+  double x = 0.0;
+  for (auto& v : w.voltage_v) {
+    seed = seed * 6364136223846793005ULL + 1442695040888963407ULL;
+    x = std::clamp(x + ((seed >> 33) % 2001 / 1000.0 - 1.0) * 2.0, -60.0, 60.0);
+    v = x;
+  }
+  auto plant = make_pi_creep(rate_hz);
+  plant->reset(w.voltage_v[0], 0.0);
+  for (std::size_t i = 0; i < n; ++i) {
+    const models::ModelInput in{w.voltage_v[i], nullptr};
+    const double y = plant->predict(in);
+    plant->commit(in, y);
+    w.position_nm[i] = y + offset_nm;
+  }
+  return w;
 }
 
 // y = a V + b z with the same single-mode creep state z: affine in V at every state.

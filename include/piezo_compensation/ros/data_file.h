@@ -2,7 +2,9 @@
 // Lives on the ROS side because bags need rosbag; the core library only knows CSV.
 #pragma once
 
+#include <cstdint>
 #include <string>
+#include <vector>
 
 #include "piezo_compensation/io/dataset.h"
 
@@ -25,7 +27,9 @@ struct BagOptions {
   bool refuse_gaps = false;
 };
 
-io::Dataset read_bag(const std::string& path, const BagOptions& options = {});
+// row_sequences (optional): each row's sequence number, the sample every axis' row pairs by (io/sequence_pairer.h).
+io::Dataset read_bag(const std::string& path, const BagOptions& options = {},
+                     std::vector<std::uint32_t>* row_sequences = nullptr);
 // The record structure of a bag checked before rosbag opens it (rosbag trusts every length and position it
 // reads; docs/security.md): throws io::DataError naming the file and the record. read_bag calls it.
 void check_bag_file(const std::string& path);

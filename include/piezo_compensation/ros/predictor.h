@@ -109,7 +109,8 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
 // reloaded model starts with the state of a model that had been running (low-pass and lag terms, creep).
 // Returns "" or why it could not (the caller then starts the model at rest). With `running` (the model running
 // now) and an augmented `model` on the same base, the base's state and the offset are then taken from the running
-// model (compensation/base_handover.h); `handover` says what was done.
+// model (compensation/base_handover.h), its recorded predictions matched to the rows by sequence number (a sample
+// another axis lost has no row); `handover` says what was done.
 std::string warm_model(models::Model& model, const std::string& axis, const compensation::Snapshot& s,
                        const std::string& ns, const models::Model* running = nullptr, std::string* handover = nullptr);
 
