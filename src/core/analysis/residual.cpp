@@ -87,7 +87,7 @@ struct Context {
   std::vector<double> voltage, measured, x_base;  // x_base: base model prediction per row
   std::vector<std::string> other_axes;            // other axes' voltage and position column names
   std::vector<std::string> aux_names;             // auxiliary columns
-  double x_at_zero_v = 0.0;                       // base output at rest at 0 V: where a stroke gain acts about
+  double x_at_zero_v = 0.0;                       // the stage's position at 0 V: where a stroke gain acts about
   // Start-state transients (ResidualOptions::start_transients): exp(−(t − t₀)/τ_j) per row, one column per τ_j.
   // A base started "at rest at the first voltage" on data that begins mid-history is wrong by the unknown initial
   // state of each of its creep modes, which decays with that mode's τ: fitted as nuisance terms, never put in the
