@@ -111,12 +111,12 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
     for (double tau : pm.mode_taus_s()) EXPECT_LE(tau, n_train / rate * 1.001);
     for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
   }
-  // Issue 12: hold MAE ≤ 5 nm (measured 1.64 nm; pi_creep_prony 41.8 nm). The end-of-hold target (≤ 5 nm) is met
-  // here (3.04 nm) but not on seeds 7 and 12 (6.42 and 6.68 nm; 6.48 and 6.19 with another spectrum), so the bound
-  // is the worst of those (docs/models.md, issue 12), not this seed's value.
+  // Issue 12: hold MAE and every end of hold ≤ 5 nm (measured 2.70 / 4.15 nm with the converged final fit;
+  // pi_creep_prony 41.8 nm). Not on every seed: 7 of the 7 seed/spectrum cases tried hold the MAE, 5 the ends
+  // (seed 7 6.38 / 6.35 nm, the pieces' hysteresis error at a 48.6-V hold; docs/models.md, issue 12).
   EXPECT_LE(got["preisach_creep_prony"].mae_nm, 5.0);
-  EXPECT_LE(got["preisach_creep_prony"].worst_end_nm, 7.0);
-  EXPECT_LE(got["preisach_creep_prony"].walk_mae_nm, 3.0);  // measured 1.78 nm: holds not bought with the walk
+  EXPECT_LE(got["preisach_creep_prony"].worst_end_nm, 5.0);
+  EXPECT_LE(got["preisach_creep_prony"].walk_mae_nm, 3.0);  // measured 2.87 nm: holds not bought with the walk
   EXPECT_LT(got["preisach_creep_prony"].mae_nm, 0.25 * got["pi_creep_prony"].mae_nm);
 }
 // Issue 12's residual-loop item on this kind of data: test/unit/test_residual_preisach.cpp.
