@@ -22,11 +22,10 @@ TEST(ResidualGain, NoEffectAddsNothing) {
   const pa::ResidualResult& r = clean();
   EXPECT_TRUE(r.effects.empty()) << "(d): added " << r.effects.front().family;
 }
-// Within the 1.10 × ((d)'s base is within 4.1 nm of the truth, noise σ 21 nm, so 10 % is 0.4 nm). Measured
-// 20.1 → 4.03 nm = 1.00 × (3.8 %/°C against 4 %, lag 120 s + low-pass 100 s against the true 45 s + 240 s); it fails
-// if the gain is not found (5.0 ×) or misplaced (lag chosen before the base is refitted: 3.1 ×). Before the pivot
-// and form rules of docs/closing-the-loop.md: 1.21 × about the base's reset rest position, 1.58 × about the stage's
-// position at 0 V with the form chosen on the first base's residual.
+// Within the 1.10 × ((d)'s base is within 5.9 nm of the truth, noise σ 21 nm, so 10 % is 0.6 nm). Measured
+// 20.1 → 5.59 nm = 0.94 × (3.7 %/°C against 4 %, lag 120 s + low-pass 100 s against the true 45 s + 240 s); without
+// the effect found it stays at 3.4 ×. With the earlier Preisach fit ((d) 4.05 nm) this went 1.21 × → 1.00 × with the
+// pivot and form rules of docs/closing-the-loop.md ("What limited (a)").
 TEST(ResidualGain, StrokeGainDrivenByALaggedTemperatureColumn) {
   expect_gain(Gain::kTemperature, "(a) temperature gain", "aux_gain", "temperature_c", clean().after_test_truth.mae_nm, 1.10);
 }

@@ -92,8 +92,8 @@ struct ResidualOptions {
   double min_validation_gain = 0.03;   // an effect must cut the validation MAE by this fraction to be added
   // … and a line in time (time_drift, time_gain) by this: its slope's error grows with the horizon past TRAIN, and
   // over a few hours a slow wander of the base's creep misfit looks like a line (on the Preisach gain stage of
-  // test_residual_gain a line validated at 2.6 % on the clean stage and at 3.5 % after the temperature gain, and
-  // the wander reversed in TEST: 4.0 → 9.5 nm against the truth).
+  // test_residual_gain, with the earlier Preisach fit, a line validated at 2.6 % on the clean stage and at 3.5 %
+  // after the temperature gain, and the wander reversed in TEST: 4.0 → 9.5 nm against the truth).
   double time_trend_min_validation_gain = 0.06;
   int max_effects = 5;
   // A family whose regressors depend on the operating point (voltage_nonlinearity, position_periodic,

@@ -760,7 +760,7 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     const Val now = validate(terms);
     // Every significant family is validated: competing explanations are compared on data they were not fitted on.
     // A gain's form is chosen after the base has been refitted without it (below) where the base is refitted: the
-    // first base absorbed part of the effect, and what it left looks curved (on the temperature-gain stage the
+    // first base absorbed part of the effect, and what it left looks curved (on the temperature-gain stage, earlier Preisach fit, the
     // quadratic won here and at each refit, and ended at 6.4 nm against the truth; chosen after the refits the
     // linear form stays, 4.0 nm).
     const bool form_after_refits = o.refit_base && std::max(o.backfit_iterations, o.gain_backfit_iterations) > 0;
