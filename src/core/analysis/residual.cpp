@@ -733,10 +733,11 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     std::ostringstream variant;
     for (const auto& [k, x] : s.best.parameters) variant << " " << k << "=" << x;
     for (const auto& [k, x] : s.best.labels) variant << " " << k << "=" << x;
+    const bool clearly = training::validation_prefers(v.abs_err, now.abs_err, static_cast<std::size_t>(std::lround(300.0 * c.fs)));
     log("  validation MAE gain of " + s.family + variant.str() + ": " + std::to_string(100.0 * s.validation_gain) + " %" +
         (n_val_hold ? ", in holds " + std::to_string(100.0 * s.hold_validation_gain) + " %" : "") + " (halves " +
         std::to_string(100.0 * s.validation_gain_halves.first) + " / " + std::to_string(100.0 * s.validation_gain_halves.second) + " %)" +
-        (training::validation_prefers(v.abs_err, now.abs_err, static_cast<std::size_t>(std::lround(300.0 * c.fs))) ? ", clearly better (paired 5-min blocks)" : ", not clearly better (paired 5-min blocks)"));
+        (clearly ? ", clearly better" : ", not clearly better") + " (paired 5-min blocks)");
   };
 
   for (int step = 0; step < o.max_effects; ++step) {
@@ -760,9 +761,9 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     const Val now = validate(terms);
     // Every significant family is validated: competing explanations are compared on data they were not fitted on.
     // A gain's form is chosen after the base has been refitted without it (below) where the base is refitted: the
-    // first base absorbed part of the effect, and what it left looks curved (on the temperature-gain stage, earlier Preisach fit, the
-    // quadratic won here and at each refit, and ended at 6.4 nm against the truth; chosen after the refits the
-    // linear form stays, 4.0 nm).
+    // first base absorbed part of the effect, and what it left looks curved (on the temperature-gain stage with the
+    // earlier Preisach fit the quadratic won here and at each refit, and ended at 6.4 nm against the truth; chosen
+    // after the refits the linear form stays, 4.0 nm).
     const bool form_after_refits = o.refit_base && std::max(o.backfit_iterations, o.gain_backfit_iterations) > 0;
     for (auto& s : ranking)
       if (s.available && s.significant) validate_family(s, terms, now, !form_after_refits);
