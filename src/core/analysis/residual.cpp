@@ -908,8 +908,9 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
         if (again.best.parameters != winner->best.parameters || again.best.labels != winner->best.labels) {
           log("  " + winner->family + " chosen again on the refitted base's residual");
           // A gain's form chosen at the last refit that is not the one the base was refitted without: one refit
-          // more with it taken out (on the other-axis gain stage with seed 23 the voltage form won there, and
-          // without that refit ended 1.5 nm worse against the truth than with the form chosen at every refit).
+          // more with it taken out (on the other-axis gain stage with seed 23 and the earlier Preisach fit the
+          // voltage form won there, and without that refit ended 1.5 nm worse against the truth than with the form
+          // chosen at every refit).
           const EffectTerm& was = terms[first];
           const EffectTerm& now_t = again.best.terms[0];
           if (last && form_after_refits && is_gain_family(winner->family) && !extended &&
