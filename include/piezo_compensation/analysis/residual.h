@@ -60,6 +60,7 @@ struct FamilyScore {
   double validation_gain = 0.0; // relative validation-MAE improvement when added (0 if not tried)
   double hold_validation_gain = 0.0;  // the same inside holds (0 without holds)
   std::pair<double, double> validation_gain_halves{0.0, 0.0};  // the same in the first and second half of validation
+  bool half_clearly_worse = false;  // a half where the errors are clearly higher with it (paired 5-min blocks)
   std::size_t parameters = 0;   // fitted weights of the best variant
   std::size_t variants = 0;     // how many parameter variants were searched
   std::string verdict;          // "kept", or why it was not (competing explanation, hold guard, too small)

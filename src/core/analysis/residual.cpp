@@ -728,6 +728,17 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
     s.validation_gain = 1.0 - v.mae / now.mae;
     s.hold_validation_gain = n_val_hold ? 1.0 - v.hold_mae / now.hold_mae : 0.0;
     s.validation_gain_halves = {1.0 - v.mae1 / now.mae1, 1.0 - v.mae2 / now.mae2};
+    {
+      // Worse in a half only counts when it is clearly worse there (paired 5-min blocks, > 2 SE; with under four
+      // blocks in the half the lower mean decides, as a plain comparison would).
+      const std::size_t nv = std::min(v.abs_err.size(), now.abs_err.size()), h = nv / 2;
+      const auto blk = static_cast<std::size_t>(std::lround(300.0 * c.fs));
+      auto part = [](const std::vector<double>& e, std::size_t b, std::size_t en) {
+        return std::vector<double>(e.begin() + static_cast<long>(b), e.begin() + static_cast<long>(en));
+      };
+      s.half_clearly_worse = training::validation_prefers(part(now.abs_err, 0, h), part(v.abs_err, 0, h), blk) ||
+                             training::validation_prefers(part(now.abs_err, h, nv), part(v.abs_err, h, nv), blk);
+    }
     s.parameters = 0;
     for (const auto& t : s.best.terms) s.parameters += t.num_regressors();
     std::ostringstream variant;
@@ -777,10 +788,15 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
         s.verdict = "validation gain below " + std::to_string(100.0 * need).substr(0, 4) + " %";
       } else if (n_val_hold && s.hold_validation_gain < -o.hold_tolerance) {
         s.verdict = "worsens the validation error inside holds";
-      } else if (std::min(s.validation_gain_halves.first, s.validation_gain_halves.second) < -o.half_tolerance) {
+      } else if (std::min(s.validation_gain_halves.first, s.validation_gain_halves.second) < -o.half_tolerance &&
+                 (extrapolates_in_time(s.family) || s.half_clearly_worse)) {
         // Slow structure the base misses (creep modes longer than the fit part, a slow thermal wander) lets a
         // trend or slow term fitted on the fit part win just after it and lose further on: a real effect keeps
-        // helping in both halves of the validation part.
+        // helping in both halves of the validation part. Except for lines in time, which extrapolate, a half counts
+        // only when clearly worse (half_clearly_worse): on the 200-bin Preisach walk a 1.5 %/µm other-axis gain
+        // (p 3e-67, +7.0 % in the second half) lost 0.3 % in the first, within its noise, and was refused (TEST
+        // stayed at 50 nm against the truth); on the Preisach creep protocol a time_drift lost a half by as little
+        // and is refused as before.
         s.verdict = "does not generalise in time: worsens one half of the validation part";
       }
     }
