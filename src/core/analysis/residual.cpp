@@ -653,9 +653,9 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       for (const auto& t : cand.terms) trial.push_back(t);
       return validate(trial);
     };
+    const auto block = static_cast<std::size_t>(std::lround(300.0 * c.fs));  // the paired tests' 5-min blocks
     Val v = score(s.best);
     if (is_gain_family(s.family) && choose_form) {
-      const auto block = static_cast<std::size_t>(std::lround(300.0 * c.fs));
       const Candidate base_cand = s.best;
       for (const char* scales : {models::kSignalPosition, models::kSignalVoltage})
         for (const char* form : {"gain", "gain_quadratic"}) {
@@ -732,19 +732,18 @@ ResidualResult trace_residual(const models::Model& base, const io::Dataset& trai
       // Worse in a half only counts when it is clearly worse there (paired 5-min blocks, > 2 SE; with under four
       // blocks in the half the lower mean decides, as a plain comparison would).
       const std::size_t nv = std::min(v.abs_err.size(), now.abs_err.size()), h = nv / 2;
-      const auto blk = static_cast<std::size_t>(std::lround(300.0 * c.fs));
       auto part = [](const std::vector<double>& e, std::size_t b, std::size_t en) {
         return std::vector<double>(e.begin() + static_cast<long>(b), e.begin() + static_cast<long>(en));
       };
-      s.half_clearly_worse = training::validation_prefers(part(now.abs_err, 0, h), part(v.abs_err, 0, h), blk) ||
-                             training::validation_prefers(part(now.abs_err, h, nv), part(v.abs_err, h, nv), blk);
+      s.half_clearly_worse = training::validation_prefers(part(now.abs_err, 0, h), part(v.abs_err, 0, h), block) ||
+                             training::validation_prefers(part(now.abs_err, h, nv), part(v.abs_err, h, nv), block);
     }
     s.parameters = 0;
     for (const auto& t : s.best.terms) s.parameters += t.num_regressors();
     std::ostringstream variant;
     for (const auto& [k, x] : s.best.parameters) variant << " " << k << "=" << x;
     for (const auto& [k, x] : s.best.labels) variant << " " << k << "=" << x;
-    const bool clearly = training::validation_prefers(v.abs_err, now.abs_err, static_cast<std::size_t>(std::lround(300.0 * c.fs)));
+    const bool clearly = training::validation_prefers(v.abs_err, now.abs_err, block);
     log("  validation MAE gain of " + s.family + variant.str() + ": " + std::to_string(100.0 * s.validation_gain) + " %" +
         (n_val_hold ? ", in holds " + std::to_string(100.0 * s.hold_validation_gain) + " %" : "") + " (halves " +
         std::to_string(100.0 * s.validation_gain_halves.first) + " / " + std::to_string(100.0 * s.validation_gain_halves.second) + " %)" +

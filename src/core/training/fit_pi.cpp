@@ -817,8 +817,9 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
       throw std::runtime_error("option 'hold_weight': expected auto, off or a number in [1, 1000]");
   }
   double used_factor = 1.0;
+  std::vector<double> weight;  // the hold weights, once kept (used_factor > 1)
   if (factor > 1.0 && kind != CreepKind::kNone && n_hold > 0) {
-    std::vector<double> weight(train_hold.size());
+    weight.resize(train_hold.size());
     for (std::size_t t = 0; t < weight.size(); ++t) weight[t] = train_hold[t] ? factor : 1.0;
     auto mw = fit_with(r, m->creep().on_hysteresis, &weight);
     bool keep = hw != "auto";
@@ -844,11 +845,7 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
   const bool realternate = final_alternations != alternations && m->creep().on_hysteresis &&
                            !(kind == CreepKind::kProny && creep_on_h_fit == "joint");
   alternations = final_alternations;
-  if (realternate && !refit) {
-    std::vector<double> w_hold(train_hold.size());
-    for (std::size_t t = 0; t < w_hold.size(); ++t) w_hold[t] = train_hold[t] ? used_factor : 1.0;
-    m = fit_with(r, true, used_factor > 1.0 ? &w_hold : nullptr);
-  }
+  if (realternate && !refit) m = fit_with(r, true, used_factor > 1.0 ? &weight : nullptr);
   std::vector<double> all_v, all_y, all_w;
   if (refit) {
     all_v = ax.voltage_v, all_y = ax.position_nm;
