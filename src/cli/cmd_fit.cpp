@@ -5,6 +5,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "piezo_compensation/analysis/estimator_fit.h"
 #include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_file.h"
@@ -146,6 +147,11 @@ int run(int argc, char** argv) {
     } else {
       analysis::check_fit_sanity(*model, nullptr, scale);
     }
+  }
+  if (req.validation) {
+    // The estimator's noise model on the part the model was not fitted on (its error there is what live sees).
+    model->meta.estimator = analysis::identify_estimator(*model, score_data, axis, split_at).to_yaml();
+    std::cout << "estimator: " << estimation::NoiseModel::from_yaml(model->meta.estimator, "fit").describe() << "\n";
   }
   model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
   if (model->meta.training_source.empty()) model->meta.training_source = args.str("data");

@@ -128,7 +128,16 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   s.axis.inverse_tolerance_nm = r.number("inverse_tolerance_nm", s.axis.inverse_tolerance_nm, 1e-9, 1e6);
   s.axis.position_margin_nm = r.number("position_margin_nm", s.axis.position_margin_nm, 0.0, 1e9);
   s.axis.position_feedback = r.flag("position_feedback", s.axis.position_feedback);
-  s.axis.reanchor_time_constant_s = r.number("reanchor_time_constant_s", s.axis.reanchor_time_constant_s, 0.0, 86400.0);
+  if (pnh.hasParam("reanchor_time_constant_s"))
+    throw std::invalid_argument("parameter " + r.resolved("reanchor_time_constant_s") + " was removed: the hold trim "
+                                "on the fused estimate (~hold_trim, docs/predictor.md) replaces it");
+  compensation::HoldTrimOptions& t = s.axis.hold_trim;
+  t.enabled = r.flag("hold_trim", t.enabled);
+  t.settle_s = r.number("hold_trim_settle_s", t.settle_s, 0.0, 3600.0);
+  t.time_constant_s = r.number("hold_trim_time_constant_s", t.time_constant_s, 0.1, 86400.0);
+  t.max_nm = r.number("hold_trim_max_nm", t.max_nm, 0.0, 1e6);
+  t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s", t.slew_nm_per_s, 1e-6, 1e6);
+  t.stale_after_s = r.number("encoder_stale_after_s", t.stale_after_s, 1e-3, 3600.0);
   r.warn_unknown("piezo_predictor");
   return s;
 }
@@ -265,6 +274,8 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   p.model = model_name_;
   p.measured_position = valid ? sample.position_nm / kNmPerM : std::nan("");
   p.predicted_position = u.predicted_nm / kNmPerM;
+  p.fused_position = u.fused_nm / kNmPerM;
+  p.fused_position_sigma = u.fused_sigma_nm / kNmPerM;
   p.drift_horizons = s_.drift_horizons_s;
 
   const bool sending = comp_->has_intent() && (compensate || s_.forward_when_off);
@@ -284,6 +295,8 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
     intended_nm_ = comp_->ideal_line().position_nm(applied);
   }
   p.intended_position = intended_nm_ / kNmPerM;
+  p.hold_trim = comp_->hold_trim().trim_nm() / kNmPerM;
+  p.hold_trim_state = compensation::trim_state_name(comp_->hold_trim().state());
   p.commanded_voltage = c.commanded_v;
   p.corrected_voltage = c.corrected_v;
   p.compensation_active = sending && c.compensation_active;
@@ -340,42 +353,59 @@ struct PredictorNode::Axis {
 PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     : nh_(nh), pnh_(pnh), s_(read_settings(pnh)) {
   compensation_ = s_.compensation;
-  for (const auto& name : s_.axes) {
-    auto a = std::make_unique<Axis>();
-    const std::string& path = s_.model_files.at(name);
-    models::ModelPtr m;
-    std::string error;
-    try {
-      m = load_model_file(path);
-      if (m->meta.axis != name)
-        ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
-    } catch (const std::exception& e) {
-      // Keep the axis movable: uncorrected commands with bounded steps, reported in diagnostics.
-      error = e.what();
-      ROS_ERROR("axis %s: ~model_file/%s: %s; running uncorrected (fallback) until ~reload_model succeeds",
-                name.c_str(), name.c_str(), e.what());
-    }
-    a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_, error);
-    a->logic->set_live_inputs(&live_);
-    const auto& line = a->logic->compensator().ideal_line();
-    ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
-             a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
-    Axis* ap = a.get();
-    a->pub_prediction = nh_.advertise<Prediction>(name + "/prediction", 20);
-    a->pub_command = nh_.advertise<VoltageCommand>(name + "/command", 1);
-    // Sensor topics keep every sample through a stall of the host (kInputQueue samples: 18 s at 11 Hz, 0.45 s of
-    // wall time at 40 x simulated time); a dropped one would be a gap in the snapshot and in the model's clock.
-    a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", kInputQueue, [this, ap](const AxisVoltage::ConstPtr& m) {
-      on_voltage(*ap, m);
-    }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
-    a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", kInputQueue, [this, ap](const EncoderPosition::ConstPtr& m) {
-      on_encoder(*ap, m);
-    }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
-    a->sub_intended = nh_.subscribe<IntendedMotion>(name + "/intended", 10, [this, ap](const IntendedMotion::ConstPtr& m) {
-      on_intended(*ap, m);
-    });
-    axes_.push_back(std::move(a));
+  for (const auto& name : s_.axes) add_axis(name);
+  subscribe_aux();
+  markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 2);
+  tf_ = std::make_unique<tf2_ros::TransformBroadcaster>();
+  srv_compensation_ = pnh_.advertiseService("set_compensation", &PredictorNode::on_set_compensation, this);
+  srv_hold_trim_ = pnh_.advertiseService("set_hold_trim", &PredictorNode::on_set_hold_trim, this);
+  srv_reload_ = pnh_.advertiseService("reload_model", &PredictorNode::on_reload, this);
+  if (s_.snapshot_duration_s > 0.0) {
+    setup_snapshot();
+    srv_snapshot_ = pnh_.advertiseService("snapshot", &PredictorNode::on_snapshot, this);
   }
+  setup_diagnostics_and_watch();
+  if (s_.drift_async) worker_ = std::thread([this] { forecast_worker(); });
+}
+
+void PredictorNode::add_axis(const std::string& name) {
+  auto a = std::make_unique<Axis>();
+  const std::string& path = s_.model_files.at(name);
+  models::ModelPtr m;
+  std::string error;
+  try {
+    m = load_model_file(path);
+    if (m->meta.axis != name)
+      ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
+  } catch (const std::exception& e) {
+    // Keep the axis movable: uncorrected commands with bounded steps, reported in diagnostics.
+    error = e.what();
+    ROS_ERROR("axis %s: ~model_file/%s: %s; running uncorrected (fallback) until ~reload_model succeeds",
+              name.c_str(), name.c_str(), e.what());
+  }
+  a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_, error);
+  a->logic->set_live_inputs(&live_);
+  const auto& line = a->logic->compensator().ideal_line();
+  ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
+           a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
+  Axis* ap = a.get();
+  a->pub_prediction = nh_.advertise<Prediction>(name + "/prediction", 20);
+  a->pub_command = nh_.advertise<VoltageCommand>(name + "/command", 1);
+  // Sensor topics keep every sample through a stall of the host (kInputQueue samples: 18 s at 11 Hz, 0.45 s of
+  // wall time at 40 x simulated time); a dropped one would be a gap in the snapshot and in the model's clock.
+  a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", kInputQueue, [this, ap](const AxisVoltage::ConstPtr& m) {
+    on_voltage(*ap, m);
+  }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
+  a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", kInputQueue, [this, ap](const EncoderPosition::ConstPtr& m) {
+    on_encoder(*ap, m);
+  }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
+  a->sub_intended = nh_.subscribe<IntendedMotion>(name + "/intended", 10, [this, ap](const IntendedMotion::ConstPtr& m) {
+    on_intended(*ap, m);
+  });
+  axes_.push_back(std::move(a));
+}
+
+void PredictorNode::subscribe_aux() {
   // Aux signals: each model input name mapped to a topic of either type (the type is taken from the publisher).
   for (const auto& [name, topic] : s_.aux_topics) {
     const std::string input = name;
@@ -387,145 +417,163 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
       if (src.kind == models::InputSource::Kind::kAux && !s_.aux_topics.count(src.name))
         ROS_WARN("axis %s: the model reads '%s', which ~aux_topics maps to no topic: it runs on its fallback",
                  a->logic->axis().c_str(), src.name.c_str());
-  markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 2);
-  tf_ = std::make_unique<tf2_ros::TransformBroadcaster>();
+}
 
-  srv_compensation_ = pnh_.advertiseService<std_srvs::SetBool::Request, std_srvs::SetBool::Response>(
-      "set_compensation", [this](std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
-        compensation_ = req.data;
-        res.success = true;
-        res.message = std::string("compensation ") + (compensation_ ? "on" : "off");
-        ROS_INFO("%s", res.message.c_str());
-        return true;
-      });
-  srv_reload_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
-      "reload_model", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
-        // ~model_file is read again (an operator points it at the augmented model `piezo residual` wrote).
-        // All or nothing: a broken file leaves every axis on its current model.
-        const auto t_start = std::chrono::steady_clock::now();
-        const auto secs = [](auto a, auto b) { return std::chrono::duration<double>(b - a).count(); };
-        std::vector<models::ModelPtr> fresh;
-        std::map<std::string, std::string> files;
-        std::string timing;
-        try {
-          files = read_model_files(pnh_, s_.axes);
-          for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis())));
-          // Warm start on the buffered samples: a model with slow terms (a 300 s low-pass, creep) started at rest
-          // would carry a transient of minutes that the offline score of the same model never saw.
-          std::vector<std::string> cold(axes_.size());
-          std::optional<compensation::Snapshot> recent;
-          std::string no_recent = "no ~snapshot buffer (~snapshot_duration_s 0)";
-          if (snapshot_) {
-            try {
-              recent = snapshot_->take();
-            } catch (const std::exception& e) {
-              no_recent = e.what();
-            }
-          }
-          // An augmented model on the running base (`piezo residual` keeps a model file's weights) continues
-          // from the running base, which has seen the true history, not from the window's start.
-          std::vector<std::string> handover(axes_.size());
-          const auto t_loaded = std::chrono::steady_clock::now();
-          for (std::size_t i = 0; i < axes_.size(); ++i)
-            cold[i] = recent ? warm_model(*fresh[i], axes_[i]->logic->axis(), *recent, nh_.getNamespace(),
-                                          &axes_[i]->logic->compensator().model(), &handover[i])
-                             : no_recent;
-          const auto t_warm = std::chrono::steady_clock::now();
-          for (std::size_t i = 0; i < axes_.size(); ++i)
-            axes_[i]->logic->reload(files.at(axes_[i]->logic->axis()), std::move(fresh[i]), cold[i].empty());
-          const auto t_done = std::chrono::steady_clock::now();
-          std::ostringstream took;
-          took << std::fixed << std::setprecision(2) << "; took " << secs(t_start, t_done) << " s (load "
-               << secs(t_start, t_loaded) << ", warm-up " << secs(t_loaded, t_warm) << ", ideal line "
-               << secs(t_warm, t_done) << ")";
-          timing = took.str();
-          res.message.clear();
-          if (recent && !recent->gaps.empty()) {
-            // the running model skipped the same samples: the warm-up runs across the gaps as it did
-            res.message += "; the window has " + compensation::describe_gaps(*recent) +
-                           ": warmed across the gap(s) as the running model ran";
-          }
-          for (std::size_t i = 0; i < axes_.size(); ++i) {
-            const std::string& axis = axes_[i]->logic->axis();
-            res.message += "; " + axis + ": ";
-            if (!cold[i].empty()) {
-              res.message += "cold start (" + cold[i] + ")";
-              continue;
-            }
-            // the span buffered, not the window: a node up for less than ~snapshot_duration_s (or a ring at
-            // ~snapshot_max_messages) holds less, and the reply says so rather than read as a short window
-            const double span_s = recent->end_s - recent->begin_s;
-            const double window_s = snapshot_->options().duration_s;
-            std::ostringstream os;
-            os << std::fixed << std::setprecision(1) << "warm, on the buffered " << span_s << " s ("
-               << recent->axes.at(axis).readings.size() << " readings";
-            if (span_s < window_s - 2.0 * recent->period_s - recent->max_restamp_s)
-              os << ", less than the " << window_s << " s window";
-            os << ")";
-            res.message += os.str() + (handover[i].empty() ? "" : ", " + handover[i]);
-          }
-        } catch (const std::exception& e) {
-          res.success = false;
-          res.message = std::string("reload failed, models unchanged: ") + e.what();
-          ROS_ERROR("%s", res.message.c_str());
-          return true;
-        }
-        s_.model_files = files;
-        res.success = true;
-        std::string warmth = res.message;
-        res.message = "models reloaded:";
-        for (const auto& [axis, path] : files) res.message += " " + axis + " " + path;
-        res.message += warmth + timing;
-        ROS_INFO("%s", res.message.c_str());
-        return true;
-      });
-  if (s_.snapshot_duration_s > 0.0) {
-    compensation::SnapshotOptions so;
-    so.duration_s = s_.snapshot_duration_s;
-    so.max_messages = static_cast<std::size_t>(s_.snapshot_max_messages);
-    so.expected_rate_hz = 0.0;  // the fastest axis' sample rate (~sample_rate_hz, else its model's, else 11 Hz)
-    for (const auto& a : axes_) {
-      so.axes.push_back(a->logic->axis());
-      const double model_hz = a->logic->compensator().model().meta.sample_rate_hz;
-      so.expected_rate_hz = std::max(so.expected_rate_hz, s_.sample_rate_hz > 0 ? s_.sample_rate_hz
-                                                                                 : model_hz > 0 ? model_hz : 11.0);
-    }
-    if (!(so.expected_rate_hz > 0.0)) so.expected_rate_hz = 11.0;
-    for (const auto& [name, topic] : s_.aux_topics) so.aux.push_back(name);
-    snapshot_ = std::make_unique<compensation::SnapshotBuffer>(so);
-    srv_snapshot_ = pnh_.advertiseService<std_srvs::Trigger::Request, std_srvs::Trigger::Response>(
-        "snapshot", [this](std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
-          try {
-            // the offline tools refuse a time column with missing samples: a stretch without one is written
-            const auto& so = snapshot_->options();
-            const compensation::SnapshotStretch cut =
-                compensation::gap_free_stretch(snapshot_->take(), so.prefer_recent_fraction, so.min_fraction);
-            const compensation::Snapshot& snap = cut.snapshot;
-            const std::string path = snapshot_path(snapshot_directory(s_.snapshot_dir), snap.end_s);
-            write_snapshot_bag(path, nh_.getNamespace(), snap, s_.frame_prefix + "base");
-            std::size_t readings = 0;
-            for (const auto& [axis, a] : snap.axes) readings += a.readings.size();
-            std::ostringstream os;
-            os << path << " (" << std::fixed << std::setprecision(1) << snap.end_s - snap.begin_s << " s, "
-               << snap.axes.size() << " axes, " << readings << " readings, " << snap.aux.size() << " aux signals, "
-               << std::setprecision(4) << snap.period_s * 1e3 << " ms sample clock, receive stamps within "
-               << snap.max_restamp_s * 1e3 << " ms of it";
-            if (snap.invalid_readings > 0) os << ", " << snap.invalid_readings << " invalid readings left out";
-            os << ")";
-            if (!cut.message.empty()) os << "; " << cut.message;
-            res.success = true;
-            res.message = os.str();
-            if (cut.message.empty()) ROS_INFO("snapshot: %s", res.message.c_str());
-            else ROS_WARN("snapshot: %s", res.message.c_str());
-          } catch (const std::exception& e) {
-            res.success = false;
-            res.message = std::string("no snapshot written: ") + e.what();
-            ROS_ERROR("%s", res.message.c_str());
-          }
-          return true;
-        });
+bool PredictorNode::on_set_compensation(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  compensation_ = req.data;
+  res.success = true;
+  res.message = std::string("compensation ") + (compensation_ ? "on" : "off");
+  ROS_INFO("%s", res.message.c_str());
+  return true;
+}
+
+bool PredictorNode::on_set_hold_trim(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  res.message = std::string("hold trim ") + (req.data ? "on" : "off");
+  for (auto& a : axes_) {
+    a->logic->set_hold_trim(req.data);
+    const auto* f = a->logic->compensator().estimator();
+    if (req.data && !(f && f->fusing())) res.message += "; " + a->logic->axis() + " stays model-only (" +
+                                                        a->logic->compensator().estimator_status() + ")";
   }
+  res.success = true;
+  ROS_INFO("%s", res.message.c_str());
+  return true;
+}
 
+// ~reload_model: ~model_file is read again (an operator points it at the augmented model `piezo residual` wrote).
+// All or nothing: a broken file leaves every axis on its current model.
+bool PredictorNode::on_reload(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  std::map<std::string, std::string> files;
+  std::string timing;
+  try {
+    files = read_model_files(pnh_, s_.axes);
+    res.message = reload_models(files, timing);
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = std::string("reload failed, models unchanged: ") + e.what();
+    ROS_ERROR("%s", res.message.c_str());
+    return true;
+  }
+  s_.model_files = files;
+  res.success = true;
+  std::string warmth = res.message;
+  res.message = "models reloaded:";
+  for (const auto& [axis, path] : files) res.message += " " + axis + " " + path;
+  res.message += warmth + timing;
+  ROS_INFO("%s", res.message.c_str());
+  return true;
+}
+
+// Loads every axis' file, warms each new model on the buffered samples and swaps them in; returns what was done
+// per axis ("; c: warm, on the buffered ..."). Throws (nothing swapped) when a file cannot be loaded.
+std::string PredictorNode::reload_models(const std::map<std::string, std::string>& files, std::string& timing) {
+  const auto t_start = std::chrono::steady_clock::now();
+  const auto secs = [](auto a, auto b) { return std::chrono::duration<double>(b - a).count(); };
+  std::vector<models::ModelPtr> fresh;
+  for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis())));
+  // Warm start on the buffered samples: a model with slow terms (a 300 s low-pass, creep) started at rest
+  // would carry a transient of minutes that the offline score of the same model never saw.
+  std::vector<std::string> cold(axes_.size());
+  std::optional<compensation::Snapshot> recent;
+  std::string no_recent = "no ~snapshot buffer (~snapshot_duration_s 0)";
+  if (snapshot_) {
+    try {
+      recent = snapshot_->take();
+    } catch (const std::exception& e) {
+      no_recent = e.what();
+    }
+  }
+  // An augmented model on the running base (`piezo residual` keeps a model file's weights) continues
+  // from the running base, which has seen the true history, not from the window's start.
+  std::vector<std::string> handover(axes_.size());
+  const auto t_loaded = std::chrono::steady_clock::now();
+  for (std::size_t i = 0; i < axes_.size(); ++i)
+    cold[i] = recent ? warm_model(*fresh[i], axes_[i]->logic->axis(), *recent, nh_.getNamespace(),
+                                  &axes_[i]->logic->compensator().model(), &handover[i])
+                     : no_recent;
+  const auto t_warm = std::chrono::steady_clock::now();
+  for (std::size_t i = 0; i < axes_.size(); ++i)
+    axes_[i]->logic->reload(files.at(axes_[i]->logic->axis()), std::move(fresh[i]), cold[i].empty());
+  const auto t_done = std::chrono::steady_clock::now();
+  std::ostringstream took;
+  took << std::fixed << std::setprecision(2) << "; took " << secs(t_start, t_done) << " s (load "
+       << secs(t_start, t_loaded) << ", warm-up " << secs(t_loaded, t_warm) << ", ideal line "
+       << secs(t_warm, t_done) << ")";
+  timing = took.str();
+  std::string message;
+  if (recent && !recent->gaps.empty()) {
+    // the running model skipped the same samples: the warm-up runs across the gaps as it did
+    message += "; the window has " + compensation::describe_gaps(*recent) +
+               ": warmed across the gap(s) as the running model ran";
+  }
+  for (std::size_t i = 0; i < axes_.size(); ++i)
+    message += "; " + axes_[i]->logic->axis() + ": " + warmth(axes_[i]->logic->axis(), cold[i], handover[i], recent);
+  return message;
+}
+
+std::string PredictorNode::warmth(const std::string& axis, const std::string& cold, const std::string& handover,
+                                  const std::optional<compensation::Snapshot>& recent) const {
+  if (!cold.empty()) return "cold start (" + cold + ")";
+  // the span buffered, not the window: a node up for less than ~snapshot_duration_s (or a ring at
+  // ~snapshot_max_messages) holds less, and the reply says so rather than read as a short window
+  const double span_s = recent->end_s - recent->begin_s;
+  const double window_s = snapshot_->options().duration_s;
+  std::ostringstream os;
+  os << std::fixed << std::setprecision(1) << "warm, on the buffered " << span_s << " s ("
+     << recent->axes.at(axis).readings.size() << " readings";
+  if (span_s < window_s - 2.0 * recent->period_s - recent->max_restamp_s) os << ", less than the " << window_s << " s window";
+  os << ")";
+  return os.str() + (handover.empty() ? "" : ", " + handover);
+}
+
+void PredictorNode::setup_snapshot() {
+  compensation::SnapshotOptions so;
+  so.duration_s = s_.snapshot_duration_s;
+  so.max_messages = static_cast<std::size_t>(s_.snapshot_max_messages);
+  so.expected_rate_hz = 0.0;  // the fastest axis' sample rate (~sample_rate_hz, else its model's, else 11 Hz)
+  for (const auto& a : axes_) {
+    so.axes.push_back(a->logic->axis());
+    const double model_hz = a->logic->compensator().model().meta.sample_rate_hz;
+    so.expected_rate_hz = std::max(so.expected_rate_hz, s_.sample_rate_hz > 0 ? s_.sample_rate_hz
+                                                                               : model_hz > 0 ? model_hz : 11.0);
+  }
+  if (!(so.expected_rate_hz > 0.0)) so.expected_rate_hz = 11.0;
+  for (const auto& [name, topic] : s_.aux_topics) so.aux.push_back(name);
+  snapshot_ = std::make_unique<compensation::SnapshotBuffer>(so);
+}
+
+bool PredictorNode::on_snapshot(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  try {
+    // the offline tools refuse a time column with missing samples: a stretch without one is written
+    const auto& so = snapshot_->options();
+    const compensation::SnapshotStretch cut =
+        compensation::gap_free_stretch(snapshot_->take(), so.prefer_recent_fraction, so.min_fraction);
+    const compensation::Snapshot& snap = cut.snapshot;
+    const std::string path = snapshot_path(snapshot_directory(s_.snapshot_dir), snap.end_s);
+    write_snapshot_bag(path, nh_.getNamespace(), snap, s_.frame_prefix + "base");
+    std::size_t readings = 0;
+    for (const auto& [axis, a] : snap.axes) readings += a.readings.size();
+    std::ostringstream os;
+    os << path << " (" << std::fixed << std::setprecision(1) << snap.end_s - snap.begin_s << " s, "
+       << snap.axes.size() << " axes, " << readings << " readings, " << snap.aux.size() << " aux signals, "
+       << std::setprecision(4) << snap.period_s * 1e3 << " ms sample clock, receive stamps within "
+       << snap.max_restamp_s * 1e3 << " ms of it";
+    if (snap.invalid_readings > 0) os << ", " << snap.invalid_readings << " invalid readings left out";
+    os << ")";
+    if (!cut.message.empty()) os << "; " << cut.message;
+    res.success = true;
+    res.message = os.str();
+    if (cut.message.empty()) ROS_INFO("snapshot: %s", res.message.c_str());
+    else ROS_WARN("snapshot: %s", res.message.c_str());
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = std::string("no snapshot written: ") + e.what();
+    ROS_ERROR("%s", res.message.c_str());
+  }
+  return true;
+}
+
+void PredictorNode::setup_diagnostics_and_watch() {
   diag_ = std::make_unique<diagnostic_updater::Updater>(nh_, pnh_);
   diag_->setHardwareID(s_.hardware_id);
   for (auto& a : axes_) {
@@ -563,7 +611,6 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
       }
     });
   }
-  if (s_.drift_async) worker_ = std::thread([this] { forecast_worker(); });
 }
 
 PredictorNode::~PredictorNode() {
@@ -813,7 +860,19 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   st.add("command fallbacks", l.compensator().command_fallbacks());
   st.add("last fallback reason", l.last_status());
   st.add("ideal gain [nm/V]", l.compensator().ideal_line().gain_nm_per_v);
-  st.add("re-anchor offset [nm]", l.compensator().anchor_offset_nm());
+  // the estimator and the hold trim: what the fused estimate is made of and what the trim is doing
+  const compensation::AxisCompensator& cc = l.compensator();
+  st.add("estimator", cc.estimator_status());
+  if (cc.estimator() && cc.estimator()->fusing()) {
+    st.add("fused 1σ [nm]", cc.estimator()->sigma_nm());
+    st.add("estimated model error [nm]", cc.estimator()->error_nm());
+    st.add("samples since a reading", cc.estimator()->samples_since_reading());
+  }
+  st.add("hold trim", std::string(compensation::trim_state_name(cc.hold_trim().state())) +
+                          (cc.hold_trim().enabled() ? "" : " (~hold_trim off)"));
+  st.add("hold trim [nm]", cc.hold_trim().trim_nm());
+  st.add("hold trim bound [nm]", cc.hold_trim().options().max_nm);
+  st.add("settled for [s]", cc.hold_trim().settled_s());
   st.add("processing p99 [us]", p99);
   if (l.watch()) {
     st.add("rolling free-run MAE [nm]", l.watch()->rolling_mae_nm());

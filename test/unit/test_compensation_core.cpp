@@ -288,28 +288,35 @@ TEST(CompensationAxis, UnreachableIntentFallsBack) {
   EXPECT_THROW(comp.set_intended_voltage(std::nan("")), std::invalid_argument);
 }
 
-// A plant 60 nm off the model: pure feedforward keeps the offset, re-anchoring on the encoder removes it.
-TEST(CompensationAxis, ReanchoringRemovesSlowModelError) {
+// A plant 60 nm off the model: pure feedforward keeps the offset; the hold trim on the fused estimate removes it.
+TEST(CompensationAxis, HoldTrimRemovesSlowModelError) {
   const IdealLine line{14.0, 0.0};
-  for (double tau : {0.0, 5.0}) {
+  for (bool trim : {false, true}) {
     AxisCompensatorConfig cfg;
-    cfg.reanchor_time_constant_s = tau;
-    AxisCompensator comp(test::make_pi_creep(), line, cfg);
+    cfg.hold_trim.enabled = trim;
+    cfg.hold_trim.max_nm = 100.0;
+    auto model = test::make_pi_creep();
+    estimation::NoiseModel nm;
+    nm.reading_sigma_nm = 1.0;
+    nm.q_rest_nm2_per_s = 1e-4;
+    nm.initial_sigma_nm = 100.0;
+    model->meta.estimator = nm.to_yaml();
+    AxisCompensator comp(std::move(model), line, cfg);
     auto plant = test::make_pi_creep();
     plant->reset(0.0, 0.0);
     comp.on_sample(0.0, 60.0, true);
     comp.set_intended_voltage(20.0);
     double x = 0.0;
-    for (int k = 0; k < 11 * 60; ++k) {
+    for (int k = 0; k < 11 * 300; ++k) {
       const CommandUpdate c = comp.command(true);
       const models::ModelInput in{c.send_v, nullptr};
       x = plant->predict(in) + 60.0;
       plant->commit(in, x - 60.0);
       comp.on_sample(c.send_v, x, true);
     }
-    if (tau == 0.0)
+    if (!trim)
       EXPECT_NEAR(x - 280.0, 60.0, 0.5);
     else
-      EXPECT_NEAR(x, 280.0, 0.5) << "anchor " << comp.anchor_offset_nm();
+      EXPECT_NEAR(x, 280.0, 0.5) << "trim " << comp.hold_trim().trim_nm();
   }
 }

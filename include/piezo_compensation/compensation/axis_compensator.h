@@ -5,14 +5,17 @@
 #pragma once
 
 #include <limits>
+#include <memory>
 #include <optional>
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/compensation/hold_trim.h"
 #include "piezo_compensation/compensation/ideal_line.h"
 #include "piezo_compensation/compensation/inverse.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/estimation/error_filter.h"
 
 namespace piezo::compensation {
 
@@ -25,16 +28,19 @@ struct AxisCompensatorConfig {
                                          // (0 = half the ideal stroke)
   bool position_feedback = false;        // false: free run (model remembers its own predictions);
                                          // true: one-step (model remembers the encoder readings)
-  // Re-anchoring: a low-pass (this time constant) of measured − predicted is taken off the target, so a slowly
-  // varying model error (offset, creep mismatch) is trimmed by the encoder. The model itself keeps free-running.
-  // 0 = pure feedforward.
-  double reanchor_time_constant_s = 0.0;
-  double sample_rate_hz = 11.0;          // for the re-anchoring time constant
+  double sample_rate_hz = 11.0;          // the sample period of the estimator and the hold trim
+  // Hold trim on the fused estimate (compensation/hold_trim.h); acts only when the model file carries an
+  // estimator noise model and the axis' readings can inform it (estimation/error_filter.h).
+  HoldTrimOptions hold_trim;
 };
 
 // Result of one encoder sample.
 struct SampleUpdate {
   double predicted_nm = 0.0;   // model position for the applied voltage, history up to the previous sample
+  // Model and encoder fused (estimation/error_filter.h): the position and its 1σ; the prediction and NaN when the
+  // model file has no estimator noise model.
+  double fused_nm = 0.0;
+  double fused_sigma_nm = std::numeric_limits<double>::quiet_NaN();
   // The base model's part of it (an augmented model's base; the whole prediction otherwise); NaN when the sample
   // gave no prediction. Kept with the ~snapshot so a reloaded model on the same base can take the base's state.
   double base_predicted_nm = std::numeric_limits<double>::quiet_NaN();
@@ -85,13 +91,19 @@ class AxisCompensator {
   double last_applied_v() const { return last_applied_v_; }
   double last_predicted_nm() const { return last_predicted_nm_; }
   double last_sent_v() const { return last_sent_v_; }
-  double anchor_offset_nm() const { return anchor_nm_; }  // current low-passed measured − predicted
+  // The estimator (null when the model file has no `estimator:` block) and the hold trim.
+  const estimation::ErrorFilter* estimator() const { return filter_.get(); }
+  const std::string& estimator_status() const { return estimator_status_; }
+  const HoldTrim& hold_trim() const { return trim_; }
+  void set_hold_trim(bool on) { trim_.set_enabled(on); }
   std::size_t samples() const { return samples_; }
   std::size_t prediction_failures() const { return prediction_failures_; }
   std::size_t command_fallbacks() const { return command_fallbacks_; }
 
  private:
   static void check_model(const models::Model& model);  // throws for models the compensator cannot feed
+  void set_estimator_for(const models::Model& model);    // the filter from the model file's noise model
+  void track(double predicted_nm, double measured_nm, bool measured_valid, bool ok, SampleUpdate& u);
   void set_inputs_for(const models::Model& model);
   std::vector<double> aux_now_;                         // the model's inputs at the last sample
   std::vector<std::size_t> time_index_;                 // which of them is time_s
@@ -107,7 +119,10 @@ class AxisCompensator {
   double last_applied_v_ = 0.0;
   double last_predicted_nm_ = 0.0;
   double last_sent_v_ = 0.0;
-  double anchor_nm_ = 0.0;
+  std::unique_ptr<estimation::ErrorFilter> filter_;
+  std::string estimator_status_;
+  HoldTrim trim_;
+  bool last_command_active_ = false;
   bool has_sent_ = false;
   std::size_t samples_ = 0, prediction_failures_ = 0, command_fallbacks_ = 0;
 };

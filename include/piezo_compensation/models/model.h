@@ -26,6 +26,7 @@ struct ModelMeta {
   std::map<std::string, double> validation;    // e.g. {"one_step_mae_nm": 17.1, "free_run_mae_nm": 6.2}
   std::string created_utc;
   YAML::Node selection;                        // `--model auto`: the candidates' scores and the choice (or null)
+  YAML::Node estimator;                        // the error filter's noise model (estimation/error_filter.h), or null
 };
 
 class Model {

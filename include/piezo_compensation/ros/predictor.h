@@ -4,6 +4,8 @@
 #pragma once
 
 #include <ros/ros.h>
+#include <std_srvs/SetBool.h>
+#include <std_srvs/Trigger.h>
 #include <topic_tools/shape_shifter.h>
 
 #include <chrono>
@@ -153,6 +155,7 @@ class PredictorAxis {
   void set_forecast(const compensation::DriftForecast& f);
   // `warm`: the model was streamed over the recent samples and keeps that state (else it starts at rest).
   void reload(const std::string& model_name, models::ModelPtr model, bool warm = false);
+  void set_hold_trim(bool on) { comp_->set_hold_trim(on); }
   const std::string& model_error() const { return model_error_; }
 
   const std::string& axis() const { return axis_; }
@@ -203,6 +206,17 @@ class PredictorNode {
 
  private:
   struct Axis;
+  void add_axis(const std::string& name);
+  void subscribe_aux();
+  void setup_snapshot();
+  void setup_diagnostics_and_watch();
+  bool on_set_compensation(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
+  bool on_set_hold_trim(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
+  bool on_reload(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
+  bool on_snapshot(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
+  std::string reload_models(const std::map<std::string, std::string>& files, std::string& timing);
+  std::string warmth(const std::string& axis, const std::string& cold, const std::string& handover,
+                     const std::optional<compensation::Snapshot>& recent) const;
   void on_voltage(Axis& a, const AxisVoltage::ConstPtr& msg);
   void on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg);
   void emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now);
@@ -220,7 +234,7 @@ class PredictorNode {
   std::vector<std::unique_ptr<Axis>> axes_;
   compensation::LiveInputs live_;   // other axes' reports and readings, aux signals
   std::vector<ros::Subscriber> aux_subs_;
-  ros::ServiceServer srv_compensation_, srv_reload_, srv_snapshot_;
+  ros::ServiceServer srv_compensation_, srv_hold_trim_, srv_reload_, srv_snapshot_;
   std::unique_ptr<compensation::SnapshotBuffer> snapshot_;  // null: ~snapshot_duration_s 0
   ros::Publisher markers_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_;

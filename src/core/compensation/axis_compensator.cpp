@@ -9,14 +9,39 @@
 namespace piezo::compensation {
 
 AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, const AxisCompensatorConfig& config)
-    : model_(std::move(model)), line_(line), config_(config) {
+    : model_(std::move(model)), line_(line), config_(config), trim_(config.hold_trim, 1.0 / config.sample_rate_hz) {
   if (!model_) throw std::invalid_argument("AxisCompensator: no model");
   if (!(config_.voltage_max_v > config_.voltage_min_v)) throw std::invalid_argument("AxisCompensator: empty voltage limits");
   if (!(config_.fallback_max_step_v > 0.0)) throw std::invalid_argument("AxisCompensator: fallback_max_step_v must be > 0");
-  if (!(config_.reanchor_time_constant_s >= 0.0) || !(config_.sample_rate_hz > 0.0))
-    throw std::invalid_argument("AxisCompensator: reanchor_time_constant_s must be ≥ 0 and sample_rate_hz > 0");
+  if (!(config_.sample_rate_hz > 0.0)) throw std::invalid_argument("AxisCompensator: sample_rate_hz must be > 0");
   check_model(*model_);
   set_inputs_for(*model_);
+  if (config_.hold_trim.max_nm <= 0.0)  // 2 % of the ideal stroke
+    trim_.set_max_nm(0.02 * std::abs(line_.position_nm(config_.voltage_max_v) - line_.position_nm(config_.voltage_min_v)));
+  set_estimator_for(*model_);
+}
+
+void AxisCompensator::set_estimator_for(const models::Model& model) {
+  filter_.reset();
+  if (!model.meta.estimator || model.meta.estimator.IsNull()) {
+    estimator_status_ = "model-only: the model file has no estimator noise model (piezo fit writes one)";
+    return;
+  }
+  const estimation::NoiseModel nm = estimation::NoiseModel::from_yaml(model.meta.estimator, "model " + model.kind());
+  filter_ = std::make_unique<estimation::ErrorFilter>(nm, 1.0 / config_.sample_rate_hz);
+  estimator_status_ = nm.describe();
+}
+
+void AxisCompensator::track(double predicted_nm, double measured_nm, bool measured_valid, bool ok, SampleUpdate& u) {
+  u.fused_nm = predicted_nm;
+  if (filter_) {
+    if (!ok) filter_->restart();
+    filter_->step(predicted_nm, measured_nm, measured_valid);
+    u.fused_nm = filter_->fused_nm();
+    u.fused_sigma_nm = filter_->sigma_nm();
+  }
+  trim_.step(has_intent_ ? intended_nm_ : u.fused_nm, u.fused_nm, filter_ && filter_->fusing(),
+             filter_ ? filter_->samples_since_reading() : 0, ok && last_command_active_, has_intent_);
 }
 
 void AxisCompensator::check_model(const models::Model& model) {
@@ -43,12 +68,15 @@ std::vector<double> AxisCompensator::next_inputs() const {
 
 void AxisCompensator::set_intended_voltage(double voltage_v) {
   if (!std::isfinite(voltage_v)) throw std::invalid_argument("intended voltage is not finite");
-  intended_nm_ = line_.position_nm(voltage_v);
+  const double target = line_.position_nm(voltage_v);
+  if (!has_intent_ || target != intended_nm_) trim_.on_new_intent();
+  intended_nm_ = target;
   has_intent_ = true;
 }
 
 void AxisCompensator::set_intended_position_nm(double position_nm) {
   if (!std::isfinite(position_nm)) throw std::invalid_argument("intended position is not finite");
+  if (!has_intent_ || position_nm != intended_nm_) trim_.on_new_intent();
   intended_nm_ = position_nm;
   has_intent_ = true;
 }
@@ -88,6 +116,8 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
     last_applied_v_ = applied_v;
     last_predicted_nm_ = x0;
     u.predicted_nm = x0;
+    if (filter_) filter_->reset();
+    track(x0, measured_nm, measured_valid, true, u);
     return u;
   }
   const models::ModelInput in{applied_v, aux_now_.empty() ? nullptr : aux_now_.data()};
@@ -105,15 +135,13 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
     model_->reset(applied_v, x0);
     last_predicted_nm_ = x0;
     u.predicted_nm = x0;
+    track(x0, measured_nm, measured_valid, false, u);
     return u;
   }
   model_->commit(in, config_.position_feedback && measured_valid ? measured_nm : p);
   last_predicted_nm_ = p;
-  if (config_.reanchor_time_constant_s > 0.0 && measured_valid) {
-    const double a = 1.0 - std::exp(-1.0 / (config_.reanchor_time_constant_s * config_.sample_rate_hz));
-    anchor_nm_ += a * ((measured_nm - p) - anchor_nm_);
-  }
   u.predicted_nm = p;
+  track(p, measured_nm, measured_valid, true, u);
   return u;
 }
 
@@ -135,8 +163,10 @@ CommandUpdate AxisCompensator::command(bool compensate) {
     o.voltage_min_v = config_.voltage_min_v;
     o.voltage_max_v = config_.voltage_max_v;
     o.tolerance_nm = config_.inverse_tolerance_nm;
-    // With re-anchoring the model is asked for the target minus its recent measured error.
-    const InverseResult inv = invert(*model_, c.intended_nm - anchor_nm_, o, next.empty() ? nullptr : next.data());
+    // The hold trim moves the target so that the fused estimate, not the model alone, reaches the intent.
+    const double trim = has_intent_ ? trim_.trim_nm() : 0.0;
+    const InverseResult inv =
+        invert(*model_, c.intended_nm + trim, o, next.empty() ? nullptr : next.data());
     if (inv.ok) {
       c.corrected_v = c.send_v = inv.voltage_v;
       c.compensation_active = true;
@@ -160,6 +190,7 @@ CommandUpdate AxisCompensator::command(bool compensate) {
   }
   last_sent_v_ = c.send_v;
   has_sent_ = true;
+  last_command_active_ = c.compensation_active;
   return c;
 }
 
@@ -170,7 +201,8 @@ void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& lin
   set_inputs_for(*model_);
   line_ = line;
   if (started_ && !warm) model_->reset(last_applied_v_, last_predicted_nm_);
-  anchor_nm_ = 0.0;
+  set_estimator_for(*model_);
+  trim_.on_new_intent();  // the trim was for the old model's error
 }
 
 }  // namespace piezo::compensation

@@ -23,6 +23,7 @@ YAML::Node model_to_file_yaml(const Model& m) {
   for (const auto& [k, v] : m.meta.validation) val[k] = v;
   root["validation"] = val;
   if (m.meta.selection && !m.meta.selection.IsNull()) root["selection"] = m.meta.selection;
+  if (m.meta.estimator && !m.meta.estimator.IsNull()) root["estimator"] = m.meta.estimator;
   root["num_parameters"] = static_cast<unsigned long>(m.num_parameters());
   root["model"] = m.to_yaml();
   return root;
@@ -92,6 +93,10 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
     if (const YAML::Node s = root["selection"]) {
       if (!s.IsMap()) throw top_err("selection", "expected a mapping");
       m->meta.selection = YAML::Clone(s);
+    }
+    if (const YAML::Node s = root["estimator"]) {  // checked field by field where it is used (estimation/)
+      if (!s.IsMap()) throw top_err("estimator", "expected a mapping");
+      m->meta.estimator = YAML::Clone(s);
     }
     return m;
   } catch (const ModelFileError&) {

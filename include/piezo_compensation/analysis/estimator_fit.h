@@ -1,0 +1,21 @@
+// Identifies a model's error-filter noise model (estimation/error_filter.h) from data: the model runs free over
+// the data (the one streaming path), the reading σ and step come from the data's noise floor, and the variance
+// rates are the maximum-likelihood ones on the rows from `first_row` on (the part the model was not fitted on).
+#pragma once
+
+#include <cstddef>
+#include <string>
+
+#include "piezo_compensation/estimation/error_filter.h"
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::analysis {
+
+// `model` is not changed (a clone runs). `first_row` > 0: the model runs through rows [0, first_row) first, as it
+// would have (a split's training part), and only the rest is scored. Throws std::invalid_argument naming the
+// problem (too few rows, a model that diverges).
+estimation::NoiseModel identify_estimator(const models::Model& model, const io::Dataset& data,
+                                          const std::string& axis, std::size_t first_row = 0);
+
+}  // namespace piezo::analysis

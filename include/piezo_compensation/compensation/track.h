@@ -1,0 +1,52 @@
+// The offline twin of the predictor's estimator (`piezo track`): the same AxisCompensator the node runs, fed a
+// recording's rows (applied voltage, reading, model inputs) from a cold start at its first row, giving the
+// fused position and its 1σ per row and a table per hold. Live and offline run the same code, so they agree.
+#pragma once
+
+#include <cstddef>
+#include <string>
+#include <vector>
+
+#include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model.h"
+
+namespace piezo::compensation {
+
+struct TrackOptions {
+  double min_hold_s = 60.0;     // a hold: the voltage unchanged for at least this long
+  double settle_skip_s = 120.0; // hold scores start this long after the hold starts
+  double end_window_s = 5.0;    // "end of hold": its last seconds
+};
+
+struct TrackHold {
+  double start_s = 0, end_s = 0, voltage_v = 0;
+  std::size_t scored = 0;          // samples from settle_skip_s on
+  // against the truth when the data has one, else NaN
+  double fused_mae_nm = NAN, model_mae_nm = NAN;
+  double fused_end_nm = NAN, model_end_nm = NAN;  // worst |error| over the last end_window_s
+  double within_2sigma = NAN;      // fraction of scored samples with |fused − truth| ≤ 2σ
+  double mean_sigma_nm = NAN;      // mean reported 1σ over the scored samples
+  // the readings' own average over the scored part against the fused one (no truth needed)
+  double measured_mean_minus_fused_nm = NAN;
+};
+
+struct TrackResult {
+  std::vector<double> time_s, applied_v, measured_nm, model_nm, fused_nm, fused_sigma_nm, true_nm;
+  std::vector<TrackHold> holds;
+  std::string estimator;   // the filter's noise model, or why the axis is model-only
+  bool fusing = false;
+  bool has_truth = false;
+  // over every hold's scored samples
+  double fused_mae_nm = NAN, model_mae_nm = NAN, worst_fused_end_nm = NAN, worst_model_end_nm = NAN,
+         within_2sigma = NAN;
+};
+
+// Throws std::invalid_argument / io::DataError naming what is wrong (axis or input columns missing).
+TrackResult track_recording(models::ModelPtr model, const io::Dataset& data, const std::string& axis,
+                            const TrackOptions& o = {});
+
+// Maximal runs of an unchanged voltage lasting ≥ min_s: [begin, end) row ranges.
+std::vector<std::pair<std::size_t, std::size_t>> find_holds(const std::vector<double>& voltage_v, double rate_hz,
+                                                            double min_s);
+
+}  // namespace piezo::compensation

@@ -1,0 +1,123 @@
+// `piezo track`: the predictor's estimator run offline over a recording (compensation/track.h) — the fused
+// position and its 1σ per row in DIR/track.csv, a table per hold in DIR/holds.md, the summary in DIR/track.json.
+#include <filesystem>
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <sstream>
+
+#include "args.h"
+#include "command.h"
+#include "plot_script.h"
+#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/compensation/track.h"
+#include "piezo_compensation/models/model_file.h"
+#include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/util/json_writer.h"
+
+namespace piezo::cli {
+namespace {
+namespace fs = std::filesystem;
+
+std::string num(double v, int prec = 2) {
+  if (!std::isfinite(v)) return "–";
+  std::ostringstream s;
+  s << std::fixed << std::setprecision(prec) << v;
+  return s.str();
+}
+
+void write_csv(const fs::path& path, const compensation::TrackResult& r) {
+  std::ofstream f(path);
+  if (!f) throw std::runtime_error(path.string() + ": cannot open for writing");
+  f << "time_s,applied_v,measured_nm,model_nm,fused_nm,fused_sigma_nm" << (r.has_truth ? ",true_nm" : "") << "\n";
+  f << std::setprecision(10);
+  for (std::size_t i = 0; i < r.time_s.size(); ++i) {
+    f << r.time_s[i] << "," << r.applied_v[i] << "," << r.measured_nm[i] << "," << r.model_nm[i] << ","
+      << r.fused_nm[i] << "," << r.fused_sigma_nm[i];
+    if (r.has_truth) f << "," << r.true_nm[i];
+    f << "\n";
+  }
+}
+
+std::string hold_table(const compensation::TrackResult& r, const compensation::TrackOptions& o) {
+  std::ostringstream s;
+  s << "Holds of ≥ " << o.min_hold_s << " s, scored from " << o.settle_skip_s << " s on; end = worst |error| over the last "
+    << o.end_window_s << " s. Errors against the true position [nm].\n\n"
+    << "| hold | start [s] | length [s] | V | model MAE | fused MAE | model end | fused end | mean 1σ | truth within ±2σ |\n"
+    << "|---|---|---|---|---|---|---|---|---|---|\n";
+  for (std::size_t k = 0; k < r.holds.size(); ++k) {
+    const auto& h = r.holds[k];
+    s << "| " << k + 1 << " | " << num(h.start_s, 1) << " | " << num(h.end_s - h.start_s, 1) << " | " << num(h.voltage_v, 2)
+      << " | " << num(h.model_mae_nm) << " | " << num(h.fused_mae_nm) << " | " << num(h.model_end_nm) << " | "
+      << num(h.fused_end_nm) << " | " << num(h.mean_sigma_nm) << " | " << num(100.0 * h.within_2sigma, 1) << " % |\n";
+  }
+  s << "| all | | | | " << num(r.model_mae_nm) << " | " << num(r.fused_mae_nm) << " | " << num(r.worst_model_end_nm)
+    << " | " << num(r.worst_fused_end_nm) << " | | " << num(100.0 * r.within_2sigma, 1) << " % |\n";
+  return s.str();
+}
+
+int run(int argc, char** argv) {
+  Args args("track", "Run the predictor's estimator (the model fused with the encoder, docs/predictor.md) over a recording\n"
+                     "from a cold start at its first row, as the node would: DIR/track.csv (time_s, applied_v,\n"
+                     "measured_nm, model_nm, fused_nm, fused_sigma_nm[, true_nm]), DIR/holds.md, DIR/track.json.");
+  args.required("model", "FILE.yaml", "model file (with an estimator: block, written by piezo fit)")
+      .required("data", "FILE", "recording (CSV or bag)")
+      .option("axis", "a|b|c", "axis (default: the model's)")
+      .option("identify-on", "FILE", "identify the estimator's noise model on this recording (the model runs free over\n"
+              "it) instead of the model file's block")
+      .option("min-hold-s", "T", "a hold: the voltage unchanged this long [s]", "60")
+      .option("settle-skip-s", "T", "score holds from this long after their start [s]", "120")
+      .option("end-window-s", "T", "the end of a hold: its last T [s]", "5")
+      .option("plot", "", "also write DIR/track.png (python3-matplotlib)")
+      .required("out", "DIR", "output directory");
+  if (!args.parse(argc, argv)) return 0;
+  models::ModelPtr model = models::load_model(args.str("model"));
+  const std::string axis = args.has("axis") ? args.str("axis") : model->meta.axis;
+  const io::Dataset data = ros_io::read_data(args.str("data"));
+  models::check_model_matches_data(*model, data, args.str("data"));
+  if (args.has("identify-on")) {
+    const io::Dataset id = ros_io::read_data(args.str("identify-on"));
+    model->meta.estimator = analysis::identify_estimator(*model, id, axis).to_yaml();
+  } else if (!model->meta.estimator || model->meta.estimator.IsNull()) {
+    throw UsageError("track: " + args.str("model") + " has no estimator: block (refit with piezo fit, or give "
+                     "--identify-on FILE)");
+  }
+  compensation::TrackOptions o;
+  o.min_hold_s = args.num("min-hold-s");
+  o.settle_skip_s = args.num("settle-skip-s");
+  o.end_window_s = args.num("end-window-s");
+  const compensation::TrackResult r = compensation::track_recording(std::move(model), data, axis, o);
+
+  const fs::path out = args.str("out");
+  fs::create_directories(out);
+  write_csv(out / "track.csv", r);
+  const std::string table = hold_table(r, o);
+  {
+    std::ofstream f(out / "holds.md");
+    f << "# piezo track: " << args.str("model") << " on " << args.str("data") << " (axis " << axis << ")\n\n"
+      << "Estimator: " << r.estimator << "\n\n" << table;
+  }
+  {
+    std::ofstream f(out / "track.json");
+    util::JsonWriter j(f);
+    j.begin_object();
+    j.key("estimator").value(r.estimator);
+    j.key("fusing").value(r.fusing);
+    j.key("holds").value(static_cast<double>(r.holds.size()));
+    j.key("hold_model_mae_nm").value(r.model_mae_nm);
+    j.key("hold_fused_mae_nm").value(r.fused_mae_nm);
+    j.key("worst_model_end_nm").value(r.worst_model_end_nm);
+    j.key("worst_fused_end_nm").value(r.worst_fused_end_nm);
+    j.key("within_2sigma").value(r.within_2sigma);
+    j.end_object();
+  }
+  std::cout << "estimator: " << r.estimator << "\n\n" << table << "\nwrote " << (out / "track.csv").string() << ", holds.md, track.json\n";
+  if (args.flag("plot"))
+    run_plot_script("track", "track_plot.py", {(out / "track.csv").string(), (out / "track.png").string()});
+  return 0;
+}
+
+const Register reg("track", "the estimator offline: model fused with the encoder, 1σ, a table per hold", run);
+
+}  // namespace
+}  // namespace piezo::cli

@@ -1,0 +1,300 @@
+#include "piezo_compensation/estimation/error_filter.h"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <iomanip>
+#include <limits>
+#include <numeric>
+#include <sstream>
+#include <stdexcept>
+
+namespace piezo::estimation {
+namespace {
+
+constexpr double kTwoPi = 6.283185307179586;
+
+double field(const YAML::Node& node, const char* key, const std::string& where, double lo, double hi) {
+  const YAML::Node v = node[key];
+  if (!v) throw std::invalid_argument(where + ": estimator." + key + " is missing");
+  double d = 0.0;
+  try {
+    d = v.as<double>();
+  } catch (const YAML::Exception&) {
+    throw std::invalid_argument(where + ": estimator." + key + " is not a number");
+  }
+  if (!std::isfinite(d) || d < lo || d > hi) {
+    std::ostringstream s;
+    s << where << ": estimator." << key << " = " << d << " is outside [" << lo << ", " << hi << "]";
+    throw std::invalid_argument(s.str());
+  }
+  return d;
+}
+
+// Nelder–Mead on a few log-parameters: small, derivative-free, enough for a smooth 3-parameter likelihood.
+template <std::size_t N, class F>
+std::array<double, N> nelder_mead(F f, std::array<double, N> x0, double step, std::size_t max_eval) {
+  using P = std::array<double, N>;
+  std::array<P, N + 1> s;
+  std::array<double, N + 1> v;
+  s[0] = x0;
+  for (std::size_t i = 0; i < N; ++i) {
+    s[i + 1] = x0;
+    s[i + 1][i] += step;
+  }
+  std::size_t evals = 0;
+  for (std::size_t i = 0; i <= N; ++i) v[i] = f(s[i]), ++evals;
+  auto lin = [](const P& a, const P& b, double t) {  // a + t (b − a)
+    P r;
+    for (std::size_t i = 0; i < N; ++i) r[i] = a[i] + t * (b[i] - a[i]);
+    return r;
+  };
+  while (evals < max_eval) {
+    std::array<std::size_t, N + 1> o;
+    std::iota(o.begin(), o.end(), 0);
+    std::sort(o.begin(), o.end(), [&](std::size_t a, std::size_t b) { return v[a] < v[b]; });
+    if (std::abs(v[o[N]] - v[o[0]]) < 1e-9 * (1.0 + std::abs(v[o[0]]))) break;
+    P c{};
+    for (std::size_t k = 0; k < N; ++k)
+      for (std::size_t i = 0; i < N; ++i) c[i] += s[o[k]][i] / N;
+    const std::size_t w = o[N];
+    const P xr = lin(c, s[w], -1.0);
+    const double fr = f(xr);
+    ++evals;
+    if (fr < v[o[0]]) {
+      const P xe = lin(c, s[w], -2.0);
+      const double fe = f(xe);
+      ++evals;
+      if (fe < fr) s[w] = xe, v[w] = fe;
+      else s[w] = xr, v[w] = fr;
+    } else if (fr < v[o[N - 1]]) {
+      s[w] = xr, v[w] = fr;
+    } else {
+      const P xc = lin(c, s[w], fr < v[w] ? -0.5 : 0.5);
+      const double fc = f(xc);
+      ++evals;
+      if (fc < std::min(fr, v[w])) {
+        s[w] = xc, v[w] = fc;
+      } else {  // shrink towards the best
+        for (std::size_t k = 1; k <= N; ++k) {
+          s[o[k]] = lin(s[o[0]], s[o[k]], 0.5);
+          v[o[k]] = f(s[o[k]]);
+          ++evals;
+        }
+      }
+    }
+  }
+  return s[static_cast<std::size_t>(std::min_element(v.begin(), v.end()) - v.begin())];
+}
+
+// The model's slow error, 1σ: RMS of 30-s block means of reading − model, less the reading noise they keep.
+double slow_error_sigma(const std::vector<double>& p, const std::vector<double>& y, double dt_s, double sigma) {
+  const std::size_t block = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(30.0 / dt_s)));
+  double sum2 = 0.0;
+  std::size_t blocks = 0;
+  for (std::size_t i0 = 0; i0 + block <= p.size(); i0 += block) {
+    double s = 0.0;
+    std::size_t n = 0;
+    for (std::size_t i = i0; i < i0 + block; ++i)
+      if (std::isfinite(y[i])) s += y[i] - p[i], ++n;
+    if (n < block / 2) continue;
+    const double m = s / n;
+    sum2 += m * m - sigma * sigma / n;
+    ++blocks;
+  }
+  return blocks ? std::sqrt(std::max(0.0, sum2 / blocks)) : 0.0;
+}
+
+}  // namespace
+
+bool readings_inform(double reading_sigma_nm, double step_nm) {
+  if (!(step_nm > 0.0)) return true;
+  // σ here includes the step's own q²/12; the noise before the quantiser is what dithers it.
+  const double raw2 = reading_sigma_nm * reading_sigma_nm - step_nm * step_nm / 12.0;
+  return raw2 > 0.0 && std::sqrt(raw2) >= 0.5 * step_nm;
+}
+
+YAML::Node NoiseModel::to_yaml() const {
+  YAML::Node n(YAML::NodeType::Map);
+  n["fuse"] = fuse;
+  n["reading_sigma_nm"] = reading_sigma_nm;
+  n["step_nm"] = step_nm;
+  n["q_rest_nm2_per_s"] = q_rest_nm2_per_s;
+  n["q_motion_nm"] = q_motion_nm;
+  n["q_fast_nm"] = q_fast_nm;
+  n["fast_tau_s"] = fast_tau_s;
+  n["initial_sigma_nm"] = initial_sigma_nm;
+  n["model_sigma_nm"] = model_sigma_nm;
+  n["samples"] = samples;
+  n["log_likelihood_per_reading"] = log_likelihood;
+  n["method"] = method;
+  return n;
+}
+
+NoiseModel NoiseModel::from_yaml(const YAML::Node& node, const std::string& where) {
+  if (!node || !node.IsMap()) throw std::invalid_argument(where + ": estimator: expected a mapping");
+  NoiseModel m;
+  const double inf = std::numeric_limits<double>::max();
+  try {
+    m.fuse = node["fuse"] ? node["fuse"].as<bool>() : true;
+  } catch (const YAML::Exception&) {
+    throw std::invalid_argument(where + ": estimator.fuse is not true/false");
+  }
+  m.reading_sigma_nm = field(node, "reading_sigma_nm", where, 1e-6, inf);
+  m.step_nm = field(node, "step_nm", where, 0.0, inf);
+  m.q_rest_nm2_per_s = field(node, "q_rest_nm2_per_s", where, 0.0, inf);
+  m.q_motion_nm = field(node, "q_motion_nm", where, 0.0, inf);
+  m.q_fast_nm = field(node, "q_fast_nm", where, 0.0, inf);
+  m.fast_tau_s = field(node, "fast_tau_s", where, 1e-6, inf);
+  m.initial_sigma_nm = field(node, "initial_sigma_nm", where, 0.0, inf);
+  m.model_sigma_nm = field(node, "model_sigma_nm", where, 0.0, inf);
+  if (node["samples"]) m.samples = node["samples"].as<std::size_t>(0);
+  if (node["log_likelihood_per_reading"]) m.log_likelihood = node["log_likelihood_per_reading"].as<double>(0.0);
+  if (node["method"]) m.method = node["method"].as<std::string>("");
+  return m;
+}
+
+std::string NoiseModel::describe() const {
+  std::ostringstream s;
+  s << std::setprecision(3);
+  if (!fuse) {
+    s << "model-only: encoder step " << step_nm << " nm against reading noise σ " << reading_sigma_nm
+      << " nm (readings biased by up to half a step); model error 1σ " << model_sigma_nm << " nm";
+    return s.str();
+  }
+  s << "fused: reading σ " << reading_sigma_nm << " nm (step " << step_nm << " nm), slow error " << q_rest_nm2_per_s
+    << " nm²/s at rest + " << q_motion_nm << " nm²/nm moved, fast error " << q_fast_nm << " nm²/nm settling in "
+    << fast_tau_s << " s, cold start 1σ " << initial_sigma_nm << " nm";
+  return s.str();
+}
+
+ErrorFilter::ErrorFilter(const NoiseModel& model, double dt_s) : model_(model), dt_s_(dt_s) {
+  if (!(dt_s > 0.0) || !std::isfinite(dt_s)) throw std::invalid_argument("ErrorFilter: dt_s must be > 0");
+  if (!(model.reading_sigma_nm > 0.0)) throw std::invalid_argument("ErrorFilter: reading_sigma_nm must be > 0");
+  phi_ = std::exp(-dt_s / std::max(model.fast_tau_s, 1e-9));
+  r_ = model.reading_sigma_nm * model.reading_sigma_nm;
+  reset();
+}
+
+void ErrorFilter::reset() {
+  x_.setZero();
+  P_.setZero();
+  P_(0, 0) = model_.initial_sigma_nm * model_.initial_sigma_nm;
+  started_ = false;
+  since_reading_ = 0;
+}
+
+double ErrorFilter::sigma_nm() const {
+  if (!model_.fuse) return model_.model_sigma_nm;
+  return std::sqrt(std::max(0.0, P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1)));
+}
+
+void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
+  const double dp = started_ ? std::abs(predicted_nm - last_p_) : 0.0;
+  last_p_ = predicted_nm;
+  started_ = true;
+  if (!model_.fuse) return;
+  // predict: the slow error walks, the fast one settles; both are driven by the model's motion
+  x_(1) *= phi_;
+  P_(0, 1) *= phi_;
+  P_(1, 0) = P_(0, 1);
+  P_(1, 1) *= phi_ * phi_;
+  P_(0, 0) += model_.q_rest_nm2_per_s * dt_s_ + model_.q_motion_nm * dp;
+  P_(1, 1) += model_.q_fast_nm * dp;
+  if (!valid || !std::isfinite(measured_nm)) {
+    ++since_reading_;
+    return;
+  }
+  since_reading_ = 0;
+  // update with y − p = e_slow + e_fast + v
+  const double s = P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1) + r_;
+  const Eigen::Vector2d ph(P_(0, 0) + P_(0, 1), P_(1, 0) + P_(1, 1));
+  const Eigen::Vector2d k = ph / s;
+  innovation_ = measured_nm - predicted_nm - error_nm();
+  x_ += k * innovation_;
+  P_ -= k * ph.transpose();
+  P_(1, 0) = P_(0, 1) = 0.5 * (P_(0, 1) + P_(1, 0));
+  loglik_ += -0.5 * (std::log(kTwoPi * s) + innovation_ * innovation_ / s);
+  ++updates_;
+}
+
+FilterTrace run_filter(const NoiseModel& model, double dt_s, const std::vector<double>& predicted_nm,
+                       const std::vector<double>& measured_nm) {
+  if (predicted_nm.size() != measured_nm.size())
+    throw std::invalid_argument("run_filter: predictions and readings differ in length");
+  ErrorFilter f(model, dt_s);
+  FilterTrace t;
+  t.fused_nm.reserve(predicted_nm.size());
+  t.sigma_nm.reserve(predicted_nm.size());
+  for (std::size_t i = 0; i < predicted_nm.size(); ++i) {
+    f.step(predicted_nm[i], measured_nm[i], std::isfinite(measured_nm[i]));
+    t.fused_nm.push_back(f.fused_nm());
+    t.sigma_nm.push_back(f.sigma_nm());
+  }
+  t.log_likelihood = f.log_likelihood();
+  return t;
+}
+
+NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const std::vector<double>& measured_nm,
+                                const IdentifyOptions& o) {
+  if (predicted_nm.size() != measured_nm.size())
+    throw std::invalid_argument("identify_noise_model: predictions and readings differ in length");
+  if (!(o.reading_sigma_nm > 0.0)) throw std::invalid_argument("identify_noise_model: reading σ must be > 0");
+  if (!(o.dt_s > 0.0)) throw std::invalid_argument("identify_noise_model: dt_s must be > 0");
+  std::size_t readings = 0;
+  for (std::size_t i = 0; i < predicted_nm.size(); ++i) {
+    if (!std::isfinite(predicted_nm[i]))
+      throw std::invalid_argument("identify_noise_model: prediction " + std::to_string(i) + " is not finite");
+    readings += std::isfinite(measured_nm[i]) ? 1 : 0;
+  }
+  if (readings < 200)
+    throw std::invalid_argument("identify_noise_model: " + std::to_string(readings) + " readings (need ≥ 200)");
+
+  NoiseModel m;
+  m.reading_sigma_nm = o.reading_sigma_nm;
+  m.step_nm = o.step_nm;
+  m.samples = readings;
+  m.model_sigma_nm = slow_error_sigma(predicted_nm, measured_nm, o.dt_s, o.reading_sigma_nm);
+  m.initial_sigma_nm = std::sqrt(o.reading_sigma_nm * o.reading_sigma_nm + 4.0 * m.model_sigma_nm * m.model_sigma_nm);
+  if (!readings_inform(o.reading_sigma_nm, o.step_nm)) {
+    m.fuse = false;
+    m.method = "model-only: readings not dithered (step > 2 × the noise before it)";
+    return m;
+  }
+  // Parameters are searched in log space, bounded so the filter stays defined.
+  auto unpack = [](const std::array<double, 3>& z, NoiseModel& t) {
+    t.q_rest_nm2_per_s = std::exp(std::clamp(z[0], -25.0, 12.0));
+    t.q_motion_nm = std::exp(std::clamp(z[1], -25.0, 12.0));
+    t.q_fast_nm = std::exp(std::clamp(z[2], -25.0, 12.0));
+  };
+  NoiseModel best = m;
+  double best_ll = -std::numeric_limits<double>::infinity();
+  for (double tau : o.fast_tau_grid_s) {
+    NoiseModel trial = m;
+    trial.fast_tau_s = tau;
+    auto nll = [&](const std::array<double, 3>& z) {
+      unpack(z, trial);
+      ErrorFilter f(trial, o.dt_s);
+      for (std::size_t i = 0; i < predicted_nm.size(); ++i)
+        f.step(predicted_nm[i], measured_nm[i], std::isfinite(measured_nm[i]));
+      return -f.log_likelihood() / static_cast<double>(readings);
+    };
+    const std::array<double, 3> z = nelder_mead<3>(nll, {std::log(0.01), std::log(0.01), std::log(0.1)},
+                                                   std::log(30.0), o.max_evaluations);
+    const double ll = -nll(z);
+    if (ll > best_ll) {
+      best_ll = ll;
+      unpack(z, trial);
+      best = trial;
+    }
+  }
+  best.log_likelihood = best_ll;
+  std::ostringstream s;
+  s << "maximum likelihood of the innovations on " << readings << " readings (fast τ from {";
+  for (std::size_t i = 0; i < o.fast_tau_grid_s.size(); ++i) s << (i ? ", " : "") << o.fast_tau_grid_s[i];
+  s << "} s)";
+  best.method = s.str();
+  return best;
+}
+
+}  // namespace piezo::estimation
