@@ -149,8 +149,10 @@ int run(int argc, char** argv) {
     }
   }
   if (req.validation) {
-    // The estimator's noise model on the part the model was not fitted on (its error there is what live sees).
-    model->meta.estimator = analysis::identify_estimator(*model, score_data, axis, split_at).to_yaml();
+    // The estimator's noise model on the part the model was not fitted on, run from a cold start as on the next
+    // recording: the warm continuation of the fit's own history shows smaller model errors than a new recording
+    // has, and a filter identified there is over-confident on one (docs/predictor.md, "Estimator").
+    model->meta.estimator = analysis::identify_estimator(*model, val, axis).to_yaml();
     std::cout << "estimator: " << estimation::NoiseModel::from_yaml(model->meta.estimator, "fit").describe() << "\n";
   }
   model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
