@@ -239,6 +239,49 @@ TEST(SlowScore, WithinTheNoiseTheFewerParametersWin) {
   EXPECT_EQ(analysis::choose_candidate({{"a", 1, nullptr}}).chosen, SIZE_MAX);
 }
 
+namespace {
+// Predicts the position it was reset at: its error shows where the run started.
+class ResetModel : public models::Model {
+ public:
+  std::string kind() const override { return "reset_probe"; }
+  void reset(double, double position_nm) override { at_ = position_nm; }
+  double predict(const models::ModelInput&) const override { return at_; }
+  void commit(const models::ModelInput&, double) override {}
+  std::unique_ptr<models::Model> clone() const override { return std::make_unique<ResetModel>(*this); }
+  bool uses_position_history() const override { return false; }
+  YAML::Node to_yaml() const override { return YAML::Node(); }
+  std::size_t num_parameters() const override { return 1; }
+
+ private:
+  double at_ = 0.0;
+};
+}  // namespace
+
+TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPart) {
+  // 10 Hz, 600 s: the position is 0 nm for the first 300 s and 100 nm after; the voltage keeps moving (no holds).
+  io::Dataset d;
+  auto& a = d.add_axis("c");
+  for (int i = 0; i < 6000; ++i) {
+    d.time_s.push_back(0.1 * i);
+    a.voltage_v.push_back(std::sin(0.01 * i));
+    a.position_nm.push_back(i < 3000 ? 0.0 : 100.0);
+  }
+  const ResetModel m;
+  // Warm: reset at row 0 (0 nm), so 100 nm off in every scored block; cold: reset at row 3000 (100 nm), 0 off.
+  const auto s = analysis::slow_score(m, d, 3000, "c");
+  EXPECT_EQ(s.blocks.moves.size(), 10u);  // 300 s in 30-s blocks
+  EXPECT_TRUE(s.blocks.holds.empty());
+  EXPECT_NEAR(s.moves_nm, 100.0, 1e-9);
+  EXPECT_NEAR(s.cold_nm, 0.0, 1e-9);
+  EXPECT_NEAR(s.overall_nm, 50.0, 1e-9);
+  EXPECT_NEAR(s.block_s, 30.0, 1e-9);
+  // A separate file (score_from 0): the warm run is the cold one.
+  const auto t = analysis::slow_score(m, d, 0, "c");
+  EXPECT_EQ(t.blocks.cold, t.blocks.moves);
+  // A short validation part (100 s, under 8 blocks) is cut into eighths.
+  EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c").block_s, 12.5, 1e-9);
+}
+
 // End to end on creep-protocol data with settings no other test uses (issue 26's done-when "auto's worst hold end
 // within 10 % of the best kind's, on a stage the tests were not tuned on"): Preisach hysteresis with 100 switching
 // voltages, a weak six-mode creep spectrum (4 s … 2 h, weights 0.01–0.025), 21 nm readings, seed 2626, 8 × (300-s history, 300-s hold);
