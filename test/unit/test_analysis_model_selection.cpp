@@ -1,4 +1,4 @@
-// Sanity gates (one test per gate) and `--model auto` (issue 11 items 3 and 4).
+// Sanity gates (one test per gate) and `--model auto` (issue 11 items 3 and 4; the choice rule of issue 26 item 2).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -149,7 +149,9 @@ analysis::SlowScore slow(std::vector<double> moves, std::vector<double> holds, s
   e.holds = std::move(holds);
   e.hold_ends = std::move(ends);
   e.cold = std::move(cold);
-  return analysis::summarise_slow(e);
+  analysis::SlowScoreOptions o;
+  o.noise_nm = 1.0;
+  return analysis::summarise_slow(e, o);
 }
 
 }  // namespace
@@ -197,11 +199,16 @@ TEST(SlowScore, BlockMeansTakeTheWhiteNoiseOutAndHoldEndsAreTheirLastPart) {
   e = analysis::slow_errors(pred, ref, holds, 120, 50, 30);
   EXPECT_EQ(e.moves.size(), 2u);
   EXPECT_EQ(e.holds.size(), 2u);  // 120-170 and 170-200 (30 ≥ half a block)
-  const auto s = analysis::summarise_slow(e);
+  analysis::SlowScoreOptions o;
+  o.noise_nm = 1.0;
+  const auto s = analysis::summarise_slow(e, o);
   EXPECT_NEAR(s.hold_ends_nm, 10.0, 1e-12);
   EXPECT_NEAR(s.worst_hold_end_nm, 10.0, 1e-12);
-  // overall: moves 0, holds 5, hold ends 10 (weight 2), no cold fold: (0 + 5 + 20) / 4.
-  EXPECT_NEAR(s.overall_nm, 25.0 / 4.0, 1e-12);
+  // overall: moves 0, holds 5, hold ends 10 (weight 2), no cold fold, noise 1 nm: ((0+1)(5+1)(10+1)²)^¼ − 1.
+  EXPECT_NEAR(s.overall_nm, std::pow(6.0 * 121.0, 0.25) - 1.0, 1e-12);
+  // By ratio, not by scale: a column 1000× larger for everyone does not change the order of two candidates.
+  analysis::SlowErrors a{{2.0}, {}, {}, {500.0}}, b{{4.0}, {}, {}, {450.0}};
+  EXPECT_LT(analysis::summarise_slow(a, o).overall_nm, analysis::summarise_slow(b, o).overall_nm);
   EXPECT_TRUE(std::isnan(s.cold_nm));
 }
 
@@ -240,40 +247,41 @@ TEST(SlowScore, WithinTheNoiseTheFewerParametersWin) {
 }
 
 namespace {
-// Predicts the position it was reset at: its error shows where the run started.
+// Predicts (seconds since its reset)² in nm at 10 Hz: its error shows where the run started.
 class ResetModel : public models::Model {
  public:
   std::string kind() const override { return "reset_probe"; }
-  void reset(double, double position_nm) override { at_ = position_nm; }
-  double predict(const models::ModelInput&) const override { return at_; }
-  void commit(const models::ModelInput&, double) override {}
+  void reset(double, double) override { k_ = 0; }
+  double predict(const models::ModelInput&) const override { return 0.01 * double(k_) * double(k_); }
+  void commit(const models::ModelInput&, double) override { ++k_; }
   std::unique_ptr<models::Model> clone() const override { return std::make_unique<ResetModel>(*this); }
   bool uses_position_history() const override { return false; }
   YAML::Node to_yaml() const override { return YAML::Node(); }
   std::size_t num_parameters() const override { return 1; }
 
  private:
-  double at_ = 0.0;
+  long k_ = 0;
 };
 }  // namespace
 
 TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPart) {
-  // 10 Hz, 600 s: the position is 0 nm for the first 300 s and 100 nm after; the voltage keeps moving (no holds).
+  // 10 Hz, 600 s; the voltage keeps moving (no holds). The position is what the probe predicts when reset at row
+  // 3000: 0 before, (t − 300 s)² after.
   io::Dataset d;
   auto& a = d.add_axis("c");
   for (int i = 0; i < 6000; ++i) {
     d.time_s.push_back(0.1 * i);
     a.voltage_v.push_back(std::sin(0.01 * i));
-    a.position_nm.push_back(i < 3000 ? 0.0 : 100.0);
+    a.position_nm.push_back(i < 3000 ? 0.0 : 0.01 * double(i - 3000) * double(i - 3000));
   }
   const ResetModel m;
-  // Warm: reset at row 0 (0 nm), so 100 nm off in every scored block; cold: reset at row 3000 (100 nm), 0 off.
+  // Warm: reset at row 0, far off in every scored block; cold: reset at row 3000, exact.
   const auto s = analysis::slow_score(m, d, 3000, "c");
   EXPECT_EQ(s.blocks.moves.size(), 10u);  // 300 s in 30-s blocks
   EXPECT_TRUE(s.blocks.holds.empty());
-  EXPECT_NEAR(s.moves_nm, 100.0, 1e-9);
-  EXPECT_NEAR(s.cold_nm, 0.0, 1e-9);
-  EXPECT_NEAR(s.overall_nm, 50.0, 1e-9);
+  EXPECT_GT(s.moves_nm, 1e5);
+  EXPECT_EQ(s.blocks.cold.size(), 10u);
+  EXPECT_NEAR(s.cold_nm, 0.0, 1e-6);
   EXPECT_NEAR(s.block_s, 30.0, 1e-9);
   // A separate file (score_from 0): the warm run is the cold one.
   const auto t = analysis::slow_score(m, d, 0, "c");

@@ -1,5 +1,6 @@
 // Model choice for any stage (issue 11): validation scores held out by time, sanity gates that refuse a fit
-// the data cannot support, and `--model auto` (fit the candidate kinds, score each free-run, keep the best).
+// the data cannot support, and `--model auto` (fit the candidate kinds, score each free-run on the slow part of its
+// error, choose for the use with the noise taken out: issue 26).
 // Knows nothing of the simulator: every threshold comes from the data the model was fitted and scored on.
 #pragma once
 
@@ -70,7 +71,10 @@ YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axi
 //  - hold ends: per hold, the mean error of its last hold_end_s (where the user parks the tip);
 //  - cold fold: the held-out part run on its own, the model reset at rest at its first sample (as a separate
 //    recording would start), all its blocks.
-// overall: the weighted mean of the columns present (hold ends count hold_end_weight, the others 1).
+// overall: the weighted geometric mean of (column + noise_nm) over the columns present, less noise_nm (hold ends
+// count hold_end_weight, the others 1): a column counts by its ratio between candidates, not by its scale (a cold
+// fold of 500 nm from the unknown start state does not drown moves of 0.3 nm), and a difference under the noise
+// of a block mean counts little.
 // On a short validation part (under 8 blocks) the block shrinks to an eighth of it (at least one sample), so a
 // 5-s tail of a 200-Hz recording is still scored in blocks of 125 samples.
 struct SlowScoreOptions {
@@ -79,6 +83,7 @@ struct SlowScoreOptions {
   double hold_tolerance_v = 1e-6;
   double hold_end_s = 30.0;
   double hold_end_weight = 2.0;
+  double noise_nm = 0.0;  // noise of a block mean [nm]; 0: select_model estimates it (σ of a reading / √rows)
 };
 
 // Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s.

@@ -136,6 +136,7 @@ namespace {
 void add_blocks(const std::vector<double>& p, const std::vector<double>& r, std::size_t b, std::size_t e,
                 std::size_t block, std::vector<double>& out) {
   block = std::max<std::size_t>(block, 1);
+  e = std::min({e, p.size(), r.size()});
   for (std::size_t s = b; s < e; s += block) {
     const std::size_t t = std::min(e, s + block);
     if (2 * (t - s) < block) break;
@@ -192,11 +193,15 @@ SlowScore summarise_slow(const SlowErrors& b, const SlowScoreOptions& o) {
   s.hold_ends_nm = mean_of(b.hold_ends);
   s.worst_hold_end_nm = max_of(b.hold_ends);
   s.cold_nm = mean_of(b.cold);
+  // Weighted geometric mean of (column + noise), less the noise: a column counts by its ratio between
+  // candidates, not by its scale (a cold fold of 500 nm next to moves of 0.3 nm does not drown the moves), and
+  // differences below the noise of a block mean count little.
+  const double eps = std::max(o.noise_nm, 1e-3);
   double sum = 0, w = 0;
   for (const auto& [x, wt] : {std::pair<double, double>{s.moves_nm, 1.0}, {s.holds_nm, 1.0},
                               {s.hold_ends_nm, o.hold_end_weight}, {s.cold_nm, 1.0}})
-    if (std::isfinite(x)) sum += wt * x, w += wt;
-  s.overall_nm = w > 0 ? sum / w : NAN;
+    if (std::isfinite(x)) sum += wt * std::log(x + eps), w += wt;
+  s.overall_nm = w > 0 ? std::exp(sum / w) - eps : NAN;
   return s;
 }
 
@@ -442,6 +447,21 @@ Selection select_model(const SelectionRequest& rq) {
   Selection sel;
   sel.scale = data_scale(*rq.train, rq.axis);
   sel.slow_options = rq.slow;
+  if (!(rq.slow.noise_nm > 0.0)) {
+    // The noise of a block mean, from the validation part's readings (σ/√samples per block).
+    try {
+      const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
+      const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
+      const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
+      const double rows = std::max(1.0, std::min(std::round(rq.slow.block_s * rate), std::floor(tail.size() / 8.0)));
+      sel.block_noise_nm = std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
+      if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
+    } catch (const std::exception&) {
+      // too few samples for a noise figure: the default stays
+    }
+  } else {
+    sel.block_noise_nm = rq.slow.noise_nm;
+  }
   const std::vector<ModelCandidate> cands = rq.candidates.empty() ? default_candidates() : rq.candidates;
   std::vector<models::ModelPtr> fitted(cands.size());
   for (std::size_t k = 0; k < cands.size(); ++k) {
@@ -470,7 +490,8 @@ Selection select_model(const SelectionRequest& rq) {
       SeriesPrediction p;
       r.score = score_validation_series(*m, *rq.score_data, rq.score_from, rq.axis, p);
       r.refused = sanity_problem(*m, &r.score, sel.scale);
-      if (r.refused.empty()) r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, rq.slow, &p.free_run);
+      if (r.refused.empty())
+        r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
     } catch (const std::exception& e) {
       r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
     }
@@ -492,17 +513,6 @@ Selection select_model(const SelectionRequest& rq) {
   sel.best = ch.chosen;
   sel.best_overall = ch.best_overall;
   sel.reason = ch.reason;
-  try {
-    const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
-    const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
-    const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
-    const double block_s = std::isfinite(sel.table[sel.best].slow.block_s) ? sel.table[sel.best].slow.block_s
-                                                                            : rq.slow.block_s;
-    sel.block_noise_nm = std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) /
-                         std::sqrt(std::max(1.0, block_s * rate));
-  } catch (const std::exception&) {
-    // too few samples for a noise figure: the table goes without it
-  }
   sel.model = std::move(fitted[sel.best]);
   store_validation(sel.table[sel.best].score, *sel.model);
   sel.model->meta.selection = selection_yaml(sel);
@@ -522,8 +532,8 @@ std::string selection_table(const Selection& s) {
         "part; scored on the slow part of the error, |mean(predicted - measured)| of " << fmt(block_s) << "-s blocks";
   if (std::isfinite(s.block_noise_nm)) os << " (reading noise of a block mean ~" << fmt(s.block_noise_nm, 2) << " nm)";
   os << ":\nmoves, holds (voltage unchanged >= " << fmt(o.hold_min_s) << " s), hold ends (last " << fmt(o.hold_end_s)
-     << " s of each hold), cold fold\n(the validation part alone, from rest); overall = weighted mean (hold ends x"
-     << fmt(o.hold_end_weight) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
+     << " s of each hold), cold fold\n(the validation part alone, from rest); overall = weighted geometric mean of (column + block noise), less the\n"
+        "noise (hold ends x" << fmt(o.hold_end_weight) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
         "of it (paired block test on every column). Position range "
      << fmt(s.scale.position_range_nm, 4) << " nm.\n\n";
   os << "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | overall [nm] | status |\n";
@@ -549,7 +559,8 @@ YAML::Node selection_yaml(const Selection& s) {
   const auto& o = s.slow_options;
   n["criterion"] = "slow part of the error: |mean(predicted - measured)| of " + fmt(o.block_s) +
                    "-s blocks on moves, holds, hold ends (x" + fmt(o.hold_end_weight) +
-                   ") and a cold fold; lowest overall, then the fewest parameters within the noise of it "
+                   ") and a cold fold; overall = weighted geometric mean of (column + block noise) less the noise; "
+                   "lowest overall, then the fewest parameters within the noise of it "
                    "(paired block test on every column), among the candidates passing the gates";
   if (!s.table.empty()) {
     n["chosen"] = s.table[s.best].candidate.label;
