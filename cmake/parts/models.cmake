@@ -15,3 +15,4 @@ endif()
 piezo_unit_test(test_eval_metrics test/unit/test_eval_metrics.cpp)
 piezo_benchmark(bench_models_linear bench/bench_models_linear.cpp)
 
+piezo_slow_tests(test_models_creep test_models_prony test_models_preisach)
