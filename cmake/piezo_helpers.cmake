@@ -17,6 +17,7 @@ endfunction()
 # master and the nodes to start and stop.
 set(PIEZO_FAST_TIMEOUT_S 120)
 set(PIEZO_SLOW_TIMEOUT_S 600)
+set(PIEZO_TIMEOUT_SCALE 1 CACHE STRING "Every test TIMEOUT times this (scripts/test-sanitize: 10, ASan is 5-10x slower)")
 
 # piezo_test_budget(<ctest test name> [SLOW] [TIMEOUT seconds]): label fast (default) or slow, and a timeout.
 function(piezo_test_budget test)
@@ -31,6 +32,7 @@ function(piezo_test_budget test)
   if(ARG_TIMEOUT)
     set(timeout ${ARG_TIMEOUT})
   endif()
+  math(EXPR timeout "${timeout} * ${PIEZO_TIMEOUT_SCALE}")
   set_tests_properties(${test} PROPERTIES LABELS ${label} TIMEOUT ${timeout})
 endfunction()
 
