@@ -8,12 +8,127 @@ function(piezo_node name)
   install(TARGETS ${name} RUNTIME DESTINATION ${CATKIN_PACKAGE_BIN_DESTINATION})
 endfunction()
 
+# ---- test budgets -------------------------------------------------------------------------------------------
+# Every CTest test has LABELS fast or slow and a TIMEOUT (the helpers below set them; a test added with a plain
+# add_test calls piezo_test_budget, and CMakeLists.txt refuses a test without both). `ctest -L fast` is the quick
+# loop: each fast test takes seconds; slow ones up to the suite's rule of 60 s each on the 2-core CI machine. The
+# TIMEOUT only catches a hang, with room for a host shared with builds (load 10 on 2 cores stretched the 67-s
+# test_models_preisach past 180 s): fast 120 s, slow 600 s, a rostest its .test file's time-limit plus 30 s for the
+# master and the nodes to start and stop.
+set(PIEZO_FAST_TIMEOUT_S 120)
+set(PIEZO_SLOW_TIMEOUT_S 600)
+set(PIEZO_TIMEOUT_SCALE 1 CACHE STRING "Every test TIMEOUT times this (scripts/test-sanitize: 10, ASan is 5-10x slower)")
+
+# piezo_test_budget(<ctest test name> [SLOW] [TIMEOUT seconds]): label fast (default) or slow, and a timeout.
+function(piezo_test_budget test)
+  cmake_parse_arguments(ARG "SLOW" "TIMEOUT" "" ${ARGN})
+  if(ARG_SLOW)
+    set(label slow)
+    set(timeout ${PIEZO_SLOW_TIMEOUT_S})
+  else()
+    set(label fast)
+    set(timeout ${PIEZO_FAST_TIMEOUT_S})
+  endif()
+  if(ARG_TIMEOUT)
+    set(timeout ${ARG_TIMEOUT})
+  endif()
+  math(EXPR timeout "${timeout} * ${PIEZO_TIMEOUT_SCALE}")
+  set_tests_properties(${test} PROPERTIES LABELS ${label} TIMEOUT ${timeout})
+endfunction()
+
+# The CTest name of a test declared by the helpers: a gtest target, a rostest launch file's base name, or a
+# test added by name.
+function(piezo_ctest_name out name)
+  if(TEST _ctest_${PROJECT_NAME}_gtest_${name})
+    set(${out} _ctest_${PROJECT_NAME}_gtest_${name} PARENT_SCOPE)
+  elseif(TEST _ctest_${PROJECT_NAME}_rostest_test_rostest_${name}.test)
+    set(${out} _ctest_${PROJECT_NAME}_rostest_test_rostest_${name}.test PARENT_SCOPE)
+  elseif(TEST ${name})
+    set(${out} ${name} PARENT_SCOPE)
+  else()
+    message(FATAL_ERROR "piezo_slow_tests: no test '${name}'")
+  endif()
+endfunction()
+
+# piezo_slow_tests(<names...>): these tests are slow (gtest target names, rostest base names or test names);
+# each part lists its own once, after declaring them.
+function(piezo_slow_tests)
+  if(CATKIN_ENABLE_TESTING)
+    foreach(name ${ARGN})
+      piezo_ctest_name(test ${name})
+      get_test_property(${test} TIMEOUT timeout)
+      if(test MATCHES "_rostest_")
+        piezo_test_budget(${test} SLOW TIMEOUT ${timeout})  # keeps the launch file's time-limit
+      else()
+        piezo_test_budget(${test} SLOW)
+      endif()
+    endforeach()
+  endif()
+endfunction()
+
+# Fails the configuration when a test has no LABELS or no TIMEOUT (called once all parts are in).
+function(piezo_check_test_budgets)
+  get_property(tests DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR} PROPERTY TESTS)
+  foreach(test ${tests})
+    get_test_property(${test} LABELS labels)
+    get_test_property(${test} TIMEOUT timeout)
+    if(NOT labels OR NOT timeout)
+      message(FATAL_ERROR "test ${test} has no LABELS or TIMEOUT: declare it with the helpers of "
+                          "cmake/piezo_helpers.cmake or call piezo_test_budget(${test})")
+    endif()
+  endforeach()
+endfunction()
+
+# A rostest's budget: the time-limit of its launch file's <test> plus the start and stop of master and nodes.
+# Rostests are slow (a master, nodes, real or simulated time); `ctest -L fast` leaves them out.
+function(piezo_rostest_budget launch_file)
+  get_filename_component(name ${launch_file} NAME)
+  file(READ ${CMAKE_CURRENT_SOURCE_DIR}/${launch_file} text)
+  set(limit 60)  # rostest's default time-limit
+  if(text MATCHES "time-limit=\"([0-9.]+)\"")
+    set(limit ${CMAKE_MATCH_1})
+  endif()
+  math(EXPR timeout "${limit} + 30")
+  piezo_test_budget(_ctest_${PROJECT_NAME}_rostest_test_rostest_${name} SLOW TIMEOUT ${timeout})
+endfunction()
+
+# piezo_add_rostest(<launch file> [DEPENDENCIES targets...]): another launch file for an existing checker.
+function(piezo_add_rostest launch_file)
+  if(CATKIN_ENABLE_TESTING)
+    add_rostest(${launch_file} ${ARGN})
+    piezo_rostest_budget(${launch_file})
+  endif()
+endfunction()
+
 # piezo_unit_test(<name> <sources...>): a plain GoogleTest executable on the ROS-free core.
 function(piezo_unit_test name)
   if(CATKIN_ENABLE_TESTING)
     catkin_add_gtest(${name} ${ARGN} WORKING_DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR})
     target_link_libraries(${name} piezo_core gtest_main)
     target_compile_definitions(${name} PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
+    piezo_test_budget(_ctest_${PROJECT_NAME}_gtest_${name})
+  endif()
+endfunction()
+
+# piezo_unit_test_shards(<name> <sources...> SHARDS <suffix> <gtest filter> [<suffix> <gtest filter>...]): one
+# test binary, one CTest test <name>_<suffix> per filter, so CTest can run the parts in parallel.
+function(piezo_unit_test_shards name)
+  if(CATKIN_ENABLE_TESTING)
+    cmake_parse_arguments(ARG "" "" "SHARDS" ${ARGN})
+    catkin_add_executable_with_gtest(${name} ${ARG_UNPARSED_ARGUMENTS} EXCLUDE_FROM_ALL)
+    target_link_libraries(${name} piezo_core gtest_main)
+    target_compile_definitions(${name} PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
+    add_dependencies(tests ${name})
+    get_target_property(dir ${name} RUNTIME_OUTPUT_DIRECTORY)
+    set(shards ${ARG_SHARDS})
+    while(shards)
+      list(POP_FRONT shards suffix filter)
+      set(xml gtest-${name}_${suffix}.xml)
+      catkin_run_tests_target("gtest" ${name}_${suffix} ${xml}
+        COMMAND "${dir}/${name} '--gtest_filter=${filter}' --gtest_output=xml:${CATKIN_TEST_RESULTS_DIR}/${PROJECT_NAME}/${xml}"
+        DEPENDENCIES ${name} WORKING_DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR})
+      piezo_test_budget(_ctest_${PROJECT_NAME}_gtest_${name}_${suffix})
+    endwhile()
   endif()
 endfunction()
 
@@ -23,6 +138,7 @@ function(piezo_ros_unit_test name)
     catkin_add_gtest(${name} ${ARGN} WORKING_DIRECTORY ${CMAKE_CURRENT_SOURCE_DIR})
     target_link_libraries(${name} piezo_ros piezo_core ${catkin_LIBRARIES} gtest_main)
     target_compile_definitions(${name} PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
+    piezo_test_budget(_ctest_${PROJECT_NAME}_gtest_${name})
   endif()
 endfunction()
 
@@ -35,6 +151,7 @@ function(piezo_rostest launch_file)
     target_link_libraries(${name} piezo_ros piezo_core ${catkin_LIBRARIES})
     target_compile_definitions(${name} PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
     add_dependencies(${name} ${PROJECT_NAME}_generate_messages_cpp piezo ${ARG_DEPENDS})
+    piezo_rostest_budget(${launch_file})
   endif()
 endfunction()
 
@@ -50,5 +167,6 @@ function(piezo_benchmark name)
   set_target_properties(${name} PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
   if(CATKIN_ENABLE_TESTING)
     add_test(NAME ${name}_smoke COMMAND ${name} --benchmark_min_time=0.001)
+    piezo_test_budget(${name}_smoke)
   endif()
 endfunction()

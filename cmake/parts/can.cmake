@@ -10,7 +10,7 @@ piezo_node(mm3e_sim src/nodes/mm3e_sim_node.cpp)
 piezo_rostest(test/rostest/driver_topics.test test/rostest/driver_rostest.cpp DEPENDS mm3e_driver mm3e_sim)
 if(CATKIN_ENABLE_TESTING)
   foreach(behaviour command clamp slew nan timeout bus_fault commanders params restart stuck refused)
-    add_rostest(test/rostest/driver_${behaviour}.test DEPENDENCIES driver_topics mm3e_driver mm3e_sim)
+    piezo_add_rostest(test/rostest/driver_${behaviour}.test DEPENDENCIES driver_topics mm3e_driver mm3e_sim)
   endforeach()
 endif()
 
@@ -35,10 +35,12 @@ if(PIEZO_CLANGXX)
     add_test(NAME fuzz_can_codec_corpus
       COMMAND sh -c "rm -rf fuzz_can_scratch && mkdir -p fuzz_can_scratch && exec '${PIEZO_FUZZ_CAN}' -seed=1 -runs=30000 -max_len=64 fuzz_can_scratch '${CMAKE_CURRENT_SOURCE_DIR}/fuzz/corpus/can_codec'"
       WORKING_DIRECTORY ${CMAKE_BINARY_DIR})
+    piezo_test_budget(fuzz_can_codec_corpus)
   endif()
 elseif(CATKIN_ENABLE_TESTING)
   add_test(NAME fuzz_can_codec_corpus COMMAND sh -c "echo 'SKIPPED: no clang++-14 (apt-get install clang-14 libclang-rt-14-dev)'; exit 77")
   set_tests_properties(fuzz_can_codec_corpus PROPERTIES SKIP_RETURN_CODE 77)
+  piezo_test_budget(fuzz_can_codec_corpus)
 endif()
 
 # The real SocketCAN path, inside a throwaway VM with vcan0 (test/vcan/run_vcan_test.sh). The gtest binary is
@@ -51,7 +53,8 @@ if(CATKIN_ENABLE_TESTING)
   endif()
   add_test(NAME vcan_vm COMMAND ${CMAKE_CURRENT_SOURCE_DIR}/test/vcan/run_vcan_test.sh
            $<TARGET_FILE:test_can_vcan> ${CMAKE_BINARY_DIR}/vcan_vm_work)
-  set_tests_properties(vcan_vm PROPERTIES SKIP_RETURN_CODE 77 TIMEOUT 300)
+  set_tests_properties(vcan_vm PROPERTIES SKIP_RETURN_CODE 77)
+  piezo_test_budget(vcan_vm SLOW TIMEOUT 300)  # boots a VM
 endif()
 
 # Speed: codec throughput (Google Benchmark) and the command-latency histogram tool; `scripts/piezo bench can`.
@@ -61,6 +64,7 @@ target_link_libraries(can_command_latency piezo_core)
 set_target_properties(can_command_latency PROPERTIES RUNTIME_OUTPUT_DIRECTORY ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/bench)
 if(CATKIN_ENABLE_TESTING)
   add_test(NAME can_command_latency_smoke COMMAND can_command_latency --seconds 0.2)
+  piezo_test_budget(can_command_latency_smoke)
 endif()
 add_executable(can_ros_command_latency bench/can_ros_command_latency.cpp)
 target_link_libraries(can_ros_command_latency piezo_ros piezo_core ${catkin_LIBRARIES})

@@ -5,8 +5,11 @@ piezo_unit_test(test_models_linear test/unit/test_models_linear.cpp)
 piezo_unit_test(test_models_pi test/unit/test_models_pi.cpp)
 piezo_unit_test(test_models_creep test/unit/test_models_creep.cpp)
 piezo_unit_test(test_models_prony test/unit/test_models_prony.cpp)
-piezo_unit_test(test_models_preisach test/unit/test_models_preisach.cpp)
+# The creep-protocol fits of the preisach kind and of the PI kind it is compared with, side by side.
+piezo_unit_test_shards(test_models_preisach test/unit/test_models_preisach.cpp SHARDS
+  preisach "-Preisach.PiCreepCannotFollowThePreisachLoops" pi "Preisach.PiCreepCannotFollowThePreisachLoops")
 piezo_unit_test(test_models_file test/unit/test_models_file.cpp)
+piezo_unit_test(test_input_roundtrip test/unit/test_input_roundtrip.cpp)
 piezo_unit_test(test_models_export test/unit/test_models_export.cpp)
 if(TARGET test_models_export)
   target_compile_definitions(test_models_export PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
@@ -14,3 +17,4 @@ endif()
 piezo_unit_test(test_eval_metrics test/unit/test_eval_metrics.cpp)
 piezo_benchmark(bench_models_linear bench/bench_models_linear.cpp)
 
+piezo_slow_tests(test_models_creep test_models_prony test_models_preisach_preisach test_models_preisach_pi)

@@ -7,7 +7,7 @@ piezo_rostest(test/rostest/recorder_protocols.test test/rostest/recorder_protoco
               DEPENDS piezo_recorder mm3e_sim mm3e_driver)
 if(CATKIN_ENABLE_TESTING)
   # Parameter layer: wrong type / out of range / unknown names (the same checker, only the master needed).
-  add_rostest(test/rostest/recorder_params.test DEPENDENCIES recorder_protocols)
+  piezo_add_rostest(test/rostest/recorder_params.test DEPENDENCIES recorder_protocols)
 endif()
 # The recorder owns /clock and steps the simulated device (lock-step): about a minute.
 piezo_rostest(test/rostest/recorder_lockstep.test test/rostest/recorder_lockstep.cpp

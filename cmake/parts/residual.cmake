@@ -15,3 +15,6 @@ piezo_unit_test(test_eval_stream test/unit/test_eval_stream.cpp)
 if(TARGET test_residual_augmented)
   target_compile_definitions(test_residual_augmented PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
 endif()
+piezo_slow_tests(test_residual_loop test_residual_sim test_residual_sim_coupling test_residual_sim_periodic
+                 test_residual_sim_disturbance test_residual_gain test_residual_gain_drift test_residual_preisach
+                 test_residual_mid_history)

@@ -18,5 +18,6 @@ if(CATKIN_ENABLE_TESTING)
      test $(wc -l < $d/st.csv) -eq 401; \
      ! $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/mm3e_pi.yaml --protocol noise --out $d/x.csv 2>/dev/null; \
      rm -rf $d")
+  piezo_test_budget(cli_simulate_smoke)
 endif()
 piezo_unit_test(test_sim_thermal_switch test/unit/test_sim_thermal_switch.cpp)

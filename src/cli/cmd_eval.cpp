@@ -68,8 +68,7 @@ int run(int argc, char** argv) {
     const std::string axis = args.has("axis") ? args.str("axis") : ms.back()->meta.axis;
     if (ms.size() == 1) ctx.axis = axis;
     if (axis != ctx.axis) throw UsageError("eval: models are for different axes; pass --axis");
-    models::check_model_matches_data(*ms.back(), test, p);
-    if (!creep.empty()) models::check_model_matches_data(*ms.back(), creep, p);
+    analysis::check_model_for_eval(*ms.back(), p, axis, test, creep.empty() ? nullptr : &creep);
   }
   eo.axis = ctx.axis;
   const io::AxisSeries& ax = test.axis(ctx.axis);

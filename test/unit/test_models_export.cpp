@@ -1,6 +1,7 @@
 // The exported C99 header, compiled with the C compiler into a small program, must reproduce the C++ model
 // sample by sample (one-step and free-run) and its inverse.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <fstream>
@@ -30,7 +31,8 @@ std::string run(const std::string& cmd) {
 
 // Compiles header + driver; the driver reads "v d" lines and prints one-step, free-run and inverse results.
 std::vector<std::array<double, 3>> run_c(const Model& m, const std::vector<double>& v, const std::vector<double>& d) {
-  const std::string dir = ::testing::TempDir(), tag = m.kind() + std::to_string(reinterpret_cast<std::uintptr_t>(&m));
+  const std::string dir = ::testing::TempDir(),
+                    tag = m.kind() + std::to_string(::getpid()) + "_" + std::to_string(reinterpret_cast<std::uintptr_t>(&m));
   const std::string hdr = dir + "pz_" + tag + ".h", src = dir + "pz_" + tag + ".c", exe = dir + "pz_" + tag;
   std::ofstream(hdr) << export_c99(m, "pz");
   std::ofstream(src) << "#include <stdio.h>\n#include \"" << hdr << "\"\n"

@@ -73,8 +73,17 @@ TEST(Preisach, ModelFileRoundTripsAndRefusesBrokenFiles) {
 // Issue 12's done-when on the Preisach + creep-spectrum creep-protocol stage (config/stages/
 // mm3e_preisach_creep_protocol.yaml), with a seed and a creep spectrum the fits were not tuned to: 15 × (30-min
 // history, 30-min hold) at 11 Hz; histories 1–8 train, 9–10 validation (the user's 1–10), 11–15 test, free-run
-// over all of it from rest, scored against the true position in the test holds.
-TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
+// over all of it from rest, scored against the true position in the test holds. The preisach kind and the PI
+// kind it is compared with are two tests (two CTest tests run side by side, cmake/parts/models.cmake).
+namespace {
+
+struct CreepProtocolRun {
+  io::Dataset d;
+  std::size_t n_train = 0, n_val = 0;
+  double rate = 0;
+};
+
+CreepProtocolRun creep_protocol_data() {
   sim::StageConfig stage =
       sim::load_stage(std::string(PIEZO_SOURCE_DIR) + "/config/stages/mm3e_preisach_creep_protocol.yaml");
   auto& axis = stage.simulator.axes[2];
@@ -85,38 +94,54 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
   // or noise the `preisach` kind alone is 17.1 nm off at a test hold of seed 7 and 4.1 nm on this seed, and with
   // 200 bins (rows ≤ 5.9 nm) 4.5 and 1.0 nm (docs/models.md, issue 12). The target is the creep, not that grid.
   axis.preisach_grid_count = 200;
-  const double rate = stage.simulator.sample_rate_hz;
-  const io::Dataset d = sim::simulate_stage(stage, 4242);
-  const std::size_t per = d.time_s.size() / 15, n_train = 8 * per, n_val = 10 * per;
-  const io::Dataset train = slice(d, 0, n_train), val = slice(d, n_train, n_val);
-  std::map<std::string, HoldScore> got;
-  for (const char* kind : {"preisach_creep_prony", "pi_creep_prony"}) {
-    training::FitRequest req;
-    req.train = &train;
-    req.validation = &val;
-    req.options = YAML::Load("{refit_with_validation: true}");  // the final model on histories 1–10
-    auto m = training::fit_model(kind, req);
-    const HoldScore s = score_holds(*m, d, n_val, rate);
-    std::cout << kind << ": test-hold MAE vs truth " << s.mae_nm << " nm, worst end-of-hold " << s.worst_end_nm
-              << " nm, walk MAE vs truth " << s.walk_mae_nm << " nm over " << s.holds << " holds ("
-              << m->num_parameters() << " parameters)\n";
-    for (std::size_t h = 0; h < s.start_nm.size(); ++h)
-      std::cout << "  hold " << 11 + h << " at " << s.voltage_v[h] << " V: error " << s.start_nm[h] << " nm in its first 5 s, " << s.end_nm[h]
-                << " nm in its last 5 s\n";
-    EXPECT_EQ(s.holds, 5) << kind;
-    got[kind] = s;
-    if (std::string(kind) != "preisach_creep_prony") continue;
-    const auto& pm = dynamic_cast<const PiCreepModel&>(*m);
-    for (double w : pm.weights()) EXPECT_GE(w, 0.0);  // no cancelling pieces
-    for (double tau : pm.mode_taus_s()) EXPECT_LE(tau, n_train / rate * 1.001);
-    for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
-  }
+  CreepProtocolRun r;
+  r.rate = stage.simulator.sample_rate_hz;
+  r.d = sim::simulate_stage(stage, 4242);
+  const std::size_t per = r.d.time_s.size() / 15;
+  r.n_train = 8 * per, r.n_val = 10 * per;
+  return r;
+}
+
+// Fits `kind` on histories 1–8 (validation 9–10, the final model on 1–10) and scores the test holds; prints them.
+std::pair<HoldScore, models::ModelPtr> fit_and_score(const char* kind, const CreepProtocolRun& r) {
+  const io::Dataset train = slice(r.d, 0, r.n_train), val = slice(r.d, r.n_train, r.n_val);
+  training::FitRequest req;
+  req.train = &train;
+  req.validation = &val;
+  req.options = YAML::Load("{refit_with_validation: true}");  // the final model on histories 1–10
+  auto m = training::fit_model(kind, req);
+  const HoldScore s = score_holds(*m, r.d, r.n_val, r.rate);
+  std::cout << kind << ": test-hold MAE vs truth " << s.mae_nm << " nm, worst end-of-hold " << s.worst_end_nm
+            << " nm, walk MAE vs truth " << s.walk_mae_nm << " nm over " << s.holds << " holds ("
+            << m->num_parameters() << " parameters)\n";
+  for (std::size_t h = 0; h < s.start_nm.size(); ++h)
+    std::cout << "  hold " << 11 + h << " at " << s.voltage_v[h] << " V: error " << s.start_nm[h] << " nm in its first 5 s, " << s.end_nm[h]
+              << " nm in its last 5 s\n";
+  EXPECT_EQ(s.holds, 5) << kind;
+  return {s, std::move(m)};
+}
+
+}  // namespace
+
+TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
+  const CreepProtocolRun r = creep_protocol_data();
+  const auto [s, m] = fit_and_score("preisach_creep_prony", r);
+  const auto& pm = dynamic_cast<const PiCreepModel&>(*m);
+  for (double w : pm.weights()) EXPECT_GE(w, 0.0);  // no cancelling pieces
+  for (double tau : pm.mode_taus_s()) EXPECT_LE(tau, r.n_train / r.rate * 1.001);
+  for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
   // Issue 12: hold MAE and every end of hold ≤ 5 nm (measured 2.70 / 4.15 nm with the converged final fit;
   // pi_creep_prony 41.8 nm). Not on every seed: 7 of the 7 seed/spectrum cases tried hold the MAE, 5 the ends
   // (seed 7 6.38 / 6.35 nm, the pieces' hysteresis error at a 48.6-V hold; docs/models.md, issue 12).
-  EXPECT_LE(got["preisach_creep_prony"].mae_nm, 5.0);
-  EXPECT_LE(got["preisach_creep_prony"].worst_end_nm, 5.0);
-  EXPECT_LE(got["preisach_creep_prony"].walk_mae_nm, 3.0);  // measured 2.87 nm: holds not bought with the walk
-  EXPECT_LT(got["preisach_creep_prony"].mae_nm, 0.25 * got["pi_creep_prony"].mae_nm);
+  EXPECT_LE(s.mae_nm, 5.0);
+  EXPECT_LE(s.worst_end_nm, 5.0);
+  EXPECT_LE(s.walk_mae_nm, 3.0);  // measured 2.87 nm: holds not bought with the walk
+}
+
+// The PI kind on the same data cannot follow the Preisach loops: its test-hold MAE is at least 4 × the preisach
+// kind's 5-nm bound (measured 41.8 nm), which with the test above is the former "preisach < 0.25 × PI".
+TEST(Preisach, PiCreepCannotFollowThePreisachLoops) {
+  const auto [s, m] = fit_and_score("pi_creep_prony", creep_protocol_data());
+  EXPECT_GE(s.mae_nm, 4 * 5.0);
 }
 // Issue 12's residual-loop item on this kind of data: test/unit/test_residual_preisach.cpp.

@@ -79,6 +79,12 @@ struct EvalOptions {
   std::vector<int> test_segments, creep_segments;
 };
 
+// `piezo eval`'s check of a loaded model file against the data it will run on: rate, axis, and every input
+// through the one resolver of models/model_stream.h, as the streaming itself reads them. creep may be null.
+// Throws models::ModelFileError naming `path`.
+void check_model_for_eval(const models::Model& model, const std::string& path, const std::string& axis,
+                          const io::Dataset& test, const io::Dataset* creep);
+
 // creep may be null: then the holds of `test` are used for the creep metrics.
 ModelEvaluation evaluate_model(const models::Model& model, const std::string& name, const io::Dataset& test,
                                const io::Dataset* creep, const EvalOptions& opt);

@@ -37,7 +37,10 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where);
 void save_model(const std::string& path, const Model& model);
 ModelPtr load_model(const std::string& path);
 
-// Throws ModelFileError naming `where` when the data's rate or axes do not fit the model.
-void check_model_matches_data(const Model& model, const io::Dataset& data, const std::string& where);
+// Throws ModelFileError naming `where` when the data's rate or axes do not fit the model, or an input the model
+// reads is not in the data as models::InputResolver (the one resolver every tool streams with) finds it.
+// `axis`: the axis it runs on (default: the model's own).
+void check_model_matches_data(const Model& model, const io::Dataset& data, const std::string& where,
+                              const std::string& axis = "");
 
 }  // namespace piezo::models

@@ -18,10 +18,12 @@
 
 namespace piezo::training {
 
-// The aux columns a feature spec reads, per sample in ModelInput::aux order: the one resolver of models/.
+// The aux columns a feature spec reads, per sample in ModelInput::aux order: the one resolver of models/, for the
+// modelled axis (its own position is never an input; another axis' is read as the latest known reading).
 class AuxRows : public models::InputResolver {
  public:
-  AuxRows(const io::Dataset& data, const std::vector<std::string>& names) : models::InputResolver(data, names, "") {}
+  AuxRows(const io::Dataset& data, const std::vector<std::string>& names, const std::string& own_axis)
+      : models::InputResolver(data, names, own_axis) {}
 };
 
 // Streams `spec` over data[begin, end) of one axis in one-step mode (positions committed are the measured

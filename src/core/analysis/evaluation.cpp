@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/protocols/protocol.h"
+#include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
 
 namespace piezo::analysis {
@@ -33,6 +34,12 @@ std::vector<Hold> find_holds(const io::Dataset& d, double min_duration_s) {
     if (h.duration_s >= min_duration_s) out.push_back(h);
   }
   return out;
+}
+
+void check_model_for_eval(const models::Model& model, const std::string& path, const std::string& axis,
+                          const io::Dataset& test, const io::Dataset* creep) {
+  models::check_model_matches_data(model, test, path, axis);
+  if (creep && !creep->empty()) models::check_model_matches_data(model, *creep, path, axis);
 }
 
 SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d, const std::string& axis,

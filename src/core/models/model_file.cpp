@@ -5,6 +5,7 @@
 #include <sstream>
 
 #include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/registry.h"
 
 namespace piezo::models {
@@ -128,9 +129,11 @@ ModelPtr load_model(const std::string& path) {
   return model_from_file_yaml(root, path);
 }
 
-void check_model_matches_data(const Model& m, const io::Dataset& data, const std::string& where) {
-  if (!data.has_axis(m.meta.axis))
-    throw ModelFileError(where + ": model is for axis '" + m.meta.axis + "' but " +
+void check_model_matches_data(const Model& m, const io::Dataset& data, const std::string& where,
+                              const std::string& axis_in) {
+  const std::string& axis = axis_in.empty() ? m.meta.axis : axis_in;
+  if (!data.has_axis(axis))
+    throw ModelFileError(where + ": model is for axis '" + axis + "' but " +
                          (data.source.empty() ? std::string("the data") : data.source) + " has no such axis");
   const double rate = data.sample_rate_hz();
   if (std::abs(rate - m.meta.sample_rate_hz) > 0.01 * m.meta.sample_rate_hz) {
@@ -139,8 +142,13 @@ void check_model_matches_data(const Model& m, const io::Dataset& data, const std
        << (data.source.empty() ? std::string("data") : data.source) << ")";
     throw ModelFileError(os.str());
   }
-  for (const auto& a : m.aux_inputs())
-    if (!data.find_aux(a)) throw ModelFileError(where + ": model reads aux signal '" + a + "' missing in the data");
+  // Inputs as every tool streams them (model_stream.h's one resolver): time_s, aux columns and the other axes'
+  // voltage or position, which are axis columns and never aux ones.
+  try {
+    InputResolver(data, m.aux_inputs(), axis);
+  } catch (const io::DataError& e) {
+    throw ModelFileError(where + ": " + e.what());
+  }
 }
 
 }  // namespace piezo::models

@@ -18,7 +18,7 @@ void for_each_sample(const features::FeatureSpec& spec, const io::Dataset& data,
   if (begin >= end) return;
   const io::AxisSeries& ax = data.axis(axis);
   features::FeatureStream fs(spec, data.sample_rate_hz());
-  AuxRows aux(data, spec.aux_signals());
+  AuxRows aux(data, spec.aux_signals(), axis);
   std::vector<double> x(fs.size());
   fs.reset(ax.voltage_v[begin], ax.position_nm[begin]);
   for (std::size_t i = begin; i < end; ++i) {

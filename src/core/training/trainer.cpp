@@ -173,31 +173,16 @@ TrainResult train(const Objective& objective, const Objective* validation, const
 
 // ---- data preparation ---------------------------------------------------------------------------------------
 
-namespace {
-std::vector<const double*> aux_columns(const features::FeatureSpec& spec, const io::Dataset& data) {
-  std::vector<const double*> cols;
-  for (const auto& name : spec.aux_signals()) {
-    const io::AuxSignal* s = data.find_aux(name);
-    if (!s) throw io::DataError((data.source.empty() ? "data" : data.source) + ": no auxiliary column '" + name +
-                                "' required by the feature spec");
-    cols.push_back(s->values.data());
-  }
-  return cols;
-}
-}  // namespace
-
 Eigen::MatrixXd feature_matrix(const features::FeatureSpec& spec, const io::Dataset& data, const std::string& axis) {
   const io::AxisSeries& ax = data.axis(axis);
   const std::size_t n = data.size();
-  const auto cols = aux_columns(spec, data);
+  AuxRows aux(data, spec.aux_signals(), axis);  // the one resolver (models/model_stream.h)
   features::FeatureStream stream(spec, data.sample_rate_hz());
   Eigen::MatrixXd x(static_cast<Eigen::Index>(stream.size()), static_cast<Eigen::Index>(n));
   if (n == 0) return x;
   stream.reset(ax.voltage_v[0], ax.position_nm[0]);
-  std::vector<double> aux(cols.size());
   for (std::size_t t = 0; t < n; ++t) {
-    for (std::size_t k = 0; k < cols.size(); ++k) aux[k] = cols[k][t];
-    features::ModelInput in{ax.voltage_v[t], aux.empty() ? nullptr : aux.data()};
+    features::ModelInput in{ax.voltage_v[t], aux.at(t)};
     stream.compute(in, x.col(static_cast<Eigen::Index>(t)).data());
     stream.commit(in, ax.position_nm[t]);
   }
