@@ -6,9 +6,12 @@
 #include <cmath>
 
 #include "../test/unit/test_compensation_models.h"
+#include "piezo_compensation/compensation/axis_compensator.h"
 #include "piezo_compensation/compensation/drift_forecast.h"
+#include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/compensation/inverse.h"
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/training/fitters.h"
 
@@ -111,6 +114,43 @@ void BM_Inverse_TestPiCreep(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_Inverse_TestPiCreep)->Unit(benchmark::kMicrosecond);
+
+// The estimator's cost per encoder sample (issue 25): one filter step, and one whole compensator sample + command
+// with the estimator and the hold trim active on the shipped foreign-stage model (Preisach + Prony creep).
+void BM_ErrorFilterStep(benchmark::State& state) {
+  estimation::NoiseModel nm;
+  nm.reading_sigma_nm = 20.8;
+  nm.q_rest_nm2_per_s = 0.01;
+  nm.q_motion_nm = 0.08;
+  nm.q_fast_nm = 0.02;
+  nm.initial_sigma_nm = 200;
+  estimation::ErrorFilter f(nm, 1.0 / 11.0);
+  double p = 0.0, y = 3.0;
+  for (auto _ : state) {
+    p += 0.01;
+    y = -y;
+    f.step(p, p + y, true);
+    benchmark::DoNotOptimize(f.fused_nm());
+  }
+}
+BENCHMARK(BM_ErrorFilterStep)->Unit(benchmark::kNanosecond);
+
+void BM_CompensatorSampleWithTrim_ForeignModel(benchmark::State& state) {
+  models::ModelPtr m = models::load_model(std::string(PIEZO_SOURCE_DIR) + "/config/models/mm3e_foreign_c.yaml");
+  compensation::AxisCompensatorConfig cfg;
+  cfg.hold_trim.settle_s = 0.0;
+  compensation::AxisCompensator c(std::move(m), compensation::IdealLine{12.5, 0.0}, cfg);
+  c.on_sample(0.0, 0.0, true);
+  c.set_intended_position_nm(300.0);
+  double v = 0.0, y = 5.0;
+  for (auto _ : state) {
+    y = -y;
+    c.on_sample(v, 300.0 + y, true);
+    v = c.command(true).send_v;
+  }
+  state.counters["trim_nm"] = c.hold_trim().trim_nm();
+}
+BENCHMARK(BM_CompensatorSampleWithTrim_ForeignModel)->Unit(benchmark::kMicrosecond);
 
 }  // namespace
 

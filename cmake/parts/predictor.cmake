@@ -35,5 +35,6 @@ if(CATKIN_ENABLE_TESTING)
      $<TARGET_FILE:piezo> track --model $d/bare.yaml --data $d/s.csv --identify-on $d/s.csv --identify-from-s 600 --write-model $d/m.yaml --out $d/v > /dev/null; \
      grep -q '^estimator:' $d/m.yaml; \
      rm -rf $d")
-  set_tests_properties(cli_track_smoke PROPERTIES TIMEOUT 120)
+  piezo_test_budget(cli_track_smoke)
 endif()
+piezo_slow_tests(test_hold_trim)  # simulates 8 h of the foreign stage and runs the shipped Preisach model over it
