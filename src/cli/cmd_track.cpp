@@ -65,7 +65,7 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis (default: the model's)")
       .option("identify-on", "FILE", "identify the estimator's noise model on this recording (the model runs free over\n"
               "it) instead of the model file's block")
-      .option("min-hold-s", "T", "a hold: the voltage unchanged this long [s]", "60")
+      .option("min-hold-s", "T", "a hold: the voltage unchanged this long [s]", "300")
       .option("settle-skip-s", "T", "score holds from this long after their start [s]", "120")
       .option("end-window-s", "T", "the end of a hold: its last T [s]", "5")
       .option("plot", "", "also write DIR/track.png (python3-matplotlib)")

@@ -13,7 +13,7 @@
 namespace piezo::compensation {
 
 struct TrackOptions {
-  double min_hold_s = 60.0;     // a hold: the voltage unchanged for at least this long
+  double min_hold_s = 300.0;    // a hold: the voltage unchanged for at least this long
   double settle_skip_s = 120.0; // hold scores start this long after the hold starts
   double end_window_s = 5.0;    // "end of hold": its last seconds
 };

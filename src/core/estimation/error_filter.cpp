@@ -125,6 +125,8 @@ YAML::Node NoiseModel::to_yaml() const {
   n["fast_tau_s"] = fast_tau_s;
   n["initial_sigma_nm"] = initial_sigma_nm;
   n["model_sigma_nm"] = model_sigma_nm;
+  n["adapt_window_s"] = adapt_window_s;
+  n["adapt_k"] = adapt_k;
   n["samples"] = samples;
   n["log_likelihood_per_reading"] = log_likelihood;
   n["method"] = method;
@@ -148,6 +150,8 @@ NoiseModel NoiseModel::from_yaml(const YAML::Node& node, const std::string& wher
   m.fast_tau_s = field(node, "fast_tau_s", where, 1e-6, inf);
   m.initial_sigma_nm = field(node, "initial_sigma_nm", where, 0.0, inf);
   m.model_sigma_nm = field(node, "model_sigma_nm", where, 0.0, inf);
+  if (node["adapt_window_s"]) m.adapt_window_s = field(node, "adapt_window_s", where, 1e-3, 86400.0);
+  if (node["adapt_k"]) m.adapt_k = field(node, "adapt_k", where, 0.0, 1e3);
   if (node["samples"]) m.samples = node["samples"].as<std::size_t>(0);
   if (node["log_likelihood_per_reading"]) m.log_likelihood = node["log_likelihood_per_reading"].as<double>(0.0);
   if (node["method"]) m.method = node["method"].as<std::string>("");
@@ -173,6 +177,8 @@ ErrorFilter::ErrorFilter(const NoiseModel& model, double dt_s) : model_(model), 
   if (!(model.reading_sigma_nm > 0.0)) throw std::invalid_argument("ErrorFilter: reading_sigma_nm must be > 0");
   phi_ = std::exp(-dt_s / std::max(model.fast_tau_s, 1e-9));
   r_ = model.reading_sigma_nm * model.reading_sigma_nm;
+  window_n_ = std::max<std::size_t>(10, static_cast<std::size_t>(std::lround(model.adapt_window_s / dt_s)));
+  alpha_ = 1.0 / static_cast<double>(window_n_);
   reset();
 }
 
@@ -182,6 +188,8 @@ void ErrorFilter::reset() {
   P_(0, 0) = model_.initial_sigma_nm * model_.initial_sigma_nm;
   started_ = false;
   since_reading_ = 0;
+  nu_bar_ = s_bar_ = 0.0;
+  in_window_ = 0;
 }
 
 double ErrorFilter::sigma_nm() const {
@@ -216,6 +224,21 @@ void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
   P_(1, 0) = P_(0, 1) = 0.5 * (P_(0, 1) + P_(1, 0));
   loglik_ += -0.5 * (std::log(kTwoPi * s) + innovation_ * innovation_ / s);
   ++updates_;
+  check_consistency(s);
+}
+
+void ErrorFilter::check_consistency(double s) {
+  if (!(model_.adapt_k > 0.0)) return;
+  nu_bar_ += alpha_ * (innovation_ - nu_bar_);
+  s_bar_ += alpha_ * (s - s_bar_);
+  if (++in_window_ < window_n_) return;
+  // an exponential mean of white innovations of variance S has variance S·α/(2 − α)
+  const double var_mean = s_bar_ * alpha_ / (2.0 - alpha_);
+  if (nu_bar_ * nu_bar_ <= model_.adapt_k * model_.adapt_k * var_mean) return;
+  P_(0, 0) += nu_bar_ * nu_bar_;
+  nu_bar_ = 0.0;
+  in_window_ = 0;
+  ++adaptations_;
 }
 
 FilterTrace run_filter(const NoiseModel& model, double dt_s, const std::vector<double>& predicted_nm,
@@ -272,6 +295,9 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
   for (double tau : o.fast_tau_grid_s) {
     NoiseModel trial = m;
     trial.fast_tau_s = tau;
+    // The rates are those of the Gaussian model itself; the consistency test is a guard against what the data
+    // identified on did not show, so it stays out of the likelihood (with it in, the rates it covers shrink).
+    trial.adapt_k = 0.0;
     auto nll = [&](const std::array<double, 3>& z) {
       unpack(z, trial);
       ErrorFilter f(trial, o.dt_s);
@@ -289,6 +315,7 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
     }
   }
   best.log_likelihood = best_ll;
+  best.adapt_k = m.adapt_k;
   std::ostringstream s;
   s << "maximum likelihood of the innovations on " << readings << " readings (fast τ from {";
   for (std::size_t i = 0; i < o.fast_tau_grid_s.size(); ++i) s << (i ? ", " : "") << o.fast_tau_grid_s[i];
