@@ -24,7 +24,7 @@ namespace {
 
 std::string g_prefix, g_label = "hold_trim";
 double g_max_worst_nm = 2.0, g_slew_nm_per_s = 1.0;
-bool g_below_ff = false;
+bool g_below_ff = false, g_keep = false;
 
 struct Seen {
   double stamp_s, intended_nm, trim_nm;
@@ -121,7 +121,7 @@ TEST(HoldTrim, TrimmedHoldAtTheAveragingLimit) {
   EXPECT_GT(moves, 500u) << "the history should move the intent";
   EXPECT_GT(active, 10000u);
   EXPECT_GT(off, 10000u);
-  if (!HasFailure()) {  // kept for a look otherwise
+  if (!HasFailure() && !g_keep) {  // kept for a look otherwise
     std::remove(json.c_str());
     std::remove((g_prefix + ".csv").c_str());
   } else {
@@ -140,5 +140,6 @@ int main(int argc, char** argv) {
   p.getParam("max_trimmed_worst_nm", g_max_worst_nm);
   p.getParam("trimmed_below_ff", g_below_ff);
   p.getParam("slew_nm_per_s", g_slew_nm_per_s);
+  p.getParam("keep", g_keep);
   return RUN_ALL_TESTS();
 }
