@@ -29,3 +29,20 @@ if(EXISTS ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml)
 else()
   message(WARNING "config/models/mm3e_foreign_c.yaml missing: rostests hold_trim and hold_trim_thermal are not registered")
 endif()
+if(CATKIN_ENABLE_TESTING)
+  # `piezo track`: the files it writes, a model file without an estimator block refused with one line, and
+  # --identify-on/--write-model adding the block (issue 25).
+  add_test(NAME cli_track_smoke COMMAND sh -c
+    "set -e; d=$(mktemp -d); \
+     $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/mm3e_foreign_hold_stage.yaml --seed 104 --duration 2400 --out $d/s.csv; \
+     $<TARGET_FILE:piezo> track --model ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml --data $d/s.csv --out $d/t > $d/out.txt; \
+     head -1 $d/t/track.csv | grep -q '^time_s,applied_v,measured_nm,model_nm,fused_nm,fused_sigma_nm,true_nm$'; \
+     test $(wc -l < $d/t/track.csv) -eq 26401; \
+     grep -q 'truth within' $d/t/holds.md; grep -q within_2sigma $d/t/track.json; \
+     grep -v '^estimator:' ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml | sed '/^  fuse:/,/^  method:/d' > $d/bare.yaml; \
+     ! $<TARGET_FILE:piezo> track --model $d/bare.yaml --data $d/s.csv --out $d/u 2> $d/err.txt; grep -q 'has no estimator' $d/err.txt; \
+     $<TARGET_FILE:piezo> track --model $d/bare.yaml --data $d/s.csv --identify-on $d/s.csv --identify-from-s 600 --write-model $d/m.yaml --out $d/v > /dev/null; \
+     grep -q '^estimator:' $d/m.yaml; \
+     rm -rf $d")
+  set_tests_properties(cli_track_smoke PROPERTIES TIMEOUT 120)
+endif()

@@ -25,13 +25,14 @@ int run(int argc, char** argv) {
                    "The validation part (--validation FILE or the last 1 − split of --data, held out by time) gives the\n"
                    "validation metrics stored in the file. A fit that fails a sanity gate (free-run validation error\n"
                    "not finite or above 25 % of the position range, parameters far outside what the data supports)\n"
-                   "is refused with one error. Kinds: auto (fit the candidates, keep the best free-run), " + kinds);
+                   "is refused with one error. Kinds: auto (fit the candidates, choose by the slow part of the free-run error), " + kinds);
   args.required("data", "FILE", "training data (CSV or bag)")
       .option("validation", "FILE", "separate validation data (else --split is used)")
       .option("split", "FRACTION", "training fraction of --data when no --validation is given", "0.8")
       .option("axis", "a|b|c", "axis to model", "c")
-      .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, scored\n"
-                "free-run on the validation part; the table is printed and stored in the file")
+      .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, kan, run\n"
+                "free on the validation part and scored by 30-s block means on moves, holds, hold ends and a cold\n"
+                "fold; within the noise the fewer parameters win; the table and the reason are printed and stored")
       .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm; kan is a default candidate)", "", true)
       .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
@@ -149,8 +150,10 @@ int run(int argc, char** argv) {
     }
   }
   if (req.validation) {
-    // The estimator's noise model on the part the model was not fitted on (its error there is what live sees).
-    model->meta.estimator = analysis::identify_estimator(*model, score_data, axis, split_at).to_yaml();
+    // The estimator's noise model on the part the model was not fitted on, run from a cold start as on the next
+    // recording: the warm continuation of the fit's own history shows smaller model errors than a new recording
+    // has, and a filter identified there is over-confident on one (docs/predictor.md, "Estimator").
+    model->meta.estimator = analysis::identify_estimator(*model, val, axis).to_yaml();
     std::cout << "estimator: " << estimation::NoiseModel::from_yaml(model->meta.estimator, "fit").describe() << "\n";
   }
   model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used

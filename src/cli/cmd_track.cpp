@@ -65,6 +65,9 @@ int run(int argc, char** argv) {
       .option("axis", "a|b|c", "axis (default: the model's)")
       .option("identify-on", "FILE", "identify the estimator's noise model on this recording (the model runs free over\n"
               "it) instead of the model file's block")
+      .option("identify-from-s", "T", "with --identify-on: the model runs over the first T of it and only the rest is\n"
+              "scored (the part a split fit did not train on)", "0")
+      .option("write-model", "FILE.yaml", "with --identify-on: write the model file with the identified estimator: block")
       .option("min-hold-s", "T", "a hold: the voltage unchanged this long [s]", "300")
       .option("settle-skip-s", "T", "score holds from this long after their start [s]", "120")
       .option("end-window-s", "T", "the end of a hold: its last T [s]", "5")
@@ -77,7 +80,17 @@ int run(int argc, char** argv) {
   models::check_model_matches_data(*model, data, args.str("data"));
   if (args.has("identify-on")) {
     const io::Dataset id = ros_io::read_data(args.str("identify-on"));
-    model->meta.estimator = analysis::identify_estimator(*model, id, axis).to_yaml();
+    const double from_s = args.num("identify-from-s");
+    std::size_t first = 0;
+    while (first < id.size() && id.time_s[first] - id.time_s[0] < from_s) ++first;
+    model->meta.estimator = analysis::identify_estimator(*model, id, axis, first).to_yaml();
+    if (args.has("write-model")) {
+      models::save_model(args.str("write-model"), *model);
+      std::cout << "wrote " << args.str("write-model") << " with the estimator identified on " << args.str("identify-on")
+                << " from " << from_s << " s\n";
+    }
+  } else if (args.has("write-model")) {
+    throw UsageError("track: --write-model needs --identify-on");
   } else if (!model->meta.estimator || model->meta.estimator.IsNull()) {
     throw UsageError("track: " + args.str("model") + " has no estimator: block (refit with piezo fit, or give "
                      "--identify-on FILE)");

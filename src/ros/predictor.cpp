@@ -776,8 +776,13 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
   };
   tf_->sendTransform(std::vector<geometry_msgs::TransformStamped>{
       tfm("tip_measured", measured), tfm("tip_predicted", predicted), tfm("tip_intended", intended)});
+  publish_markers(stamp, measured, predicted, intended, drift, text.str());
+}
 
-  // Markers at marker_scale: nanometre motion is invisible at rviz's smallest view distance.
+// Markers at marker_scale: nanometre motion is invisible at rviz's smallest view distance.
+void PredictorNode::publish_markers(const ros::Time& stamp, const double* measured, const double* predicted,
+                                    const double* intended, const double* drift, const std::string& text) {
+  const std::string base = s_.frame_prefix + "base";
   const double k = s_.marker_scale / kNmPerM;
   visualization_msgs::MarkerArray arr;
   auto marker = [&](int id, int type, const char* ns) {
@@ -823,7 +828,7 @@ void PredictorNode::publish_tf_and_markers(const ros::Time& stamp) {
   label.pose.position.z += 6.0 * r;
   label.scale.z = r * 0.8;
   label.color.r = label.color.g = label.color.b = 1.0;
-  label.text = text.str();
+  label.text = text;
   arr.markers.push_back(label);
   markers_pub_.publish(arr);
 }

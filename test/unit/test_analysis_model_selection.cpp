@@ -1,4 +1,4 @@
-// Sanity gates (one test per gate) and `--model auto` (issue 11 items 3 and 4).
+// Sanity gates (one test per gate) and `--model auto` (issue 11 items 3 and 4; the choice rule of issue 26 item 2).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -97,7 +97,7 @@ TEST(FitGates, TimeConstantTheDataCannotSeeIsRefused) {
                analysis::FitRejected);
 }
 
-TEST(ModelSelection, AutoKeepsTheBestCandidateOnAnotherStage) {
+TEST(ModelSelection, AutoChoosesByTheSlowErrorOnAnotherStage) {
   // A short piece of the low-voltage Preisach + creep stage: physics none of the candidates is written from.
   const auto stage = sim::load_stage(std::string(PIEZO_SOURCE_DIR) + "/config/stages/lowvolt_preisach_creep.yaml");
   const io::Dataset all = sim::simulate_stage(stage, 11, 25.0);
@@ -109,18 +109,226 @@ TEST(ModelSelection, AutoKeepsTheBestCandidateOnAnotherStage) {
   const auto cands = analysis::default_candidates();
   ASSERT_EQ(sel.table.size(), cands.size());
   EXPECT_EQ(sel.table[0].candidate.kind, "linear");
-  double best = INFINITY;
+  double best = INFINITY, best_mae = INFINITY;
   for (const auto& r : sel.table)
-    if (r.refused.empty()) best = std::min(best, r.score.free_run.mae_nm);
-  EXPECT_EQ(sel.table[sel.best].score.free_run.mae_nm, best);
-  EXPECT_EQ(sel.model->kind(), sel.table[sel.best].candidate.kind);
-  EXPECT_NEAR(sel.model->meta.validation.at("free_run_mae_nm"), best, 1e-9);
-  EXPECT_LT(best, 0.10 * sel.scale.position_range_nm);
+    if (r.refused.empty()) best = std::min(best, r.slow.overall_nm), best_mae = std::min(best_mae, r.score.free_run.mae_nm);
+  // The 5-s tail (no holds) is scored in blocks of an eighth of it, moves and cold fold only.
+  EXPECT_NEAR(sel.table[sel.best].slow.block_s, 5.0 / 8.0, 0.05);
+  EXPECT_EQ(sel.table[sel.best_overall].slow.overall_nm, best);
+  const auto& chosen = sel.table[sel.best];
+  if (sel.best != sel.best_overall) {
+    EXPECT_LT(chosen.parameters, sel.table[sel.best_overall].parameters);
+    EXPECT_TRUE(analysis::within_noise(sel.table[sel.best_overall].slow, chosen.slow));
+  }
+  EXPECT_EQ(sel.model->kind(), chosen.candidate.kind);
+  EXPECT_NEAR(sel.model->meta.validation.at("free_run_mae_nm"), chosen.score.free_run.mae_nm, 1e-9);
+  EXPECT_LT(chosen.score.free_run.mae_nm, 0.10 * sel.scale.position_range_nm);
+  EXPECT_LT(chosen.score.free_run.mae_nm, 2.0 * best_mae);
   const YAML::Node y = sel.model->meta.selection;
   ASSERT_TRUE(y && y["candidates"]);
   EXPECT_EQ(y["candidates"].size(), cands.size());
   EXPECT_EQ(y["chosen_kind"].as<std::string>(), sel.model->kind());
+  EXPECT_FALSE(y["reason"].as<std::string>().empty());
+  EXPECT_TRUE(y["candidates"][sel.best]["overall_nm"]);
   const std::string table = analysis::selection_table(sel);
   EXPECT_TRUE(has(table, "**chosen**")) << table;
+  EXPECT_TRUE(has(table, "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | overall [nm] |"))
+      << table;
+  EXPECT_TRUE(has(table, "Choice: " + sel.reason)) << table;
   std::printf("%s\n", table.c_str());
+}
+
+// ---- the choice rule on hand-made block errors (issue 26 item 2) ----
+
+namespace {
+
+analysis::SlowScore slow(std::vector<double> moves, std::vector<double> holds, std::vector<double> ends,
+                         std::vector<double> cold = {}) {
+  analysis::SlowErrors e;
+  e.moves = std::move(moves);
+  e.holds = std::move(holds);
+  e.hold_ends = std::move(ends);
+  e.cold = std::move(cold);
+  analysis::SlowScoreOptions o;
+  o.noise_nm = 1.0;
+  return analysis::summarise_slow(e, o);
+}
+
+}  // namespace
+
+TEST(SlowScore, HoldsAreFoundFromTheVoltage) {
+  io::Dataset d;
+  auto& a = d.add_axis("c");
+  // 10 Hz: 100 moving samples, a 70-s hold, 20 moving, a 5-s dwell (too short), 20 moving, a 61-s hold to the end.
+  std::vector<double> v;
+  for (int i = 0; i < 100; ++i) v.push_back(0.1 * i);
+  v.insert(v.end(), 700, 5.0);
+  for (int i = 0; i < 20; ++i) v.push_back(4.9 - 0.1 * i);
+  v.insert(v.end(), 50, 1.0);
+  for (int i = 0; i < 20; ++i) v.push_back(1.1 + 0.1 * i);
+  v.insert(v.end(), 610, -2.0);
+  for (std::size_t i = 0; i < v.size(); ++i) d.time_s.push_back(0.1 * double(i)), a.voltage_v.push_back(v[i]), a.position_nm.push_back(0);
+  const auto h = analysis::voltage_holds(d, "c", 0);
+  ASSERT_EQ(h.size(), 2u);
+  EXPECT_EQ(h[0].begin, 100u);
+  EXPECT_EQ(h[0].end, 800u);
+  EXPECT_EQ(h[1].begin, 890u);
+  EXPECT_EQ(h[1].end, v.size());
+  // From row 850 on only the last hold is left.
+  EXPECT_EQ(analysis::voltage_holds(d, "c", 850).size(), 1u);
+}
+
+TEST(SlowScore, BlockMeansTakeTheWhiteNoiseOutAndHoldEndsAreTheirLastPart) {
+  // Reference: alternating ±20 nm noise about 0; prediction 0 (a perfect model), then 0 with a 10 nm offset in
+  // the last 30 samples of the hold.
+  const std::size_t n = 300;
+  std::vector<double> ref(n), pred(n, 0.0);
+  for (std::size_t i = 0; i < n; ++i) ref[i] = (i % 2 ? 20.0 : -20.0);
+  const std::vector<analysis::VoltageHold> holds{{100, 200}};
+  auto e = analysis::slow_errors(pred, ref, holds, 0, 50, 30);
+  ASSERT_EQ(e.moves.size(), 4u);  // 0-50, 50-100, 200-250, 250-300
+  ASSERT_EQ(e.holds.size(), 2u);
+  ASSERT_EQ(e.hold_ends.size(), 1u);
+  for (double x : e.moves) EXPECT_NEAR(x, 0.0, 1e-12);  // the noise averaged away (per-sample MAE: 20 nm)
+  EXPECT_NEAR(e.hold_ends[0], 0.0, 1e-12);
+  for (std::size_t i = 170; i < 200; ++i) pred[i] = 10.0;
+  e = analysis::slow_errors(pred, ref, holds, 0, 50, 30);
+  EXPECT_NEAR(e.hold_ends[0], 10.0, 1e-12);
+  EXPECT_NEAR(e.holds[1], 6.0, 1e-12);  // 30 of its 50 samples off by 10
+  // Scored from row 120: the hold is clipped, the moves before it dropped.
+  e = analysis::slow_errors(pred, ref, holds, 120, 50, 30);
+  EXPECT_EQ(e.moves.size(), 2u);
+  EXPECT_EQ(e.holds.size(), 2u);  // 120-170 and 170-200 (30 ≥ half a block)
+  analysis::SlowScoreOptions o;
+  o.noise_nm = 1.0;
+  const auto s = analysis::summarise_slow(e, o);
+  EXPECT_NEAR(s.hold_ends_nm, 10.0, 1e-12);
+  EXPECT_NEAR(s.worst_hold_end_nm, 10.0, 1e-12);
+  // overall: moves 0, holds 5, hold ends 10 (weight 2), no cold fold, noise 1 nm: ((0+1)(5+1)(10+1)²)^¼ − 1.
+  EXPECT_NEAR(s.overall_nm, std::pow(6.0 * 121.0, 0.25) - 1.0, 1e-12);
+  // By ratio, not by scale: a column 1000× larger for everyone does not change the order of two candidates.
+  analysis::SlowErrors a{{2.0}, {}, {}, {500.0}}, b{{4.0}, {}, {}, {450.0}};
+  EXPECT_LT(analysis::summarise_slow(a, o).overall_nm, analysis::summarise_slow(b, o).overall_nm);
+  EXPECT_TRUE(std::isnan(s.cold_nm));
+}
+
+TEST(SlowScore, HoldEndsDecideOverNoiseOnTheMoves) {
+  // The issue's case: linear 0.1 nm better on the moves (noise), but 20 nm off at the hold ends vs 10.
+  const auto lin = slow({5.0, 5.1, 4.9, 5.0, 5.2, 4.8}, {8, 9, 7}, {20.0, 19.0, 21.0}, {6, 6, 6, 6});
+  const auto prony = slow({5.1, 5.2, 5.0, 5.1, 5.3, 4.9}, {4, 5, 4}, {10.0, 9.0, 11.0}, {6, 6, 6, 6});
+  const auto c = analysis::choose_candidate({{"linear", 3, &lin}, {"pi_creep_prony", 25, &prony}});
+  EXPECT_EQ(c.chosen, 1u);
+  EXPECT_EQ(c.best_overall, 1u);
+  EXPECT_TRUE(has(c.reason, "pi_creep_prony: lowest overall")) << c.reason;
+  EXPECT_TRUE(has(c.reason, "linear (3 parameters) within noise on moves and cold fold but")) << c.reason;
+  EXPECT_TRUE(has(c.reason, "20 nm on hold ends")) << c.reason;
+  std::printf("%s\n", c.reason.c_str());
+}
+
+TEST(SlowScore, WithinTheNoiseTheFewerParametersWin) {
+  // Two candidates whose block errors differ by ±0.5 nm either way: no column separates them.
+  const auto big = slow({3.0, 3.5, 2.5, 3.0, 3.6, 2.4}, {2.0, 2.5, 1.5, 2.0}, {2.0, 3.0, 2.5, 2.2}, {4, 4, 4, 4});
+  const auto small = slow({3.4, 3.1, 2.9, 2.6, 4.0, 2.2}, {2.5, 2.0, 2.0, 1.6}, {2.4, 2.6, 2.9, 1.9}, {4.2, 3.8, 4.3, 3.9});
+  ASSERT_LT(big.overall_nm, small.overall_nm);
+  EXPECT_TRUE(analysis::within_noise(big, small));
+  const auto c = analysis::choose_candidate({{"preisach_creep_prony", 120, &big}, {"pi", 12, &small}, {"refused", 1, nullptr}});
+  EXPECT_EQ(c.best_overall, 0u);
+  EXPECT_EQ(c.chosen, 1u);
+  EXPECT_TRUE(has(c.reason, "pi: within the noise of preisach_creep_prony on every column")) << c.reason;
+  EXPECT_TRUE(has(c.reason, "with 12 instead of 120 parameters")) << c.reason;
+  // Clearly better on the moves (6 paired blocks, all 1 nm lower): the bigger model stays.
+  const auto worse_moves = slow({4.0, 4.5, 3.5, 4.0, 4.6, 3.4}, {2.0, 2.5, 1.5, 2.0}, {2.0, 3.0, 2.5, 2.2}, {4, 4, 4, 4});
+  std::vector<std::string> why;
+  EXPECT_FALSE(analysis::within_noise(big, worse_moves, &why));
+  EXPECT_EQ(why, std::vector<std::string>{"moves"});
+  EXPECT_EQ(analysis::choose_candidate({{"preisach_creep_prony", 120, &big}, {"pi", 12, &worse_moves}}).chosen, 0u);
+  // Only refused candidates: no choice.
+  EXPECT_EQ(analysis::choose_candidate({{"a", 1, nullptr}}).chosen, SIZE_MAX);
+}
+
+namespace {
+// Predicts (seconds since its reset)² in nm at 10 Hz: its error shows where the run started.
+class ResetModel : public models::Model {
+ public:
+  std::string kind() const override { return "reset_probe"; }
+  void reset(double, double) override { k_ = 0; }
+  double predict(const models::ModelInput&) const override { return 0.01 * double(k_) * double(k_); }
+  void commit(const models::ModelInput&, double) override { ++k_; }
+  std::unique_ptr<models::Model> clone() const override { return std::make_unique<ResetModel>(*this); }
+  bool uses_position_history() const override { return false; }
+  YAML::Node to_yaml() const override { return YAML::Node(); }
+  std::size_t num_parameters() const override { return 1; }
+
+ private:
+  long k_ = 0;
+};
+}  // namespace
+
+TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPart) {
+  // 10 Hz, 600 s; the voltage keeps moving (no holds). The position is what the probe predicts when reset at row
+  // 3000: 0 before, (t − 300 s)² after.
+  io::Dataset d;
+  auto& a = d.add_axis("c");
+  for (int i = 0; i < 6000; ++i) {
+    d.time_s.push_back(0.1 * i);
+    a.voltage_v.push_back(std::sin(0.01 * i));
+    a.position_nm.push_back(i < 3000 ? 0.0 : 0.01 * double(i - 3000) * double(i - 3000));
+  }
+  const ResetModel m;
+  // Warm: reset at row 0, far off in every scored block; cold: reset at row 3000, exact.
+  const auto s = analysis::slow_score(m, d, 3000, "c");
+  EXPECT_EQ(s.blocks.moves.size(), 10u);  // 300 s in 30-s blocks
+  EXPECT_TRUE(s.blocks.holds.empty());
+  EXPECT_GT(s.moves_nm, 1e5);
+  EXPECT_EQ(s.blocks.cold.size(), 10u);
+  EXPECT_NEAR(s.cold_nm, 0.0, 1e-6);
+  EXPECT_NEAR(s.block_s, 30.0, 1e-9);
+  // A separate file (score_from 0): the warm run is the cold one.
+  const auto t = analysis::slow_score(m, d, 0, "c");
+  EXPECT_EQ(t.blocks.cold, t.blocks.moves);
+  // A short validation part (100 s, under 8 blocks) is cut into eighths.
+  EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c").block_s, 12.5, 1e-9);
+}
+
+// End to end on creep-protocol data with settings no other test uses (issue 26's done-when "auto's worst hold end
+// within 10 % of the best kind's, on a stage the tests were not tuned on"): Preisach hysteresis with 100 switching
+// voltages, a weak six-mode creep spectrum (4 s … 2 h, weights 0.01–0.025), 21 nm readings, seed 2626, 8 × (300-s history, 300-s hold);
+// scenarios 1–5 train, 6–8 are held out (the model runs through 1–5 first; the cold fold starts at 6).
+TEST(ModelSelection, OnACreepProtocolStageTheChoiceIsByHoldEnds) {
+  sim::StageConfig stage =
+      sim::load_stage(std::string(PIEZO_SOURCE_DIR) + "/config/stages/mm3e_preisach_creep_protocol.yaml");
+  auto& axis = stage.simulator.axes[2];
+  axis.creep_spectrum_tau_s = {4.0, 20.0, 120.0, 600.0, 2000.0, 7000.0};
+  axis.creep_spectrum_weights = {0.01, 0.01, 0.015, 0.015, 0.02, 0.025};
+  axis.preisach_grid_count = 100;
+  stage.protocol_parameters = YAML::Load("{scenarios: 8, history_s: 300, hold_s: 300}");
+  const io::Dataset all = sim::simulate_stage(stage, 2626);
+  const std::size_t per = all.size() / 8, cut = 5 * per;
+  const io::Dataset train = all.slice(0, cut), val = all.slice(cut, all.size());
+  analysis::SelectionRequest rq = analysis::selection_request(train, &val, all, cut, "c");
+  rq.candidates = {{"linear (lasso features)", "linear", YAML::Node(), true},
+                   {"pi", "pi", YAML::Node(), false},
+                   {"preisach", "preisach", YAML::Node(), false},
+                   {"pi_creep_prony", "pi_creep_prony", YAML::Node(), false},
+                   {"preisach_creep_prony", "preisach_creep_prony", YAML::Node(), false}};
+  const analysis::Selection sel = analysis::select_model(rq);
+  ASSERT_TRUE(sel.model);
+  std::printf("%s\n", analysis::selection_table(sel).c_str());
+  double best_end = INFINITY;
+  std::size_t by_mae = 0;
+  for (std::size_t k = 0; k < sel.table.size(); ++k) {
+    const auto& r = sel.table[k];
+    std::printf("%s: hold ends vs truth mean %.2f nm, worst %.2f nm; free-run MAE vs measured %.2f nm\n",
+                r.candidate.label.c_str(), r.slow.hold_ends_truth_nm, r.slow.worst_hold_end_truth_nm,
+                r.score.free_run.mae_nm);
+    if (!r.refused.empty()) continue;
+    best_end = std::min(best_end, r.slow.worst_hold_end_truth_nm);
+    if (r.score.free_run.mae_nm < sel.table[by_mae].score.free_run.mae_nm) by_mae = k;
+  }
+  const auto& chosen = sel.table[sel.best];
+  // The three held-out holds and the dwells before their approaches (the voltage unchanged ≥ 60 s).
+  EXPECT_GE(chosen.slow.blocks.hold_ends.size(), 3u);
+  EXPECT_LE(chosen.slow.worst_hold_end_truth_nm, 1.1 * best_end);
+  std::printf("chosen %s; by the old rule (free-run MAE vs measured) %s\n", chosen.candidate.label.c_str(),
+              sel.table[by_mae].candidate.label.c_str());
 }

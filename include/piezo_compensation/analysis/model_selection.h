@@ -1,10 +1,13 @@
 // Model choice for any stage (issue 11): validation scores held out by time, sanity gates that refuse a fit
-// the data cannot support, and `--model auto` (fit the candidate kinds, score each free-run, keep the best).
+// the data cannot support, and `--model auto` (fit the candidate kinds, score each free-run on the slow part of its
+// error, choose for the use with the noise taken out: issue 26).
 // Knows nothing of the simulator: every threshold comes from the data the model was fitted and scored on.
 #pragma once
 
 #include <yaml-cpp/yaml.h>
 
+#include <cmath>
+#include <cstdint>
 #include <stdexcept>
 #include <string>
 #include <vector>
@@ -60,6 +63,83 @@ void check_fit_sanity(const models::Model& model, const ValidationScore* score, 
 YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const training::ProgressFn& progress,
                                 std::string* report = nullptr, std::size_t* kept = nullptr);
 
+// The slow part of the error (issue 26): the scores `--model auto` chooses by. The error of 30-s block means
+// (predicted − measured), whose white reading noise averages away (σ/√n per block: ≈ 1.2 nm for 21 nm readings at
+// 11 Hz), in four columns:
+//  - moves: the blocks outside holds; holds: the blocks inside holds (a hold: the voltage unchanged, within
+//    hold_tolerance_v, for at least hold_min_s; found from the voltage, no phase markers needed);
+//  - hold ends: per hold, the mean error of its last hold_end_s (where the user parks the tip);
+//  - cold fold: the held-out part run on its own, the model reset at rest at its first sample (as a separate
+//    recording would start), all its blocks.
+// overall: the weighted geometric mean of (column + noise_nm) over the columns present, less noise_nm (hold ends
+// count hold_end_weight, the others 1): a column counts by its ratio between candidates, not by its scale (a cold
+// fold of 500 nm from the unknown start state does not drown moves of 0.3 nm), and a difference under the noise
+// of a block mean counts little.
+// On a short validation part (under 8 blocks) the block shrinks to an eighth of it (at least one sample), so a
+// 5-s tail of a 200-Hz recording is still scored in blocks of 125 samples.
+struct SlowScoreOptions {
+  double block_s = 30.0;
+  double hold_min_s = 60.0;
+  double hold_tolerance_v = 1e-6;
+  double hold_end_s = 30.0;
+  double hold_end_weight = 2.0;
+  double noise_nm = 0.0;  // noise of a block mean [nm]; 0: select_model estimates it (σ of a reading / √rows)
+};
+
+// Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s.
+struct VoltageHold {
+  std::size_t begin = 0, end = 0;
+};
+std::vector<VoltageHold> voltage_holds(const io::Dataset& data, const std::string& axis, std::size_t from,
+                                       const SlowScoreOptions& o = {});
+
+// Per column, |mean error| of each block [nm], in time order (same rows for every candidate on the same data,
+// so two candidates' vectors pair entry by entry).
+struct SlowErrors {
+  std::vector<double> moves, holds, hold_ends, cold;
+};
+// Block errors of `prediction` against `reference` on rows [from, reference.size()) (moves, holds, hold ends;
+// `cold` is left empty). block = samples per block; partial blocks of at least half a block count.
+SlowErrors slow_errors(const std::vector<double>& prediction, const std::vector<double>& reference,
+                       const std::vector<VoltageHold>& holds, std::size_t from, std::size_t block,
+                       std::size_t hold_end);
+// Block errors of `prediction` on all rows (the cold fold's column).
+std::vector<double> block_errors(const std::vector<double>& prediction, const std::vector<double>& reference,
+                                 std::size_t block);
+
+struct SlowScore {
+  SlowErrors blocks;
+  double moves_nm = NAN, holds_nm = NAN, hold_ends_nm = NAN, worst_hold_end_nm = NAN, cold_nm = NAN, overall_nm = NAN;
+  double hold_ends_truth_nm = NAN, worst_hold_end_truth_nm = NAN;  // vs the true position (simulated data)
+  double block_s = NAN;  // the block used (block_s, or shorter on a short validation part)
+  bool valid() const { return std::isfinite(overall_nm); }
+};
+// Column means and the overall figure of `blocks` (truth figures left as they are).
+SlowScore summarise_slow(const SlowErrors& blocks, const SlowScoreOptions& o = {});
+// Scores `model` free-run on data[score_from, end): warm (run from rest at row 0 through the history before
+// score_from, as `warm_free_run` when given: the free-run prediction of all rows) and cold (reset at score_from).
+// With score_from == 0 the warm run is the cold one. Runs models only through models::stream_model.
+SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
+                     const std::string& axis, const SlowScoreOptions& o = {},
+                     const std::vector<double>* warm_free_run = nullptr);
+
+// The choice among scored candidates. best_overall: the lowest overall; chosen: of the candidates within the
+// noise of it (no column on which it is clearly better by training::validation_prefers over the paired block
+// errors), the one with the fewest parameters (ties: lower overall). reason: one line.
+struct ChoiceEntry {
+  std::string label;
+  std::size_t parameters = 0;
+  const SlowScore* score = nullptr;  // null: refused, not a candidate
+};
+struct Choice {
+  std::size_t chosen = SIZE_MAX, best_overall = SIZE_MAX;
+  std::string reason;
+};
+// Whether `other` is within the noise of `best`: on no column does the paired block test prefer `best`.
+// `worse` (optional) receives the names of the columns where it is clearly worse.
+bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std::string>* worse = nullptr);
+Choice choose_candidate(const std::vector<ChoiceEntry>& entries);
+
 struct ModelCandidate {
   std::string label;   // "linear (lasso features)", "pi", ...
   std::string kind;
@@ -78,6 +158,7 @@ struct SelectionRequest {
   std::string axis = "c";
   std::vector<ModelCandidate> candidates;        // empty = default_candidates()
   double time_budget_s = 0.0;               // per candidate (neural kinds)
+  SlowScoreOptions slow;
   std::uint64_t seed = 1;
   int threads = 2;
   training::ProgressFn progress;
@@ -91,6 +172,7 @@ SelectionRequest selection_request(const io::Dataset& train, const io::Dataset* 
 struct CandidateResult {
   ModelCandidate candidate;
   ValidationScore score;
+  SlowScore slow;
   double fit_s = 0.0;
   std::size_t parameters = 0;
   std::string refused;  // non-empty: the fit threw or failed a gate (the message)
@@ -98,17 +180,23 @@ struct CandidateResult {
 
 struct Selection {
   models::ModelPtr model;  // the winner, validation figures stored; null when every candidate was refused
-  std::size_t best = 0;    // index into table
+  std::size_t best = 0;    // index into table: the chosen candidate
+  std::size_t best_overall = 0;  // index of the lowest overall slow error (== best unless a simpler one was within noise)
   std::vector<CandidateResult> table;
   DataScale scale;         // of the training part
+  std::string reason;      // one line: why the chosen candidate
+  double block_noise_nm = NAN;  // estimated noise of one block mean (σ of a reading / √samples per block)
+  SlowScoreOptions slow_options;
 };
-// Fits every candidate, scores it free-run on the validation part, refuses the ones failing a gate, keeps the
-// lowest free-run MAE vs the measurement. Throws FitRejected (listing each candidate's reason) when none passes.
+// Fits every candidate, scores it free-run on the validation part (the gates: score_validation), refuses the ones
+// failing a gate, scores the rest on the slow part of the error (slow_score) and chooses by choose_candidate.
+// Throws FitRejected (listing each candidate's reason) when none passes.
 Selection select_model(const SelectionRequest& request);
 
-// Markdown table: candidate, free-run MAE [nm] and [% of range], max [nm], parameters, fit time, status.
+// Markdown table: kind, parameters, moves, holds, hold ends, cold fold, overall [nm], status; then the reason line.
 std::string selection_table(const Selection& selection);
-// {criterion, chosen, chosen_kind, position_range_nm, candidates: [...]} for the model file's `selection:`.
+// {criterion, chosen, chosen_kind, reason, block_s, position_range_nm, candidates: [...]} for the model file's
+// `selection:`.
 YAML::Node selection_yaml(const Selection& selection);
 
 }  // namespace piezo::analysis

@@ -13,6 +13,7 @@
 // says so, so it is never worse than feedforward.
 #pragma once
 
+#include <array>
 #include <cstddef>
 #include <string>
 #include <vector>
@@ -33,11 +34,12 @@ struct NoiseModel {
   double fast_tau_s = 30.0;         // fast error: settling time constant
   double initial_sigma_nm = 0.0;    // 1σ of the model's error when it starts at rest on a reading (cold start)
   double model_sigma_nm = 0.0;      // model-only axes: the model's slow error, 1σ (what the σ output reports)
-  // Innovation consistency: the mean of the last adapt_window_s of innovations is tested against its own standard
-  // error; beyond adapt_k of them the filter lags a change its process noise did not expect (a move whose error is
-  // larger than those it was identified on, an unmodelled drift), and the slow error's variance is raised by that
-  // mean's square. adapt_k = 0 turns it off. 3 standard errors: one false alarm per ~370 windows of a consistent
-  // filter, each costing only a brief loss of averaging.
+  // Innovation consistency: the mean of the innovations over adapt_window_s, 6× and 30× that (10 s, 1 min, 5 min)
+  // is tested against its own standard error; beyond adapt_k of them the filter lags a change its process noise did
+  // not expect (a jump: a move whose error is larger than those it was identified on; a ramp: creep mismatch or an
+  // unmodelled drift in a long hold), and the slow error's variance is raised by that mean's square. adapt_k = 0
+  // turns it off. 3 standard errors: one false alarm per ~370 windows of a consistent filter, each costing only a
+  // brief loss of averaging.
   double adapt_window_s = 10.0;
   double adapt_k = 3.0;
   bool fuse = true;                 // false: the readings cannot inform this axis (see the header)
@@ -88,8 +90,12 @@ class ErrorFilter {
   Eigen::Matrix2d P_ = Eigen::Matrix2d::Zero();
   double loglik_ = 0.0, innovation_ = 0.0;
   std::size_t updates_ = 0, since_reading_ = 0;
-  double alpha_ = 0.0, nu_bar_ = 0.0, s_bar_ = 0.0;  // exponential means of the innovations and their variance
-  std::size_t window_n_ = 0, in_window_ = 0, adaptations_ = 0;
+  struct Window {  // exponential means of the innovations and of their variance over one time scale
+    std::size_t n = 0, count = 0;
+    double alpha = 0.0, nu_bar = 0.0, s_bar = 0.0;
+  };
+  std::array<Window, 3> windows_;
+  std::size_t adaptations_ = 0;
 };
 
 struct IdentifyOptions {

@@ -226,6 +226,8 @@ class PredictorNode {
   void start_forecast(Axis& a);
   void forecast_worker();
   void publish_tf_and_markers(const ros::Time& stamp);
+  void publish_markers(const ros::Time& stamp, const double* measured, const double* predicted, const double* intended,
+                       const double* drift, const std::string& text);
   void diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrapper& stat);
 
   ros::NodeHandle nh_, pnh_;

@@ -177,8 +177,11 @@ ErrorFilter::ErrorFilter(const NoiseModel& model, double dt_s) : model_(model), 
   if (!(model.reading_sigma_nm > 0.0)) throw std::invalid_argument("ErrorFilter: reading_sigma_nm must be > 0");
   phi_ = std::exp(-dt_s / std::max(model.fast_tau_s, 1e-9));
   r_ = model.reading_sigma_nm * model.reading_sigma_nm;
-  window_n_ = std::max<std::size_t>(10, static_cast<std::size_t>(std::lround(model.adapt_window_s / dt_s)));
-  alpha_ = 1.0 / static_cast<double>(window_n_);
+  const double scales[] = {1.0, 6.0, 30.0};
+  for (std::size_t w = 0; w < windows_.size(); ++w) {
+    windows_[w].n = std::max<std::size_t>(10, static_cast<std::size_t>(std::lround(scales[w] * model.adapt_window_s / dt_s)));
+    windows_[w].alpha = 1.0 / static_cast<double>(windows_[w].n);
+  }
   reset();
 }
 
@@ -188,8 +191,7 @@ void ErrorFilter::reset() {
   P_(0, 0) = model_.initial_sigma_nm * model_.initial_sigma_nm;
   started_ = false;
   since_reading_ = 0;
-  nu_bar_ = s_bar_ = 0.0;
-  in_window_ = 0;
+  for (auto& w : windows_) w.nu_bar = w.s_bar = 0.0, w.count = 0;
 }
 
 double ErrorFilter::sigma_nm() const {
@@ -229,16 +231,18 @@ void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
 
 void ErrorFilter::check_consistency(double s) {
   if (!(model_.adapt_k > 0.0)) return;
-  nu_bar_ += alpha_ * (innovation_ - nu_bar_);
-  s_bar_ += alpha_ * (s - s_bar_);
-  if (++in_window_ < window_n_) return;
-  // an exponential mean of white innovations of variance S has variance S·α/(2 − α)
-  const double var_mean = s_bar_ * alpha_ / (2.0 - alpha_);
-  if (nu_bar_ * nu_bar_ <= model_.adapt_k * model_.adapt_k * var_mean) return;
-  P_(0, 0) += nu_bar_ * nu_bar_;
-  nu_bar_ = 0.0;
-  in_window_ = 0;
-  ++adaptations_;
+  for (auto& w : windows_) {
+    w.nu_bar += w.alpha * (innovation_ - w.nu_bar);
+    w.s_bar += w.alpha * (s - w.s_bar);
+    if (++w.count < w.n) continue;
+    // an exponential mean of white innovations of variance S has variance S·α/(2 − α)
+    const double var_mean = w.s_bar * w.alpha / (2.0 - w.alpha);
+    if (w.nu_bar * w.nu_bar <= model_.adapt_k * model_.adapt_k * var_mean) continue;
+    P_(0, 0) += w.nu_bar * w.nu_bar;
+    for (auto& v : windows_) v.nu_bar = 0.0, v.count = 0;  // the state will move: every window starts again
+    ++adaptations_;
+    return;
+  }
 }
 
 FilterTrace run_filter(const NoiseModel& model, double dt_s, const std::vector<double>& predicted_nm,
