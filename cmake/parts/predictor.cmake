@@ -20,6 +20,15 @@ piezo_rostest(test/rostest/predictor_params.test test/rostest/predictor_params.c
 piezo_unit_test(test_compensation_watch test/unit/test_compensation_watch.cpp)
 piezo_ros_unit_test(test_predictor_snapshot test/unit/test_predictor_snapshot.cpp)
 piezo_rostest(test/rostest/live_loop.test test/rostest/live_loop.cpp DEPENDS piezo_predictor mm3e_sim mm3e_driver)
+# Issue 25 live: hold trim on the foreign stage, lock-step (~20 s of wall each); needs the model fitted on that stage.
+if(EXISTS ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml)
+  piezo_rostest(test/rostest/hold_trim.test test/rostest/hold_trim_check.cpp
+                DEPENDS piezo_demo piezo_predictor mm3e_sim mm3e_driver)
+  target_link_libraries(hold_trim yaml-cpp)
+  add_rostest(test/rostest/hold_trim_thermal.test DEPENDENCIES hold_trim)
+else()
+  message(WARNING "config/models/mm3e_foreign_c.yaml missing: rostests hold_trim and hold_trim_thermal are not registered")
+endif()
 if(CATKIN_ENABLE_TESTING)
   # `piezo track`: the files it writes, a model file without an estimator block refused with one line, and
   # --identify-on/--write-model adding the block (issue 25).

@@ -1,5 +1,6 @@
 #!/usr/bin/python3
-"""Table, plots and compensation.json from the demo runs (demo-output/{sawtooth,creep}.{csv,json})."""
+"""Table, plots and compensation.json from the demo runs (demo-output/{sawtooth,creep,hold_trim}.{csv,json};
+hold_trim is optional: its section and plot are added when its JSON is there)."""
 import csv
 import json
 import os
@@ -25,6 +26,13 @@ def main(out):
         "creep": {"uncompensated_drift_nm": creep["uncompensated_drift_nm"],
                   "compensated_drift_nm": creep["compensated_drift_nm"]},
     }
+    ht = None
+    if os.path.exists(os.path.join(out, "hold_trim.json")):
+        ht = json.load(open(os.path.join(out, "hold_trim.json")))
+        result["hold_trim"] = {k: ht[k] for k in (
+            "hold_trim_ff_worst_nm", "hold_trim_trimmed_worst_nm", "hold_trim_ff_mae_nm", "hold_trim_trimmed_mae_nm",
+            "ff_worst_nm", "trimmed_worst_nm", "ff_mae_nm", "trimmed_mae_nm", "hold_v", "intended_nm",
+            "score_last_s", "history_s", "hold_s", "trimmed_active_samples", "trimmed_scored_samples")}
     with open(os.path.join(out, "compensation.json"), "w") as f:
         json.dump(result, f, indent=2)
     h, c = result["hysteresis"], result["creep"]
@@ -46,6 +54,15 @@ def main(out):
     if "uncompensated_late_samples" in creep:
         print("(in step: %d of %d uncompensated history samples had the previous intent applied, i.e. a command"
               " one sample late)" % (creep["uncompensated_late_samples"], creep["uncompensated_history_samples"]))
+    if ht:
+        print("")
+        print("hold trim, foreign stage (axis c, %.0f-min hold after a %.0f-s history), |true - intended| over the"
+              " hold's last %.0f min:" % (ht["hold_s"] / 60, ht["history_s"], ht["score_last_s"] / 60))
+        print("                                 feedforward only     trimmed")
+        for i, v in enumerate(ht["hold_v"]):
+            print("  hold %d at %+5.1f V, worst [nm] %13.2f %13.2f" % (i + 1, v, ht["ff_worst_nm"][i],
+                                                                    ht["trimmed_worst_nm"][i]))
+            print("                    MAE   [nm] %13.2f %13.2f" % (ht["ff_mae_nm"][i], ht["trimmed_mae_nm"][i]))
     print("wrote %s" % os.path.join(out, "compensation.json"))
 
     s = rows(os.path.join(out, "sawtooth.csv"))
@@ -84,6 +101,61 @@ def main(out):
     axes[0].set_ylabel("true position − start of hold [nm]")
     fig.tight_layout(), fig.savefig(os.path.join(out, "creep.png"), dpi=110)
     print("wrote %s and %s" % (os.path.join(out, "hysteresis.png"), os.path.join(out, "creep.png")))
+    if ht:
+        plot_hold_trim(out, ht)
+
+
+def plot_hold_trim(out, ht):
+    """hold_trim.png: the hold's true − intended, feedforward only vs trimmed; the trimmed pass's fused estimate
+    with its ±σ band; the trim itself."""
+    r = rows(os.path.join(out, "hold_trim.csv"))
+    f = lambda x: float(x) if x not in ("", "nan", "-nan") else float("nan")  # noqa: E731
+    skip_min = (ht["hold_s"] - ht["score_last_s"]) / 60
+    fig, axes = plt.subplots(3, 1, figsize=(11, 10), sharex=True,
+                             gridspec_kw={"height_ratios": [1.2, 1.2, 0.8]})
+    for mode, name, col in (("0", "feedforward only", "tab:red"), ("1", "hold trim on", "tab:blue")):
+        pts = [p for p in r if p["mode"] == mode and p["phase"] == "hold"]
+        if not pts:
+            continue
+        t0 = f(pts[0]["time_s"])
+        t = [(f(p["time_s"]) - t0) / 60 for p in pts]
+        err = [f(p["true_nm"]) - f(p["ideal_nm"]) for p in pts]
+        i = int(mode)
+        axes[0].plot(t, err, color=col, lw=0.8, label="%s: worst %.2f nm, MAE %.2f nm (last %.0f min)" % (
+            name, ht[("trimmed_" if i else "ff_") + "worst_nm"][0], ht[("trimmed_" if i else "ff_") + "mae_nm"][0],
+            ht["score_last_s"] / 60))
+        if mode == "1":
+            fused = [f(p["fused_nm"]) - f(p["ideal_nm"]) for p in pts]
+            sig = [f(p["fused_sigma_nm"]) for p in pts]
+            axes[1].fill_between(t, [a - b for a, b in zip(fused, sig)], [a + b for a, b in zip(fused, sig)],
+                                 color="tab:gray", alpha=0.35, lw=0, label="fused ±1σ")
+            axes[1].plot(t, fused, color="k", lw=0.7, label="fused − intended")
+            axes[1].plot(t, err, color=col, lw=0.8, label="true − intended")
+            # The readings themselves (20 nm steps, σ 21 nm) do not fit this scale: their trailing 1-min mean shows
+            # the averaging limit σ/√660 ≈ 0.8 nm the fused estimate works at.
+            n, acc, win, mean_t, mean_v = 660, [], [], [], []
+            for tt, p in zip(t, pts):
+                v = f(p["encoder_nm"]) - f(p["ideal_nm"])
+                if v == v:
+                    win.append(v)
+                    if len(win) > n:
+                        win.pop(0)
+                    if len(win) == n:
+                        mean_t.append(tt), mean_v.append(sum(win) / n)
+            axes[1].plot(mean_t, mean_v, color="tab:cyan", lw=0.6, alpha=0.8,
+                         label="readings − intended, trailing 1-min mean", zorder=0)
+            axes[2].plot(t, [f(p["hold_trim_nm"]) for p in pts], color=col, lw=0.9, label="hold trim")
+    for ax in axes[:2]:
+        ax.axhline(2.0, color="k", ls=":", lw=0.7)
+        ax.axhline(-2.0, color="k", ls=":", lw=0.7)
+        ax.axvspan(0, skip_min, color="0.9", zorder=-1)
+    axes[0].set_ylabel("true − intended [nm]"), axes[0].legend(loc="upper right", fontsize=8)
+    axes[0].set_title("Hold on foreign physics (axis c): feedforward only vs hold trim; grey: not scored, dotted: ±2 nm")
+    lim = max(5.0, 1.3 * max(ht["trimmed_worst_nm"]))
+    axes[1].set_ylim(-lim, lim), axes[1].set_ylabel("trimmed pass [nm]"), axes[1].legend(loc="upper right", fontsize=8)
+    axes[2].set_ylabel("trim [nm]"), axes[2].set_xlabel("time in hold [min]"), axes[2].legend(loc="upper right", fontsize=8)
+    fig.tight_layout(), fig.savefig(os.path.join(out, "hold_trim.png"), dpi=110)
+    print("wrote %s" % os.path.join(out, "hold_trim.png"))
 
 
 if __name__ == "__main__":

@@ -2,9 +2,11 @@
 // uncompensated and once compensated, one intent per encoder sample; the scenario, the pairing of the device's
 // reports (io/sequence_pairer.h) and the scoring are compensation::DemoRun (compensation/demo_scenario.h), this
 // node only moves messages.
-//   ~scenario "sawtooth" | "creep"; ~axis; ~model_file (the predictor's model: the same ideal line);
+//   ~scenario "sawtooth" | "creep" | "hold_trim" (compensation on in both passes, the predictor's ~set_hold_trim
+//   off then on); ~axis; ~model_file (the predictor's model: the same ideal line);
 //   ~out_prefix: writes <prefix>.csv (every sample) and <prefix>.json (the metrics);
-//   ~hold_s, ~creep_history_s [s], ~creep_seed, ~creep_scenarios (creep protocol); ~ideal_line_hold_s [s];
+//   ~hold_s, ~creep_history_s [s], ~creep_seed, ~creep_scenarios (creep protocol; hold_trim: defaults from
+//   compensation::hold_trim_demo_defaults()), ~score_last_s [s] (hold_trim: the hold's scored end); ~ideal_line_hold_s [s];
 //   ~progress_period_s [s, wall]: a progress line with the ETA this often;
 //   ~hold_axes, ~hold_axes_v [V]: other axes given one constant intent each at the start (the monitor screenshots);
 //   ~lockstep: the device samples once per command (sim.launch lockstep:=true command_on_sample:=false): the
@@ -35,16 +37,19 @@ using piezo::compensation::DemoRun;
 std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::string& out_prefix,
                                   double& progress_s, std::vector<std::pair<std::string, double>>& holds) {
   piezo::params::ParamReader r(pnh);
-  const std::string scenario = r.text("scenario", "sawtooth", {"sawtooth", "creep"});
+  const std::string scenario = r.text("scenario", "sawtooth", {"sawtooth", "creep", "hold_trim"});
   axis = r.text("axis", "c", {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()});
   out_prefix = r.text("out_prefix", "demo");
   const std::string model_file = r.text("model_file", "");
   piezo::compensation::CreepDemoOptions co;
+  if (scenario == "hold_trim") co = piezo::compensation::hold_trim_demo_defaults();
+  const std::vector<double> scen_default(co.scenarios.begin(), co.scenarios.end());
+  co.score_last_s = r.number("score_last_s", co.score_last_s, 1e-3, 1e6);
   co.hold_s = r.number("hold_s", co.hold_s, 1e-3, 1e6);
   co.history_s = r.number("creep_history_s", co.history_s, 1e-3, 1e6);
   co.seed = r.integer("creep_seed", co.seed, 0, 1 << 30);
   co.scenarios.clear();
-  for (double s : r.numbers("creep_scenarios", {11, 8, 13, 6}, 0, 1000, 1, 100)) {
+  for (double s : r.numbers("creep_scenarios", scen_default, 0, 1000, 1, 100)) {
     if (s != std::floor(s)) throw std::invalid_argument("parameter " + r.resolved("creep_scenarios") + ": integers only");
     co.scenarios.push_back(static_cast<int>(s));
   }
@@ -83,13 +88,24 @@ int main(int argc, char** argv) {
              run->lockstep() ? ", lock-step (paced by this node)" : "");
     auto intended = nh.advertise<piezo_compensation::IntendedMotion>(axis + "/intended", 5);
     auto sw = nh.serviceClient<std_srvs::SetBool>("predictor/set_compensation");
+    auto sw_trim = nh.serviceClient<std_srvs::SetBool>("predictor/set_hold_trim");
+    const auto call = [](ros::ServiceClient& c, bool on) {
+      std_srvs::SetBool req;
+      req.request.data = on;
+      if (!c.call(req) || !req.response.success)
+        throw std::runtime_error(c.getService() + " failed" + (req.response.message.empty() ? "" : ": " + req.response.message));
+    };
     const auto act = [&](const std::optional<DemoRun::Next>& n) {
       if (!n) return;
       if (n->set_mode) {
-        std_srvs::SetBool req;
-        req.request.data = n->compensated;
-        if (!sw.call(req) || !req.response.success) throw std::runtime_error("predictor/set_compensation failed");
-        ROS_INFO("demo %s: %s run", name, n->compensated ? "compensated" : "uncompensated");
+        call(sw, n->compensated);
+        if (run->switches_hold_trim()) {
+          // lock-step: the switch is in before the pass's first intent, so before the device's next sample
+          call(sw_trim, n->hold_trim);
+          ROS_INFO("demo %s: %s run", name, n->hold_trim ? "hold-trimmed" : "feedforward-only");
+        } else {
+          ROS_INFO("demo %s: %s run", name, n->compensated ? "compensated" : "uncompensated");
+        }
       }
       piezo_compensation::IntendedMotion im;
       im.header.stamp = ros::Time::now();
@@ -111,11 +127,19 @@ int main(int argc, char** argv) {
       act(run->on_voltage(m->sequence, m->voltage, m->header.stamp.toSec()));
     }, ros::VoidConstPtr(), hints);
     auto s4 = nh.subscribe<Prediction>(axis + "/prediction", 50, [&](const Prediction::ConstPtr& m) {
+      DemoRun::Estimate e;
+      e.fused_nm = m->fused_position * 1e9;
+      e.fused_sigma_nm = m->fused_position_sigma * 1e9;
+      e.hold_trim_nm = m->hold_trim * 1e9;
+      e.hold_trim_state = m->hold_trim_state;
       act(run->on_prediction(m->header.stamp.toSec(), m->commanded_voltage,
-                             m->compensation_active ? m->corrected_voltage : m->commanded_voltage, m->fallback));
+                             m->compensation_active ? m->corrected_voltage : m->commanded_voltage, m->fallback, e));
     }, ros::VoidConstPtr(), hints);
     if (!ros::service::waitForService(nh.resolveName("predictor/set_compensation"), ros::Duration(60)))
       throw std::runtime_error("predictor/set_compensation not available after 60 s");
+    if (run->switches_hold_trim() &&
+        !ros::service::waitForService(nh.resolveName("predictor/set_hold_trim"), ros::Duration(10)))
+      throw std::runtime_error("predictor/set_hold_trim not available");
     std::vector<ros::Publisher> hold_pubs;  // latched: the predictor gets the intent whenever it connects
     for (const auto& [ax, v] : holds) {
       hold_pubs.push_back(nh.advertise<piezo_compensation::IntendedMotion>(ax + "/intended", 1, true));

@@ -8,6 +8,8 @@
 #include <cmath>
 #include <sstream>
 
+#include <yaml-cpp/yaml.h>
+
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ros/mm3e_params.h"
 #include "piezo_compensation/sim/simulator_config.h"
@@ -17,6 +19,20 @@ namespace piezo::mm3e {
 namespace {
 double wall_now_s() {
   return std::chrono::duration<double>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+
+// ~simulator_config: a simulator YAML (config/simulator.yaml shape) or a stage file (config/stages/*.yaml), whose
+// `simulator:` block is the device's physics (the foreign stages of the hold-trim tests and demo).
+sim::SimulatorConfig load_device_physics(const std::string& path) {
+  YAML::Node root;
+  try {
+    root = YAML::LoadFile(path);
+  } catch (const YAML::Exception& e) {
+    throw std::invalid_argument(path + ": cannot read simulator config: " + e.what());
+  }
+  if (root.IsMap() && root["simulator"] && root["protocol"])
+    return sim::simulator_config_from_yaml(root["simulator"], path + ": simulator");
+  return sim::load_simulator_config(path);
 }
 }  // namespace
 
@@ -50,7 +66,7 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   const TransportParams transport = read_transport(r, 47101, 47100);
 
   sim::SimulatorConfig sim_config = sim_config_path.empty() ? sim::default_simulator_config()
-                                                            : sim::load_simulator_config(sim_config_path);
+                                                            : load_device_physics(sim_config_path);
   for (const std::string& effect : r.texts("effects", {}, {}, 0, 16)) {
     try {
       sim::enable_effect(sim_config, effect);

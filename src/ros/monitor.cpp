@@ -48,6 +48,10 @@ visualization_msgs::Marker to_marker(const ChartPrimitive& p, const std::string&
       m.type = visualization_msgs::Marker::LINE_LIST;
       m.scale.x = p.size;
       break;
+    case ChartPrimitive::Type::kTriangleList:
+      m.type = visualization_msgs::Marker::TRIANGLE_LIST;
+      m.scale.x = m.scale.y = m.scale.z = 1.0;
+      break;
     case ChartPrimitive::Type::kText:
       m.type = visualization_msgs::Marker::TEXT_VIEW_FACING;
       m.scale.z = p.size;
@@ -108,6 +112,9 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
           s.measured_nm = m->measured_position * 1e9;
           s.predicted_nm = m->fallback ? std::numeric_limits<double>::quiet_NaN() : m->predicted_position * 1e9;
           s.intended_nm = m->intended_position * 1e9;
+          // the fused estimate and its σ (NaN when the model file has no estimator block)
+          s.fused_nm = m->fallback ? std::numeric_limits<double>::quiet_NaN() : m->fused_position * 1e9;
+          s.fused_sigma_nm = m->fused_position_sigma * 1e9;
           s.voltage_v = m->compensation_active ? m->corrected_voltage : m->commanded_voltage;
           s.drift_horizons_s = m->drift_horizons;
           for (double d : m->drift) s.drift_nm.push_back(d * 1e9);

@@ -20,8 +20,10 @@ const IdealLine kLine{10.0, 5.0};  // 10 nm/V, 5 nm at 0 V
 // A device that applies each intent at the next sample. `true_nm(mode, phase index in hold, v)` is its physics.
 // Reports arrive in a rotating order (the three topics are not ordered). Lock-step: the predictor's output of the
 // sample comes before or after the reports, also rotating. Returns the JSON metrics.
+// `estimate(mode, hold_k)`: the predictor's fused estimate and trim it reports with the sample (hold_trim).
 YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, double v)>& true_nm,
-                 int* mode_switches = nullptr, std::vector<bool>* modes = nullptr) {
+                 int* mode_switches = nullptr, std::vector<bool>* modes = nullptr,
+                 const std::function<DemoRun::Estimate(int mode, int hold_k)>& estimate = nullptr) {
   double v = 0.0;
   int mode = 0, hold_k = 0;
   double last_intent = NAN, intent = 0.0;
@@ -29,7 +31,9 @@ YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, 
     const double x = true_nm(mode, hold_k, v), t = seq / 11.0;
     std::optional<DemoRun::Next> n;
     const auto keep = [&](std::optional<DemoRun::Next> r) { if (r) n = r; };
-    const auto predicted = [&] { keep(run.on_prediction(t, intent, intent, false)); };
+    const auto predicted = [&] {
+      keep(run.on_prediction(t, intent, intent, false, estimate ? estimate(mode, hold_k) : DemoRun::Estimate{}));
+    };
     if (run.lockstep() && seq % 2) predicted();
     switch (seq % 3) {
       case 0: keep(run.on_truth(seq, x, t)); keep(run.on_encoder(seq, std::round(x / 20) * 20, t)); keep(run.on_voltage(seq, v, t)); break;
@@ -42,9 +46,11 @@ YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, 
     }
     if (!n) continue;
     if (n->set_mode) {
-      mode = n->compensated ? 1 : 0;
+      const bool on = run.switches_hold_trim() ? n->hold_trim : n->compensated;
+      if (run.switches_hold_trim()) EXPECT_TRUE(n->compensated) << "hold_trim: compensation stays on";
+      mode = on ? 1 : 0;
       if (mode_switches) ++*mode_switches;
-      if (modes) modes->push_back(n->compensated);
+      if (modes) modes->push_back(on);
     }
     hold_k = n->intent_v == last_intent ? hold_k + 1 : 0;
     last_intent = n->intent_v;
@@ -140,6 +146,58 @@ TEST(DemoScenario, LostReportsKeepOneStepPerSample) {
   for (const auto& r : run.rows()) unmeasured += std::isnan(r.encoder_nm);
   EXPECT_EQ(unmeasured, run.pairing().lost_readings);
   EXPECT_EQ(run.rows().size(), run.steps());
+}
+
+// hold_trim: a short history, then the hold, feedforward only and then trimmed; the hold is scored over its last
+// score_last_s against the intended position, and the predictor's estimate goes into the CSV.
+TEST(DemoScenario, HoldTrimScoresTheEndOfEachHold) {
+  CreepDemoOptions co = piezo::compensation::hold_trim_demo_defaults();
+  EXPECT_EQ(co.history_s, 120.0);
+  EXPECT_EQ(co.hold_s, 1800.0);
+  EXPECT_EQ(co.score_last_s, 1680.0);
+  co.hold_s = 60.0;        // 660 samples,
+  co.score_last_s = 40.0;  // the last 440 scored (hold_k 221 … 660)
+  DemoRun run("hold_trim", co, kLine, 11.0, true);
+  EXPECT_TRUE(run.switches_hold_trim());
+  std::vector<bool> modes;
+  // Feedforward only: 8 nm off and creeping 0.01 nm per sample; trimmed: 0.5 nm + a settling 3 nm.
+  const auto physics = [](int mode, int k, double v) {
+    return kLine.position_nm(v) + (mode ? 0.5 + 3.0 * std::exp(-k / 50.0) : 8.0 + 0.01 * k);
+  };
+  const auto estimate = [](int mode, int k) {
+    DemoRun::Estimate e;
+    e.fused_nm = 100.0 + k, e.fused_sigma_nm = 0.75, e.hold_trim_nm = mode ? -0.25 : 0.0;
+    e.hold_trim_state = mode == 0 ? "off" : k > 55 ? "active" : "settling";
+    return e;
+  };
+  const auto j = drive(run, physics, nullptr, &modes, estimate);
+  EXPECT_EQ(modes, (std::vector<bool>{false, true}));
+  EXPECT_EQ(j["scenario"].as<std::string>(), "hold_trim");
+  ASSERT_EQ(j["ff_worst_nm"].size(), 1u);
+  ASSERT_EQ(j["trimmed_worst_nm"].size(), 1u);
+  EXPECT_NEAR(j["hold_trim_ff_worst_nm"].as<double>(), 8.0 + 0.01 * 660, 0.011);
+  EXPECT_NEAR(j["hold_trim_ff_mae_nm"].as<double>(), 8.0 + 0.01 * (221 + 660) / 2.0, 0.011);
+  EXPECT_NEAR(j["hold_trim_trimmed_worst_nm"].as<double>(), 0.5 + 3.0 * std::exp(-221 / 50.0), 0.002);
+  EXPECT_LT(j["hold_trim_trimmed_mae_nm"].as<double>(), 0.51);
+  EXPECT_EQ(j["ff_scored_samples"][0].as<int>(), 440);
+  EXPECT_EQ(j["trimmed_scored_samples"][0].as<int>(), 440);
+  EXPECT_EQ(j["ff_active_samples"][0].as<int>(), 0);
+  EXPECT_EQ(j["trimmed_active_samples"][0].as<int>(), 440);
+  EXPECT_NEAR(j["intended_nm"][0].as<double>(), kLine.position_nm(j["hold_v"][0].as<double>()), 1e-9);
+  EXPECT_EQ(run.rows().size(), run.steps());
+  std::ostringstream csv;
+  run.write_csv(csv);
+  const std::string text = csv.str();
+  EXPECT_EQ(text.substr(0, text.find('\n')),
+            "mode,segment,phase,time_s,intent_v,applied_v,ideal_nm,true_nm,encoder_nm,fused_nm,fused_sigma_nm,"
+            "hold_trim_nm,hold_trim_state");
+  EXPECT_NE(text.find(",0.75,-0.25,active\n"), std::string::npos);
+  EXPECT_EQ(text.find(",none\n"), std::string::npos) << "every sample has its prediction";
+
+  // The defaults: one 120-s history and a 30-min hold per pass.
+  DemoRun full("hold_trim", piezo::compensation::hold_trim_demo_defaults(), kLine, 11.0, true);
+  EXPECT_GT(full.steps(), 2u * 1920u * 11u);
+  EXPECT_LT(full.steps(), 2u * 1945u * 11u + 200u);
 }
 
 TEST(DemoScenario, BadSettingsNameTheParameter) {

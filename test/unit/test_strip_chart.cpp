@@ -161,4 +161,65 @@ TEST(StripChart, FallbackAndEmptyChartsSaySo) {
   EXPECT_EQ(find(ps, "a/fan"), nullptr);
 }
 
+// The fused estimate (Prediction.fused_position / _sigma): a line inside a ±1σ band of filled triangles, in the
+// position lane; none without it (a model file with no estimator block publishes NaN).
+TEST(StripChart, FusedPositionIsALineInItsSigmaBand) {
+  StripChart plain("c", StripChartOptions{});
+  std::mt19937 rng(3);
+  for (int i = 0; i < 50; ++i) plain.add(sample(i / 11.0, rng));
+  auto ps = plain.draw(0, 0);
+  EXPECT_EQ(find(ps, "c/fused"), nullptr);
+  EXPECT_EQ(find(ps, "c/fused_band"), nullptr);
+  EXPECT_EQ(find(ps, "c/legend")->text.find("fused"), std::string::npos);
+
+  StripChart c("c", StripChartOptions{});
+  const int n = 200;
+  for (int i = 0; i < n; ++i) {
+    auto s = sample(i / 11.0, rng);
+    if (i >= 20) {  // the first samples without an estimate (before the predictor had one)
+      s.fused_nm = 998.0 + 0.01 * i;
+      s.fused_sigma_nm = i < 100 ? 12.0 : 1.5;  // tightens as readings average
+    }
+    c.add(s);
+  }
+  ps = c.draw(0, 0);
+  const auto* fused = find(ps, "c/fused");
+  const auto* band = find(ps, "c/fused_band");
+  const auto* meas = find(ps, "c/measured");
+  ASSERT_TRUE(fused && band && meas);
+  EXPECT_EQ(fused->type, ChartPrimitive::Type::kLineStrip);
+  EXPECT_EQ(band->type, ChartPrimitive::Type::kTriangleList);
+  EXPECT_EQ(fused->x.size(), static_cast<std::size_t>(n - 20));
+  EXPECT_EQ(band->x.size(), 6u * (n - 21));  // two triangles between each pair of samples with a σ
+  EXPECT_EQ(band->x.size(), band->y.size());
+  EXPECT_LT(band->z, meas->z);   // under the dots and lines
+  EXPECT_GT(fused->z, meas->z);  // the line over the dots
+  EXPECT_NE(find(ps, "c/legend")->text.find("fused"), std::string::npos);
+  // The band's edges are fused ∓ σ on the lane's scale: the lane maps nm linearly, so the band's height in chart
+  // units is 2σ × (lane height / span), the same for every sample with the same σ, and it contains the line.
+  const auto height_at = [&](std::size_t tri) {  // first triangle of pair `tri`: (xa, la), (xb, lb), (xb, hb)
+    return band->y[6 * tri + 2] - band->y[6 * tri + 1];
+  };
+  const double wide = height_at(10), narrow = height_at(150);
+  EXPECT_NEAR(wide / narrow, 12.0 / 1.5, 1e-6);
+  for (std::size_t k = 0; k + 1 < fused->y.size(); ++k) {
+    const double lo = band->y[6 * k + 1], hi = band->y[6 * k + 2];
+    EXPECT_LT(lo, fused->y[k + 1]);
+    EXPECT_GT(hi, fused->y[k + 1]);
+  }
+  // everything inside the position lane
+  const double top = -3.2 * StripChartOptions{}.text_height, bottom = top - StripChartOptions{}.position_height;
+  for (double y : band->y) EXPECT_TRUE(y <= top + 1e-9 && y >= bottom - 1e-9) << y;
+
+  // A gap in the estimate (NaN) breaks the band: no triangle bridges it.
+  StripChart g("c", StripChartOptions{});
+  for (int i = 0; i < 30; ++i) {
+    auto s = sample(i / 11.0, rng);
+    s.fused_nm = i == 15 ? std::nan("") : 1000.0;
+    s.fused_sigma_nm = 2.0;
+    g.add(s);
+  }
+  EXPECT_EQ(find(g.draw(0, 0), "c/fused_band")->x.size(), 6u * (30 - 3));
+}
+
 }  // namespace

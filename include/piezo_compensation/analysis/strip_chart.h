@@ -1,12 +1,14 @@
 // The operator's strip chart of one axis (the rviz monitor, docs/predictor.md): the last window of predictor
 // output laid out as drawing primitives in a flat chart frame. ROS-free: the monitor node turns the primitives
 // into markers. Lanes from top to bottom: a text line, the position lane (measured dots, predicted line,
-// intended target, drift-forecast fan to the right of "now"), the error lane (measured − predicted, magnified,
+// intended target, the fused estimate as a line in its ±1σ band when the predictor publishes one, drift-forecast
+// fan to the right of "now"), the error lane (measured − predicted, magnified,
 // with ±σ and ±2σ bands of the noise floor estimated from the window).
 #pragma once
 
 #include <cstddef>
 #include <deque>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -19,6 +21,9 @@ struct ChartSample {
   double measured_nm = 0.0;   // NaN when no encoder reading yet
   double predicted_nm = 0.0;  // NaN in fallback
   double intended_nm = 0.0;
+  // Model and encoder fused (Prediction.fused_position, fused_position_sigma): NaN when not published
+  double fused_nm = std::numeric_limits<double>::quiet_NaN();
+  double fused_sigma_nm = std::numeric_limits<double>::quiet_NaN();
   double voltage_v = 0.0;     // the voltage sent (for the noise floor's hold detection)
   std::vector<double> drift_horizons_s, drift_nm;  // forecast of further motion if the voltage is held
   bool compensation_active = false, fallback = false;
@@ -30,7 +35,7 @@ struct ChartColor {
 };
 
 struct ChartPrimitive {
-  enum class Type { kPoints, kLineStrip, kLineList, kText };
+  enum class Type { kPoints, kLineStrip, kLineList, kText, kTriangleList };  // triangles: filled, 3 points each
   Type type = Type::kLineStrip;
   std::string name;                        // stable per primitive: the marker namespace
   std::vector<double> x, y;                // chart frame [chart units]; one point for text

@@ -3,10 +3,14 @@
 // then compensated, one intent per encoder sample (paired by io/sequence_pairer.h, the one pairing rule), and the
 // true position is scored
 //   "sawtooth": triangles of increasing amplitude (study Fig. 11) → deviation from the ideal line,
-//   "creep": histories of the package's `creep` protocol, each followed by its hold → drift while holding.
+//   "creep": histories of the package's `creep` protocol, each followed by its hold → drift while holding,
+//   "hold_trim": a short history of the `creep` protocol (its random walk, then its approach) and a long hold, run
+//   with compensation on both times: the hold trim off (feedforward only), then on (compensation/hold_trim.h) →
+//   worst and mean |true − intended| over the hold's last minutes.
 #pragma once
 
 #include <cstdint>
+#include <limits>
 #include <map>
 #include <optional>
 #include <ostream>
@@ -30,7 +34,12 @@ struct CreepDemoOptions {
   int seed = 3;                     // protocol seed (the demo's training plan uses the creep set of seed + 7)
   std::vector<int> scenarios{11, 8, 13, 6};  // protocol segments (0-based)
   double history_s = 1800.0, hold_s = 1800.0;
+  double score_last_s = 1680.0;     // hold_trim: the hold is scored over its last this many seconds (28 min)
 };
+
+// The hold_trim scenario's defaults: one short history (120 s: the walk's end, the protocol's pre-approach, dwell
+// and approach) before a 30-min hold, scored over its last 28 min.
+CreepDemoOptions hold_trim_demo_defaults();
 
 // Both modes, one step per encoder sample at `rate_hz`.
 std::vector<DemoStep> sawtooth_demo_steps(double rate_hz);
@@ -39,18 +48,28 @@ std::vector<DemoStep> creep_demo_steps(const CreepDemoOptions& o, double rate_hz
 
 class DemoRun {
  public:
-  // `scenario` "sawtooth" or "creep" (else std::invalid_argument); `line` scores the intent (the predictor's
+  // `scenario` "sawtooth", "creep" or "hold_trim" (else std::invalid_argument; hold_trim uses `creep` for its
+  // protocol); `line` scores the intent (the predictor's
   // ideal line of the same model). `lockstep`: the device takes one sample per command (SYNC) and the predictor
   // commands only on an intent, so the demo paces the device: the next intent is given once the predictor has
   // published its prediction of the sample (it has then taken that sample into its model), and each hold starts
   // at its first sample.
   DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep = false);
 
-  // What to do after a complete sample: switch compensation first when `set_mode`, then send `intent_v`.
+  // What to do after a complete sample: switch the mode first when `set_mode` (compensation on/off, or with
+  // switches_hold_trim() the hold trim on/off with compensation on), then send `intent_v`.
   struct Next {
     bool set_mode = false;
     bool compensated = false;
+    bool hold_trim = false;   // hold_trim scenario: pass 1
     double intent_v = 0.0;
+  };
+  // The predictor's fused estimate and hold trim of a sample (Prediction.fused_position …), for the CSV.
+  struct Estimate {
+    double fused_nm = std::numeric_limits<double>::quiet_NaN();
+    double fused_sigma_nm = std::numeric_limits<double>::quiet_NaN();
+    double hold_trim_nm = std::numeric_limits<double>::quiet_NaN();
+    std::string hold_trim_state;
   };
 
   // Device reports by sample sequence and stamp [s]; the one that completes a sample (truth, encoder, voltage)
@@ -62,7 +81,11 @@ class DemoRun {
   std::optional<Next> on_voltage(std::uint32_t seq, double applied_v, double stamp_s = 0.0);
   // The predictor's output for the sample stamped `stamp_s`: `commanded_v` the uncorrected command, `sent_v` what
   // went to the driver. Lock-step: returns the intent that waited for it.
-  std::optional<Next> on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback);
+  std::optional<Next> on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback,
+                                    const Estimate& estimate);
+  std::optional<Next> on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback) {
+    return on_prediction(stamp_s, commanded_v, sent_v, fallback, Estimate());
+  }
 
   bool done() const { return next_ > steps_.size(); }
   bool lockstep() const { return lockstep_; }
@@ -72,16 +95,30 @@ class DemoRun {
   const IdealLine& line() const { return line_; }
   double rate_hz() const { return rate_hz_; }
   const std::string& scenario() const { return scenario_; }
+  // hold_trim: the passes differ by ~set_hold_trim, compensation stays on.
+  bool switches_hold_trim() const { return scenario_ == "hold_trim"; }
 
   struct Row {
     DemoStep step;
     double time_s, ideal_nm, true_nm, encoder_nm, applied_v;  // time_s: scenario sample index / rate
+    double stamp_s = 0.0;                                     // the device's stamp of the sample
   };
   const std::vector<Row>& rows() const { return rows_; }
 
+  // hold_trim: the CSV also has the predictor's fused_nm, fused_sigma_nm, hold_trim_nm, hold_trim_state.
   void write_csv(std::ostream& os) const;
-  // The metrics: sawtooth deviation from the ideal line in % of the stroke, or creep drift per hold.
+  // The metrics: sawtooth deviation from the ideal line in % of the stroke, creep drift per hold, or the hold
+  // error per hold (hold_trim).
   void write_json(std::ostream& os) const;
+
+  // hold_trim scoring, per hold in scenario order: worst and mean |true − intended| over the hold's last
+  // score_last_s (the whole hold when it is shorter), and the samples scored.
+  struct HoldScore {
+    int mode = 0, segment = 0;
+    double hold_v = 0.0, intended_nm = 0.0, worst_nm = 0.0, mae_nm = 0.0, start_error_nm = 0.0;
+    std::size_t samples = 0, active_samples = 0;  // active: the predictor's hold_trim_state was "active"
+  };
+  std::vector<HoldScore> hold_scores() const;
 
  private:
   std::optional<Next> take(const std::vector<io::PairedSample>& samples);
@@ -102,6 +139,8 @@ class DemoRun {
   std::map<std::pair<int, int>, bool> hold_started_, forced_;
   std::map<std::pair<int, int>, int> hold_delay_;
   std::vector<double> hold_sent_v_;
+  std::vector<std::pair<double, Estimate>> estimates_;  // hold_trim: by prediction stamp, in arrival order
+  const Estimate* estimate_at(double stamp_s) const;
 };
 
 }  // namespace piezo::compensation

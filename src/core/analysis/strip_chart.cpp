@@ -14,6 +14,8 @@ namespace {
 constexpr ChartColor kMeasured{0.35f, 0.75f, 1.0f, 0.85f};
 constexpr ChartColor kPredicted{1.0f, 0.55f, 0.1f, 1.0f};
 constexpr ChartColor kIntended{0.6f, 0.9f, 0.4f, 0.9f};
+constexpr ChartColor kFused{0.95f, 0.95f, 0.95f, 1.0f};
+constexpr ChartColor kFusedBand{0.85f, 0.85f, 0.95f, 0.35f};
 constexpr ChartColor kFan{1.0f, 0.3f, 0.8f, 0.9f};
 constexpr ChartColor kError{1.0f, 0.85f, 0.2f, 1.0f};
 constexpr ChartColor kBand1{0.5f, 0.5f, 0.55f, 0.9f};
@@ -121,7 +123,10 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   const auto grow = [&](double v) {
     if (std::isfinite(v)) lo = std::min(lo, v), hi = std::max(hi, v);
   };
-  for (const auto& s : samples_) grow(s.measured_nm), grow(s.predicted_nm), grow(s.intended_nm);
+  for (const auto& s : samples_) {
+    grow(s.measured_nm), grow(s.predicted_nm), grow(s.intended_nm), grow(s.fused_nm);
+    if (std::isfinite(s.fused_sigma_nm)) grow(s.fused_nm + s.fused_sigma_nm), grow(s.fused_nm - s.fused_sigma_nm);
+  }
   const ChartSample* last = samples_.empty() ? nullptr : &samples_.back();
   if (last && std::isfinite(last->predicted_nm))
     for (double d : last->drift_nm) grow(last->predicted_nm + d);
@@ -182,8 +187,31 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
     if (std::isfinite(s.measured_nm) && std::isfinite(s.predicted_nm))
       err.x.push_back(x), err.y.push_back(YE(s.measured_nm - s.predicted_nm));
   }
+  // The fused estimate: a thin line over its ±1σ band (translucent triangles between consecutive samples that
+  // both have a σ), under the predicted line so the model stays readable where the two agree.
+  auto fused = prim(T::kLineStrip, n + "fused", kFused, 0.02);
+  auto band = prim(T::kTriangleList, n + "fused_band", kFusedBand, 1.0);
+  fused.z = 0.015, band.z = -0.01;
+  const ChartSample* prev = nullptr;
+  for (const auto& s : samples_) {
+    if (!std::isfinite(s.fused_nm)) {
+      prev = nullptr;
+      continue;
+    }
+    fused.x.push_back(X(s.time_s)), fused.y.push_back(Y(s.fused_nm));
+    const bool has = std::isfinite(s.fused_sigma_nm) && s.fused_sigma_nm >= 0.0;
+    if (has && prev) {
+      const double xa = X(prev->time_s), xb = X(s.time_s);
+      const double la = Y(prev->fused_nm - prev->fused_sigma_nm), ha = Y(prev->fused_nm + prev->fused_sigma_nm);
+      const double lb = Y(s.fused_nm - s.fused_sigma_nm), hb = Y(s.fused_nm + s.fused_sigma_nm);
+      band.x.insert(band.x.end(), {xa, xb, xb, xa, xb, xa});
+      band.y.insert(band.y.end(), {la, lb, hb, la, hb, ha});
+    }
+    prev = has ? &s : nullptr;
+  }
+  if (!band.x.empty()) out.push_back(band);
   // rviz refuses an empty or one-point line strip: only emit what can be drawn.
-  for (auto* p : {&intent, &pred})
+  for (auto* p : {&intent, &pred, &fused})
     if (p->x.size() >= 2) out.push_back(*p);
   for (auto* p : {&meas, &err})
     if (!p->x.empty()) out.push_back(*p);
@@ -228,7 +256,9 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   out.push_back(text(n + "t_left", x0, y_err_bot - 1.2 * lh, fmt("-%.0f s", o_.window_s), lh));
   out.push_back(text(n + "t_now", x0 + W, y_err_bot - 1.2 * lh, "now", lh));
   out.push_back(text(n + "legend", x0 + W / 2, y_err_bot - 1.2 * lh,
-                     "dots measured   orange predicted   green intended   magenta drift forecast   yellow measured - predicted",
+                     std::string("dots measured   orange predicted   green intended") +
+                         (fused.x.size() >= 2 ? "   white fused ±1σ" : "") +
+                         "   magenta drift forecast   yellow measured - predicted",
                      lh));
   std::string head = "axis " + axis_;
   if (last) {

@@ -74,6 +74,16 @@ std::vector<DemoStep> creep_demo_steps(const CreepDemoOptions& o, double hz) {
   return s;
 }
 
+CreepDemoOptions hold_trim_demo_defaults() {
+  CreepDemoOptions o;
+  o.seed = 3;
+  o.scenarios = {0};
+  o.history_s = 120.0;
+  o.hold_s = 1800.0;
+  o.score_last_s = 1680.0;
+  return o;
+}
+
 namespace {
 io::PairerOptions demo_pairing() {
   io::PairerOptions o;
@@ -85,9 +95,10 @@ io::PairerOptions demo_pairing() {
 DemoRun::DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep)
     : scenario_(std::move(scenario)), creep_(creep), line_(line), rate_hz_(rate_hz), lockstep_(lockstep),
       pairer_(demo_pairing()) {
-  if (scenario_ != "sawtooth" && scenario_ != "creep")
-    throw std::invalid_argument("~scenario: sawtooth or creep, got '" + scenario_ + "'");
+  if (scenario_ != "sawtooth" && scenario_ != "creep" && scenario_ != "hold_trim")
+    throw std::invalid_argument("~scenario: sawtooth, creep or hold_trim, got '" + scenario_ + "'");
   if (!(rate_hz_ > 0.0)) throw std::invalid_argument("demo: sample rate must be > 0 Hz");
+  if (!(creep_.score_last_s > 0.0)) throw std::invalid_argument("~score_last_s must be > 0 s");
   steps_ = scenario_ == "sawtooth" ? sawtooth_demo_steps(rate_hz_) : creep_demo_steps(creep_, rate_hz_);
 }
 
@@ -102,8 +113,10 @@ std::optional<DemoRun::Next> DemoRun::on_voltage(std::uint32_t seq, double appli
 }
 
 // Voltages the predictor sent for the hold intent: the hold starts when one of them is applied.
-std::optional<DemoRun::Next> DemoRun::on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback) {
+std::optional<DemoRun::Next> DemoRun::on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback,
+                                                    const Estimate& estimate) {
   newest_prediction_s_ = std::max(newest_prediction_s_, stamp_s);
+  if (switches_hold_trim()) estimates_.emplace_back(stamp_s, estimate);
   if (next_ > 0 && next_ <= steps_.size()) {
     const DemoStep& s = steps_[next_ - 1];
     if (s.phase == "hold" && !fallback && std::abs(commanded_v - s.intent_v) <= 1e-6) hold_sent_v_.push_back(sent_v);
@@ -160,8 +173,8 @@ std::optional<DemoRun::Next> DemoRun::step(const io::PairedSample& sample) {
     } else {
       hold_sent_v_.clear();
     }
-    rows_.push_back(
-        {s, static_cast<double>(next_ - 1) / rate_hz_, line_.position_nm(s.intent_v), true_nm, enc_nm, applied_v});
+    rows_.push_back({s, static_cast<double>(next_ - 1) / rate_hz_, line_.position_nm(s.intent_v), true_nm, enc_nm,
+                     applied_v, sample.stamp_s});
   }
   if (next_ >= steps_.size()) {
     ++next_;
@@ -170,18 +183,75 @@ std::optional<DemoRun::Next> DemoRun::step(const io::PairedSample& sample) {
   const DemoStep& s = steps_[next_];
   Next n;
   n.set_mode = next_ == 0 || steps_[next_ - 1].mode != s.mode;
-  n.compensated = s.mode == 1;
+  n.compensated = s.mode == 1 || switches_hold_trim();
+  n.hold_trim = switches_hold_trim() && s.mode == 1;
   n.intent_v = s.intent_v;
   ++next_;
   return n;
 }
 
+// The prediction of the sample stamped `stamp_s` (stamps of one sample agree to well within a period).
+const DemoRun::Estimate* DemoRun::estimate_at(double stamp_s) const {
+  const double tol = 0.25 / rate_hz_;
+  auto it = std::lower_bound(estimates_.begin(), estimates_.end(), stamp_s - tol,
+                             [](const auto& e, double t) { return e.first < t; });
+  for (; it != estimates_.end() && it->first <= stamp_s + tol; ++it)
+    if (std::abs(it->first - stamp_s) <= tol) return &it->second;
+  return nullptr;
+}
+
 void DemoRun::write_csv(std::ostream& csv) const {
-  csv << "mode,segment,phase,time_s,intent_v,applied_v,ideal_nm,true_nm,encoder_nm\n";
+  const bool est = switches_hold_trim();
+  csv << "mode,segment,phase,time_s,intent_v,applied_v,ideal_nm,true_nm,encoder_nm"
+      << (est ? ",fused_nm,fused_sigma_nm,hold_trim_nm,hold_trim_state" : "") << "\n";
   csv.precision(10);
-  for (const auto& r : rows_)
+  const Estimate none;
+  for (const auto& r : rows_) {
     csv << r.step.mode << "," << r.step.segment << "," << r.step.phase << "," << r.time_s << "," << r.step.intent_v
-        << "," << r.applied_v << "," << r.ideal_nm << "," << r.true_nm << "," << r.encoder_nm << "\n";
+        << "," << r.applied_v << "," << r.ideal_nm << "," << r.true_nm << "," << r.encoder_nm;
+    if (est) {
+      const Estimate* e = estimate_at(r.stamp_s);
+      if (!e) e = &none;
+      csv << "," << e->fused_nm << "," << e->fused_sigma_nm << "," << e->hold_trim_nm << ","
+          << (e->hold_trim_state.empty() ? "none" : e->hold_trim_state);
+    }
+    csv << "\n";
+  }
+}
+
+std::vector<DemoRun::HoldScore> DemoRun::hold_scores() const {
+  std::vector<HoldScore> out;
+  std::map<std::pair<int, int>, std::size_t> index, length;
+  for (const auto& r : rows_) {
+    if (r.step.phase != "hold") continue;
+    const auto key = std::make_pair(r.step.mode, r.step.segment);
+    if (!index.count(key)) {
+      index[key] = out.size();
+      HoldScore h;
+      h.mode = key.first, h.segment = key.second, h.hold_v = r.step.intent_v, h.intended_nm = r.ideal_nm;
+      h.start_error_nm = r.true_nm - r.ideal_nm;
+      out.push_back(h);
+    }
+    ++length[key];
+  }
+  const auto skip = [&](const std::pair<int, int>& key) {
+    const double n = static_cast<double>(length[key]), keep = std::round(creep_.score_last_s * rate_hz_);
+    return static_cast<std::size_t>(std::max(0.0, n - keep));
+  };
+  std::map<std::pair<int, int>, std::size_t> k;
+  for (const auto& r : rows_) {
+    if (r.step.phase != "hold") continue;
+    const auto key = std::make_pair(r.step.mode, r.step.segment);
+    if (k[key]++ < skip(key)) continue;
+    HoldScore& h = out[index[key]];
+    const double e = std::abs(r.true_nm - r.ideal_nm);
+    h.worst_nm = std::max(h.worst_nm, e);
+    h.mae_nm += e;
+    ++h.samples;
+    if (const Estimate* est = estimate_at(r.stamp_s); est && est->hold_trim_state == "active") ++h.active_samples;
+  }
+  for (auto& h : out) h.mae_nm /= std::max<std::size_t>(1, h.samples);
+  return out;
 }
 
 void DemoRun::write_json(std::ostream& js) const {
@@ -206,6 +276,42 @@ void DemoRun::write_json(std::ostream& js) const {
        << ", \"compensated_max_pct\": " << 100 * mx[1] / stroke
        << ", \"uncompensated_rms_pct\": " << 100 * std::sqrt(ss[0] / std::max<std::size_t>(1, n[0])) / stroke
        << ", \"compensated_rms_pct\": " << 100 * std::sqrt(ss[1] / std::max<std::size_t>(1, n[1])) / stroke << "}\n";
+    return;
+  }
+  if (switches_hold_trim()) {
+    const auto scores = hold_scores();
+    double worst[2] = {0, 0}, mae[2] = {0, 0};
+    std::size_t n[2] = {0, 0};
+    for (const auto& h : scores) {
+      const int m = h.mode ? 1 : 0;
+      worst[m] = std::max(worst[m], h.worst_nm), mae[m] += h.mae_nm, ++n[m];
+    }
+    const auto list = [&](const char* name, int mode, auto value) {
+      js << ", \"" << name << "\": [";
+      bool first = true;
+      for (const auto& h : scores)
+        if (h.mode == mode) js << (first ? "" : ", ") << value(h), first = false;
+      js << "]";
+    };
+    js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", \"scenario\": \"hold_trim\""
+       << ", \"score_last_s\": " << creep_.score_last_s << ", \"history_s\": " << creep_.history_s
+       << ", \"hold_s\": " << creep_.hold_s << ", \"hold_trim_ff_worst_nm\": " << worst[0]
+       << ", \"hold_trim_trimmed_worst_nm\": " << worst[1]
+       << ", \"hold_trim_ff_mae_nm\": " << mae[0] / std::max<std::size_t>(1, n[0])
+       << ", \"hold_trim_trimmed_mae_nm\": " << mae[1] / std::max<std::size_t>(1, n[1]);
+    for (int mode = 0; mode < 2; ++mode) {
+      const std::string p = mode ? "trimmed_" : "ff_";
+      list((p + "worst_nm").c_str(), mode, [](const HoldScore& h) { return h.worst_nm; });
+      list((p + "mae_nm").c_str(), mode, [](const HoldScore& h) { return h.mae_nm; });
+      list((p + "start_error_nm").c_str(), mode, [](const HoldScore& h) { return h.start_error_nm; });
+      list((p + "scored_samples").c_str(), mode, [](const HoldScore& h) { return h.samples; });
+      list((p + "active_samples").c_str(), mode, [](const HoldScore& h) { return h.active_samples; });
+    }
+    list("hold_v", 0, [](const HoldScore& h) { return h.hold_v; });
+    list("intended_nm", 0, [](const HoldScore& h) { return h.intended_nm; });
+    js << ", \"creep_seed\": " << creep_.seed << ", \"creep_scenarios\": [";
+    for (std::size_t i = 0; i < creep_.scenarios.size(); ++i) js << (i ? ", " : "") << creep_.scenarios[i];
+    js << "]}\n";
     return;
   }
   // drift = |true position at the end of the hold − true position at its start|, per history.
