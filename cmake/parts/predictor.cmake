@@ -25,7 +25,7 @@ if(EXISTS ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml)
   piezo_rostest(test/rostest/hold_trim.test test/rostest/hold_trim_check.cpp
                 DEPENDS piezo_demo piezo_predictor mm3e_sim mm3e_driver)
   target_link_libraries(hold_trim yaml-cpp)
-  add_rostest(test/rostest/hold_trim_thermal.test DEPENDENCIES hold_trim)
+  piezo_add_rostest(test/rostest/hold_trim_thermal.test DEPENDENCIES hold_trim)
 else()
   message(WARNING "config/models/mm3e_foreign_c.yaml missing: rostests hold_trim and hold_trim_thermal are not registered")
 endif()

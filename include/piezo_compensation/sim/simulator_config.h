@@ -39,6 +39,11 @@ struct AxisConfig {
   double preisach_centre_offset = 0.25;
   double preisach_centre_spread = 0.45;
   double preisach_width_decay = 0.25;
+  // true: each relay's switching voltages lie at a fixed pseudo-random place inside its grid cell (its weight
+  // unchanged), as in a material with a continuous distribution of hysterons. On the plain grid a whole row of
+  // relays switches at one voltage: a slowly moving command (a hold trim) then sees one-sample steps of
+  // stroke·loop_width/grid (7 nm on a 2-µm axis with 100 points) that no continuous model can follow.
+  bool preisach_threshold_jitter = false;
   double encoder_quantisation_nm = 20.0;  // encoder LSB
   double encoder_noise_sigma_nm = 19.97;  // raw Gaussian σ before quantisation (measured σ² ≈ raw² + q²/12)
 };

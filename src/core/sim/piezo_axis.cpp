@@ -2,7 +2,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <stdexcept>
+
+#include "piezo_compensation/util/splitmix64.h"
 
 namespace piezo::sim {
 
@@ -76,8 +79,16 @@ Preisach::Preisach(const AxisConfig& axis) {
       const double dc = c - axis.preisach_centre_offset;
       const double mu = std::exp(-dc * dc / (2.0 * axis.preisach_centre_spread * axis.preisach_centre_spread) -
                                  w / axis.preisach_width_decay);
-      alpha_v_.push_back(a);
-      beta_v_.push_back(b);
+      double ja = 0.0, jb = 0.0;  // inside the cell; a relay without memory (α = β) keeps α = β
+      if (axis.preisach_threshold_jitter) {
+        const double cell = 2.0 * half_range_v / n;
+        std::uint64_t h = static_cast<std::uint64_t>(i) * 1000003ULL + static_cast<std::uint64_t>(j);
+        const auto unit = [&h] { return static_cast<double>(util::splitmix64(h) >> 11) * 0x1.0p-53; };
+        ja = cell * (unit() - 0.5);
+        jb = i == j ? ja : cell * (unit() - 0.5);
+      }
+      alpha_v_.push_back(a + ja);
+      beta_v_.push_back(b + jb);
       weight_nm_.push_back(mu);
       start_state_.push_back(a + b < 0.0 ? 1 : -1);
       sum += mu;

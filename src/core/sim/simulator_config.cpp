@@ -128,6 +128,7 @@ void read_axis(const YAML::Node& n, const std::string& where, AxisConfig& a) {
       .num("preisach_centre_offset", a.preisach_centre_offset)
       .num("preisach_centre_spread", a.preisach_centre_spread)
       .num("preisach_width_decay", a.preisach_width_decay)
+      .flag("preisach_threshold_jitter", a.preisach_threshold_jitter)
       .num("encoder_quantisation_nm", a.encoder_quantisation_nm)
       .num("encoder_noise_sigma_nm", a.encoder_noise_sigma_nm)
       .finish();
