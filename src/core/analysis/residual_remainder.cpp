@@ -124,7 +124,8 @@ std::size_t refine_step(const std::vector<double>& r, const std::vector<char>& m
 
 // Steps are found on the block means: the mean over w blocks after each block boundary against the mean over w
 // blocks before, in units of the block means' own scatter (a robust σ of their first differences, which holds
-// the reading noise and whatever slow structure moves from block to block; floored at the noise alone). w is 4
+// the reading noise and whatever slow structure moves from block to block; floored at the noise alone), or of
+// the window differences over the record where those are larger. w is 4
 // blocks (2 min at 30 s): long enough to average the noise, short enough that slow wander adds little.
 // Local maxima above z_min, at least w blocks apart, largest first; the time refined to the row.
 std::vector<StepChange> find_steps(const std::vector<double>& residual, const std::vector<char>& mask,
@@ -145,6 +146,13 @@ std::vector<StepChange> find_steps(const std::vector<double>& residual, const st
     size[j] = (after - before) / static_cast<double>(w);
     z[j] = size[j] / se;
   }
+  // A step must also stand out from the window differences themselves (a robust σ of them over the record):
+  // slow structure the model misses moves them by several block-noise units everywhere, a slip only at itself.
+  std::vector<double> dev;
+  for (std::size_t j = w; j + w <= K; ++j) dev.push_back(std::fabs(size[j]));
+  const double typical = 1.4826 * median(dev);
+  if (typical > se)
+    for (std::size_t j = w; j + w <= K; ++j) z[j] = size[j] / typical;
   std::vector<std::size_t> order(K);
   std::iota(order.begin(), order.end(), 0);
   std::stable_sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return std::fabs(z[a]) > std::fabs(z[b]); });
