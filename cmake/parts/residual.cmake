@@ -23,3 +23,10 @@ piezo_unit_test(test_eval_stream test/unit/test_eval_stream.cpp)
 if(TARGET test_residual_augmented)
   target_compile_definitions(test_residual_augmented PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
 endif()
+# The binaries split off for issue 27 and its new end-to-end tests are slow too (piezo_slow_tests comes with the
+# CTest budgets; the guard keeps this file valid without them).
+if(COMMAND piezo_slow_tests)
+  piezo_slow_tests(test_residual_loop_signals test_residual_loop_coupling test_residual_sim_clean
+                   test_residual_gain_temperature test_residual_gain_other_axis test_residual_two_effects
+                   test_residual_steps)
+endif()
