@@ -51,7 +51,7 @@ int run(int argc, char** argv) {
       .option("families", "LIST", "comma-separated effect families to consider (default all)")
       .option("validation", "FRACTION", "last part of TRAIN held out to check an effect generalises", "0.25")
       .option("alpha", "P", "significance level", "0.01")
-      .option("min-gain", "FRACTION", "validation MAE improvement an effect must bring", "0.03")
+      .option("min-gain", "FRACTION", "share of the validation systematic error (MSE − σ²) an effect must remove", "0.10")
       .option("max-effects", "N", "at most this many effects", "5")
       .option("permutations", "N", "circular-shift null draws per family", "40")
       .option("seed", "N", "random seed", "1")
@@ -87,8 +87,8 @@ int run(int argc, char** argv) {
   o.axis = axis;
   o.mode = analysis::parse_prediction_mode(args.str("mode"));
   o.validation_fraction = args.num("validation");
-  o.alpha = args.num("alpha");
-  o.min_validation_gain = args.num("min-gain");
+  o.acceptance.alpha = args.num("alpha");
+  o.acceptance.min_removed_fraction = args.num("min-gain");
   o.max_effects = static_cast<int>(args.integer("max-effects"));
   o.permutations = static_cast<int>(args.integer("permutations"));
   o.seed = static_cast<std::uint64_t>(args.integer("seed"));

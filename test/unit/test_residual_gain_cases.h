@@ -43,7 +43,9 @@ inline const io::Dataset& stage() {
   return d;
 }
 
-enum class Gain { kNone, kTemperature, kTime, kOtherAxis, kHiddenTemperature };
+// kTemperatureAndCoupling: two effects at once, a 2 %/°C stroke gain on the lagged temperature and an additive
+// a → c coupling of 0.4 nm per volt of axis a, 1 s late (test_residual_two_effects.cpp).
+enum class Gain { kNone, kTemperature, kTime, kOtherAxis, kHiddenTemperature, kTemperatureAndCoupling };
 
 // Temperature: slow sine + random walk; the stage feels it through a 45 s lag and a 240 s low-pass.
 inline std::vector<double> temperature(const io::Dataset& d) {
@@ -84,12 +86,14 @@ inline io::Dataset with_gain(Gain kind) {
       case Gain::kHiddenTemperature: f = 0.04 * (tlp - 22.0); break;                        // 4 %/°C
       case Gain::kTime: f = -0.10 * d.time_s[i] / (kHours * 3600.0); break;                // −10 % over 6 h
       case Gain::kOtherAxis: f = 0.015 * (a.true_position_nm[i] - a_mean) / 1000.0; break;  // 1.5 %/µm
+      case Gain::kTemperatureAndCoupling: f = 0.02 * (tlp - 22.0); break;                  // 2 %/°C
     }
-    const double dy = f * (c.true_position_nm[i] - y0);
+    double dy = f * (c.true_position_nm[i] - y0);
+    if (kind == Gain::kTemperatureAndCoupling) dy += 0.4 * a.voltage_v[i >= 11 ? i - 11 : 0];
     c.true_position_nm[i] += dy;
     c.position_nm[i] += dy;
   }
-  if (kind == Gain::kTemperature || kind == Gain::kNone) d.aux.push_back({"temperature_c", temp});
+  if (kind == Gain::kTemperature || kind == Gain::kNone || kind == Gain::kTemperatureAndCoupling) d.aux.push_back({"temperature_c", temp});
   return d;
 }
 

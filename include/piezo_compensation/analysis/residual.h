@@ -12,6 +12,8 @@
 #include <vector>
 
 #include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/analysis/residual_acceptance.h"
+#include "piezo_compensation/analysis/residual_families.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
@@ -19,17 +21,17 @@
 
 namespace piezo::analysis {
 
-// The effect families, in report order.
+// The effect families by name, read from the family table (analysis/residual_families.h), in report order.
 const std::vector<std::string>& residual_family_names();
 // Gain families scale the base output (or the voltage) by 1 + f(signal): time_gain, cross_axis_gain, aux_gain.
 bool is_gain_family(const std::string& family);
 // The additive family on the same signal as a gain family ("aux_gain" → "aux_signal"), "" for others.
 std::string additive_counterpart(const std::string& gain_family);
 // Families whose terms are lines in time (time_drift, time_gain): they extrapolate without bound past TRAIN
-// (ResidualOptions::time_trend_min_validation_gain).
+// (AcceptanceThresholds::time_trend_min_removed_fraction).
 bool extrapolates_in_time(const std::string& family);
 // Families whose regressors are functions of the operating point (voltage, position) rather than of a
-// physical signal; they must win by a clear margin (ResidualOptions::operating_point_margin).
+// physical signal; they must win by a clear margin (AcceptanceThresholds::operating_point_margin).
 bool is_operating_point_family(const std::string& family);
 
 // Runs of a model over data go through models::stream_model (models/model_stream.h), inputs through
@@ -61,6 +63,13 @@ struct FamilyScore {
   double hold_validation_gain = 0.0;  // the same inside holds (0 without holds)
   std::pair<double, double> validation_gain_halves{0.0, 0.0};  // the same in the first and second half of validation
   bool half_clearly_worse = false;  // a half where the errors are clearly higher with it (paired 5-min blocks)
+  // The noise-aware size (analysis/residual_acceptance.h), on the validation part: the systematic error is the
+  // validation MSE less the reading noise's σ² estimated from the data.
+  double systematic_nm = 0.0;     // with it, √(MSE − σ²) [nm]
+  double removed_fraction = 0.0;  // share of the systematic error (MSE − σ²) without it that it removes
+  double removed_nm = 0.0;        // √(ΔMSE) [nm]; negative when it adds error
+  bool clearly_better = false;    // validation errors clearly below those without it (paired blocks)
+  std::vector<double> block_mae;  // validation |error| per paired block with it (comparisons between families)
   std::size_t parameters = 0;   // fitted weights of the best variant
   std::size_t variants = 0;     // how many parameter variants were searched
   std::string verdict;          // "kept", or why it was not (competing explanation, hold guard, too small)
@@ -88,24 +97,8 @@ struct ResidualOptions {
   double validation_fraction = 0.25;   // last part of TRAIN used to check that an effect generalises in time
   int cv_folds = 5;
   int permutations = 40;               // circular-shift null draws per family
-  double alpha = 0.01;                 // significance level
-  double min_explained_variance = 0.01;
-  double min_validation_gain = 0.03;   // an effect must cut the validation MAE by this fraction to be added
-  // … and a line in time (time_drift, time_gain) by this: its slope's error grows with the horizon past TRAIN, and
-  // over a few hours a slow wander of the base's creep misfit looks like a line (on the Preisach gain stage of
-  // test_residual_gain, with the earlier Preisach fit, a line validated at 2.6 % on the clean stage and at 3.5 %
-  // after the temperature gain, and the wander reversed in TEST: 4.0 → 9.5 nm against the truth).
-  double time_trend_min_validation_gain = 0.06;
+  AcceptanceThresholds acceptance;     // every threshold of the acceptance policy, each with its why
   int max_effects = 5;
-  // A family whose regressors depend on the operating point (voltage_nonlinearity, position_periodic,
-  // rate_dependent, missing_memory) replaces one that names a physical signal only with validation gain ≥
-  // margin × the other's + min_validation_gain.
-  double operating_point_margin = 1.5;
-  // A gain family (aux_gain, time_gain, cross_axis_gain) replaces the additive family on the same signal
-  // (aux_signal, time_drift, cross_axis) only with validation gain ≥ margin × the additive's + min_validation_gain.
-  double gain_margin = 1.2;
-  double hold_tolerance = 0.005;       // an effect may not raise the validation MAE inside holds by more than this
-  double half_tolerance = 0.0;         // … nor in either half of the validation part (it must generalise in time)
   std::size_t max_score_samples = 24000;  // statistics on a decimated grid (the residual is strongly autocorrelated)
   std::vector<std::string> families;   // empty = all
   std::uint64_t seed = 1;
@@ -129,6 +122,13 @@ struct ResidualOptions {
   double anchor_s = 0.0;
 };
 
+// A step change of the remainder (a mount slip, a knock): where the mean of what is left jumps.
+struct StepChange {
+  double time_s = 0;   // time of the step (the first sample after it)
+  double size_nm = 0;  // mean after − mean before, over the windows either side
+  double z = 0;        // size over its standard error (the block means' scatter, slow structure included)
+};
+
 // What is left after the last accepted effect, tested against the noise floor estimated from the data.
 struct Remainder {
   bool explained = true;       // false: structure above the floor remains ("not explained")
@@ -139,6 +139,9 @@ struct Remainder {
   double block_s = 0;          // block length of the test
   std::size_t blocks = 0;
   std::vector<std::pair<std::string, double>> correlates;  // signals and products by |correlation|, top first
+  // When not explained: the largest step changes of what is left that stand above its scatter, largest first.
+  // Reported only; a step is never added as an effect (it does not extrapolate: the next slip is anywhere).
+  std::vector<StepChange> steps;
 };
 // residual = measured − prediction; position = the prediction; rows with mask[i] == 0 are left out (empty =
 // all). Block means over block_s seconds against white noise of the σ estimated from the data (χ², p < alpha
@@ -146,6 +149,17 @@ struct Remainder {
 // position × time, position × other axes' signals.
 Remainder assess_remainder(const std::vector<double>& residual, const std::vector<double>& position, const io::Dataset& data,
                            const std::string& axis, const std::vector<char>& mask, double alpha, double block_s = 30.0);
+
+// Step changes of a residual (rows with mask 0 left out): block means (block_first: each block's first row, B
+// rows a block), the mean over 4 blocks after each boundary against the 4 before, in units of the block means'
+// own scatter; local maxima with |z| ≥ z_min, largest first, at most max_steps, each time refined to the row.
+std::vector<StepChange> find_steps(const std::vector<double>& residual, const std::vector<char>& mask,
+                                   const std::vector<double>& time_s, const std::vector<double>& block_means,
+                                   const std::vector<std::size_t>& block_first, std::size_t B, double noise_sigma_nm,
+                                   double z_min, std::size_t max_steps);
+
+// One line for logs and reports: at the noise floor, or not explained with its size, top correlate and steps.
+std::string describe_remainder(const Remainder& r);
 
 struct ResidualResult {
   ErrorStats before_test, after_test;

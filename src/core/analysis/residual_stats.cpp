@@ -6,7 +6,6 @@
 #include <numeric>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/analysis/residual.h"
 
 namespace piezo::analysis {
@@ -143,6 +142,74 @@ CvScore cv_explained_variance(const std::vector<double>& r, const std::vector<do
   return out;
 }
 
+namespace {
+
+// A periodogram: power per frequency and the background shape it is divided by.
+struct Spectrum {
+  std::vector<double> freq, pow, shape;
+};
+
+// On a uniform grid: FFT, zero-padded `oversample` times, and the AR(1) spectrum shape fitted to r (lag-1
+// autocorrelation): the background of a slow residual is red, not flat.
+Spectrum uniform_spectrum(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
+                          double oversample) {
+  Spectrum s;
+  const std::size_t n = r.size();
+  const double du = (u.back() - u.front()) / static_cast<double>(n - 1);
+  double c0 = 0, c1 = 0;
+  for (std::size_t i = 0; i < n; ++i) c0 += r[i] * r[i];
+  for (std::size_t i = 1; i < n; ++i) c1 += r[i] * r[i - 1];
+  const double phi = c0 > 0 ? std::clamp(c1 / c0, 0.0, 0.999) : 0.0;
+  std::size_t N = 1;
+  while (N < static_cast<std::size_t>(oversample * static_cast<double>(n))) N <<= 1;
+  std::vector<std::complex<double>> a(N);
+  for (std::size_t i = 0; i < n; ++i) a[i] = r[i];
+  fft(a);
+  for (std::size_t j = 1; j < N / 2; ++j) {
+    const double f = static_cast<double>(j) / (static_cast<double>(N) * du);
+    if (f < f_min / 2 || f > std::min(2 * f_max, 0.5 / du)) continue;
+    s.freq.push_back(f);
+    s.pow.push_back(std::norm(a[j]) / static_cast<double>(n));
+    s.shape.push_back(1.0 / (1.0 + phi * phi - 2.0 * phi * std::cos(kTwoPi * f * du)));
+  }
+  return s;
+}
+
+// On a non-uniform variable (position): the direct sum on a grid oversampled relative to 1/range, flat shape.
+Spectrum direct_spectrum(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
+                         double oversample, double range) {
+  Spectrum s;
+  const double df = 1.0 / (oversample * range);
+  const std::size_t m = static_cast<std::size_t>((f_max - f_min) / df) + 1;
+  if (m > 200000) throw std::invalid_argument("find_periodic_peak: frequency grid too large");
+  for (std::size_t j = 0; j < m; ++j) {
+    const double f = f_min + df * static_cast<double>(j);
+    s.freq.push_back(f);
+    s.pow.push_back(power_at(u, r, f));
+    s.shape.push_back(1.0);
+  }
+  return s;
+}
+
+// Refines the frequency inside the peak's bin by a fine local search; returns (frequency, power).
+std::pair<double, double> refine_peak(const std::vector<double>& u, const std::vector<double>& r, double f0, double p0,
+                                      double step) {
+  double best_f = f0, best_p = p0;
+  for (int it = 0; it < 2; ++it) {
+    const double width = (it == 0 ? 1.0 : 0.1) * step;
+    const double centre = best_f;
+    for (int q = -10; q <= 10; ++q) {
+      const double f = centre + width * q / 10.0;
+      if (f <= 0) continue;
+      const double p = power_at(u, r, f);
+      if (p > best_p) best_p = p, best_f = f;
+    }
+  }
+  return {best_f, best_p};
+}
+
+}  // namespace
+
 PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r_in, double f_min, double f_max,
                                 double oversample) {
   PeriodicPeak out;
@@ -154,43 +221,13 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
   const auto [umin, umax] = std::minmax_element(u.begin(), u.end());
   const double range = *umax - *umin;
   if (!(range > 0)) return out;
-
-  // Coarse periodogram on a grid oversampled `oversample` times relative to the resolution 1/range. The
-  // background is red, not flat: on a uniform grid the periodogram is first divided by the AR(1) spectrum
-  // shape fitted to r (lag-1 autocorrelation), then compared with its own median over a log-frequency window
-  // [f/2, 2f] around the peak (outside the peak's lobe), which follows whatever slope is left.
-  std::vector<double> freq, pow, shape;
-  if (is_uniform(u)) {
-    const double du = (u.back() - u.front()) / static_cast<double>(n - 1);
-    double c0 = 0, c1 = 0;
-    for (std::size_t i = 0; i < n; ++i) c0 += r[i] * r[i];
-    for (std::size_t i = 1; i < n; ++i) c1 += r[i] * r[i - 1];
-    const double phi = c0 > 0 ? std::clamp(c1 / c0, 0.0, 0.999) : 0.0;
-    std::size_t N = 1;
-    while (N < static_cast<std::size_t>(oversample * static_cast<double>(n))) N <<= 1;
-    std::vector<std::complex<double>> a(N);
-    for (std::size_t i = 0; i < n; ++i) a[i] = r[i];
-    fft(a);
-    for (std::size_t j = 1; j < N / 2; ++j) {
-      const double f = static_cast<double>(j) / (static_cast<double>(N) * du);
-      if (f < f_min / 2 || f > std::min(2 * f_max, 0.5 / du)) continue;
-      freq.push_back(f);
-      pow.push_back(std::norm(a[j]) / static_cast<double>(n));
-      shape.push_back(1.0 / (1.0 + phi * phi - 2.0 * phi * std::cos(kTwoPi * f * du)));
-    }
-  } else {
-    const double df = 1.0 / (oversample * range);
-    const std::size_t m = static_cast<std::size_t>((f_max - f_min) / df) + 1;
-    if (m > 200000) throw std::invalid_argument("find_periodic_peak: frequency grid too large");
-    for (std::size_t j = 0; j < m; ++j) {
-      const double f = f_min + df * static_cast<double>(j);
-      freq.push_back(f);
-      pow.push_back(power_at(u, r, f));
-      shape.push_back(1.0);
-    }
-  }
-  std::vector<double> white(pow.size());
-  for (std::size_t j = 0; j < pow.size(); ++j) white[j] = pow[j] / shape[j];
+  // The periodogram divided by its background shape is then compared with its own median over a log-frequency
+  // window [f/2, 2f] around the peak (outside the peak's lobe), which follows whatever slope is left.
+  const Spectrum sp = is_uniform(u) ? uniform_spectrum(u, r, f_min, f_max, oversample)
+                                    : direct_spectrum(u, r, f_min, f_max, oversample, range);
+  const std::vector<double>& freq = sp.freq;
+  std::vector<double> white(sp.pow.size());
+  for (std::size_t j = 0; j < sp.pow.size(); ++j) white[j] = sp.pow[j] / sp.shape[j];
   std::size_t ipk = SIZE_MAX, in_band = 0;
   for (std::size_t j = 0; j < freq.size(); ++j) {
     if (freq[j] < f_min || freq[j] > f_max) continue;
@@ -203,24 +240,9 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
   for (std::size_t j = 0; j < freq.size(); ++j)
     if ((j > ipk ? j - ipk : ipk - j) > lobe && freq[j] >= freq[ipk] / 2 && freq[j] <= 2 * freq[ipk]) bg.push_back(white[j]);
   if (bg.size() < 8) return out;
-  std::nth_element(bg.begin(), bg.begin() + bg.size() / 2, bg.end());
+  std::nth_element(bg.begin(), bg.begin() + static_cast<long>(bg.size() / 2), bg.end());
   const double bg_mean = bg[bg.size() / 2] / std::log(2.0);  // median of Exp(1) is ln 2
-  // Refine the frequency inside the peak's bin by a fine local search.
-  const double step = freq.size() > 1 ? (freq[1] - freq[0]) : 0.0;
-  double best_f = freq[ipk], best_p = pow[ipk];
-  for (int it = 0; it < 2; ++it) {
-    const double width = (it == 0 ? 1.0 : 0.1) * step;
-    const double centre = best_f;
-    for (int q = -10; q <= 10; ++q) {
-      const double f = centre + width * q / 10.0;
-      if (f <= 0) continue;
-      const double p = power_at(u, r, f);
-      if (p > best_p) {
-        best_p = p;
-        best_f = f;
-      }
-    }
-  }
+  const auto [best_f, best_p] = refine_peak(u, r, freq[ipk], sp.pow[ipk], freq.size() > 1 ? (freq[1] - freq[0]) : 0.0);
   out.frequency = best_f;
   out.amplitude = 2.0 * std::sqrt(best_p / static_cast<double>(n));
   out.power_ratio = white[ipk] / bg_mean;
@@ -228,114 +250,6 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
   const double p1 = std::exp(-out.power_ratio);
   // 1 − (1 − p1)^M without cancellation.
   out.p_value = -std::expm1(static_cast<double>(out.searched) * std::log1p(-std::min(p1, 1.0 - 1e-16)));
-  return out;
-}
-
-namespace {
-double corr(const std::vector<double>& a, const std::vector<double>& b) {
-  const std::size_t n = a.size();
-  if (n < 3) return 0.0;
-  double ma = 0, mb = 0;
-  for (std::size_t i = 0; i < n; ++i) ma += a[i], mb += b[i];
-  ma /= n, mb /= n;
-  double sab = 0, saa = 0, sbb = 0;
-  for (std::size_t i = 0; i < n; ++i) {
-    sab += (a[i] - ma) * (b[i] - mb);
-    saa += (a[i] - ma) * (a[i] - ma);
-    sbb += (b[i] - mb) * (b[i] - mb);
-  }
-  return saa > 0 && sbb > 0 ? sab / std::sqrt(saa * sbb) : 0.0;
-}
-}  // namespace
-
-Remainder assess_remainder(const std::vector<double>& residual, const std::vector<double>& position, const io::Dataset& data,
-                           const std::string& axis, const std::vector<char>& mask, double alpha, double block_s) {
-  Remainder out;
-  const std::size_t n = residual.size();
-  if (position.size() != n || data.size() != n || (!mask.empty() && mask.size() != n))
-    throw std::invalid_argument("assess_remainder: sizes differ");
-  auto use = [&](std::size_t i) { return mask.empty() || mask[i]; };
-  // σ from the data (analysis/noise_floor.h: second differences in holds, else of this residual).
-  {
-    std::size_t used = 0;
-    for (std::size_t i = 0; i < n; ++i) used += use(i);
-    if (used < 20) return out;
-    const NoiseFloor nf = estimate_noise_floor(data, axis, &position);
-    out.noise_sigma_nm = nf.sigma_nm;
-    out.noise_floor = nf.describe();
-  }
-  const double fs = data.sample_rate_hz();
-  const std::size_t B = std::max<std::size_t>(2, static_cast<std::size_t>(std::lround(block_s * fs)));
-  out.block_s = static_cast<double>(B) / fs;
-
-  // Candidate explanatory signals, each block-averaged like the residual.
-  std::vector<std::string> names{"voltage", "position"};
-  std::vector<const std::vector<double>*> cols{&data.axis(axis).voltage_v, &position};
-  std::vector<std::vector<double>> products;
-  products.reserve(2 + data.aux.size() + 2 * data.axes.size());
-  auto centred_product = [&](const std::vector<double>& a, const std::vector<double>& b) {
-    const double ma = std::accumulate(a.begin(), a.end(), 0.0) / n, mb = std::accumulate(b.begin(), b.end(), 0.0) / n;
-    std::vector<double> p(n);
-    for (std::size_t i = 0; i < n; ++i) p[i] = (a[i] - ma) * (b[i] - mb);
-    return p;
-  };
-  names.push_back("time_s");
-  cols.push_back(&data.time_s);
-  products.push_back(centred_product(position, data.time_s));
-  names.push_back("position × time_s");
-  cols.push_back(&products.back());
-  for (const auto& a : data.aux) {
-    names.push_back(a.name);
-    cols.push_back(&a.values);
-    products.push_back(centred_product(position, a.values));
-    names.push_back("position × " + a.name);
-    cols.push_back(&products.back());
-  }
-  for (const auto& ax : data.axes) {
-    if (ax.name == axis) continue;
-    for (int k = 0; k < 2; ++k) {
-      const std::vector<double>& v = k == 0 ? ax.voltage_v : ax.position_nm;
-      const std::string nm = k == 0 ? io::voltage_column(ax.name) : io::position_column(ax.name);
-      names.push_back(nm);
-      cols.push_back(&v);
-      products.push_back(centred_product(position, v));
-      names.push_back("position × " + nm);
-      cols.push_back(&products.back());
-    }
-  }
-  std::vector<double> rm;
-  std::vector<std::vector<double>> sm(cols.size());
-  for (std::size_t b = 0; b + B <= n; b += B) {
-    std::size_t k = 0;
-    for (std::size_t i = b; i < b + B; ++i) k += use(i);
-    if (k < B / 2) continue;
-    double s = 0;
-    for (std::size_t i = b; i < b + B; ++i)
-      if (use(i)) s += residual[i];
-    rm.push_back(s / k);
-    for (std::size_t c = 0; c < cols.size(); ++c) {
-      double t = 0;
-      for (std::size_t i = b; i < b + B; ++i)
-        if (use(i)) t += (*cols[c])[i];
-      sm[c].push_back(t / k);
-    }
-  }
-  out.blocks = rm.size();
-  if (rm.size() < 4) return out;
-  const double mean = std::accumulate(rm.begin(), rm.end(), 0.0) / rm.size();
-  double ss = 0;
-  for (double x : rm) ss += (x - mean) * (x - mean);
-  const double var_noise = out.noise_sigma_nm * out.noise_sigma_nm / static_cast<double>(B);
-  const double dof = static_cast<double>(rm.size() - 1);
-  const double q = var_noise > 0 ? ss / var_noise : 1e300;
-  // χ²(dof) tail by the Wilson–Hilferty cube-root normal approximation.
-  const double z = (std::cbrt(q / dof) - (1.0 - 2.0 / (9.0 * dof))) / std::sqrt(2.0 / (9.0 * dof));
-  out.p_value = 0.5 * std::erfc(z / std::sqrt(2.0));
-  out.structure_nm = std::sqrt(std::max(0.0, ss / dof - var_noise));
-  out.explained = !(out.p_value < alpha);
-  for (std::size_t c = 0; c < cols.size(); ++c) out.correlates.emplace_back(names[c], corr(rm, sm[c]));
-  std::stable_sort(out.correlates.begin(), out.correlates.end(),
-                   [](const auto& a, const auto& b) { return std::fabs(a.second) > std::fabs(b.second); });
   return out;
 }
 
