@@ -106,6 +106,74 @@ StripChart::Stats StripChart::stats() const {
   return st;
 }
 
+namespace {
+
+// The fused estimate: a thin line over its ±1σ band (translucent triangles between consecutive samples that both
+// have a σ), under the predicted line so the model stays readable where the two agree.
+template <class FX, class FY>
+std::pair<ChartPrimitive, ChartPrimitive> fused_lane(const std::deque<ChartSample>& samples, const FX& X, const FY& Y,
+                                                     const std::string& n) {
+  using T = ChartPrimitive::Type;
+  auto fused = prim(T::kLineStrip, n + "fused", kFused, 0.02);
+  auto band = prim(T::kTriangleList, n + "fused_band", kFusedBand, 1.0);
+  fused.z = 0.015, band.z = -0.01;
+  const ChartSample* prev = nullptr;
+  for (const auto& s : samples) {
+    if (!std::isfinite(s.fused_nm)) {
+      prev = nullptr;
+      continue;
+    }
+    fused.x.push_back(X(s.time_s)), fused.y.push_back(Y(s.fused_nm));
+    const bool has = std::isfinite(s.fused_sigma_nm) && s.fused_sigma_nm >= 0.0;
+    if (has && prev) {
+      const double xa = X(prev->time_s), xb = X(s.time_s);
+      const double la = Y(prev->fused_nm - prev->fused_sigma_nm), ha = Y(prev->fused_nm + prev->fused_sigma_nm);
+      const double lb = Y(s.fused_nm - s.fused_sigma_nm), hb = Y(s.fused_nm + s.fused_sigma_nm);
+      band.x.insert(band.x.end(), {xa, xb, xb, xa, xb, xa});
+      band.y.insert(band.y.end(), {la, lb, hb, la, hb, ha});
+    }
+    prev = has ? &s : nullptr;
+  }
+  return {fused, band};
+}
+
+// Drift fan: from the last prediction to each horizon (log-spaced to the right of "now").
+template <class FY>
+void draw_fan(const ChartSample& last_sample, const FY& Y, double x_right, double x_now, double fan_width,
+              double lh, const std::string& n, std::vector<ChartPrimitive>& out) {
+  using T = ChartPrimitive::Type;
+  const ChartSample* last = &last_sample;
+  if (std::isfinite(last->predicted_nm) && !last->drift_nm.empty() &&
+      last->drift_nm.size() == last->drift_horizons_s.size()) {
+    const double hmax = std::max(1.0, *std::max_element(last->drift_horizons_s.begin(), last->drift_horizons_s.end()));
+    auto fan = prim(T::kLineList, n + "fan", kFan, 0.03);
+    fan.z = 0.03;
+    const std::size_t k = last->drift_nm.size();
+    std::vector<double> label_y(k);
+    for (std::size_t i = 0; i < k; ++i) {
+      const double h = last->drift_horizons_s[i];
+      const double xh = x_right + fan_width * std::log1p(std::max(h, 0.0)) / std::log1p(hmax);
+      const double yh = Y(last->predicted_nm + last->drift_nm[i]);
+      fan.x.insert(fan.x.end(), {x_now, xh});
+      fan.y.insert(fan.y.end(), {Y(last->predicted_nm), yh});
+      label_y[i] = yh;
+    }
+    // Labels in a column right of the fan, each at its line's end but pushed apart so none overlap (small drifts
+    // end at nearly the same height).
+    std::vector<std::size_t> order(k);
+    for (std::size_t i = 0; i < k; ++i) order[i] = i;
+    std::sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return label_y[a] > label_y[b]; });
+    for (std::size_t j = 1; j < k; ++j)
+      label_y[order[j]] = std::min(label_y[order[j]], label_y[order[j - 1]] - 1.3 * lh);
+    for (std::size_t i = 0; i < k; ++i)
+      out.push_back(text(n + "fan_label" + std::to_string(i), x_right + fan_width + 0.8, label_y[i],
+                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", last->drift_horizons_s[i]), lh, kFan));
+    out.push_back(fan);
+  }
+}
+
+}  // namespace
+
 std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   using T = ChartPrimitive::Type;
   std::vector<ChartPrimitive> out;
@@ -187,28 +255,7 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
     if (std::isfinite(s.measured_nm) && std::isfinite(s.predicted_nm))
       err.x.push_back(x), err.y.push_back(YE(s.measured_nm - s.predicted_nm));
   }
-  // The fused estimate: a thin line over its ±1σ band (translucent triangles between consecutive samples that
-  // both have a σ), under the predicted line so the model stays readable where the two agree.
-  auto fused = prim(T::kLineStrip, n + "fused", kFused, 0.02);
-  auto band = prim(T::kTriangleList, n + "fused_band", kFusedBand, 1.0);
-  fused.z = 0.015, band.z = -0.01;
-  const ChartSample* prev = nullptr;
-  for (const auto& s : samples_) {
-    if (!std::isfinite(s.fused_nm)) {
-      prev = nullptr;
-      continue;
-    }
-    fused.x.push_back(X(s.time_s)), fused.y.push_back(Y(s.fused_nm));
-    const bool has = std::isfinite(s.fused_sigma_nm) && s.fused_sigma_nm >= 0.0;
-    if (has && prev) {
-      const double xa = X(prev->time_s), xb = X(s.time_s);
-      const double la = Y(prev->fused_nm - prev->fused_sigma_nm), ha = Y(prev->fused_nm + prev->fused_sigma_nm);
-      const double lb = Y(s.fused_nm - s.fused_sigma_nm), hb = Y(s.fused_nm + s.fused_sigma_nm);
-      band.x.insert(band.x.end(), {xa, xb, xb, xa, xb, xa});
-      band.y.insert(band.y.end(), {la, lb, hb, la, hb, ha});
-    }
-    prev = has ? &s : nullptr;
-  }
+  auto [fused, band] = fused_lane(samples_, X, Y, n);
   if (!band.x.empty()) out.push_back(band);
   // rviz refuses an empty or one-point line strip: only emit what can be drawn.
   for (auto* p : {&intent, &pred, &fused})
@@ -216,34 +263,7 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   for (auto* p : {&meas, &err})
     if (!p->x.empty()) out.push_back(*p);
 
-  // Drift fan: from the last prediction to each horizon (log-spaced to the right of "now").
-  if (last && std::isfinite(last->predicted_nm) && !last->drift_nm.empty() &&
-      last->drift_nm.size() == last->drift_horizons_s.size()) {
-    const double hmax = std::max(1.0, *std::max_element(last->drift_horizons_s.begin(), last->drift_horizons_s.end()));
-    auto fan = prim(T::kLineList, n + "fan", kFan, 0.03);
-    fan.z = 0.03;
-    const std::size_t k = last->drift_nm.size();
-    std::vector<double> label_y(k);
-    for (std::size_t i = 0; i < k; ++i) {
-      const double h = last->drift_horizons_s[i];
-      const double xh = x0 + W + o_.fan_width * std::log1p(std::max(h, 0.0)) / std::log1p(hmax);
-      const double yh = Y(last->predicted_nm + last->drift_nm[i]);
-      fan.x.insert(fan.x.end(), {X(t_now), xh});
-      fan.y.insert(fan.y.end(), {Y(last->predicted_nm), yh});
-      label_y[i] = yh;
-    }
-    // Labels in a column right of the fan, each at its line's end but pushed apart so none overlap (small drifts
-    // end at nearly the same height).
-    std::vector<std::size_t> order(k);
-    for (std::size_t i = 0; i < k; ++i) order[i] = i;
-    std::sort(order.begin(), order.end(), [&](std::size_t a, std::size_t b) { return label_y[a] > label_y[b]; });
-    for (std::size_t j = 1; j < k; ++j)
-      label_y[order[j]] = std::min(label_y[order[j]], label_y[order[j - 1]] - 1.3 * lh);
-    for (std::size_t i = 0; i < k; ++i)
-      out.push_back(text(n + "fan_label" + std::to_string(i), x0 + W + o_.fan_width + 0.8, label_y[i],
-                         fmt("%+.1f nm", last->drift_nm[i]) + fmt(" @%gs", last->drift_horizons_s[i]), lh, kFan));
-    out.push_back(fan);
-  }
+  if (last) draw_fan(*last, Y, x0 + W, X(t_now), o_.fan_width, lh, n, out);
 
   // Scale labels and the headline.
   const double xl = x0 - 5 * lh;
