@@ -153,8 +153,9 @@ int run(int argc, char** argv) {
     // The estimator's noise model on the part the model was not fitted on, run from a cold start as on the next
     // recording: the warm continuation of the fit's own history shows smaller model errors than a new recording
     // has, and a filter identified there is over-confident on one (docs/predictor.md, "Estimator").
-    model->meta.estimator = analysis::identify_estimator(*model, val, axis).to_yaml();
-    std::cout << "estimator: " << estimation::NoiseModel::from_yaml(model->meta.estimator, "fit").describe() << "\n";
+    const estimation::NoiseModel noise = analysis::identify_estimator(*model, val, axis);
+    model->meta.estimator = noise.to_yaml();
+    std::cout << "estimator: " << noise.describe() << "\n";
   }
   model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
   if (model->meta.training_source.empty()) model->meta.training_source = args.str("data");

@@ -60,12 +60,10 @@ bool readings_inform(double reading_sigma_nm, double step_nm);
 class ErrorFilter {
  public:
   ErrorFilter(const NoiseModel& model, double dt_s);  // throws std::invalid_argument for dt_s ≤ 0
-  void reset();                                       // e = 0 with the cold-start covariance
+  void reset();  // e = 0 with the cold-start covariance (a start, or a model restarted at the measurement)
   // One sample: the model's prediction (its change from the last sample drives the process noise), then the
   // reading when `valid` (a lost or stale reading: predict only, the covariance grows).
   void step(double predicted_nm, double measured_nm, bool valid);
-  // A model restarted at the measurement (fallback): its error is that of a cold start again.
-  void restart() { reset(); }
 
   double error_nm() const { return x_(0) + x_(1); }
   double fused_nm() const { return last_p_ + (model_.fuse ? error_nm() : 0.0); }

@@ -35,7 +35,6 @@ void AxisCompensator::set_estimator_for(const models::Model& model) {
 void AxisCompensator::track(double predicted_nm, double measured_nm, bool measured_valid, bool ok, SampleUpdate& u) {
   u.fused_nm = predicted_nm;
   if (filter_) {
-    if (!ok) filter_->restart();
     filter_->step(predicted_nm, measured_nm, measured_valid);
     u.fused_nm = filter_->fused_nm();
     u.fused_sigma_nm = filter_->sigma_nm();
@@ -135,6 +134,7 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
     model_->reset(applied_v, x0);
     last_predicted_nm_ = x0;
     u.predicted_nm = x0;
+    if (filter_) filter_->reset();  // the model restarts at the measurement: a cold start for the filter too
     track(x0, measured_nm, measured_valid, false, u);
     return u;
   }
@@ -164,9 +164,8 @@ CommandUpdate AxisCompensator::command(bool compensate) {
     o.voltage_max_v = config_.voltage_max_v;
     o.tolerance_nm = config_.inverse_tolerance_nm;
     // The hold trim moves the target so that the fused estimate, not the model alone, reaches the intent.
-    const double trim = has_intent_ ? trim_.trim_nm() : 0.0;
     const InverseResult inv =
-        invert(*model_, c.intended_nm + trim, o, next.empty() ? nullptr : next.data());
+        invert(*model_, c.intended_nm + trim_.trim_nm(), o, next.empty() ? nullptr : next.data());
     if (inv.ok) {
       c.corrected_v = c.send_v = inv.voltage_v;
       c.compensation_active = true;
