@@ -117,6 +117,34 @@ TEST(ErrorFilter, LostReadingsPredictOnlyAndTheCovarianceGrows) {
   EXPECT_EQ(f.samples_since_reading(), 0u);
 }
 
+// The consistency guard: a filter identified on small errors, parked for 10 min, then the model's error jumps by
+// 10 nm (a move whose error is larger than any it was identified on). Without the guard the tight covariance
+// averages the jump in over many minutes; with it the mean innovation trips the test and the estimate follows.
+TEST(ErrorFilter, ConsistencyGuardFollowsAnUnexpectedJump) {
+  std::size_t trips = 0;
+  double err_after_60s[2];
+  for (int guard = 0; guard < 2; ++guard) {
+    NoiseModel m;
+    m.reading_sigma_nm = 21.0;
+    m.q_rest_nm2_per_s = 1e-6;
+    m.initial_sigma_nm = 30.0;
+    m.adapt_k = guard ? 3.0 : 0.0;
+    ErrorFilter f(m, kDt);
+    std::mt19937 rng(11);
+    std::normal_distribution<double> g(0.0, 21.0);
+    for (int i = 0; i < 6600; ++i) f.step(0.0, g(rng), true);
+    const std::size_t false_trips = f.adaptations();
+    std::printf("guard %d: %zu trips on 10 min of consistent readings\n", guard, false_trips);
+    EXPECT_LE(false_trips, 2u);  // each window is tested at every sample, so a false trip is likelier than 1 in 370
+    for (int i = 0; i < 660; ++i) f.step(0.0, 10.0 + g(rng), true);
+    err_after_60s[guard] = std::abs(f.fused_nm() - 10.0);
+    trips = f.adaptations() - false_trips;
+  }
+  EXPECT_GT(err_after_60s[0], 6.0);  // unguarded: most of the jump still missing after a minute
+  EXPECT_LT(err_after_60s[1], 3.0);
+  EXPECT_GE(trips, 1u);
+}
+
 TEST(ErrorFilter, CoarseStepsRunModelOnlyAndSaySo) {
   // a/b: 250 nm steps against 21 nm of noise — the readings' mean is biased by up to 125 nm
   EXPECT_FALSE(piezo::estimation::readings_inform(std::sqrt(21.0 * 21.0 + 250.0 * 250.0 / 12.0), 250.0));

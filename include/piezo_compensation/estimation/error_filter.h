@@ -38,8 +38,8 @@ struct NoiseModel {
   // is tested against its own standard error; beyond adapt_k of them the filter lags a change its process noise did
   // not expect (a jump: a move whose error is larger than those it was identified on; a ramp: creep mismatch or an
   // unmodelled drift in a long hold), and the slow error's variance is raised by that mean's square. adapt_k = 0
-  // turns it off. 3 standard errors: one false alarm per ~370 windows of a consistent filter, each costing only a
-  // brief loss of averaging.
+  // turns it off. 3 standard errors (0.27 % per independent test); each window is tested at every sample, so a
+  // consistent filter still trips now and then, each trip costing only a brief loss of averaging.
   double adapt_window_s = 10.0;
   double adapt_k = 3.0;
   bool fuse = true;                 // false: the readings cannot inform this axis (see the header)
