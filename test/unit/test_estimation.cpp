@@ -307,8 +307,9 @@ double closed_loop_worst(bool trim, const piezo::estimation::NoiseModel& nm, std
       const double tr = c.hold_trim().trim_nm();
       if (std::abs(tr - last_trim) > 0.5 * kDt + 1e-9) ++*slew_violations;
       last_trim = tr;
-      if (c.hold_trim().state() == TrimState::kMoving || c.hold_trim().state() == TrimState::kSettling)
+      if (c.hold_trim().state() == TrimState::kMoving || c.hold_trim().state() == TrimState::kSettling) {
         EXPECT_EQ(tr, 0.0);  // paused during moves
+      }
       v = c.command(true).send_v;
       if (i > 11 * 120) worst = std::max(worst, std::abs(x - target));
     }

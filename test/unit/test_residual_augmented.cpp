@@ -46,8 +46,7 @@ TEST(ResidualAugmented, LaggedTermReadsOnlyThePast) {
 }
 
 TEST(ResidualAugmented, RateAndPlayAndSinCos) {
-  pm::EffectTermStream s({make("rate", "voltage", 3), make("sincos", "position", 2)}, 1.0);
-  auto& terms = s.mutable_terms();
+  std::vector<pm::EffectTerm> terms = {make("rate", "voltage", 3), make("sincos", "position", 2)};
   terms[1].period = 100.0;
   pm::EffectTermStream s2(terms, 1.0);
   double z[5];

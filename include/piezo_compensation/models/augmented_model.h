@@ -65,7 +65,6 @@ class EffectTermStream {
   const std::vector<std::string>& column_signals() const;
   std::size_t num_regressors() const;
   const std::vector<EffectTerm>& terms() const;
-  std::vector<EffectTerm>& mutable_terms();
   double offset_nm() const;
   void set_offset_nm(double offset_nm);
 

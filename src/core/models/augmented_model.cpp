@@ -136,10 +136,27 @@ struct TermState {
   double prev = 0.0;
 };
 
+enum class TermKind { linear, play, sincos, rate, gain, gain_quadratic, powers };
+
+TermKind term_kind(const std::string& type) {
+  static const std::pair<const char*, TermKind> kinds[] = {
+      {"linear", TermKind::linear}, {"play", TermKind::play},   {"sincos", TermKind::sincos},
+      {"rate", TermKind::rate},     {"gain", TermKind::gain},   {"gain_quadratic", TermKind::gain_quadratic},
+      {"powers", TermKind::powers}};
+  for (const auto& [name, kind] : kinds)
+    if (type == name) return kind;
+  throw std::runtime_error("augmented model term: unknown type '" + type + "'");
+}
+
+// What a term's strings say, resolved once when the stream is built (the per-sample loop compares no strings).
 struct TermConst {
   std::size_t lag = 0;   // samples
   double alpha = 0.0;    // low-pass pole (0 = none)
   int column = -1;       // index into the column array, -1 = builtin
+  TermKind kind = TermKind::linear;
+  bool on_position = false;    // the term reads the (corrected) position
+  bool scales_voltage = false; // a gain scales the voltage, not the base output
+  std::size_t regressors = 1;
 };
 
 // Evaluates one term for the current signal value s; writes the raw regressors and, if next != null, the
@@ -155,25 +172,25 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
   };
   double lp_new[3] = {0, 0, 0};
   double play_new = st.play;
-  if (t.type == "linear") {
+  if (c.kind == TermKind::linear) {
     out[0] = lp_new[0] = lowpass(0, lagged);
-  } else if (t.type == "play") {
+  } else if (c.kind == TermKind::play) {
     const double prev = st.fresh ? lagged : st.play;
     play_new = std::max(lagged - t.threshold, std::min(lagged + t.threshold, prev));
     out[0] = lp_new[0] = lowpass(0, play_new);
-  } else if (t.type == "sincos") {
+  } else if (c.kind == TermKind::sincos) {
     const double ph = kTwoPi * lagged / t.period;
     out[0] = std::sin(ph);
     out[1] = std::cos(ph);
-  } else if (t.type == "rate") {
+  } else if (c.kind == TermKind::rate) {
     const double d = st.fresh ? 0.0 : s - st.prev;
     const double raw[3] = {d, std::fabs(d), d * std::fabs(d)};
     for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = lowpass(i, raw[i]);
-  } else if (t.is_gain()) {
+  } else if (c.kind == TermKind::gain || c.kind == TermKind::gain_quadratic) {
     const double g = (lowpass(0, lagged) - t.pre_center) / t.pre_scale;
     lp_new[0] = lowpass(0, lagged);
     out[0] = (q - t.reference) * g;
-    if (t.type == "gain_quadratic") out[1] = (q - t.reference) * g * g;
+    if (c.kind == TermKind::gain_quadratic) out[1] = (q - t.reference) * g * g;
   } else {  // powers
     const double u = (s - t.pre_center) / t.pre_scale;
     out[0] = u * u;
@@ -205,12 +222,12 @@ struct EffectTermStream::Impl {
       const double x_eff = x_base + corr;
       for (std::size_t i = 0; i < terms.size(); ++i) {
         const EffectTerm& t = terms[i];
-        const bool pos = t.signal == kSignalPosition;
+        const bool pos = consts[i].on_position;
         if (pos != (pass == 1)) continue;
         const int c = consts[i].column;
         const double s = c >= 0 ? cols[c] : (pos ? x_eff : v);
         // A gain scales the base output (not the corrected one, which would make it recursive) or the voltage.
-        const double q = t.scales == kSignalVoltage ? v : x_base;
+        const double q = consts[i].scales_voltage ? v : x_base;
         double* o = out ? out + first[i] : local;
         TermState next;
         eval_term(t, consts[i], states[i], s, q, o, commit ? &next : nullptr);
@@ -227,7 +244,7 @@ struct EffectTermStream::Impl {
           st.prev = next.prev;
           st.fresh = false;
         }
-        for (std::size_t r = 0; r < t.num_regressors(); ++r) {
+        for (std::size_t r = 0; r < consts[i].regressors; ++r) {
           const double z = (o[r] - (r < t.center.size() ? t.center[r] : 0.0)) / (r < t.scale.size() ? t.scale[r] : 1.0);
           corr += (r < t.weight.size() ? t.weight[r] : 0.0) * z;
         }
@@ -246,6 +263,10 @@ EffectTermStream::EffectTermStream(std::vector<EffectTerm> terms, double sample_
     TermConst c;
     c.lag = static_cast<std::size_t>(std::lround(t.lag_s * sample_rate_hz));
     c.alpha = t.time_constant_s > 0 ? std::exp(-1.0 / (t.time_constant_s * sample_rate_hz)) : 0.0;
+    c.regressors = t.num_regressors();  // validates the type, naming the known ones
+    c.kind = term_kind(t.type);
+    c.on_position = t.signal == kSignalPosition;
+    c.scales_voltage = t.scales == kSignalVoltage;
     if (!is_builtin_signal(t.signal)) {
       auto it = std::find(impl_->columns.begin(), impl_->columns.end(), t.signal);
       if (it == impl_->columns.end()) {
@@ -272,7 +293,6 @@ EffectTermStream& EffectTermStream::operator=(const EffectTermStream& o) {
 const std::vector<std::string>& EffectTermStream::column_signals() const { return impl_->columns; }
 std::size_t EffectTermStream::num_regressors() const { return impl_->k; }
 const std::vector<EffectTerm>& EffectTermStream::terms() const { return impl_->terms; }
-std::vector<EffectTerm>& EffectTermStream::mutable_terms() { return impl_->terms; }
 double EffectTermStream::offset_nm() const { return impl_->offset_nm; }
 void EffectTermStream::set_offset_nm(double offset_nm) { impl_->offset_nm = offset_nm; }
 
@@ -291,8 +311,9 @@ void EffectTermStream::raw(double v, double x, const double* cols, double* out) 
 void EffectTermStream::standardised(double v, double x, const double* cols, double* out) const {
   raw(v, x, cols, out);
   std::size_t j = 0;
-  for (const auto& t : impl_->terms) {
-    const std::size_t k = t.num_regressors();
+  for (std::size_t i = 0; i < impl_->terms.size(); ++i) {
+    const EffectTerm& t = impl_->terms[i];
+    const std::size_t k = impl_->consts[i].regressors;
     for (std::size_t r = 0; r < k; ++r, ++j) {
       const double c = r < t.center.size() ? t.center[r] : 0.0;
       const double s = r < t.scale.size() ? t.scale[r] : 1.0;
