@@ -177,7 +177,9 @@ inline void expect_gain(Gain kind, const char* name, const std::string& family, 
       EXPECT_EQ(e.family, family) << name;
       // The other axis' voltage and position carry the same information (its position follows its voltage):
       // either names the right cause, axis a.
-      if (!signal.empty()) EXPECT_EQ(e.labels.at("signal").rfind(signal, 0), 0u) << name << ": " << e.labels.at("signal");
+      if (!signal.empty()) {
+        EXPECT_EQ(e.labels.at("signal").rfind(signal, 0), 0u) << name << ": " << e.labels.at("signal");
+      }
     } else {
       ADD_FAILURE() << name << ": added " << e.family << " besides the gain";
     }

@@ -62,9 +62,9 @@ TEST(ResidualPreisach, CreepProtocolWithAPiBaseAddsNoPeriodicSignalOrTimeEffect)
   o.permutations = 20;
   if (std::getenv("PIEZO_RESIDUAL_VERBOSE")) o.log = [](const std::string& s) { std::cerr << s << "\n"; };
   auto fit = [](const io::Dataset& f, const io::Dataset& v) { return test::fit_physics_base(f, v, "pi_creep_lti"); };
-  o.refit_base = fit;
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
+  o.refit_base = fit;
   const auto base = fit(train.slice(0, n_fit), train.slice(n_fit, train.size()));
   const analysis::ResidualResult r = analysis::trace_residual(*base, train, test, o);
   std::cerr << "creep protocol, PI + LTI base: TEST MAE vs truth " << r.before_test_truth.mae_nm << " -> "
@@ -77,6 +77,9 @@ TEST(ResidualPreisach, CreepProtocolWithAPiBaseAddsNoPeriodicSignalOrTimeEffect)
     EXPECT_GE(1.0 - e.test_after_truth.mae_nm / prev, 0.02) << "added " << e.family << " for < 2 % TEST MAE";
     prev = e.test_after_truth.mae_nm;
   }
-  for (const auto& s : r.final_ranking)
-    if (s.family == "periodic_disturbance" || s.family == "position_periodic") EXPECT_FALSE(s.significant) << s.family << ": " << s.note;
+  for (const auto& s : r.final_ranking) {
+    if (s.family == "periodic_disturbance" || s.family == "position_periodic") {
+      EXPECT_FALSE(s.significant) << s.family << ": " << s.note;
+    }
+  }
 }

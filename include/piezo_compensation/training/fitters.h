@@ -30,7 +30,7 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request);
 models::ModelPtr fit_linear(const FitRequest& req);
 
 // options: n_play (by validation, else 12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti
-// start values), t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s (clamped
+// start values; fix_taus: true keeps them), t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s (clamped
 // to [2 samples, training duration]), creep_input (auto|voltage|hysteresis), hold_weight (auto|off|factor),
 // min_slope_fraction, refit_with_validation (false; pi, pi_creep_prony, preisach kinds). Kinds pi, pi_creep_log,
 // pi_creep_lti, pi_creep_fractional, pi_creep_prony; with preisach also "preisach" (kNone) and

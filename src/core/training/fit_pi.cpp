@@ -124,7 +124,9 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
     wc(fill) = weight ? (*weight)[t] : 1.0;
     for (std::size_t j = 0; j < e.size(); ++j) {
       x[P0 + j] = e[j];
-      e[j] *= init[j];
+      // A decayed initial state is set to 0 before it turns subnormal: its products would underflow on every
+      // remaining row, each a slow microcode assist (three quarters of a 6-h creep-on-H fit's time).
+      e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
     }
     if (++fill == kChunk) flush();
   }
@@ -288,26 +290,33 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
   return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
+// The hysteresis output H = Σ_i w_i·F_i of every sample for play weights w (fixed while a creep law is searched on H,
+// so it is computed once per search, not once per evaluation).
+std::vector<double> hysteresis_series(const FitData& d, const Basis& hb, const std::vector<double>& w) {
+  const std::size_t np = hb.pieces();
+  const std::vector<double>& V = *d.v;
+  std::vector<double> p(hb.r.size(), V[0]), f(np), h(V.size());
+  for (std::size_t t = 0; t < V.size(); ++t) {
+    hb.columns(V[t], p, f.data());
+    double s = 0;
+    for (std::size_t i = 0; i < np; ++i) s += w[i] * f[i];
+    h[t] = s;
+  }
+  return h;
+}
+
 // Creep on H with the play weights fixed up to a common scale: y = b + s·H + Σ_k θ_k·(basis of LP_j(H)).
 // The free scale s lets the alternation move along the valley where a larger H and a smaller fast-creep gain
-// explain the data almost equally well. Returns w·s and θ/s (gains relative to the rescaled H).
-EvalResult evaluate_creep_on_h(const FitData& d, const Basis& hb, const std::vector<double>& w,
+// explain the data almost equally well. H = hysteresis_series(d, hb, w). Returns w·s and θ/s (gains relative to
+// the rescaled H).
+EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& H, const std::vector<double>& w,
                                const CreepParams& cp) {
   const CreepBasis cb(cp, d.rate);
-  const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
-  const std::vector<double>& V = *d.v;
-  std::vector<double> p(hb.r.size(), V[0]), f(np);
-  auto h_of = [&](double v) {
-    hb.columns(v, p, f.data());
-    double h = 0;
-    for (std::size_t i = 0; i < np; ++i) h += w[i] * f[i];
-    return h;
-  };
-  const double h0 = h_of(V[0]);
-  std::vector<double> l(nm, h0);
-  p.assign(hb.r.size(), V[0]);
-  const auto g = stream_gram(V.size(), nk + 1, [&](std::size_t t, double* x) {
-    const double h = h_of(V[t]);
+  const std::size_t nm = cb.taus.size(), nk = cb.B.size();
+  // The modes start at rest at the H of the first sample's play states (every play at V[0]).
+  std::vector<double> l(nm, H.empty() ? 0.0 : H[0]);
+  const auto g = stream_gram(H.size(), nk + 1, [&](std::size_t t, double* x) {
+    const double h = H[t];
     x[0] = h;
     creep_columns(cb.poles, l, h, cb.B, x + 1);
     return (*d.y)[t];
@@ -546,7 +555,10 @@ void parse_creep_law_options(const YAML::Node& o, CreepKind kind, double tau_lo,
   if (kind == CreepKind::kLti) {
     p.taus_given = given(o, "taus_s");
     if (p.taus_given) p.taus_s = yaml_numbers(o, "taus_s");
-    p.fix_taus = p.taus_given && given(o, "fix_taus");
+    const std::string fix = option_str(o, "fix_taus", "false");
+    if (fix != "true" && fix != "false") throw std::runtime_error("option 'fix_taus': expected true or false, got '" + fix + "'");
+    if (fix == "true" && !p.taus_given) throw std::runtime_error("option 'fix_taus': needs taus_s");
+    p.fix_taus = fix == "true";
     p.n_pairs = option_int(o, "n_pairs", 2);
     if (!p.taus_given && (p.n_pairs < 1 || p.n_pairs > 6)) throw std::runtime_error("option 'n_pairs': expected 1..6");
     p.search_rounds = option_int(o, "search_rounds", 3);
@@ -806,8 +818,9 @@ EvalResult PiCreepFit::alternate_on_h(const FitData& d, const Basis& r, CreepPar
   for (double& t : theta) t /= std::max(1e-12, sum_w);
   cp.set_coefficients(theta);
   for (int it = 0; it < iters; ++it) {
-    search_creep_law(cp, [&](const CreepParams& c) { return evaluate_creep_on_h(d, r, w, c).sse; }, true);
-    EvalResult cr = evaluate_creep_on_h(d, r, w, cp);
+    const std::vector<double> H = hysteresis_series(d, r, w);
+    search_creep_law(cp, [&](const CreepParams& c) { return evaluate_creep_on_h(d, H, w, c).sse; }, true);
+    EvalResult cr = evaluate_creep_on_h(d, H, w, cp);
     report("PI + creep fit");
     cp.set_coefficients(cr.theta);
     w = cr.w;
