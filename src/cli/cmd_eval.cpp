@@ -28,7 +28,9 @@ int run(int argc, char** argv) {
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
               "test data's holds, analysis/noise_floor.h)")
       .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
-      .option("anchor-s", "T", "the first T of measured position fix each model's offset; scored after them", "0")
+      .option("anchor-s", "T", "the first T of measured position fix each model's start state (the synthetic pre-history\n"
+              "that fits them best) and offset; scored after them (docs/models.md, \"Start-up state estimate\")", "0")
+      .option("anchor-offset-only", "", "with --anchor-s: fix the offset only, the model starting at rest")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -53,6 +55,7 @@ int run(int argc, char** argv) {
   analysis::EvalOptions eo;
   eo.warmup_s = ctx.warmup_s;
   eo.anchor_s = ctx.anchor_s;
+  ctx.anchor_history = eo.anchor_history = !args.flag("anchor-offset-only");
   try {
     if (args.has("test-segments")) eo.test_segments = analysis::parse_segments(args.str("test-segments"));
     if (args.has("creep-segments")) eo.creep_segments = analysis::parse_segments(args.str("creep-segments"));
