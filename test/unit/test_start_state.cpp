@@ -123,8 +123,9 @@ TEST(StartState, MidMotionOnADescendingBranchBeatsOffsetOnly) {
   EXPECT_GT(est.start.candidates, 10u);
   EXPECT_LE(est.start.rms_nm, est.start.rms_rest_nm);
   EXPECT_NE(est.start.candidate.find("down"), std::string::npos) << est.start.candidate;
-  EXPECT_LT(est.score.mae_true, 0.6 * plain.score.mae_true);
-  EXPECT_LT(est.score.mae_meas, 0.8 * plain.score.mae_meas);
+  // Measured 151.1 → 38.9 nm against the truth, 151.5 → 39.5 nm against the measurement (whole history: 3.6 nm).
+  EXPECT_LT(est.score.mae_true, 0.4 * plain.score.mae_true);
+  EXPECT_LT(est.score.mae_meas, 0.5 * plain.score.mae_meas);
   EXPECT_LT(est.score.max_true, plain.score.max_true);
   EXPECT_LT(est.seconds, 1.0);
 }
@@ -211,7 +212,7 @@ TEST(StartState, TrackRecordingUsesTheEstimate) {
             << mae(cold.model_nm, from, to) << " → " << mae(warm.model_nm, from, to) << " nm, fused "
             << mae(cold.fused_nm, from, to) << " → " << mae(warm.fused_nm, from, to) << " nm\n";
   EXPECT_NE(warm.start_estimate.find("down"), std::string::npos);
-  // The model alone (its offset is the filter's) and the fused estimate (measured 105 → 93 nm and 2.79 → 1.94 nm).
+  // The model alone (its offset is the filter's) and the fused estimate (measured 105 → 70 nm and 2.79 → 1.49 nm).
   EXPECT_LT(mae(warm.model_nm, from, to), mae(cold.model_nm, from, to));
   EXPECT_LT(mae(warm.fused_nm, from, to), 0.8 * mae(cold.fused_nm, from, to));
 }
@@ -220,17 +221,23 @@ TEST(StartState, TrackRecordingUsesTheEstimate) {
 // recording of seed B sliced to start mid-motion on a descending branch; offset-only anchor against the estimate,
 // scored after the window against measurement and truth.
 namespace {
-void measure_stage(const std::string& name, const std::string& kind, double fit_s, double cut_after_s,
-                   double test_s, double window_s, double fall_s) {
-  const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/" + name + ".yaml");
+models::ModelPtr fit_seed11(const sim::StageConfig& stage, const std::string& kind, double fit_s) {
   const io::Dataset a = sim::simulate_stage(stage, 11, fit_s);
   const std::size_t n_train = a.size() * 4 / 5;
   const io::Dataset train = a.slice(0, n_train), val = a.slice(n_train, a.size());
   training::FitRequest req;
   req.train = &train;
   req.validation = &val;
-  const models::ModelPtr m = training::fit_model(kind, req);
-  const io::Dataset b = sim::simulate_stage(stage, 12, cut_after_s + test_s);
+  return training::fit_model(kind, req);
+}
+
+// kind "file:PATH": that model file instead of a fit on seed 11.
+void measure_stage(const std::string& name, const std::string& kind, double fit_s, double cut_after_s,
+                   double test_s, double window_s, double fall_s, std::uint64_t seed = 12) {
+  const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/" + name + ".yaml");
+  const models::ModelPtr m = kind.rfind("file:", 0) == 0 ? models::load_model(kSrc + "/" + kind.substr(5))
+                                                          : fit_seed11(stage, kind, fit_s);
+  const io::Dataset b = sim::simulate_stage(stage, seed, cut_after_s + test_s);
   const double drop_v = 0.03 * (stage.simulator.axes[2].voltage_max_v - stage.simulator.axes[2].voltage_min_v);
   const std::size_t cut = descending_row(b, cut_after_s, fall_s, drop_v);
   ASSERT_LT(cut + 10, b.size());
@@ -264,6 +271,9 @@ TEST(StartStateTable, FittedOnOneSeedStartedMidMotionOnAnother) {
     measure_stage("lowvolt_preisach_creep", kind, 50.0, 15.0, 30.0, 3.0, 0.5);
     measure_stage("mm3e_preisach_creep", kind, 7200.0, 1800.0, 3600.0, 30.0, 3.0);
   }
+  // The hold-trim stage's shipped model (fitted on seed 101) on other seeds: histories of 20–30 min, then a hold.
+  for (std::uint64_t seed : {202, 505, 606})
+    measure_stage("mm3e_foreign_hold_stage", "file:config/models/mm3e_foreign_c.yaml", 0, 1200.0, 2400.0, 30.0, 3.0, seed);
 }
 
 // Cost at kHz rates: the window streamed once per candidate (the synthetic histories capped at max_history_samples,

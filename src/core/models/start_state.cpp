@@ -80,22 +80,23 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
   for (int side : {+1, -1}) {
     const double end = side > 0 ? hi : lo;
     if (std::abs(end - v0) < 1e-6 * (hi - lo)) continue;
-    // Rested long at the far end (the slow creep modes there) or at the first voltage (a short excursion).
+    // Rested long (where the slow creep modes sit) at the far end, at the first voltage (a short excursion) or at
+    // the turning side's end.
     for (double f : {0.25, 0.5, 0.75, 1.0})
-      for (double reset_v : {side > 0 ? lo : hi, v0}) {
-      StartHistory h;
-      h.rest = false;
-      h.reset_v = reset_v;
-      h.turn_v = v0 + f * (end - v0);
-      h.start_v = v0;
-      h.dt_s = dt;
-      h.ramp_to_turn_rows = rows(h.turn_v - h.reset_v);
-      h.ramp_to_start_rows = rows(h.turn_v - v0);
-      for (double age_s : {0.0, 10.0, 100.0, 1000.0}) {
-        h.hold_rows = static_cast<std::size_t>(std::lround(age_s / dt));
-        if (h.ramp_to_turn_rows + h.ramp_to_start_rows + h.hold_rows > o.max_history_samples) break;
-        out.push_back(h);
-      }
+      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo}) {
+        StartHistory h;
+        h.rest = false;
+        h.reset_v = reset_v;
+        h.turn_v = v0 + f * (end - v0);
+        h.start_v = v0;
+        h.dt_s = dt;
+        h.ramp_to_turn_rows = rows(h.turn_v - h.reset_v);
+        h.ramp_to_start_rows = rows(h.turn_v - v0);
+        for (double age_s : {0.0, 10.0, 100.0, 1000.0}) {
+          h.hold_rows = static_cast<std::size_t>(std::lround(age_s / dt));
+          if (h.ramp_to_turn_rows + h.ramp_to_start_rows + h.hold_rows > o.max_history_samples) break;
+          out.push_back(h);
+        }
       }
   }
   return out;
