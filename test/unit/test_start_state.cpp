@@ -11,6 +11,7 @@
 #include <iostream>
 #include <limits>
 
+#include "piezo_compensation/compensation/axis_compensator.h"
 #include "piezo_compensation/compensation/track.h"
 #include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/models/model_file.h"
@@ -297,4 +298,34 @@ TEST(StartStateTable, CostAtFiveKilohertz) {
   std::cout << d.sample_rate_hz() << " Hz, " << e.window_rows << " window rows, " << e.candidates << " candidates: "
             << s << " s\n";
   EXPECT_LT(s, 5.0);
+}
+
+// The compensator's side: a bad window length is refused by name; a lost reading in the window or a model replaced
+// during it leaves the cold start and says why.
+TEST(StartState, CompensatorWindowEdgeCases) {
+  const models::ModelPtr m = models::load_model(kSrc + "/config/models/mm3e_foreign_c.yaml");
+  const compensation::IdealLine line{12.5, 0.0};
+  compensation::AxisCompensatorConfig cfg;
+  cfg.start_estimate_s = -1.0;
+  try {
+    compensation::AxisCompensator c(m->clone(), line, cfg);
+    ADD_FAILURE() << "a negative start_estimate_s was accepted";
+  } catch (const std::invalid_argument& e) {
+    EXPECT_NE(std::string(e.what()).find("start_estimate_s"), std::string::npos) << e.what();
+  }
+  cfg.start_estimate_s = 1.0;
+  compensation::AxisCompensator lost(m->clone(), line, cfg);
+  for (int i = 0; i < 20; ++i) lost.on_sample(0.1 * i, i == 3 ? std::nan("") : 12.5 * 0.1 * i, i != 3);
+  EXPECT_EQ(lost.start_estimate(), nullptr);
+  EXPECT_NE(lost.start_estimate_status().find("non-finite measured position at row 4"), std::string::npos)
+      << lost.start_estimate_status();
+  compensation::AxisCompensator swapped(m->clone(), line, cfg);
+  for (int i = 0; i < 5; ++i) swapped.on_sample(0.1 * i, 12.5 * 0.1 * i, true);
+  swapped.replace_model(m->clone(), line);
+  for (int i = 5; i < 20; ++i) swapped.on_sample(0.1 * i, 12.5 * 0.1 * i, true);
+  EXPECT_NE(swapped.start_estimate_status().find("replaced"), std::string::npos) << swapped.start_estimate_status();
+  compensation::AxisCompensator fine(m->clone(), line, cfg);
+  for (int i = 0; i < 20; ++i) fine.on_sample(0.1 * i, 12.5 * 0.1 * i, true);
+  ASSERT_NE(fine.start_estimate(), nullptr) << fine.start_estimate_status();
+  EXPECT_EQ(fine.start_estimate()->window_rows, 11u);
 }

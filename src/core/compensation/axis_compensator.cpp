@@ -259,6 +259,12 @@ void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& lin
   set_inputs_for(*model_);
   line_ = line;
   if (started_ && !warm) model_->reset(last_applied_v_, last_predicted_nm_);
+  if (config_.start_estimate_s > 0.0 && !start_done_ && !window_.empty()) {
+    // The window's inputs were the old model's; the new one starts as any replaced model does.
+    start_done_ = true;
+    start_status_ = "no start estimate: the model was replaced during the start window";
+    window_ = io::Dataset();
+  }
   set_estimator_for(*model_);
   trim_.on_new_intent();  // the trim was for the old model's error
 }
