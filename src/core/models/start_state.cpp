@@ -123,8 +123,8 @@ std::string StartEstimate::describe() const {
   std::ostringstream s;
   s.precision(4);
   s << "start estimate over " << window_rows << " rows: " << candidate << " (best of " << candidates
-    << "), offset " << offset_nm << " ± " << offset_sigma_nm << " nm, window RMS " << rms_rest_nm
-    << " nm offset-only → " << rms_nm << " nm";
+    << "), offset " << offset_nm << " +- " << offset_sigma_nm << " nm, window RMS " << rms_rest_nm
+    << " nm offset-only -> " << rms_nm << " nm";  // ASCII: rosconsole logs do not keep UTF-8
   return s.str();
 }
 
