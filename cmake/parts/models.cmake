@@ -15,6 +15,9 @@ if(TARGET test_models_export)
   target_compile_definitions(test_models_export PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
 endif()
 piezo_unit_test(test_eval_metrics test/unit/test_eval_metrics.cpp)
+# The start-up state estimate (models/start_state.h): the checks (fast) and the docs/models.md table (slow: fits).
+piezo_unit_test_shards(test_start_state test/unit/test_start_state.cpp SHARDS
+  checks "StartState.*" table "StartStateTable.*")
 piezo_benchmark(bench_models_linear bench/bench_models_linear.cpp)
 
-piezo_slow_tests(test_models_creep test_models_prony test_models_preisach_preisach test_models_preisach_pi)
+piezo_slow_tests(test_start_state_table test_models_creep test_models_prony test_models_preisach_preisach test_models_preisach_pi)

@@ -17,6 +17,26 @@ namespace piezo::cli {
 namespace {
 namespace fs = std::filesystem;
 
+// The scoring options, in the report's context and the evaluation's alike.
+void read_options(const Args& args, analysis::EvalContext& ctx, analysis::EvalOptions& eo) {
+  ctx.test_path = args.str("data");
+  ctx.creep_path = args.str("creep");
+  ctx.warmup_s = args.seconds("warmup-s");
+  ctx.anchor_s = args.seconds("anchor-s");
+  if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
+  eo.warmup_s = ctx.warmup_s;
+  eo.anchor_s = ctx.anchor_s;
+  ctx.anchor_history = eo.anchor_history = !args.flag("anchor-offset-only");
+  try {
+    if (args.has("test-segments")) eo.test_segments = analysis::parse_segments(args.str("test-segments"));
+    if (args.has("creep-segments")) eo.creep_segments = analysis::parse_segments(args.str("creep-segments"));
+  } catch (const std::invalid_argument& e) {
+    throw UsageError(std::string("eval: ") + e.what());
+  }
+  ctx.test_segments = eo.test_segments;
+  ctx.creep_segments = eo.creep_segments;
+}
+
 int run(int argc, char** argv) {
   Args args("eval", "Evaluate model files on test data (hysteresis: samples outside holds) and creep data (samples in\n"
                     "holds), one-step and free-run, against the measurement and (simulated data) the true position.\n"
@@ -28,7 +48,9 @@ int run(int argc, char** argv) {
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
               "test data's holds, analysis/noise_floor.h)")
       .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
-      .option("anchor-s", "T", "the first T of measured position fix each model's offset; scored after them", "0")
+      .option("anchor-s", "T", "the first T of measured position fix each model's start state and offset (docs/models.md,\n"
+              "\"Start-up state estimate\"); scored after them", "0")
+      .option("anchor-offset-only", "", "with --anchor-s: fix the offset only, the model starting at rest")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
       .option("no-plots", "", "skip the PNG plots")
@@ -45,22 +67,8 @@ int run(int argc, char** argv) {
   fs::create_directories(out);
 
   analysis::EvalContext ctx;
-  ctx.test_path = args.str("data");
-  ctx.creep_path = args.str("creep");
-  ctx.warmup_s = args.seconds("warmup-s");
-  ctx.anchor_s = args.seconds("anchor-s");
-  if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
   analysis::EvalOptions eo;
-  eo.warmup_s = ctx.warmup_s;
-  eo.anchor_s = ctx.anchor_s;
-  try {
-    if (args.has("test-segments")) eo.test_segments = analysis::parse_segments(args.str("test-segments"));
-    if (args.has("creep-segments")) eo.creep_segments = analysis::parse_segments(args.str("creep-segments"));
-  } catch (const std::invalid_argument& e) {
-    throw UsageError(std::string("eval: ") + e.what());
-  }
-  ctx.test_segments = eo.test_segments;
-  ctx.creep_segments = eo.creep_segments;
+  read_options(args, ctx, eo);
 
   std::vector<models::ModelPtr> ms;
   for (const auto& p : paths) {

@@ -71,6 +71,7 @@ int run(int argc, char** argv) {
       .option("min-hold-s", "T", "a hold: the voltage unchanged this long [s]", "300")
       .option("settle-skip-s", "T", "score holds from this long after their start [s]", "120")
       .option("end-window-s", "T", "the end of a hold: its last T [s]", "5")
+      .option("start-estimate-s", "T", "the start-up state estimate over the first T [s] (models/start_state.h); 0 = off", "0")
       .option("plot", "", "also write DIR/track.png (python3-matplotlib)")
       .required("out", "DIR", "output directory");
   if (!args.parse(argc, argv)) return 0;
@@ -99,6 +100,8 @@ int run(int argc, char** argv) {
   o.min_hold_s = args.num("min-hold-s");
   o.settle_skip_s = args.num("settle-skip-s");
   o.end_window_s = args.num("end-window-s");
+  o.start_estimate_s = args.num("start-estimate-s");
+  if (!(o.start_estimate_s >= 0)) throw UsageError("track: --start-estimate-s must be a time >= 0 s");
   const compensation::TrackResult r = compensation::track_recording(std::move(model), data, axis, o);
 
   const fs::path out = args.str("out");
@@ -108,7 +111,8 @@ int run(int argc, char** argv) {
   {
     std::ofstream f(out / "holds.md");
     f << "# piezo track: " << args.str("model") << " on " << args.str("data") << " (axis " << axis << ")\n\n"
-      << "Estimator: " << r.estimator << "\n\n" << table;
+      << "Estimator: " << r.estimator << "\n\n"
+      << (r.start_estimate.empty() ? "" : "Start: " + r.start_estimate + "\n\n") << table;
   }
   {
     std::ofstream f(out / "track.json");
@@ -116,6 +120,7 @@ int run(int argc, char** argv) {
     j.begin_object();
     j.key("estimator").value(r.estimator);
     j.key("fusing").value(r.fusing);
+    j.key("start_estimate").value(r.start_estimate);
     j.key("holds").value(static_cast<double>(r.holds.size()));
     j.key("hold_model_mae_nm").value(r.model_mae_nm);
     j.key("hold_fused_mae_nm").value(r.fused_mae_nm);
@@ -124,7 +129,8 @@ int run(int argc, char** argv) {
     j.key("within_2sigma").value(r.within_2sigma);
     j.end_object();
   }
-  std::cout << "estimator: " << r.estimator << "\n\n" << table << "\nwrote " << (out / "track.csv").string() << ", holds.md, track.json\n";
+  std::cout << "estimator: " << r.estimator << "\n"
+            << (r.start_estimate.empty() ? "" : "start: " + r.start_estimate + "\n") << "\n" << table << "\nwrote " << (out / "track.csv").string() << ", holds.md, track.json\n";
   if (args.flag("plot"))
     run_plot_script("track", "track_plot.py", {(out / "track.csv").string(), (out / "track.png").string()});
   return 0;

@@ -138,6 +138,7 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   t.max_nm = r.number("hold_trim_max_nm", t.max_nm, 0.0, 1e6);
   t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s", t.slew_nm_per_s, 1e-6, 1e6);
   t.stale_after_s = r.number("encoder_stale_after_s", t.stale_after_s, 1e-3, 3600.0);
+  s.axis.start_estimate_s = r.number("start_estimate_s", s.axis.start_estimate_s, 0.0, 3600.0);
   r.warn_unknown("piezo_predictor");
   return s;
 }
@@ -259,6 +260,10 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   const compensation::SampleUpdate u =
       comp_->on_sample(applied, valid ? sample.position_nm : std::nan(""), valid, inputs);
   predicted_nm_ = u.predicted_nm;
+  if (!start_logged_ && !comp_->start_estimate_status().empty()) {
+    start_logged_ = true;
+    ROS_INFO("axis %s: %s", axis_.c_str(), comp_->start_estimate_status().c_str());
+  }
   out.sequence = sample.sequence;
   out.stamp_s = sample.stamp_s;
   if (u.ok) out.base_predicted_nm = u.base_predicted_nm;
@@ -868,6 +873,9 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   // the estimator and the hold trim: what the fused estimate is made of and what the trim is doing
   const compensation::AxisCompensator& cc = l.compensator();
   st.add("estimator", cc.estimator_status());
+  if (s_.axis.start_estimate_s > 0)
+    st.add("start estimate", cc.start_estimate_status().empty() ? std::string("waiting for the first ~start_estimate_s")
+                                                                : cc.start_estimate_status());
   if (cc.estimator() && cc.estimator()->fusing()) {
     st.add("fused 1σ [nm]", cc.estimator()->sigma_nm());
     st.add("estimated model error [nm]", cc.estimator()->error_nm());

@@ -16,6 +16,7 @@ struct EvalContext {
   double measured_sigma_nm = NAN;                // from measured − truth when the data has truth
   double warmup_s = 0;
   double anchor_s = 0;        // > 0: the first anchor_s seconds fixed each model's offset (EvalOptions::anchor_s)
+  bool anchor_history = true; // with anchor_s: the start state was estimated too (EvalOptions::anchor_history)
   double final_window_s = 5;  // end-of-hold window
   std::vector<int> test_segments, creep_segments;  // scored segments (empty = all)
   std::vector<std::string> lasso_notes;          // extra markdown sections (optional)

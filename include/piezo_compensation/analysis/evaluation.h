@@ -11,6 +11,7 @@
 #include "piezo_compensation/analysis/metrics.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/start_state.h"
 
 namespace piezo::analysis {
 
@@ -26,12 +27,14 @@ struct SeriesPrediction {
   std::vector<double> one_step, free_run;
   std::size_t first_scored = 0;                            // first row after the anchor window (0 without)
   double one_step_offset_nm = 0.0, free_run_offset_nm = 0.0;  // anchor offsets (0 without)
+  models::StartEstimate start;  // the anchor's start estimate, free-run offset and σ (candidates = 0 without)
 };
 // Both modes through models::stream_model from a fresh clone reset at the first sample (rest at V_0, D_0).
-// anchor_s > 0: the first anchor_s seconds of measurement fix each mode's offset (see models::StreamOptions).
+// anchor_s > 0: the first anchor_s seconds choose the start state (anchor_history; the search runs once, in free
+// run, and one-step starts from the same state) and fix each mode's offset (models/start_state.h).
 // Throws on a non-finite one-step prediction; a diverging free-run is kept finite.
 SeriesPrediction predict_series(const models::Model& model, const io::Dataset& data, const std::string& axis,
-                                double anchor_s = 0.0);
+                                double anchor_s = 0.0, bool anchor_history = true);
 
 struct ModeMetrics {
   ErrorStats vs_measured, vs_truth;  // vs_truth invalid when the data has no truth
@@ -72,7 +75,8 @@ struct ModelEvaluation {
 struct EvalOptions {
   std::string axis = "c";
   double warmup_s = 0.0;        // samples of the test data before this are not scored (history unknown to the model)
-  double anchor_s = 0.0;        // > 0: the first anchor_s seconds of measurement fix the offset; scored after them
+  double anchor_s = 0.0;        // > 0: the first anchor_s seconds fix the start state and offset; scored after them
+  bool anchor_history = true;   // false: the anchor fixes the offset only (the model starts at rest)
   double final_window_s = 5.0;  // study: final position averaged over the last 5 s of each hold
   // Held out by time within one continuous recording (e.g. the plan: 2 = test, 3…17 = creep scenarios): the
   // model runs over the whole file, as it would live, and only these segments are scored. Empty = all.

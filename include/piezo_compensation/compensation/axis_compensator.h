@@ -15,6 +15,7 @@
 #include "piezo_compensation/compensation/inverse.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/estimation/error_filter.h"
 
 namespace piezo::compensation {
@@ -32,6 +33,13 @@ struct AxisCompensatorConfig {
   // Hold trim on the fused estimate (compensation/hold_trim.h); acts only when the model file carries an
   // estimator noise model and the axis' readings can inform it (estimation/error_filter.h).
   HoldTrimOptions hold_trim;
+  // > 0: after the first start_estimate_s seconds the model's state is re-chosen from them (models/start_state.h:
+  // the synthetic pre-history that fits them best, turning points within the voltage limits), replayed over them,
+  // and the estimator starts from that estimate's offset and σ instead of its cold-start σ. 0 = off.
+  double start_estimate_s = 0.0;
+  // The voltage range the start estimate's synthetic histories turn within; NaN: voltage_min_v, voltage_max_v.
+  double start_voltage_min_v = std::numeric_limits<double>::quiet_NaN();
+  double start_voltage_max_v = std::numeric_limits<double>::quiet_NaN();
 };
 
 // Result of one encoder sample.
@@ -99,6 +107,10 @@ class AxisCompensator {
   std::size_t samples() const { return samples_; }
   std::size_t prediction_failures() const { return prediction_failures_; }
   std::size_t command_fallbacks() const { return command_fallbacks_; }
+  // The start-up state estimate once made (config start_estimate_s > 0), else null.
+  const models::StartEstimate* start_estimate() const { return start_estimate_ ? &*start_estimate_ : nullptr; }
+  // Empty until the window is complete; then the estimate's one line or why none was made.
+  const std::string& start_estimate_status() const { return start_status_; }
 
  private:
   static void check_model(const models::Model& model);  // throws for models the compensator cannot feed
@@ -108,6 +120,13 @@ class AxisCompensator {
   std::vector<double> aux_now_;                         // the model's inputs at the last sample
   std::vector<std::size_t> time_index_;                 // which of them is time_s
   bool in_range(double position_nm) const;
+  void record_start_row(double applied_v, double measured_nm, bool measured_valid);
+  void start_from_window(double applied_v);
+
+  io::Dataset window_;                                  // the first start_estimate_s seconds, until estimated
+  std::optional<models::StartEstimate> start_estimate_;
+  std::string start_status_;
+  bool start_done_ = false;
 
   models::ModelPtr model_;
   const models::AugmentedModel* augmented_ = nullptr;   // model_ when it is augmented (for its base's part)

@@ -16,6 +16,7 @@ struct TrackOptions {
   double min_hold_s = 300.0;    // a hold: the voltage unchanged for at least this long
   double settle_skip_s = 120.0; // hold scores start this long after the hold starts
   double end_window_s = 5.0;    // "end of hold": its last seconds
+  double start_estimate_s = 0.0;  // > 0: the compensator's start-up state estimate over the first seconds
 };
 
 struct TrackHold {
@@ -34,6 +35,7 @@ struct TrackResult {
   std::vector<double> time_s, applied_v, measured_nm, model_nm, fused_nm, fused_sigma_nm, true_nm;
   std::vector<TrackHold> holds;
   std::string estimator;   // the filter's noise model, or why the axis is model-only
+  std::string start_estimate;  // the start-up state estimate's line (empty without start_estimate_s)
   bool fusing = false;
   bool has_truth = false;
   // over every hold's scored samples

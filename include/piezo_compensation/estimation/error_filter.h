@@ -61,6 +61,10 @@ class ErrorFilter {
  public:
   ErrorFilter(const NoiseModel& model, double dt_s);  // throws std::invalid_argument for dt_s ≤ 0
   void reset();  // e = 0 with the cold-start covariance (a start, or a model restarted at the measurement)
+  // A start whose slow error is already known: the start-up state estimate's offset and its 1σ (models/
+  // start_state.h: measured − predicted over the start window). reset() is reset(0, initial_sigma_nm); a
+  // non-finite σ falls back to initial_sigma_nm. Throws std::invalid_argument for a non-finite offset or σ < 0.
+  void reset(double slow_error_nm, double slow_sigma_nm);
   // One sample: the model's prediction (its change from the last sample drives the process noise), then the
   // reading when `valid` (a lost or stale reading: predict only, the covariance grows).
   void step(double predicted_nm, double measured_nm, bool valid);

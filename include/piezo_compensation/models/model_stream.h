@@ -9,6 +9,7 @@
 
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/start_state.h"
 
 namespace piezo::models {
 
@@ -62,9 +63,12 @@ struct StreamOptions {
   // Streamed first (reset at its row 0 when `reset`), then `data` continues without a reset, as a model that
   // kept running would. Only `data`'s predictions are returned.
   const io::Dataset* warmup = nullptr;
-  // > 0: the measured positions of the first anchor_s seconds of `data` fix a constant offset (mean of measured −
-  // predicted there), added to every returned prediction; scoring starts after them (StreamResult::first_scored).
+  // > 0: the first anchor_s seconds of `data` are the start window (models/start_state.h). From a reset without
+  // warm-up they choose the model's start state (anchor_history); always they fix a constant offset (mean of
+  // measured − predicted there), added to every returned prediction; scoring starts after them
+  // (StreamResult::first_scored).
   double anchor_s = 0.0;
+  bool anchor_history = true;  // false: offset only (the model starts at rest, as before the start estimate)
   // Free-run only: a diverging prediction is kept finite (±1e12 nm) instead of throwing, so metrics stay
   // defined (evaluation reports a diverging model; the residual loop refuses one).
   bool keep_diverging = false;
@@ -75,6 +79,7 @@ struct StreamResult {
   double anchor_offset_nm = 0.0;   // 0 without an anchor
   std::size_t first_scored = 0;    // first row after the anchor window (0 without one)
   bool anchored = false;
+  StartEstimate start;             // the anchor's start estimate (offset and σ of this stream's mode)
 };
 
 // Per row: predict with the row's voltage and inputs, then commit the measured position (one-step) or the

@@ -197,6 +197,7 @@ class PredictorAxis {
   bool fallback_now_ = false;
   std::string last_status_, model_error_;
   std::size_t encoder_messages_ = 0, rejected_ = 0;
+  bool start_logged_ = false;  // the start-up state estimate's line was logged
 };
 
 class PredictorNode {

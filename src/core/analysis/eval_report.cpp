@@ -43,6 +43,24 @@ void json_set(util::JsonWriter& j, const SetMetrics& s) {
   j.end_object();
 }
 
+void json_start(util::JsonWriter& j, const models::StartEstimate& st) {
+  j.key("start_estimate").begin_object();
+  j.kv("candidate", st.candidate).kv("candidates", st.candidates).kv("window_rows", st.window_rows);
+  j.kv("offset_nm", st.offset_nm).kv("offset_sigma_nm", st.offset_sigma_nm);
+  j.kv("window_rms_offset_only_nm", st.rms_rest_nm).kv("window_rms_nm", st.rms_nm);
+  j.end_object();
+}
+
+// What the anchor's start-up state estimate chose for each model (empty without an anchor).
+std::string start_lines(const EvalContext& ctx, const std::vector<ModelEvaluation>& evals) {
+  std::string s;
+  if (ctx.anchor_s > 0)
+    for (const auto& e : evals)
+      s += "  - " + e.name + ", test: " + e.test.start.describe() +
+           (ctx.creep_path.empty() ? std::string() : "; creep: " + e.creep_pred.start.describe()) + "\n";
+  return s;
+}
+
 std::ofstream open_out(const std::string& path) {
   std::ofstream f(path);
   if (!f) throw std::runtime_error(path + ": cannot open for writing");
@@ -60,9 +78,10 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
      << (ctx.warmup_s > 0 ? ", after a " + f1(ctx.warmup_s) + " s warm-up" : std::string()) << ")\n"
      << "- creep data: `" << (ctx.creep_path.empty() ? ctx.test_path + " (its holds)" : ctx.creep_path)
      << "` (creep: samples in holds, phase = hold)\n- axis " << ctx.axis << "\n"
-     << (ctx.anchor_s > 0 ? "- initial offset: anchored on the first " + f1(ctx.anchor_s) +
-                                " s of measured position (scored after them)\n"
+     << (ctx.anchor_s > 0 ? std::string(ctx.anchor_history ? "- initial state and offset: estimated" : "- initial offset: "
+                                "anchored") + " on the first " + f1(ctx.anchor_s) + " s of measured position (scored after them)\n"
                           : std::string("- initial state: at rest at the first voltage and measured position (no anchor)\n"));
+  os << start_lines(ctx, evals);
   auto seglist = [](const std::vector<int>& v) {
     std::string s;
     for (int k : v) s += (s.empty() ? "" : ",") + std::to_string(k);
@@ -159,10 +178,12 @@ void write_eval_report(const std::string& dir, const EvalContext& ctx, const std
     j.kv("test_data", ctx.test_path).kv("creep_data", ctx.creep_path).kv("axis", ctx.axis);
     j.kv("noise_sigma_nm", ctx.noise_sigma_nm).kv("noise_floor_mae_nm", noise_floor_mae_nm(ctx.noise_sigma_nm));
     j.kv("measured_sigma_nm", ctx.measured_sigma_nm).kv("warmup_s", ctx.warmup_s).kv("anchor_s", ctx.anchor_s);
+    j.kv("anchor_history", ctx.anchor_history);
     j.key("models").begin_array();
     for (const auto& e : evals) {
       j.begin_object();
       j.kv("name", e.name).kv("kind", e.kind).kv("num_parameters", e.num_parameters).kv("uses_positions", e.uses_positions);
+      if (ctx.anchor_s > 0) json_start(j, e.test.start);
       j.key("hysteresis");
       json_set(j, e.hysteresis);
       j.key("creep");

@@ -43,17 +43,19 @@ void check_model_for_eval(const models::Model& model, const std::string& path, c
 }
 
 SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d, const std::string& axis,
-                                double anchor_s) {
+                                double anchor_s, bool anchor_history) {
   SeriesPrediction p;
   if (d.empty()) return p;
   models::StreamOptions so;
   so.anchor_s = anchor_s;
+  so.anchor_history = anchor_history;
   so.mode = models::PredictionMode::kOneStep;
   auto one = model.clone();
   const models::StreamResult r1 = models::stream_model(*one, d, axis, so);
   p.one_step = r1.prediction;
   p.first_scored = r1.first_scored;
   p.one_step_offset_nm = r1.anchor_offset_nm;
+  p.start = r1.start;
   if (!model.uses_position_history()) {
     p.free_run = p.one_step;  // no position history: the two modes are the same computation
     p.free_run_offset_nm = p.one_step_offset_nm;
@@ -65,6 +67,7 @@ SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d
   const models::StreamResult r2 = models::stream_model(*free, d, axis, so);
   p.free_run = r2.prediction;
   p.free_run_offset_nm = r2.anchor_offset_nm;
+  p.start = r2.start;
   return p;
 }
 
@@ -163,7 +166,7 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   ev.kind = model.kind();
   ev.num_parameters = model.num_parameters();
   ev.uses_positions = model.uses_position_history();
-  ev.test = predict_series(model, test, opt.axis, opt.anchor_s);
+  ev.test = predict_series(model, test, opt.axis, opt.anchor_s, opt.anchor_history);
   auto after_anchor = [](std::vector<char> m, std::size_t first) {
     for (std::size_t i = 0; i < first && i < m.size(); ++i) m[i] = 0;
     return m;
@@ -171,7 +174,7 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   ev.hysteresis = metrics(ev.test, test.axis(opt.axis),
                           after_anchor(hysteresis_mask(test, opt.warmup_s, opt.test_segments), ev.test.first_scored));
   const io::Dataset& cd = creep ? *creep : test;
-  ev.creep_pred = creep ? predict_series(model, *creep, opt.axis, opt.anchor_s) : ev.test;
+  ev.creep_pred = creep ? predict_series(model, *creep, opt.axis, opt.anchor_s, opt.anchor_history) : ev.test;
   const io::AxisSeries& cax = cd.axis(opt.axis);
   ev.creep = metrics(ev.creep_pred, cax, after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.first_scored));
   {

@@ -6,6 +6,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/models/model_stream.h"
+
 namespace piezo::compensation {
 
 AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, const AxisCompensatorConfig& config)
@@ -14,6 +16,8 @@ AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, 
   if (!(config_.voltage_max_v > config_.voltage_min_v)) throw std::invalid_argument("AxisCompensator: empty voltage limits");
   if (!(config_.fallback_max_step_v > 0.0)) throw std::invalid_argument("AxisCompensator: fallback_max_step_v must be > 0");
   if (!(config_.sample_rate_hz > 0.0)) throw std::invalid_argument("AxisCompensator: sample_rate_hz must be > 0");
+  if (!(config_.start_estimate_s >= 0.0) || !std::isfinite(config_.start_estimate_s))
+    throw std::invalid_argument("AxisCompensator: start_estimate_s must be a finite time >= 0 s");
   check_model(*model_);
   set_inputs_for(*model_);
   if (config_.hold_trim.max_nm <= 0.0)  // 2 % of the ideal stroke
@@ -116,9 +120,11 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
     last_predicted_nm_ = x0;
     u.predicted_nm = x0;
     if (filter_) filter_->reset();
+    record_start_row(applied_v, measured_nm, measured_valid);
     track(x0, measured_nm, measured_valid, true, u);
     return u;
   }
+  record_start_row(applied_v, measured_nm, measured_valid);
   const models::ModelInput in{applied_v, aux_now_.empty() ? nullptr : aux_now_.data()};
   const double p = model_->predict(in);
   u.base_predicted_nm = augmented_ ? augmented_->base_prediction(in) : p;
@@ -143,6 +149,59 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
   u.predicted_nm = p;
   track(p, measured_nm, measured_valid, true, u);
   return u;
+}
+
+namespace {
+const char* kStartAxis = "start";  // the window's one axis; the model's inputs are aux columns of their own names
+}  // namespace
+
+// The window's rows (the model's inputs as aux columns, time from its time_s input when it reads one); at the first
+// row past it (the estimate needs a row after the window) the estimate runs, before this row is predicted.
+void AxisCompensator::record_start_row(double applied_v, double measured_nm, bool measured_valid) {
+  if (config_.start_estimate_s <= 0.0 || start_done_) return;
+  const std::vector<std::string> names = model_->aux_inputs();
+  if (window_.axes.empty()) {
+    window_.source = "the predictor's first " + std::to_string(config_.start_estimate_s) + " s";
+    window_.add_axis(kStartAxis);
+    for (const auto& n : names) window_.aux.push_back(io::AuxSignal{n, {}});
+  }
+  const double t = time_index_.empty() ? static_cast<double>(window_.size()) / config_.sample_rate_hz
+                                       : aux_now_[time_index_[0]];
+  window_.time_s.push_back(t);
+  window_.axes[0].voltage_v.push_back(applied_v);
+  window_.axes[0].position_nm.push_back(measured_valid ? measured_nm : std::numeric_limits<double>::quiet_NaN());
+  for (std::size_t k = 0; k < names.size(); ++k) window_.aux[k].values.push_back(aux_now_[k]);
+  if (t - window_.time_s[0] >= config_.start_estimate_s) start_from_window(applied_v);
+}
+
+// The model restarts in the estimated state and replays the window in its own mode (free run or feedback), so it
+// stands where a model with that history would stand now; the estimator starts from the offset and its σ.
+void AxisCompensator::start_from_window(double applied_v) {
+  models::StartOptions so;
+  so.window_s = config_.start_estimate_s;
+  so.voltage_min_v = std::isfinite(config_.start_voltage_min_v) ? config_.start_voltage_min_v : config_.voltage_min_v;
+  so.voltage_max_v = std::isfinite(config_.start_voltage_max_v) ? config_.start_voltage_max_v : config_.voltage_max_v;
+  start_done_ = true;
+  try {
+    start_estimate_ = models::estimate_start(*model_, window_, kStartAxis, so);
+  } catch (const std::exception& e) {  // a lost reading in the window: run on from the cold start, and say so
+    start_status_ = std::string("no start estimate: ") + e.what();
+    window_ = io::Dataset();
+    return;
+  }
+  start_status_ = start_estimate_->describe();
+  models::prepare_start(*model_, window_, kStartAxis, start_estimate_->history);
+  models::InputResolver inputs(window_, model_->aux_inputs(), kStartAxis);
+  const io::AxisSeries& ax = window_.axes[0];
+  for (std::size_t i = 0; i + 1 < window_.size(); ++i) {
+    const models::ModelInput in{ax.voltage_v[i], inputs.at(i)};
+    const double p = model_->predict(in);
+    model_->commit(in, config_.position_feedback && std::isfinite(ax.position_nm[i]) ? ax.position_nm[i] : p);
+    last_predicted_nm_ = p;
+  }
+  last_applied_v_ = applied_v;
+  if (filter_) filter_->reset(start_estimate_->offset_nm, start_estimate_->offset_sigma_nm);
+  window_ = io::Dataset();
 }
 
 CommandUpdate AxisCompensator::command(bool compensate) {
@@ -200,6 +259,12 @@ void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& lin
   set_inputs_for(*model_);
   line_ = line;
   if (started_ && !warm) model_->reset(last_applied_v_, last_predicted_nm_);
+  if (config_.start_estimate_s > 0.0 && !start_done_ && !window_.empty()) {
+    // The window's inputs were the old model's; the new one starts as any replaced model does.
+    start_done_ = true;
+    start_status_ = "no start estimate: the model was replaced during the start window";
+    window_ = io::Dataset();
+  }
   set_estimator_for(*model_);
   trim_.on_new_intent();  // the trim was for the old model's error
 }

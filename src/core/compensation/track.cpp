@@ -84,6 +84,10 @@ TrackResult track_recording(models::ModelPtr model, const io::Dataset& data, con
   cfg.voltage_min_v = *vmin - pad;
   cfg.voltage_max_v = *vmax + pad;
   cfg.sample_rate_hz = rate;
+  cfg.start_estimate_s = o.start_estimate_s;
+  // As `piezo eval --anchor-s` (models/start_state.h): the recording's voltage span on both sides of its first voltage.
+  cfg.start_voltage_min_v = std::min(*vmin, ax.voltage_v[0] - (*vmax - *vmin));
+  cfg.start_voltage_max_v = std::max(*vmax, ax.voltage_v[0] + (*vmax - *vmin));
   IdealLineOptions lo;
   lo.voltage_min_v = cfg.voltage_min_v;
   lo.voltage_max_v = cfg.voltage_max_v;
@@ -112,6 +116,7 @@ TrackResult track_recording(models::ModelPtr model, const io::Dataset& data, con
     r.fused_nm[i] = u.fused_nm;
     r.fused_sigma_nm[i] = u.fused_sigma_nm;
   }
+  r.start_estimate = comp.start_estimate_status();
   for (const auto& [b, e] : find_holds(ax.voltage_v, rate, o.min_hold_s)) {
     TrackHold h;
     score_hold(r, b, e, rate, o, h);

@@ -185,10 +185,16 @@ ErrorFilter::ErrorFilter(const NoiseModel& model, double dt_s) : model_(model), 
   reset();
 }
 
-void ErrorFilter::reset() {
+void ErrorFilter::reset() { reset(0.0, model_.initial_sigma_nm); }
+
+void ErrorFilter::reset(double slow_error_nm, double slow_sigma_nm) {
+  if (!std::isfinite(slow_error_nm)) throw std::invalid_argument("ErrorFilter: the start offset is not finite");
+  if (slow_sigma_nm < 0) throw std::invalid_argument("ErrorFilter: the start offset's sigma is negative");
+  if (!std::isfinite(slow_sigma_nm)) slow_sigma_nm = model_.initial_sigma_nm;
   x_.setZero();
+  x_(0) = slow_error_nm;
   P_.setZero();
-  P_(0, 0) = model_.initial_sigma_nm * model_.initial_sigma_nm;
+  P_(0, 0) = slow_sigma_nm * slow_sigma_nm;
   started_ = false;
   since_reading_ = 0;
   for (auto& w : windows_) w.nu_bar = w.s_bar = 0.0, w.count = 0;

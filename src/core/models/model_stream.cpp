@@ -112,26 +112,31 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
   if (!(o.anchor_s >= 0) || !std::isfinite(o.anchor_s)) throw std::invalid_argument("anchor must be a finite time ≥ 0 s");
   const io::Dataset* first = o.warmup && !o.warmup->empty() ? o.warmup : &data;
   if (first->empty()) return r;
-  if (o.reset) {
+  const bool anchor = o.anchor_s > 0 && !data.empty();
+  if (anchor) r.first_scored = start_window_rows(data, axis, o.anchor_s);  // checks the window first
+  if (o.reset && anchor && first == &data) {
+    // The one anchor: the start estimate chooses the state (or rest, offset only) from a cold start.
+    StartOptions so;
+    so.window_s = o.anchor_s;
+    so.search_history = o.anchor_history;
+    r.start = estimate_start(model, data, axis, so);
+    prepare_start(model, data, axis, r.start.history);
+  } else if (o.reset) {
     const io::AxisSeries& ax = first->axis(axis);
     model.reset(ax.voltage_v[0], ax.position_nm[0]);
   }
   if (first != &data) stream_rows(model, *first, axis, o, nullptr);
   stream_rows(model, data, axis, o, &r.prediction);
-  if (o.anchor_s > 0 && !data.empty()) {
-    const auto& meas = data.axis(axis).position_nm;
-    const double t0 = data.time_s[0];
-    std::size_t k = 0;
-    double s = 0;
-    while (k < data.size() && data.time_s[k] - t0 < o.anchor_s) {
-      s += meas[k] - r.prediction[k];
-      ++k;
-    }
-    if (k == 0) k = 1, s = meas[0] - r.prediction[0];
-    if (k >= data.size()) throw io::DataError(where(data) + ": the anchor of " + std::to_string(o.anchor_s) +
-                                              " s covers the whole data set; nothing is left to score");
-    r.anchor_offset_nm = s / static_cast<double>(k);
-    r.first_scored = k;
+  if (anchor) {
+    const std::size_t k = r.first_scored;
+    // The offset of this stream (one-step differs from the estimate's free run); the rest of the report is the estimate's.
+    r.start.window_rows = k;
+    const WindowFit f = window_offset(data.axis(axis).position_nm.data(), r.prediction.data(), k);
+    r.start.offset_nm = f.offset_nm;
+    r.start.offset_sigma_nm = f.sigma_nm;
+    r.start.rms_nm = f.rms_nm;
+    if (r.start.candidates == 0) r.start.rms_rest_nm = r.start.rms_nm, r.start.candidate = "warm (continued history)";
+    r.anchor_offset_nm = r.start.offset_nm;
     r.anchored = true;
     for (double& p : r.prediction) p += r.anchor_offset_nm;
   }

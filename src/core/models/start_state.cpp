@@ -1,0 +1,224 @@
+#include "piezo_compensation/models/start_state.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+#include <stdexcept>
+#include <vector>
+
+#include "piezo_compensation/models/model_stream.h"
+
+namespace piezo::models {
+
+namespace {
+std::string where(const io::Dataset& d) { return d.source.empty() ? std::string("data") : d.source; }
+
+std::string fmt(double x, int digits) {
+  std::ostringstream s;
+  s.precision(digits);
+  s << x;
+  return s.str();
+}
+
+// Rows of the window: those with time − t0 < window_s (at least one).
+std::size_t window_rows(const io::Dataset& data, double window_s) {
+  std::size_t k = 0;
+  while (k < data.size() && data.time_s[k] - data.time_s[0] < window_s) ++k;
+  return std::max<std::size_t>(k, 1);
+}
+
+void check_window(const io::Dataset& data, const std::string& axis, double window_s, std::size_t k) {
+  const io::AxisSeries& ax = data.axis(axis);
+  if (k >= data.size())
+    throw io::DataError(where(data) + ": the start window of " + fmt(window_s, 6) +
+                        " s covers the whole data set; nothing is left after it");
+  for (std::size_t i = 0; i < k; ++i) {
+    if (!std::isfinite(ax.voltage_v[i]))
+      throw io::DataError(where(data) + ": the start window holds a non-finite voltage at row " + std::to_string(i + 1));
+    if (!std::isfinite(ax.position_nm[i]))
+      throw io::DataError(where(data) + ": the start window holds a non-finite measured position at row " +
+                          std::to_string(i + 1) + " (the window needs every reading)");
+  }
+}
+
+void run_rows(Model& m, double from_v, double to_v, std::size_t n, const double* aux) {
+  for (std::size_t j = 1; j <= n; ++j) {
+    const ModelInput in{from_v + (to_v - from_v) * static_cast<double>(j) / static_cast<double>(n), aux};
+    const double y = m.predict(in);
+    m.commit(in, std::isfinite(y) ? y : 0.0);
+  }
+}
+
+// The window's typical voltage rate while it moves (the synthetic ramps use it); span/10 s when it holds still.
+double ramp_rate_v_per_s(const std::vector<double>& v, std::size_t k, double dt_s, double span_v) {
+  double sum = 0;
+  std::size_t moving = 0;
+  for (std::size_t i = 1; i < k; ++i)
+    if (v[i] != v[i - 1]) sum += std::abs(v[i] - v[i - 1]) / dt_s, ++moving;
+  return moving ? std::max(sum / static_cast<double>(moving), 1e-3 * span_v) : span_v / 10.0;
+}
+
+// Rest, then from each side's turning points (a quarter to all of the way to the range's end), held for each age
+// that fits the synthetic-history budget.
+std::vector<StartHistory> candidates(const io::Dataset& data, const std::string& axis, std::size_t k,
+                                     const StartOptions& o) {
+  const std::vector<double>& v = data.axis(axis).voltage_v;
+  const double dt = k > 1 ? (data.time_s[k - 1] - data.time_s[0]) / static_cast<double>(k - 1) : data.sample_period_s();
+  double lo = *std::min_element(v.begin(), v.begin() + static_cast<long>(k));
+  double hi = *std::max_element(v.begin(), v.begin() + static_cast<long>(k));
+  double dmin = lo, dmax = hi;
+  for (double x : v)
+    if (std::isfinite(x)) dmin = std::min(dmin, x), dmax = std::max(dmax, x);
+  const double span = std::max(dmax - dmin, 1e-6);
+  lo = std::isfinite(o.voltage_min_v) ? std::min(lo, o.voltage_min_v) : std::min(lo, v[0] - span);
+  hi = std::isfinite(o.voltage_max_v) ? std::max(hi, o.voltage_max_v) : std::max(hi, v[0] + span);
+  const double v0 = v[0], rate = ramp_rate_v_per_s(v, k, dt, hi - lo);
+  auto rows = [&](double dv) { return std::max<std::size_t>(1, static_cast<std::size_t>(std::ceil(std::abs(dv) / rate / dt))); };
+  std::vector<StartHistory> out(1);
+  out[0].start_v = v0;
+  out[0].dt_s = dt;
+  for (int side : {+1, -1}) {
+    const double end = side > 0 ? hi : lo;
+    if (std::abs(end - v0) < 1e-6 * (hi - lo)) continue;
+    // Rested long (where the slow creep modes sit) at the far end, at the first voltage (a short excursion) or at
+    // the turning side's end.
+    for (double f : {0.25, 0.5, 0.75, 1.0})
+      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo}) {
+        StartHistory h;
+        h.rest = false;
+        h.reset_v = reset_v;
+        h.turn_v = v0 + f * (end - v0);
+        h.start_v = v0;
+        h.dt_s = dt;
+        h.ramp_to_turn_rows = rows(h.turn_v - h.reset_v);
+        h.ramp_to_start_rows = rows(h.turn_v - v0);
+        for (double age_s : {0.0, 10.0, 100.0, 1000.0}) {
+          h.hold_rows = static_cast<std::size_t>(std::lround(age_s / dt));
+          if (h.ramp_to_turn_rows + h.ramp_to_start_rows + h.hold_rows > o.max_history_samples) break;
+          out.push_back(h);
+        }
+      }
+  }
+  return out;
+}
+
+// The candidate's window, free run from its state, fitted by an offset.
+WindowFit score(const Model& state, const io::Dataset& window, const std::string& axis) {
+  ModelPtr m = state.clone();
+  StreamOptions so;
+  so.reset = false;
+  so.keep_diverging = true;  // a diverging candidate scores badly instead of stopping the search
+  const std::vector<double> p = stream_model(*m, window, axis, so).prediction;
+  return window_offset(window.axis(axis).position_nm.data(), p.data(), p.size());
+}
+}  // namespace
+
+std::string StartHistory::describe() const {
+  if (rest) return "rest at " + fmt(start_v, 4) + " V";
+  return "rested at " + fmt(reset_v, 4) + " V, from " + fmt(turn_v, 4) + " V " + (turn_v > start_v ? "down" : "up") +
+         " to " + fmt(start_v, 4) + " V, held " + fmt(static_cast<double>(hold_rows) * dt_s, 4) + " s";
+}
+
+std::string StartEstimate::describe() const {
+  std::ostringstream s;
+  s.precision(4);
+  s << "start estimate over " << window_rows << " rows: " << candidate << " (best of " << candidates
+    << "), offset " << offset_nm << " +- " << offset_sigma_nm << " nm, window RMS " << rms_rest_nm
+    << " nm offset-only -> " << rms_nm << " nm";  // ASCII: rosconsole logs do not keep UTF-8
+  return s.str();
+}
+
+WindowFit window_offset(const double* measured_nm, const double* predicted_nm, std::size_t n) {
+  WindowFit f;
+  double mean = 0;
+  for (std::size_t i = 0; i < n; ++i) mean += measured_nm[i] - predicted_nm[i];
+  mean = n ? mean / static_cast<double>(n) : 0.0;
+  double ss = 0, lag = 0, prev = 0;
+  for (std::size_t i = 0; i < n; ++i) {
+    const double r = measured_nm[i] - predicted_nm[i] - mean;
+    ss += r * r;
+    if (i) lag += r * prev;
+    prev = r;
+  }
+  f.offset_nm = mean;
+  f.rms_nm = n ? std::sqrt(ss / static_cast<double>(n)) : 0.0;
+  f.n_eff = static_cast<double>(std::max<std::size_t>(n, 1));
+  if (n < 2) {
+    f.sigma_nm = std::numeric_limits<double>::quiet_NaN();
+    return f;
+  }
+  // Correlated residuals average less.
+  const double rho = ss > 0 ? std::clamp(lag / ss, 0.0, 0.99) : 0.0;
+  f.n_eff = std::max(1.0, static_cast<double>(n) * (1 - rho) / (1 + rho));
+  f.sigma_nm = std::sqrt(ss / static_cast<double>(n - 1) / f.n_eff);
+  return f;
+}
+
+void prepare_start(Model& model, const io::Dataset& data, const std::string& axis, const StartHistory& h) {
+  const io::AxisSeries& ax = data.axis(axis);
+  InputResolver inputs(data, model.aux_inputs(), axis);
+  std::vector<double> aux(inputs.size());
+  if (!aux.empty()) inputs.fill(0, aux.data());
+  const double* a = aux.empty() ? nullptr : aux.data();
+  if (h.rest) {
+    model.reset(ax.voltage_v[0], ax.position_nm[0]);
+    return;
+  }
+  model.reset(h.reset_v, ax.position_nm[0]);
+  run_rows(model, h.reset_v, h.turn_v, h.ramp_to_turn_rows, a);
+  run_rows(model, h.turn_v, h.start_v, h.ramp_to_start_rows, a);
+  run_rows(model, h.start_v, h.start_v, h.hold_rows, a);
+}
+
+std::size_t start_window_rows(const io::Dataset& data, const std::string& axis, double window_s) {
+  if (!(window_s > 0) || !std::isfinite(window_s))
+    throw std::invalid_argument("start window must be a finite time > 0 s (got " + fmt(window_s, 6) + ")");
+  if (data.empty()) throw io::DataError(where(data) + ": no rows for the start window");
+  const std::size_t k = window_rows(data, window_s);
+  check_window(data, axis, window_s, k);
+  return k;
+}
+
+StartEstimate estimate_start(const Model& model, const io::Dataset& data, const std::string& axis,
+                             const StartOptions& o) {
+  const std::size_t k = start_window_rows(data, axis, o.window_s);
+  const io::Dataset window = data.slice(0, k);
+  StartEstimate e;
+  e.window_rows = k;
+  std::vector<StartHistory> cands = candidates(data, axis, k, o);
+  if (!o.search_history) cands.resize(1);
+  e.candidates = cands.size();
+  ModelPtr m = model.clone();
+  WindowFit rest, best;
+  // Candidates sharing a turning point differ only in the hold: continue the last one's state instead of rebuilding.
+  const StartHistory* prev = nullptr;
+  for (const StartHistory& h : cands) {
+    const bool same_path = prev && !prev->rest && !h.rest && prev->turn_v == h.turn_v && prev->reset_v == h.reset_v &&
+                           h.hold_rows >= prev->hold_rows;
+    if (same_path) {
+      std::vector<double> a(m->aux_inputs().size());
+      if (!a.empty()) InputResolver(data, m->aux_inputs(), axis).fill(0, a.data());
+      run_rows(*m, h.start_v, h.start_v, h.hold_rows - prev->hold_rows, a.empty() ? nullptr : a.data());
+    } else {
+      prepare_start(*m, data, axis, h);
+    }
+    prev = &h;
+    const WindowFit f = score(*m, window, axis);
+    if (h.rest) rest = best = f, e.history = h;
+    if (h.rest || !(f.rms_nm < best.rms_nm)) continue;
+    best = f;
+    e.history = h;
+  }
+  // Better than rest by more than chance (the header), else rest: a near-tie is noise, not a history.
+  const double n_eff = rest.n_eff;
+  if (!e.history.rest && !(best.rms_nm > 0 && n_eff * 2 * std::log(rest.rms_nm / best.rms_nm) > 2 * std::log(n_eff)))
+    best = rest, e.history = cands[0];
+  e.candidate = e.history.describe();
+  e.offset_nm = best.offset_nm;
+  e.offset_sigma_nm = best.sigma_nm;
+  e.rms_nm = best.rms_nm;
+  e.rms_rest_nm = rest.rms_nm;
+  return e;
+}
+
+}  // namespace piezo::models
