@@ -33,7 +33,14 @@ function(piezo_test_budget test)
     set(timeout ${ARG_TIMEOUT})
   endif()
   math(EXPR timeout "${timeout} * ${PIEZO_TIMEOUT_SCALE}")
-  set_tests_properties(${test} PROPERTIES LABELS ${label} TIMEOUT ${timeout})
+  # COST: a fresh build tree has no CTest timing record, so `ctest -j2` would start tests in the order they are
+  # declared and end on a long slow one alone; the slow ones start first instead (later runs use the record).
+  if(label STREQUAL "slow")
+    set(cost 100)
+  else()
+    set(cost 1)
+  endif()
+  set_tests_properties(${test} PROPERTIES LABELS ${label} TIMEOUT ${timeout} COST ${cost})
 endfunction()
 
 # The CTest name of a test declared by the helpers: a gtest target, a rostest launch file's base name, or a
