@@ -112,8 +112,8 @@ TEST(ModelSelection, AutoChoosesByTheSlowErrorOnAnotherStage) {
   double best = INFINITY, best_mae = INFINITY;
   for (const auto& r : sel.table)
     if (r.refused.empty()) best = std::min(best, r.slow.overall_nm), best_mae = std::min(best_mae, r.score.free_run.mae_nm);
-  // The 5-s tail (no holds) is scored in blocks of an eighth of it, moves and cold fold only.
-  EXPECT_NEAR(sel.table[sel.best].slow.block_s, 5.0 / 8.0, 0.05);
+  // The 5-s tail (no holds) is scored in 32 blocks (min_blocks), moves and cold fold only.
+  EXPECT_NEAR(sel.table[sel.best].slow.block_s, 5.0 / 32.0, 0.01);
   EXPECT_EQ(sel.table[sel.best_overall].slow.overall_nm, best);
   const auto& chosen = sel.table[sel.best];
   if (sel.best != sel.best_overall) {
@@ -264,7 +264,7 @@ class ResetModel : public models::Model {
 };
 }  // namespace
 
-TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPart) {
+TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPartAndIsScoredAfterAWindow) {
   // 10 Hz, 600 s; the voltage keeps moving (no holds). The position is what the probe predicts when reset at row
   // 3000: 0 before, (t − 300 s)² after.
   io::Dataset d;
@@ -275,19 +275,42 @@ TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPart) {
     a.position_nm.push_back(i < 3000 ? 0.0 : 0.01 * double(i - 3000) * double(i - 3000));
   }
   const ResetModel m;
-  // Warm: reset at row 0, far off in every scored block; cold: reset at row 3000, exact.
-  const auto s = analysis::slow_score(m, d, 3000, "c");
+  // Warm: reset at row 0, far off in every scored block; cold (one start): reset at row 3000, exact; its blocks
+  // start after the 30-s window (cold_window_s).
+  analysis::SlowScoreOptions eighths;  // 300 s in 30-s blocks (the default, 32 blocks, would cut 9.4-s ones)
+  eighths.min_blocks = 8;
+  analysis::SlowScoreOptions one = eighths;
+  one.cold_starts = 1;
+  const auto s = analysis::slow_score(m, d, 3000, "c", one);
   EXPECT_EQ(s.blocks.moves.size(), 10u);  // 300 s in 30-s blocks
   EXPECT_TRUE(s.blocks.holds.empty());
   EXPECT_GT(s.moves_nm, 1e5);
-  EXPECT_EQ(s.blocks.cold.size(), 10u);
+  EXPECT_EQ(s.blocks.cold.size(), 9u);
   EXPECT_NEAR(s.cold_nm, 0.0, 1e-6);
   EXPECT_NEAR(s.block_s, 30.0, 1e-9);
-  // A separate file (score_from 0): the warm run is the cold one.
-  const auto t = analysis::slow_score(m, d, 0, "c");
-  EXPECT_EQ(t.blocks.cold, t.blocks.moves);
-  // A short validation part (100 s, under 8 blocks) is cut into eighths.
-  EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c").block_s, 12.5, 1e-9);
+  // A separate file (score_from 0): the cold fold is the warm run after the 30-s window; with the start estimate
+  // shifted by it, the mean error of that window (the probe's 0.01·k² over rows 0…299 against 0).
+  const auto t = analysis::slow_score(m, d, 0, "c", one);
+  ASSERT_EQ(t.blocks.cold.size(), t.blocks.moves.size() - 1);
+  for (std::size_t i = 0; i < t.blocks.cold.size(); ++i) EXPECT_NEAR(t.blocks.cold[i], t.blocks.moves[i + 1], 1e-6);
+  analysis::SlowScoreOptions estimated = one;
+  estimated.cold_start_estimate = true;
+  const auto u = analysis::slow_score(m, d, 0, "c", estimated);
+  double offset = 0.0;
+  for (int k = 0; k < 300; ++k) offset += 0.01 * k * k / 300.0;
+  ASSERT_EQ(u.blocks.cold.size(), u.blocks.moves.size() - 1);
+  for (std::size_t i = 0; i < u.blocks.cold.size(); ++i) EXPECT_NEAR(u.blocks.cold[i], u.blocks.moves[i + 1] - offset, 1e-6);
+  // Four starts (the default) at rows 3000, 3375, 3750, 4125, each scored after its 30-s window: 9 + 8 + 7 + 5
+  // blocks (a last part of at least half a block counts); the first start's exact, the later ones off (the probe
+  // restarted later than the position did).
+  const auto f = analysis::slow_score(m, d, 3000, "c", eighths);
+  ASSERT_EQ(f.blocks.cold.size(), 29u);
+  for (std::size_t i = 0; i < f.blocks.cold.size(); ++i)
+    if (i < 9) EXPECT_NEAR(f.blocks.cold[i], 0.0, 1e-6);
+    else EXPECT_GT(f.blocks.cold[i], 1.0);
+  // A short validation part (100 s, under 8 or 32 blocks) is cut into eighths or 32 blocks (3.1 s: 31 rows).
+  EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c", eighths).block_s, 12.5, 1e-9);
+  EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c").block_s, 3.1, 1e-9);
 }
 
 // End to end on creep-protocol data with settings no other test uses (issue 26's done-when "auto's worst hold end

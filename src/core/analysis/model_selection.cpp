@@ -199,11 +199,43 @@ SlowScore summarise_slow(const SlowErrors& b, const SlowScoreOptions& o) {
   const double eps = std::max(o.noise_nm, 1e-3);
   double sum = 0, w = 0;
   for (const auto& [x, wt] : {std::pair<double, double>{s.moves_nm, 1.0}, {s.holds_nm, 1.0},
-                              {s.hold_ends_nm, o.hold_end_weight}, {s.cold_nm, 1.0}})
+                              {s.hold_ends_nm, o.hold_end_weight}, {s.cold_nm, o.cold_weight}})
     if (std::isfinite(x)) sum += wt * std::log(x + eps), w += wt;
   s.overall_nm = w > 0 ? std::exp(sum / w) - eps : NAN;
   return s;
 }
+
+namespace {
+// The held-out part as recordings of their own, as a model meets a new one: reset at rest at a start, scored
+// after a window of cold_window_s (at most a fifth of the part), to the part's end; with cold_start_estimate the
+// window also fixes the start estimate (models::StreamOptions::anchor_s). Several starts (cold_starts, spread
+// over the part's first half): one start state is one draw, and on a 10-s part one lucky draw decided (the KAN
+// on the 50-µm stages: docs/models.md).
+std::vector<double> cold_fold(const models::Model& model, const io::Dataset& tail, const std::string& axis,
+                              const SlowScoreOptions& o, std::size_t block) {
+  models::StreamOptions so;
+  so.mode = models::PredictionMode::kFreeRun;
+  so.keep_diverging = true;
+  const double span_s = tail.size() > 1 ? tail.time_s.back() - tail.time_s.front() : 0.0;
+  const double window_s = std::min(o.cold_window_s, span_s / 5.0);
+  if (o.cold_start_estimate) so.anchor_s = window_s;
+  const std::size_t starts = static_cast<std::size_t>(std::max(1, o.cold_starts));
+  std::vector<double> out;
+  for (std::size_t k = 0; k < starts; ++k) {
+    const io::Dataset part = tail.slice(tail.size() * k / (2 * starts), tail.size());
+    auto m = model.clone();
+    const models::StreamResult r = models::stream_model(*m, part, axis, so);
+    const auto& y = part.axis(axis).position_nm;
+    std::size_t from = r.first_scored;
+    while (from < y.size() && part.time_s[from] - part.time_s[0] < window_s) ++from;
+    const auto f = static_cast<std::ptrdiff_t>(from);
+    const auto e = block_errors(std::vector<double>(r.prediction.begin() + f, r.prediction.end()),
+                                std::vector<double>(y.begin() + f, y.end()), block);
+    out.insert(out.end(), e.begin(), e.end());
+  }
+  return out;
+}
+}  // namespace
 
 SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
                      const std::string& axis, const SlowScoreOptions& o, const std::vector<double>* warm_free_run) {
@@ -211,7 +243,8 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
   const double rate = data.size() > 1 ? data.sample_rate_hz() : 1.0;
   const std::size_t scored = data.size() > score_from ? data.size() - score_from : 0;
   const std::size_t block = std::max<std::size_t>(
-      1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate)), scored / 8));
+      1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate)),
+                                     scored / std::max<std::size_t>(1, o.min_blocks)));
   const std::size_t hold_end = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(o.hold_end_s * rate)));
   models::StreamOptions so;
   so.mode = models::PredictionMode::kFreeRun;
@@ -225,15 +258,7 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
   }
   const auto holds = voltage_holds(data, axis, score_from, o);
   SlowErrors e = slow_errors(warm, ax.position_nm, holds, score_from, block, hold_end);
-  if (score_from == 0) {
-    e.cold = block_errors(warm, ax.position_nm, block);
-  } else if (score_from < data.size()) {
-    // The cold fold: the held-out part as a recording of its own, reset at rest at its first sample.
-    const io::Dataset tail = data.slice(score_from, data.size());
-    auto m = model.clone();
-    const auto cold = models::stream_model(*m, tail, axis, so).prediction;
-    e.cold = block_errors(cold, tail.axis(axis).position_nm, block);
-  }
+  if (score_from < data.size()) e.cold = cold_fold(model, data.slice(score_from, data.size()), axis, o, block);
   SlowScore s = summarise_slow(e, o);
   s.block_s = double(block) / rate;
   if (ax.has_truth()) {
@@ -453,7 +478,8 @@ Selection select_model(const SelectionRequest& rq) {
       const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
       const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
       const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
-      const double rows = std::max(1.0, std::min(std::round(rq.slow.block_s * rate), std::floor(tail.size() / 8.0)));
+      const double rows = std::max(1.0, std::min(std::round(rq.slow.block_s * rate), 
+                                                  std::floor(double(tail.size()) / std::max(1, rq.slow.min_blocks))));
       sel.block_noise_nm = std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
       if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
     } catch (const std::exception&) {
@@ -463,7 +489,6 @@ Selection select_model(const SelectionRequest& rq) {
     sel.block_noise_nm = rq.slow.noise_nm;
   }
   const std::vector<ModelCandidate> cands = rq.candidates.empty() ? default_candidates() : rq.candidates;
-  std::vector<models::ModelPtr> fitted(cands.size());
   for (std::size_t k = 0; k < cands.size(); ++k) {
     CandidateResult r;
     r.candidate = cands[k];
@@ -496,7 +521,7 @@ Selection select_model(const SelectionRequest& rq) {
       r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
     }
     r.fit_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    if (r.refused.empty()) fitted[k] = std::move(m);
+    if (r.refused.empty()) r.model = std::move(m);
     sel.table.push_back(std::move(r));
   }
   std::vector<ChoiceEntry> entries;
@@ -513,7 +538,7 @@ Selection select_model(const SelectionRequest& rq) {
   sel.best = ch.chosen;
   sel.best_overall = ch.best_overall;
   sel.reason = ch.reason;
-  sel.model = std::move(fitted[sel.best]);
+  sel.model = sel.table[sel.best].model->clone();
   store_validation(sel.table[sel.best].score, *sel.model);
   sel.model->meta.selection = selection_yaml(sel);
   return sel;
@@ -532,8 +557,10 @@ std::string selection_table(const Selection& s) {
         "part; scored on the slow part of the error, |mean(predicted - measured)| of " << fmt(block_s) << "-s blocks";
   if (std::isfinite(s.block_noise_nm)) os << " (reading noise of a block mean ~" << fmt(s.block_noise_nm, 2) << " nm)";
   os << ":\nmoves, holds (voltage unchanged >= " << fmt(o.hold_min_s) << " s), hold ends (last " << fmt(o.hold_end_s)
-     << " s of each hold), cold fold\n(the validation part alone, from rest); overall = weighted geometric mean of (column + block noise), less the\n"
-        "noise (hold ends x" << fmt(o.hold_end_weight) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
+     << " s of each hold), cold fold\n(the validation part alone, " << o.cold_starts << " starts from rest, scored after "
+     << fmt(o.cold_window_s) << " s at most" << (o.cold_start_estimate ? " with the start estimate there" : "")
+     << "); overall = weighted geometric mean of (column + block noise), less the\n"
+        "noise (hold ends x" << fmt(o.hold_end_weight) << ", cold fold x" << fmt(o.cold_weight) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
         "of it (paired block test on every column). Position range "
      << fmt(s.scale.position_range_nm, 4) << " nm.\n\n";
   os << "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | overall [nm] | status |\n";
@@ -559,7 +586,8 @@ YAML::Node selection_yaml(const Selection& s) {
   const auto& o = s.slow_options;
   n["criterion"] = "slow part of the error: |mean(predicted - measured)| of " + fmt(o.block_s) +
                    "-s blocks on moves, holds, hold ends (x" + fmt(o.hold_end_weight) +
-                   ") and a cold fold; overall = weighted geometric mean of (column + block noise) less the noise; "
+                   ") and a cold fold (x" + fmt(o.cold_weight) + ", " + std::to_string(o.cold_starts) + " starts from rest, scored after at most " +
+                   fmt(o.cold_window_s) + " s" + (o.cold_start_estimate ? " with the start estimate there" : "") + "); overall = weighted geometric mean of (column + block noise) less the noise; "
                    "lowest overall, then the fewest parameters within the noise of it "
                    "(paired block test on every column), among the candidates passing the gates";
   if (!s.table.empty()) {
