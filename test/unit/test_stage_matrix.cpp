@@ -41,6 +41,16 @@ std::string start_state(const char* figure) {
          "(issue 26 item 1)";
 }
 const std::map<std::string, std::string> kKnownFailing = {
+    {"lowvolt_pi_creep/dense separate", start_state("3429, 14.44× 237.5")},  // after the estimate's third background (8efef26)
+    {"lowvolt_preisach/linear (lasso features) separate", start_state("2039, 2.794× 729.9")},  // after the estimate's third background (8efef26)
+    {"lowvolt_preisach_creep/linear (lasso features) separate", start_state("2164, 2.323× 931.7")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach/linear (lasso features) separate", start_state("60.26, 2.805× 21.48")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach/pi_creep_lti separate", start_state("103.5, 2.305× 44.91")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach/pi_creep_prony separate", start_state("103.4, 2.314× 44.68")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach_creep/linear (lasso features) separate", start_state("93.56, 4.063× 23.02")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach_creep/pi_creep_log separate", start_state("90.78, 2.111× 43.01")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach_creep/pi_creep_lti separate", start_state("98.05, 2.225× 44.07")},  // after the estimate's third background (8efef26)
+    {"mm3e_preisach_creep/pi_creep_prony separate", start_state("97.91, 2.158× 45.37")},  // after the estimate's third background (8efef26)
     {"lowvolt_pi/auto", "auto chose pi: 42.84 nm, best kind 38.27 nm; pi is within the paired-block noise of preisach on the 10-s tail and has fewer parameters"},
     {"lowvolt_pi/linear (lasso features) separate", start_state("1.401e+04, 73.48× 190.7")},
     {"lowvolt_pi/pi separate", start_state("281.8, 6.578× 42.84")},

@@ -118,7 +118,8 @@ struct ResidualOptions {
   // rest at the first voltage" is off by the unknown initial state of its creep modes. A decaying exp(−t/τ) per
   // base mode (5 s ≤ τ ≤ twice TRAIN) is fitted alongside the terms as a nuisance and left out of the model.
   bool start_transients = false;
-  // > 0: the first anchor_s seconds of TEST's measurement fix the prediction offset; TEST is scored after them.
+  // > 0: the first anchor_s seconds of TEST's measurement fix the prediction offset (and, from a cold start, the
+  // model's start state: models/start_state.h); TEST is scored after them.
   double anchor_s = 0.0;
 };
 

@@ -296,7 +296,8 @@ void md_header(std::ostream& f, const ReportParts& p) {
     << (res.warm_started ? "TEST continues TRAIN in time: the models run on from TRAIN into TEST (no reset). "
                          : "The models are reset at the first TEST row (rest at its voltage and measured position). ");
   if (res.anchor_s > 0)
-    f << "The first " << res.anchor_s << " s of TEST's measurement fix the prediction offset (anchor); TEST is scored after them.";
+    f << "The first " << res.anchor_s << " s of TEST's measurement fix the prediction offset (anchor) and, on a cold start, the "
+         "model's start state (models/start_state.h); TEST is scored after them.";
   else
     f << "No anchor: the offset is the model's own.";
   f << "\n\n## TEST error against the measurement\n\n| step | MAE [nm] | RMS [nm] | max [nm] |";
