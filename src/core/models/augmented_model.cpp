@@ -43,14 +43,29 @@ std::vector<double> yaml_vec(const YAML::Node& n, const char* key) {
   }
   return v;
 }
+// The term types, by name: the one list the type strings are read against.
+enum class TermKind { linear, play, sincos, rate, gain, gain_quadratic, powers };
+
+TermKind term_kind(const std::string& type) {
+  static const std::pair<const char*, TermKind> kinds[] = {
+      {"linear", TermKind::linear}, {"play", TermKind::play},   {"sincos", TermKind::sincos},
+      {"rate", TermKind::rate},     {"powers", TermKind::powers}, {"gain", TermKind::gain},
+      {"gain_quadratic", TermKind::gain_quadratic}};
+  for (const auto& [name, kind] : kinds)
+    if (type == name) return kind;
+  throw std::runtime_error("augmented model term: unknown type '" + type +
+                           "' (linear, play, sincos, rate, powers, gain, gain_quadratic)");
+}
 }  // namespace
 
 std::size_t EffectTerm::num_regressors() const {
-  if (type == "linear" || type == "play") return 1;
-  if (type == "sincos" || type == "powers" || type == "gain_quadratic") return 2;
-  if (type == "gain") return 1;
-  if (type == "rate") return 3;
-  throw std::runtime_error("augmented model term: unknown type '" + type + "' (linear, play, sincos, rate, powers, gain, gain_quadratic)");
+  switch (term_kind(type)) {
+    case TermKind::sincos:
+    case TermKind::powers:
+    case TermKind::gain_quadratic: return 2;
+    case TermKind::rate: return 3;
+    default: return 1;  // linear, play, gain
+  }
 }
 
 std::string EffectTerm::name() const {
@@ -135,18 +150,6 @@ struct TermState {
   double play = 0.0;
   double prev = 0.0;
 };
-
-enum class TermKind { linear, play, sincos, rate, gain, gain_quadratic, powers };
-
-TermKind term_kind(const std::string& type) {
-  static const std::pair<const char*, TermKind> kinds[] = {
-      {"linear", TermKind::linear}, {"play", TermKind::play},   {"sincos", TermKind::sincos},
-      {"rate", TermKind::rate},     {"gain", TermKind::gain},   {"gain_quadratic", TermKind::gain_quadratic},
-      {"powers", TermKind::powers}};
-  for (const auto& [name, kind] : kinds)
-    if (type == name) return kind;
-  throw std::runtime_error("augmented model term: unknown type '" + type + "'");
-}
 
 // What a term's strings say, resolved once when the stream is built (the per-sample loop compares no strings).
 struct TermConst {
@@ -263,8 +266,8 @@ EffectTermStream::EffectTermStream(std::vector<EffectTerm> terms, double sample_
     TermConst c;
     c.lag = static_cast<std::size_t>(std::lround(t.lag_s * sample_rate_hz));
     c.alpha = t.time_constant_s > 0 ? std::exp(-1.0 / (t.time_constant_s * sample_rate_hz)) : 0.0;
-    c.regressors = t.num_regressors();  // validates the type, naming the known ones
-    c.kind = term_kind(t.type);
+    c.kind = term_kind(t.type);  // throws for an unknown type, naming the known ones
+    c.regressors = t.num_regressors();
     c.on_position = t.signal == kSignalPosition;
     c.scales_voltage = t.scales == kSignalVoltage;
     if (!is_builtin_signal(t.signal)) {
