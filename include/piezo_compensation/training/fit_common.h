@@ -81,6 +81,7 @@ std::string utc_now_iso8601();
 double option_num(const YAML::Node& options, const std::string& key, double def);
 int option_int(const YAML::Node& options, const std::string& key, int def);
 std::string option_str(const YAML::Node& options, const std::string& key, const std::string& def);
+bool option_bool(const YAML::Node& options, const std::string& key, bool def);  // "true" or "false", else throws
 // Least-squares y ≈ βᵀx + intercept over the columns of x (features × samples, standardised), with a tiny
 // fixed ridge that only settles collinear columns: the linear start of the dense and KAN kinds.
 struct ColumnLinearFit {

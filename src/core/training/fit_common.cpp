@@ -224,6 +224,11 @@ int option_int(const YAML::Node& o, const std::string& key, int def) {
     throw std::runtime_error("option '" + key + "': expected an integer");
   }
 }
+bool option_bool(const YAML::Node& o, const std::string& key, bool def) {
+  const std::string v = option_str(o, key, def ? "true" : "false");
+  if (v != "true" && v != "false") throw std::runtime_error("option '" + key + "': expected true or false, got '" + v + "'");
+  return v == "true";
+}
 std::string option_str(const YAML::Node& o, const std::string& key, const std::string& def) {
   if (!o || !o[key]) return def;
   if (!o[key].IsScalar()) throw std::runtime_error("option '" + key + "': expected a string");

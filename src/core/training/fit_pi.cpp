@@ -126,7 +126,7 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
     for (std::size_t j = 0; j < e.size(); ++j) {
       x[P0 + j] = e[j];
       // A decayed initial state is set to 0 before it turns subnormal: its products would underflow on every
-      // remaining row, each a slow microcode assist (three quarters of a 6-h creep-on-H fit's time).
+      // remaining row, each a slow microcode assist (on hours of data, most of a creep-on-H fit's time).
       e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
     }
     const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
@@ -384,8 +384,8 @@ EvalResult evaluate_w_given_creep_on_h(const FitData& d, const Basis& hb, const 
   std::vector<double> p(hb.r.size(), V[0]), f(np);
   hb.columns(V[0], p, f.data());
   // Mode-major states (l[j·np + i]) and the loop over pieces innermost: each piece's sum still adds the modes in
-  // order j = 0, 1, …, but the pieces are independent, so the loop vectorises (np × nm filters a sample: ~1 400 on
-  // the Preisach kinds).
+  // order j = 0, 1, …, but the pieces are independent, so the loop vectorises (np × nm filters a sample, a
+  // thousand or more on the Preisach kinds).
   std::vector<double> l(np * nm), one_minus_a(nm);
   for (std::size_t j = 0; j < nm; ++j) {
     one_minus_a[j] = 1 - a[j];
@@ -571,10 +571,8 @@ void parse_creep_law_options(const YAML::Node& o, CreepKind kind, double tau_lo,
   if (kind == CreepKind::kLti) {
     p.taus_given = given(o, "taus_s");
     if (p.taus_given) p.taus_s = yaml_numbers(o, "taus_s");
-    const std::string fix = option_str(o, "fix_taus", "false");
-    if (fix != "true" && fix != "false") throw std::runtime_error("option 'fix_taus': expected true or false, got '" + fix + "'");
-    if (fix == "true" && !p.taus_given) throw std::runtime_error("option 'fix_taus': needs taus_s");
-    p.fix_taus = fix == "true";
+    p.fix_taus = option_bool(o, "fix_taus", false);
+    if (p.fix_taus && !p.taus_given) throw std::runtime_error("option 'fix_taus': needs taus_s");
     p.n_pairs = option_int(o, "n_pairs", 2);
     if (!p.taus_given && (p.n_pairs < 1 || p.n_pairs > 6)) throw std::runtime_error("option 'n_pairs': expected 1..6");
     p.search_rounds = option_int(o, "search_rounds", 3);
@@ -623,13 +621,11 @@ PiFitOptions parse_pi_options(const YAML::Node& o, CreepKind kind, bool preisach
     if (!(p.hold_weight_factor >= 1.0 && p.hold_weight_factor <= 1000.0))
       throw std::runtime_error("option 'hold_weight': expected auto, off or a number in [1, 1000]");
   }
-  const std::string refit = option_str(o, "refit_with_validation", "false");
-  if (refit != "true" && refit != "false")
-    throw std::runtime_error("option 'refit_with_validation': expected true or false, got '" + refit + "'");
+  const bool refit = option_bool(o, "refit_with_validation", false);
   // Only for the kinds linear in their parameters (no creep-law search that the validation part no longer checks).
-  if (refit == "true" && !(kind == CreepKind::kNone || kind == CreepKind::kProny))
+  if (refit && !(kind == CreepKind::kNone || kind == CreepKind::kProny))
     throw std::runtime_error("option 'refit_with_validation': only for pi, pi_creep_prony and the preisach kinds");
-  p.refit_with_validation = refit == "true";
+  p.refit_with_validation = refit;
   parse_creep_law_options(o, kind, tau_lo, tau_hi, p);
   return p;
 }
