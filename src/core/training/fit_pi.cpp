@@ -92,19 +92,34 @@ struct EvalResult {
   double b = 0;
 };
 
+// The Gram entries among a row's leading `n` columns, the target and the constant, kept from the first evaluation
+// of a search that re-solves with other trailing (creep) columns on the same data, basis and weights: those entries
+// do not change, so later evaluations form only the pairs with a trailing column. Semantic order: the n columns, y, 1.
+struct StaticGram {
+  std::size_t n = 0;
+  Eigen::MatrixXd block;  // (n + 2)², lower triangle; empty until the first evaluation filled it
+};
+
 // Weighted Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
 // Extra columns a_j^(t+1) for the poles in `init` absorb the unknown initial state of slow modes: a recording
 // never starts from the rest the model's reset assumes, and without them the first hours bias the creep fit.
+// `fixed` (optional): its leading columns' entries are taken from it once it holds them (and stored there first).
 training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::function<double(std::size_t, double*)>& row,
-                                const std::vector<double>& init = {}, const std::vector<double>* weight = nullptr) {
+                                const std::vector<double>& init = {}, const std::vector<double>* weight = nullptr,
+                                StaticGram* fixed = nullptr) {
   const std::size_t P = P0 + init.size();
   std::vector<double> e(init);
   // Each row is [x, y, 1]·√w, so one Gram of a chunk gives every sum at once (Σw·xxᵀ, Σw·xy, Σw·x, Σw·y², Σw·y,
-  // Σw). Few columns (the creep searches have 7–20): a dot product per pair of the chunk's columns, which in a
-  // 256-row chunk stay in the L1 cache; Eigen's blocked rank update spends most of its time packing there. Many
-  // columns (Preisach pieces): the rank update.
+  // Σw). Few columns (the creep searches have 7–20), or only the pairs with a trailing column: a dot product per
+  // pair of the chunk's columns, which in a 32-row chunk stay in the L1 cache; Eigen's blocked rank update spends
+  // most of its time packing there. Many columns (Preisach pieces): the rank update.
   const Eigen::Index Y = static_cast<Eigen::Index>(P), ONE = Y + 1, Q = ONE + 1;
-  const Eigen::Index kChunk = Q > 32 ? 2048 : 256;
+  const Eigen::Index S = fixed ? static_cast<Eigen::Index>(fixed->n) : 0;
+  const bool reuse = fixed && fixed->block.rows() == S + 2;
+  // The semantic index of a fixed column (its leading position, or S for y and S + 1 for the constant), else -1.
+  auto fixed_index = [&](Eigen::Index i) -> Eigen::Index { return i < S ? i : i == Y ? S : i == ONE ? S + 1 : -1; };
+  const bool rank_update = Q > 32 && !reuse;
+  const Eigen::Index kChunk = rank_update ? 2048 : 32;
   Eigen::MatrixXd X(kChunk, Q);  // column-major: each column's chunk is contiguous
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
   std::vector<double> x(static_cast<std::size_t>(Q));
@@ -112,11 +127,12 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   auto flush = [&]() {
     if (!fill) return;
     const auto Xc = X.topRows(fill);
-    if (Q > 32) {
+    if (rank_update) {
       A.selfadjointView<Eigen::Lower>().rankUpdate(Xc.transpose());
     } else {
       for (Eigen::Index i = 0; i < Q; ++i)
-        for (Eigen::Index j = 0; j <= i; ++j) A(i, j) += Xc.col(i).dot(Xc.col(j));
+        for (Eigen::Index j = 0; j <= i; ++j)
+          if (!reuse || fixed_index(i) < 0 || fixed_index(j) < 0) A(i, j) += Xc.col(i).dot(Xc.col(j));
     }
     fill = 0;
   };
@@ -134,6 +150,19 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
     if (++fill == kChunk) flush();
   }
   flush();
+  if (fixed) {
+    if (!reuse) fixed->block = Eigen::MatrixXd::Zero(S + 2, S + 2);
+    for (Eigen::Index i = 0; i < Q; ++i)
+      for (Eigen::Index j = 0; j <= i; ++j) {
+        const Eigen::Index fi = fixed_index(i), fj = fixed_index(j);
+        if (fi < 0 || fj < 0) continue;
+        double& kept = fixed->block(std::max(fi, fj), std::min(fi, fj));
+        if (reuse)
+          A(i, j) = kept;
+        else
+          kept = A(i, j);
+      }
+  }
   training::GramStats g(P);
   g.sxx = A.topLeftCorner(Y, Y);
   g.sxx = g.sxx.selfadjointView<Eigen::Lower>();
@@ -286,7 +315,8 @@ EvalResult solve_pieces_and_creep(const training::GramStats& g, const Basis& hb,
 }
 
 // Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
-EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
+// `fixed` (optional): the play pieces' Gram entries, shared by the evaluations of one creep-law search.
+EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0, StaticGram* fixed = nullptr) {
   const CreepBasis cb(cp, d.rate);
   const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
   const std::vector<double>& V = *d.v;
@@ -296,7 +326,7 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
     hb.columns(v, p, x);
     creep_columns(cb.poles, l, v, cb.B, x + np);
     return (*d.y)[t];
-  }, init_poles(cb.taus, d), d.weight);
+  }, init_poles(cb.taus, d), d.weight, fixed);
   return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
@@ -771,8 +801,9 @@ std::unique_ptr<PiCreepModel> PiCreepFit::fit_with(const FitData& d, const Basis
   dd.weight = weight;
   CreepParams cp = cp0_;
   // Creep on the voltage: weights and creep coefficients are jointly linear.
-  search_creep_law(cp, [&](const CreepParams& c) { return evaluate(dd, r, c, min_w0_).sse; }, false);
-  EvalResult best = evaluate(dd, r, cp, min_w0_);
+  StaticGram pieces{r.pieces(), {}};
+  search_creep_law(cp, [&](const CreepParams& c) { return evaluate(dd, r, c, min_w0_, &pieces).sse; }, false);
+  EvalResult best = evaluate(dd, r, cp, min_w0_, &pieces);
   cp.set_coefficients(best.theta);
   if (v_model) *v_model = r.model(best.w, best.b, cp, rate_);
   // The joint fixed point is exact where the hysteresis is representable, but with a misfit it is not the
