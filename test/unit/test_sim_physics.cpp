@@ -12,6 +12,7 @@
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/piezo_axis.h"
 #include "piezo_compensation/sim/simulator_config.h"
+#include "piezo_compensation/util/splitmix64.h"
 
 using namespace piezo;
 
@@ -231,6 +232,36 @@ TEST(SimPhysics, MinorLoopsCloseAndWipeOut) {
   EXPECT_GT(std::fabs(s3.step({20, 20, 20}, 0.1).axes[2].true_position_nm -
                       s4.step({20, 20, 20}, 0.1).axes[2].true_position_nm),
             5.0);
+}
+
+// The Preisach step visits only the relays whose thresholds the input crossed; it must give what visiting every
+// relay gives, on inputs that land exactly on switching voltages (no jitter: the grid's bin centres, and the
+// memoryless α = β relays) as well as between them, with and without jitter, after a reset too.
+TEST(SimPhysics, PreisachIncrementalStepMatchesEveryRelay) {
+  for (bool jitter : {false, true}) {
+    sim::AxisConfig axis = sim::default_simulator_config().axes[2];
+    axis.hysteresis_model = "preisach";
+    axis.preisach_grid_count = 40;
+    axis.preisach_threshold_jitter = jitter;
+    sim::Preisach fast(axis), every(axis);
+    const double lo = axis.voltage_min_v, hi = axis.voltage_max_v, mid = 0.5 * (lo + hi), half = 0.5 * (hi - lo);
+    const int n = axis.preisach_grid_count;
+    std::uint64_t h = 12345;
+    double v = mid, worst = 0.0;
+    for (int t = 0; t < 20000; ++t) {
+      const double r = static_cast<double>(piezo::util::splitmix64(h) >> 11) * 0x1.0p-53;
+      if (t % 3 == 0) {  // exactly on a bin centre (a switching voltage without jitter)
+        const int k = static_cast<int>(r * n);
+        v = mid + half * (-1.0 + (2.0 * k + 1.0) / n);
+      } else if (t % 3 == 1) {
+        v = std::min(hi, std::max(lo, v + (r - 0.5) * 0.3 * (hi - lo)));
+      }  // else: the same input again
+      if (t == 12000) fast.reset(), every.reset();
+      const double s = 1.0 + 0.1 * std::sin(0.01 * t);
+      worst = std::max(worst, std::fabs(fast.update(v, s) - every.update_every_relay(v, s)));
+    }
+    EXPECT_LT(worst, 1e-9) << "jitter " << jitter;
+  }
 }
 
 TEST(SimPhysics, ThirtyMinuteCreepDependsOnHistory) {

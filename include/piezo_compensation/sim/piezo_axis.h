@@ -40,15 +40,29 @@ class Preisach {
   explicit Preisach(const AxisConfig& axis);
   // Advances to voltage v; the relay part is weighted by nonlinear_scale (1 = rate independent). Returns H [nm].
   double update(double voltage_v, double nonlinear_scale = 1.0);
+  // The same step with every relay visited (the reference the incremental step is tested against).
+  double update_every_relay(double voltage_v, double nonlinear_scale = 1.0) {
+    synced_ = false;
+    return update(voltage_v, nonlinear_scale);
+  }
   double output_nm() const { return output_nm_; }
   void reset();
   std::size_t relay_count() const { return alpha_v_.size(); }
   double linear_weight_nm_per_v() const { return w0_; }
 
  private:
+  void switch_to(std::size_t k, signed char s);
+  void sort_thresholds();
+
   double v_mid_ = 0.0, w0_ = 0.0, start_sum_ = 0.0, output_nm_ = 0.0;
   std::vector<double> alpha_v_, beta_v_, weight_nm_;  // weights already scaled by s
   std::vector<signed char> state_, start_state_;
+  // A step visits only the relays whose threshold the input crossed (the thresholds sorted once, with the relays'
+  // indices), and keeps Σ weight·state up to date: O(relays crossed), not O(relays), per sample.
+  bool synced_ = false;  // false: the next update sets every relay by the rule
+  double u_prev_ = 0.0, relay_sum_ = 0.0;
+  std::vector<std::size_t> by_alpha_, by_beta_;
+  std::vector<double> alpha_sorted_, beta_sorted_;
 };
 
 // Creep: first-order modes x_j relaxing towards the hysteretic displacement h, with log-spaced τ_j (weights

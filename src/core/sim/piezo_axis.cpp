@@ -118,21 +118,62 @@ Preisach::Preisach(const AxisConfig& axis) {
 
 double Preisach::update(double voltage_v, double nonlinear_scale) {
   const double u = voltage_v - v_mid_;
-  double relays = 0.0;
-  for (std::size_t k = 0; k < state_.size(); ++k) {
-    if (u >= alpha_v_[k])
-      state_[k] = 1;
-    else if (u <= beta_v_[k])
-      state_[k] = -1;
-    relays += weight_nm_[k] * state_[k];
+  if (!synced_) {
+    // Every relay by the rule: the first step after construction or reset (their start states are not the
+    // result of any one input), and the order the incremental steps keep.
+    relay_sum_ = 0.0;
+    for (std::size_t k = 0; k < state_.size(); ++k) {
+      if (u >= alpha_v_[k])
+        state_[k] = 1;
+      else if (u <= beta_v_[k])
+        state_[k] = -1;
+      relay_sum_ += weight_nm_[k] * state_[k];
+    }
+    if (by_alpha_.empty()) sort_thresholds();
+    synced_ = true;
+  } else if (u > u_prev_) {
+    // Rising from u_prev: the relays with α ≤ u_prev are up already and those with β ≥ u were down; only the
+    // ones with α in (u_prev, u] switch up.
+    auto lo = std::upper_bound(alpha_sorted_.begin(), alpha_sorted_.end(), u_prev_);
+    const auto hi = std::upper_bound(lo, alpha_sorted_.end(), u);
+    for (; lo != hi; ++lo) switch_to(by_alpha_[static_cast<std::size_t>(lo - alpha_sorted_.begin())], 1);
+  } else if (u < u_prev_) {
+    // Falling: the relays with β in [u, u_prev] switch down unless α ≤ u (a memoryless relay at u stays up; one at
+    // u_prev was up there and goes down now).
+    auto lo = std::lower_bound(beta_sorted_.begin(), beta_sorted_.end(), u);
+    const auto hi = std::upper_bound(lo, beta_sorted_.end(), u_prev_);
+    for (; lo != hi; ++lo) {
+      const std::size_t k = by_beta_[static_cast<std::size_t>(lo - beta_sorted_.begin())];
+      if (!(u >= alpha_v_[k])) switch_to(k, -1);
+    }
   }
-  output_nm_ = w0_ * u + nonlinear_scale * (relays - start_sum_);
+  u_prev_ = u;
+  output_nm_ = w0_ * u + nonlinear_scale * (relay_sum_ - start_sum_);
   return output_nm_;
+}
+
+void Preisach::switch_to(std::size_t k, signed char s) {
+  if (state_[k] == s) return;
+  state_[k] = s;
+  relay_sum_ += 2.0 * s * weight_nm_[k];
+}
+
+void Preisach::sort_thresholds() {
+  const std::size_t n = alpha_v_.size();
+  by_alpha_.resize(n);
+  by_beta_.resize(n);
+  for (std::size_t k = 0; k < n; ++k) by_alpha_[k] = by_beta_[k] = k;
+  std::stable_sort(by_alpha_.begin(), by_alpha_.end(), [&](std::size_t a, std::size_t b) { return alpha_v_[a] < alpha_v_[b]; });
+  std::stable_sort(by_beta_.begin(), by_beta_.end(), [&](std::size_t a, std::size_t b) { return beta_v_[a] < beta_v_[b]; });
+  alpha_sorted_.resize(n);
+  beta_sorted_.resize(n);
+  for (std::size_t k = 0; k < n; ++k) alpha_sorted_[k] = alpha_v_[by_alpha_[k]], beta_sorted_[k] = beta_v_[by_beta_[k]];
 }
 
 void Preisach::reset() {
   state_ = start_state_;
   output_nm_ = 0.0;
+  synced_ = false;
 }
 
 CreepModes::CreepModes(const AxisConfig& axis) {

@@ -404,6 +404,23 @@ EvalResult evaluate_joint_on_h(const FitData& d, const Basis& hb, const std::vec
   return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
+// One sample of every piece's creep filters: l_ji ← a_j·l_ji + (1 − a_j)·f_i, x_i = f_i + Σ_j g_j·l_ji (modes in
+// order j = 0, 1, …; the pieces are independent, so the inner loop vectorises). An AVX2 clone runs where the CPU has
+// it: the same IEEE operations per element as the SSE2 default (no FMA), so the same results, twice as wide.
+__attribute__((target_clones("avx2", "default"))) void filter_pieces(
+    std::size_t np, std::size_t nm, const double* __restrict f, const double* __restrict a,
+    const double* __restrict one_minus_a, const double* __restrict g, double* __restrict l, double* __restrict x) {
+  for (std::size_t i = 0; i < np; ++i) x[i] = f[i];
+  for (std::size_t j = 0; j < nm; ++j) {
+    double* __restrict lj = l + j * np;
+    const double aj = a[j], bj = one_minus_a[j], gj = g[j];
+    for (std::size_t i = 0; i < np; ++i) {
+      lj[i] = aj * lj[i] + bj * f[i];
+      x[i] += gj * lj[i];
+    }
+  }
+}
+
 // Creep on H with the creep gains fixed: y = b + Σ_i w_i·(F_i + Σ_j g_j·LP_j(F_i)), F_i the play pieces, w_i ≥ 0.
 EvalResult evaluate_w_given_creep_on_h(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0) {
   std::vector<double> taus, gains;
@@ -424,15 +441,7 @@ EvalResult evaluate_w_given_creep_on_h(const FitData& d, const Basis& hb, const 
   p.assign(hb.r.size(), V[0]);
   const auto g = stream_gram(V.size(), np, [&](std::size_t t, double* x) {
     hb.columns(V[t], p, f.data());
-    std::copy(f.begin(), f.end(), x);
-    for (std::size_t j = 0; j < nm; ++j) {
-      double* lj = l.data() + j * np;
-      const double aj = a[j], bj = one_minus_a[j], gj = gains[j];
-      for (std::size_t i = 0; i < np; ++i) {
-        lj[i] = aj * lj[i] + bj * f[i];
-        x[i] += gj * lj[i];
-      }
-    }
+    filter_pieces(np, nm, f.data(), a.data(), one_minus_a.data(), gains.data(), l.data(), x);
     return (*d.y)[t];
   }, init_poles(taus, d), d.weight);
   EvalResult res = solve(g, std::vector<bool>(np, true), hb.lower(min_w0), hb.neighbours(), hb.smoothing);

@@ -1,0 +1,1 @@
+// Compiles the unit tests' shared precompiled header (cmake/piezo_helpers.cmake: piezo_test_pch).
