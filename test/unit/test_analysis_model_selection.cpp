@@ -4,6 +4,7 @@
 #include <cmath>
 
 #include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/sim/stage.h"
 
 using namespace piezo;
@@ -296,8 +297,14 @@ TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPartAndIsScoredAfterAWindow
   analysis::SlowScoreOptions estimated = one;
   estimated.cold_start_estimate = true;
   const auto u = analysis::slow_score(m, d, 0, "c", estimated);
-  double offset = 0.0;
-  for (int k = 0; k < 300; ++k) offset += 0.01 * k * k / 300.0;
+  // The start estimate's offset (rest kept: the probe's other histories only add to its error), weighted by the
+  // candidates' spread, so near the plain mean of 0.01·k² over rows 0…299 (298.5 nm) but not equal to it.
+  models::StartOptions so;
+  so.window_s = 30.0;
+  const models::StartEstimate e = models::estimate_start(m, d, "c", so);
+  EXPECT_TRUE(e.history.rest) << e.describe();
+  const double offset = -e.offset_nm;
+  EXPECT_NEAR(offset, 298.5, 0.05 * 298.5);
   ASSERT_EQ(u.blocks.cold.size(), u.blocks.moves.size() - 1);
   for (std::size_t i = 0; i < u.blocks.cold.size(); ++i) EXPECT_NEAR(u.blocks.cold[i], u.blocks.moves[i + 1] - offset, 1e-6);
   // Four starts (the default) at rows 3000, 3375, 3750, 4125, each scored after its 30-s window: 9 + 8 + 7 + 5

@@ -124,7 +124,7 @@ TEST(StartState, MidMotionOnADescendingBranchBeatsOffsetOnly) {
   EXPECT_GT(est.start.candidates, 10u);
   EXPECT_LE(est.start.rms_nm, est.start.rms_rest_nm);
   EXPECT_NE(est.start.candidate.find("down"), std::string::npos) << est.start.candidate;
-  // Measured 151.1 → 38.9 nm against the truth, 151.5 → 39.5 nm against the measurement (whole history: 3.6 nm).
+  // Measured 151.1 → 10.3 nm against the truth, 151.5 → 18.8 nm against the measurement (whole history: 3.6 nm).
   EXPECT_LT(est.score.mae_true, 0.4 * plain.score.mae_true);
   EXPECT_LT(est.score.mae_meas, 0.5 * plain.score.mae_meas);
   EXPECT_LT(est.score.max_true, plain.score.max_true);
@@ -213,7 +213,7 @@ TEST(StartState, TrackRecordingUsesTheEstimate) {
             << mae(cold.model_nm, from, to) << " → " << mae(warm.model_nm, from, to) << " nm, fused "
             << mae(cold.fused_nm, from, to) << " → " << mae(warm.fused_nm, from, to) << " nm\n";
   EXPECT_NE(warm.start_estimate.find("down"), std::string::npos);
-  // The model alone (its offset is the filter's) and the fused estimate (measured 105 → 70 nm and 2.79 → 1.49 nm).
+  // The model alone (its offset is the filter's) and the fused estimate (measured 105.3 → 25.5 nm and 2.79 → 1.18 nm).
   EXPECT_LT(mae(warm.model_nm, from, to), mae(cold.model_nm, from, to));
   EXPECT_LT(mae(warm.fused_nm, from, to), 0.8 * mae(cold.fused_nm, from, to));
 }

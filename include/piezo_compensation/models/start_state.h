@@ -1,8 +1,11 @@
 // The start-up state estimate: a model started on a recording whose history it has not seen. The first window_s
 // seconds (applied voltage and measured position) choose the model's state at the recording's start among a few
 // synthetic pre-histories — rest, or arriving at the first voltage from above or below after a turning point, then
-// held there for several ages — and fix a constant offset (mean of measured − predicted over the window, least
-// squares). Generic: it only uses Model::reset/predict/commit/clone, so it works for every kind.
+// held there for several ages — and a constant offset. Each candidate's window is fitted by an offset weighted
+// against the candidates' spread (rows where the unknown history still moves the prediction count little), and
+// among the candidates that fit about as well as the best, the one that needs the least offset is chosen: an
+// offset that a plausible state explains is left to the state, which the voltage sweeps into agreement later.
+// Generic: it only uses Model::reset/predict/commit/clone, so it works for every kind.
 //
 // It is the one anchor: stream_model's anchor_s (`piezo eval/residual --anchor-s`) runs it, and the estimator
 // (estimation::ErrorFilter) starts from its offset and σ in the compensator (the predictor's ~start_estimate_s,
@@ -45,12 +48,19 @@ struct StartHistory {
 struct StartEstimate {
   std::string candidate = "rest";     // the chosen pre-history, e.g. "from 42 V down, held 300 s"
   std::size_t candidates = 0;         // how many were tried
-  double offset_nm = 0.0;             // measured − predicted over the window (mean)
-  double offset_sigma_nm = 0.0;       // 1σ of that mean, from the residual scatter (its correlation counted)
-  double rms_rest_nm = 0.0;           // window RMS residual of the offset-only anchor (rest candidate)
-  double rms_nm = 0.0;                // window RMS residual of the chosen candidate (≤ rms_rest_nm)
-  // A history replaces rest only when its window fit is better by more than chance: n_eff·ln(SSE_rest/SSE) >
-  // 2·ln(n_eff) (a BIC-like penalty; n_eff counts the residuals' correlation), else rest is kept.
+  // Measured − predicted over the window, each row weighted by 1/(σ² + (spread/2)²): σ the reading noise (the
+  // scatter of the residual's steps), spread the range of every non-diverging candidate's prediction at that row.
+  // Offset only (search_history false): the plain mean.
+  double offset_nm = 0.0;
+  // 1σ of the offset: half the weighted spread (what the unknown history may still shift) and the noise's share
+  // (its correlation counted); offset only: the scatter's share alone.
+  double offset_sigma_nm = 0.0;
+  double rms_rest_nm = 0.0;           // weighted window RMS residual of the rest candidate (its own offset)
+  double rms_best_nm = 0.0;           // the smallest weighted window RMS of any candidate
+  double rms_nm = 0.0;                // that of the chosen candidate
+  // The chosen candidate: among those with n_eff·ln(SSE/SSE_best) ≤ 8·ln(n_eff) (SSE weighted; n_eff counts the
+  // weights and the residuals' correlation; rest's), the one with the smallest |offset|, rest first on a tie.
+  double spread_end_nm = 0.0;         // the candidates' spread at the window's last row (0 for offset only)
   std::size_t window_rows = 0;        // rows in the window (scoring starts at this row)
   StartHistory history;               // the chosen pre-history (prepare_start puts a model there)
   std::string describe() const;       // one line for logs and reports

@@ -129,12 +129,15 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
   stream_rows(model, data, axis, o, &r.prediction);
   if (anchor) {
     const std::size_t k = r.first_scored;
-    // The offset of this stream (one-step differs from the estimate's free run); the rest of the report is the estimate's.
+    // A free run from the estimate is the estimate's own stream: its offset stands. Otherwise (one-step, or a warm
+    // start without the estimate) the offset of this stream over the window; the rest of the report is the estimate's.
     r.start.window_rows = k;
-    const WindowFit f = window_offset(data.axis(axis).position_nm.data(), r.prediction.data(), k);
-    r.start.offset_nm = f.offset_nm;
-    r.start.offset_sigma_nm = f.sigma_nm;
-    r.start.rms_nm = f.rms_nm;
+    if (r.start.candidates == 0 || o.mode != PredictionMode::kFreeRun) {
+      const WindowFit f = window_offset(data.axis(axis).position_nm.data(), r.prediction.data(), k);
+      r.start.offset_nm = f.offset_nm;
+      r.start.offset_sigma_nm = f.sigma_nm;
+      r.start.rms_nm = f.rms_nm;
+    }
     if (r.start.candidates == 0) r.start.rms_rest_nm = r.start.rms_nm, r.start.candidate = "warm (continued history)";
     r.anchor_offset_nm = r.start.offset_nm;
     r.anchored = true;
