@@ -121,7 +121,7 @@ endfunction()
 # header (GoogleTest, Eigen, yaml-cpp and the standard library), built once by piezo_test_pch.
 set(PIEZO_TEST_OPT -O1)
 if(CATKIN_ENABLE_TESTING)
-  add_library(piezo_test_pch STATIC EXCLUDE_FROM_ALL ${CMAKE_CURRENT_SOURCE_DIR}/test/unit/test_pch.cpp)
+  add_library(piezo_test_pch STATIC EXCLUDE_FROM_ALL ${CMAKE_CURRENT_SOURCE_DIR}/test/unit/pch_anchor.cpp)
   target_link_libraries(piezo_test_pch PUBLIC piezo_core GTest::gtest gtest_main)  # as catkin_add_gtest links
   target_compile_definitions(piezo_test_pch PRIVATE PIEZO_SOURCE_DIR="${CMAKE_CURRENT_SOURCE_DIR}")
   target_compile_options(piezo_test_pch PRIVATE ${PIEZO_TEST_OPT})
