@@ -114,6 +114,7 @@ Preisach::Preisach(const AxisConfig& axis) {
     start_sum_ += weight_nm_[k] * start_state_[k];
   }
   state_ = start_state_;
+  sort_thresholds();
 }
 
 double Preisach::update(double voltage_v, double nonlinear_scale) {
@@ -129,7 +130,6 @@ double Preisach::update(double voltage_v, double nonlinear_scale) {
         state_[k] = -1;
       relay_sum_ += weight_nm_[k] * state_[k];
     }
-    if (by_alpha_.empty()) sort_thresholds();
     synced_ = true;
   } else if (u > u_prev_) {
     // Rising from u_prev: the relays with α ≤ u_prev are up already and those with β ≥ u were down; only the
