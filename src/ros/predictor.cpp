@@ -647,10 +647,11 @@ void PredictorNode::on_aux(const std::string& input, const topic_tools::ShapeShi
     return;
   }
   const ros::Time now = ros::Time::now();
-  // staleness counts from the sensor's stamp when it has one (never from the future)
-  live_.add_aux(input, value, (stamp.isZero() || stamp > now ? now : stamp).toSec());
-  // the bag row of a sample takes the aux value at or before its stamp: the sensor's stamp when it has one
-  if (snapshot_) snapshot_->add_aux(input, value, (stamp.isZero() ? now : stamp).toSec());
+  // a sample takes the value stamped at or before its own stamp: the sensor's stamp when it has one; staleness
+  // counts from that stamp too, never from the future
+  const double stamp_s = (stamp.isZero() ? now : stamp).toSec();
+  live_.add_aux(input, value, stamp_s, std::min(stamp_s, now.toSec()));
+  if (snapshot_) snapshot_->add_aux(input, value, stamp_s);
 }
 
 void PredictorNode::poll_others(const Axis& except, const ros::Time& now) {

@@ -98,15 +98,22 @@ TEST(PredictorInputs, AuxGainCrossAxisAndTimeTermsMatchOfflineAndFallBackWithout
     const double a_v = moving ? 20.0 + 15.0 * std::sin(2 * M_PI * i / 60.0) : last_va;
     const double c_v = moving ? 30.0 + 20.0 * std::sin(2 * M_PI * i / 45.0) : last_vc;
     last_va = a_v, last_vc = c_v;
-    const double temperature = i < gap_end ? 22.0 + 0.5 * std::floor(i / 50.0) : 27.0;
+    const auto temperature_at = [&](std::size_t k) { return k < gap_end ? 22.0 + 0.5 * std::floor(k / 50.0) : 27.0; };
+    const double temperature = temperature_at(i);
     const auto seq = static_cast<std::uint32_t>(100 + i);
-    if (i < gap_begin || i >= gap_end) {
-      sensor_msgs::Temperature m;
-      m.header.stamp = ros::Time(t);
-      m.temperature = temperature;
-      temp.publish(m);
-    }
-    ros::WallDuration(0.002).sleep();
+    // The temperature goes out kLead samples ahead, stamped with its own sample's time: the predictor takes the value
+    // stamped at or before each sample, so the order in which the two topics' messages arrive does not matter (a
+    // temperature step sent just before the voltage once arrived after it on a loaded host: 20 nm off).
+    constexpr std::size_t kLead = 5;
+    for (std::size_t k = (i == 0 ? 0 : i + kLead); k <= i + kLead; ++k)
+      if (k < n_total && (k < gap_begin || k >= gap_end)) {
+        sensor_msgs::Temperature m;
+        m.header.stamp = ros::Time(t0 + static_cast<double>(k) / 11.0);
+        m.temperature = temperature_at(k);
+        temp.publish(m);
+      }
+    // the gap lasts about 4 s of wall time, well past ~aux_stale_after_s
+    ros::WallDuration(i >= gap_begin && i < gap_end ? 0.022 : 0.002).sleep();
     for (int k = 0; k < 2; ++k) {
       AxisVoltage v;
       v.header.stamp = ros::Time(t);

@@ -320,3 +320,47 @@ TEST(CompensationAxis, HoldTrimRemovesSlowModelError) {
       EXPECT_NEAR(x, 280.0, 0.5) << "trim " << comp.hold_trim().trim_nm();
   }
 }
+
+// An aux signal is read at the sample's stamp (the newest value stamped at or before it), as the bag snapshot and
+// the offline resolver read it: a temperature step whose message arrives after the voltage sample it precedes,
+// or before the sample it follows, feeds the same value either way.
+TEST(CompensationLiveInputs, AuxIsReadAtTheSampleStampWhateverTheArrivalOrder) {
+  models::EffectTerm t;
+  t.type = "linear";
+  t.signal = "temperature_c";
+  t.family = "aux_signal";
+  t.center = {22.0};
+  t.scale = {1.0};
+  t.weight = {40.0};
+  models::AugmentedModel model(test::make_pi_creep(), {t}, 0.0, 11.0);
+  AuxFeedOptions o;
+  o.stale_after_s = 1.0;
+  o.recovery_s = 0.0;
+  InputFeeder feeder(model, "c", o);
+  ASSERT_EQ(feeder.size(), 1u);
+  LiveInputs live;
+  EXPECT_EQ(live.aux("temperature_c", 100.0), nullptr);
+  // stamps 100.0 (22 °C), 100.2 (23 °C, arrives first), 100.1 (22.5 °C, overtaken)
+  live.add_aux("temperature_c", 22.0, 100.0, 100.0);
+  live.add_aux("temperature_c", 23.0, 100.2, 100.2);
+  live.add_aux("temperature_c", 22.5, 100.1, 100.1);
+  io::PairedSample s;
+  double fed = 0.0;
+  const std::vector<std::pair<double, double>> want{{99.9, 22.0}, {100.0, 22.0}, {100.05, 22.0},
+                                                    {100.1, 22.5}, {100.15, 22.5}, {100.3, 23.0}};
+  for (const auto& [stamp, value] : want) {
+    s.stamp_s = stamp;
+    ASSERT_TRUE(feeder.fill(live, s, 100.3, false, &fed));
+    EXPECT_DOUBLE_EQ(fed, value) << "sample stamped " << stamp;
+    EXPECT_FALSE(feeder.any_fallback());
+  }
+  // staleness counts from the chosen value's own time: 100.0 is 1.5 s old at 101.5
+  s.stamp_s = 100.05;
+  ASSERT_TRUE(feeder.fill(live, s, 101.5, false, &fed));
+  EXPECT_TRUE(feeder.any_fallback());
+  EXPECT_NE(feeder.states()[0].status.find("stale"), std::string::npos) << feeder.states()[0].status;
+  // only the last kAuxKept values are kept
+  for (std::size_t i = 0; i < LiveInputs::kAuxKept + 10; ++i)
+    live.add_aux("temperature_c", 30.0 + static_cast<double>(i), 200.0 + static_cast<double>(i), 200.0);
+  EXPECT_DOUBLE_EQ(live.aux("temperature_c", 0.0)->value, 40.0);  // the oldest kept
+}

@@ -6,7 +6,9 @@
 //  - <axis>_voltage_v: that axis' voltage report with this sample's sequence number (the controller numbers all
 //    axes alike), waited for and declared lost by the one pairing rule (io/sequence_pairer.h).
 //  - <axis>_position_nm of another axis: its reading at the previous sample, by the same rule.
-//  - any other name: an auxiliary signal from a topic, with a staleness limit. A stale or missing signal feeds
+//  - any other name: an auxiliary signal from a topic: the newest value stamped at or before the sample's stamp
+//    (the rule the bag snapshot and the offline resolver use), so which topic's message arrives first does not
+//    change the prediction. It has a staleness limit. A stale or missing signal feeds
 //    its fallback: the last fresh value fed (before any, the model's neutral value for it); when it comes back
 //    the fed value moves to the fresh one over `recovery_s`, so the corrected voltage never jumps because of it.
 #pragma once
@@ -38,19 +40,23 @@ class LiveInputs {
     double value;
   };
   struct Aux {
-    double value = 0.0, time_s = 0.0;
-    std::uint64_t count = 0;
+    double value = 0.0;
+    double stamp_s = 0.0;  // the sensor's stamp (receipt time when it has none): orders the values
+    double time_s = 0.0;   // min(stamp, receipt): staleness counts from here, never from the future
   };
   void add_voltage(const std::string& axis, std::uint32_t seq, double voltage_v);
   void add_reading(const std::string& axis, std::uint32_t seq, double position_nm);  // valid readings only
-  void add_aux(const std::string& name, double value, double time_s);
+  // Keeps the last kAuxKept values of each signal, ordered by stamp.
+  void add_aux(const std::string& name, double value, double stamp_s, double time_s);
   const std::deque<Report>* voltages(const std::string& axis) const;
   const std::deque<Report>* readings(const std::string& axis) const;
-  const Aux* aux(const std::string& name) const;
+  // The newest value stamped at or before `stamp_s`; the oldest kept when all are newer; nullptr before any.
+  const Aux* aux(const std::string& name, double stamp_s) const;
+  static constexpr std::size_t kAuxKept = 256;
 
  private:
   std::map<std::string, std::deque<Report>> voltages_, readings_;
-  std::map<std::string, Aux> aux_;
+  std::map<std::string, std::deque<Aux>> aux_;
 };
 
 // Feeds one axis' model. Throws std::runtime_error for a model it cannot feed (time_s on another clock, ground

@@ -29,11 +29,12 @@ void LiveInputs::add_voltage(const std::string& axis, std::uint32_t seq, double 
 void LiveInputs::add_reading(const std::string& axis, std::uint32_t seq, double position_nm) {
   keep(readings_[axis], seq, position_nm);
 }
-void LiveInputs::add_aux(const std::string& name, double value, double time_s) {
-  Aux& a = aux_[name];
-  a.value = value;
-  a.time_s = time_s;
-  ++a.count;
+void LiveInputs::add_aux(const std::string& name, double value, double stamp_s, double time_s) {
+  auto& q = aux_[name];
+  // usually appended; a message stamped before the last one goes to its place (a sensor's messages may overtake)
+  auto at = std::upper_bound(q.begin(), q.end(), stamp_s, [](double t, const Aux& a) { return t < a.stamp_s; });
+  q.insert(at, Aux{value, stamp_s, time_s});
+  while (q.size() > kAuxKept) q.pop_front();
 }
 const std::deque<LiveInputs::Report>* LiveInputs::voltages(const std::string& axis) const {
   auto it = voltages_.find(axis);
@@ -43,9 +44,12 @@ const std::deque<LiveInputs::Report>* LiveInputs::readings(const std::string& ax
   auto it = readings_.find(axis);
   return it == readings_.end() ? nullptr : &it->second;
 }
-const LiveInputs::Aux* LiveInputs::aux(const std::string& name) const {
+const LiveInputs::Aux* LiveInputs::aux(const std::string& name, double stamp_s) const {
   auto it = aux_.find(name);
-  return it == aux_.end() ? nullptr : &it->second;
+  if (it == aux_.end() || it->second.empty()) return nullptr;
+  const auto& q = it->second;
+  auto after = std::upper_bound(q.begin(), q.end(), stamp_s, [](double t, const Aux& a) { return t < a.stamp_s; });
+  return after == q.begin() ? &q.front() : &*std::prev(after);
 }
 
 double neutral_input(const models::Model& model, const std::string& name) {
@@ -127,7 +131,7 @@ bool InputFeeder::fill(const LiveInputs& live, const io::PairedSample& sample, d
         if (!std::isfinite(fresh)) why = s.name + ": no value from axis " + s.axis + " yet";
         break;
       case Kind::kAux: {
-        const LiveInputs::Aux* a = live.aux(s.name);
+        const LiveInputs::Aux* a = live.aux(s.name, sample.stamp_s);
         if (!a) {
           why = s.name + ": no message received";
         } else if (now_s - a->time_s > o_.stale_after_s) {
