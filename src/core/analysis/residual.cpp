@@ -17,6 +17,7 @@
 #include "piezo_compensation/analysis/residual_validation.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/pi_model.h"
+#include "piezo_compensation/util/flush_subnormals.h"
 
 namespace piezo::analysis {
 
@@ -321,6 +322,7 @@ ResidualResult Loop::run() {
 ResidualResult trace_residual(const models::Model& base, const io::Dataset& train, const io::Dataset& test,
                               const ResidualOptions& o) {
   check_inputs(train, test, o);
+  const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   Loop loop(base, train, test, o);
   return loop.run();
 }

@@ -4,6 +4,8 @@
 #include <cmath>
 #include <stdexcept>
 
+#include "piezo_compensation/util/flush_subnormals.h"
+
 namespace piezo::models {
 
 PredictionMode parse_prediction_mode(const std::string& s) {
@@ -108,6 +110,7 @@ void stream_rows(Model& model, const io::Dataset& data, const std::string& axis,
 }  // namespace
 
 StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o) {
+  const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   StreamResult r;
   if (!(o.anchor_s >= 0) || !std::isfinite(o.anchor_s)) throw std::invalid_argument("anchor must be a finite time ≥ 0 s");
   const io::Dataset* first = o.warmup && !o.warmup->empty() ? o.warmup : &data;

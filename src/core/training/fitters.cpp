@@ -4,6 +4,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/util/flush_subnormals.h"
 
 namespace piezo::training {
 
@@ -42,6 +43,7 @@ const FitFn& fitter(const std::string& kind) {
 models::ModelPtr fit_model(const std::string& kind, const FitRequest& request) {
   const FitFn& fit = fitter(kind);
   if (!fit) throw std::runtime_error("kind '" + kind + "' cannot be fitted on its own");
+  const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   return fit(request);
 }
 
