@@ -1,5 +1,6 @@
 # io/: Dataset and CSV.
 piezo_unit_test(test_io_csv test/unit/test_io_csv.cpp)
 piezo_unit_test(test_io_pairer test/unit/test_io_pairer.cpp)
-# util/: the child-process helper (no shell).
+# util/: the child-process helper (no shell), the subnormal flush guard.
 piezo_unit_test(test_util_child_process test/unit/test_util_child_process.cpp)
+piezo_unit_test(test_util_flush_subnormals test/unit/test_util_flush_subnormals.cpp)
