@@ -698,6 +698,16 @@ double min_slope(const io::AxisSeries& ax, double fraction) {
 
 using SseFn = std::function<double(const CreepParams&)>;
 
+// Where a creep-on-H alternation stopped (after `done` rounds, on the training data with sample weights `weight`): a
+// later fit of the same data and weights with more rounds continues from here, with the same result as starting
+// over (each round depends only on the creep law and the play weights the last one left).
+struct Alternation {
+  CreepParams cp;
+  EvalResult best;
+  int done = 0;
+  const std::vector<double>* weight = nullptr;
+};
+
 // One fit_pi_creep call: the data, the options and the choices made on them, each choice a member.
 class PiCreepFit {
  public:
@@ -716,12 +726,15 @@ class PiCreepFit {
   }
   CreepParams initial_creep() const;
   Basis basis_n(std::vector<double> thresholds) const;
-  // One fit for given thresholds, creep input, sample weights and alternations.
+  // One fit for given thresholds, creep input, sample weights and alternations. `alt` (training data only): where
+  // its alternation stopped, and where it continues from when it stopped earlier with the same weights.
   std::unique_ptr<PiCreepModel> fit_with(const FitData& d, const Basis& r, bool on_h, int alternations,
                                          const std::vector<double>* weight,
-                                         std::unique_ptr<PiCreepModel>* v_model = nullptr);
+                                         std::unique_ptr<PiCreepModel>* v_model = nullptr,
+                                         Alternation* alt = nullptr);
   EvalResult iterate_joint_on_h(const FitData& d, const Basis& r, CreepParams& cp, EvalResult best);
   EvalResult alternate_on_h(const FitData& d, const Basis& r, CreepParams& cp, EvalResult best, int iters);
+  EvalResult continue_on_h(const FitData& d, const Basis& r, CreepParams& cp, EvalResult best, int iters);
   void search_creep_law(CreepParams& cp, const SseFn& sse_fn, bool refine_only);
   void search_log_t1(CreepParams& cp, const SseFn& sse_of, bool refine_only) const;
   void search_alpha(CreepParams& cp, const SseFn& sse_of, bool refine_only) const;
@@ -749,6 +762,8 @@ class PiCreepFit {
   double min_w0_ = 0;
   int evals_ = 0;
   double total_ = 1;
+  // The alternations of the unweighted and the hold-weighted fit, continued by final_fit.
+  Alternation alt_plain_, alt_weighted_;
 };
 
 PiCreepFit::PiCreepFit(const FitRequest& req, CreepKind kind, bool preisach)
@@ -805,9 +820,17 @@ Basis PiCreepFit::basis_n(std::vector<double> thresholds) const {
 // With on_h, the voltage-input model it starts from is handed out through v_model (auto input costs nothing extra).
 std::unique_ptr<PiCreepModel> PiCreepFit::fit_with(const FitData& d, const Basis& r, bool on_h, int alternations,
                                                    const std::vector<double>* weight,
-                                                   std::unique_ptr<PiCreepModel>* v_model) {
+                                                   std::unique_ptr<PiCreepModel>* v_model, Alternation* alt) {
   FitData dd = d;
   dd.weight = weight;
+  const int iters = kind_ == CreepKind::kNone || !on_h ? 0 : alternations;
+  const bool joint = kind_ == CreepKind::kProny && opt_.joint_on_h;
+  if (alt && !v_model && !joint && alt->done > 0 && alt->done <= iters && alt->weight == weight) {
+    CreepParams cp = alt->cp;
+    EvalResult best = continue_on_h(dd, r, cp, alt->best, iters - alt->done);
+    *alt = Alternation{cp, best, iters, weight};
+    return r.model(best.w, best.b, cp, rate_);
+  }
   CreepParams cp = cp0_;
   // Creep on the voltage: weights and creep coefficients are jointly linear.
   StaticGram pieces{r.pieces(), {}};
@@ -818,11 +841,12 @@ std::unique_ptr<PiCreepModel> PiCreepFit::fit_with(const FitData& d, const Basis
   // The joint fixed point is exact where the hysteresis is representable, but with a misfit it is not the
   // least-squares solution the alternation converges to: on Preisach physics it was better on one seed and worse on
   // another (docs/models.md, issue 12), so the alternation is the default (creep_on_h_fit: joint, prony only).
-  const int iters = kind_ == CreepKind::kNone || !on_h ? 0 : alternations;
-  if (iters > 0 && kind_ == CreepKind::kProny && opt_.joint_on_h)
+  if (iters > 0 && joint) {
     best = iterate_joint_on_h(dd, r, cp, best);
-  else if (iters > 0)
+  } else if (iters > 0) {
     best = alternate_on_h(dd, r, cp, best, iters);
+    if (alt) *alt = Alternation{cp, best, iters, weight};
+  }
   return r.model(best.w, best.b, cp, rate_);
 }
 
@@ -862,13 +886,18 @@ EvalResult PiCreepFit::iterate_joint_on_h(const FitData& d, const Basis& r, Cree
 // once per round, starting from the voltage-input solution.
 EvalResult PiCreepFit::alternate_on_h(const FitData& d, const Basis& r, CreepParams& cp, EvalResult best, int iters) {
   cp.on_hysteresis = true;
-  std::vector<double> w = best.w;
   // Voltage-input gains are in nm/V; as gains on H they are about (nm/V)/(Σw) nm/nm.
   double sum_w = 0;
-  for (double x : w) sum_w += x;
+  for (double x : best.w) sum_w += x;
   std::vector<double> theta = best.theta;
   for (double& t : theta) t /= std::max(1e-12, sum_w);
   cp.set_coefficients(theta);
+  return continue_on_h(d, r, cp, best, iters);
+}
+
+// `iters` more rounds of the alternation from the play weights best.w and the law cp.
+EvalResult PiCreepFit::continue_on_h(const FitData& d, const Basis& r, CreepParams& cp, EvalResult best, int iters) {
+  std::vector<double> w = best.w;
   for (int it = 0; it < iters; ++it) {
     const std::vector<double> H = hysteresis_series(d, r, w);
     search_creep_law(cp, [&](const CreepParams& c) { return evaluate_creep_on_h(d, H, w, c).sse; }, true);
@@ -987,12 +1016,12 @@ Basis PiCreepFit::choose_play_count() {
 // Creep input by validation (auto), else as given; `score` is the chosen model's validation score.
 std::unique_ptr<PiCreepModel> PiCreepFit::choose_creep_input(const Basis& r, Score& score) {
   if (opt_.creep_input != "auto") {
-    auto m = fit_with(d_, r, opt_.creep_input == "hysteresis", opt_.alternations, nullptr);
+    auto m = fit_with(d_, r, opt_.creep_input == "hysteresis", opt_.alternations, nullptr, nullptr, &alt_plain_);
     if (val_) score = validation_score(*m, ax_, *val_, val_hold_);
     return m;
   }
   std::unique_ptr<PiCreepModel> mv;
-  auto mh = fit_with(d_, r, true, opt_.alternations, nullptr, &mv);
+  auto mh = fit_with(d_, r, true, opt_.alternations, nullptr, &mv, &alt_plain_);
   std::vector<double> ev, eh;
   const Score sv = validation_score(*mv, ax_, *val_, val_hold_, &ev), sh = validation_score(*mh, ax_, *val_, val_hold_, &eh);
   // Creep on V only when validation shows it clearly better: against the noise floor (16.6 nm on the Preisach
@@ -1021,7 +1050,7 @@ double PiCreepFit::choose_hold_weight(const Basis& r, const Score& score, const 
   if (!(factor > 1.0 && kind_ != CreepKind::kNone && n_hold > 0)) return 1.0;
   weight.resize(train_hold.size());
   for (std::size_t t = 0; t < weight.size(); ++t) weight[t] = train_hold[t] ? factor : 1.0;
-  auto mw = fit_with(d_, r, m->creep().on_hysteresis, opt_.alternations, &weight);
+  auto mw = fit_with(d_, r, m->creep().on_hysteresis, opt_.alternations, &weight, nullptr, &alt_weighted_);
   bool keep = opt_.hold_weight != "auto";
   if (!keep) {
     const Score sw = validation_score(*mw, ax_, *val_, val_hold_);
@@ -1041,7 +1070,10 @@ void PiCreepFit::final_fit(const Basis& r, double used_factor, const std::vector
   const bool refit = val_ && opt_.refit_with_validation;
   const bool realternate = opt_.final_alternations != opt_.alternations && m->creep().on_hysteresis &&
                            !(kind_ == CreepKind::kProny && opt_.joint_on_h);
-  if (realternate && !refit) m = fit_with(d_, r, true, opt_.final_alternations, used_factor > 1.0 ? &weight : nullptr);
+  // The chosen fit's alternation continues (the same result as starting over, without its first rounds again).
+  if (realternate && !refit)
+    m = fit_with(d_, r, true, opt_.final_alternations, used_factor > 1.0 ? &weight : nullptr, nullptr,
+                 used_factor > 1.0 ? &alt_weighted_ : &alt_plain_);
   if (!refit) return;
   std::vector<double> all_v = ax_.voltage_v, all_y = ax_.position_nm, all_w;
   all_v.insert(all_v.end(), val_->voltage_v.begin(), val_->voltage_v.end());
