@@ -280,27 +280,37 @@ std::vector<double> init_poles(const std::vector<double>& taus, const FitData& d
 // (−1.9e5 nm/V pairs on the 40-s creep-free lowvolt_pi recording).
 bool signed_creep(const CreepParams& cp) { return cp.kind == CreepKind::kProny || cp.kind == CreepKind::kLti; }
 
-// Advances the first-order creep modes l (poles a) by input u and writes the basis projections Σ_j B[k][j]·l[j].
-void creep_columns(const std::vector<double>& a, std::vector<double>& l, double u,
-                   const std::vector<std::vector<double>>& B, double* out) {
-  for (std::size_t j = 0; j < l.size(); ++j) l[j] = a[j] * l[j] + (1 - a[j]) * u;
-  for (std::size_t k = 0; k < B.size(); ++k) {
-    double s = 0;
-    for (std::size_t j = 0; j < l.size(); ++j) s += B[k][j] * l[j];
-    out[k] = s;
-  }
-}
-
 // The creep basis of `cp` on the data's sample clock: mode time constants, basis matrix and discrete poles
-// (shared by the creep-on-V and creep-on-H evaluations).
+// (shared by the creep-on-V and creep-on-H evaluations). The Prony and LTI bases are the identity (one column per
+// mode), which creep_columns copies instead of multiplying.
 struct CreepBasis {
   std::vector<double> taus, poles;
   std::vector<std::vector<double>> B;
+  bool identity = false;
   CreepBasis(const CreepParams& cp, double rate) {
     cp.basis(taus, B);
     poles = poles_of(taus, rate);
+    identity = B.size() == taus.size();
+    for (std::size_t k = 0; k < B.size() && identity; ++k)
+      for (std::size_t j = 0; j < B[k].size(); ++j) identity = identity && B[k][j] == (j == k ? 1.0 : 0.0);
   }
 };
+
+// Advances the first-order creep modes l by input u and writes the basis projections Σ_j B[k][j]·l[j] (with the
+// identity basis l itself: the same values, as the other terms of each sum are exact zeros).
+void creep_columns(const CreepBasis& cb, std::vector<double>& l, double u, double* out) {
+  const std::vector<double>& a = cb.poles;
+  for (std::size_t j = 0; j < l.size(); ++j) l[j] = a[j] * l[j] + (1 - a[j]) * u;
+  if (cb.identity) {
+    std::copy(l.begin(), l.end(), out);
+    return;
+  }
+  for (std::size_t k = 0; k < cb.B.size(); ++k) {
+    double s = 0;
+    for (std::size_t j = 0; j < l.size(); ++j) s += cb.B[k][j] * l[j];
+    out[k] = s;
+  }
+}
 
 // Play pieces (≥ their lower bounds, smoothed) then nk creep columns (then initial-state columns): w and θ.
 EvalResult solve_pieces_and_creep(const training::GramStats& g, const Basis& hb, std::size_t nk, const CreepParams& cp,
@@ -324,7 +334,7 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
     hb.columns(v, p, x);
-    creep_columns(cb.poles, l, v, cb.B, x + np);
+    creep_columns(cb, l, v, x + np);
     return (*d.y)[t];
   }, init_poles(cb.taus, d), d.weight, fixed);
   return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
@@ -358,7 +368,7 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& H, c
   const auto g = stream_gram(H.size(), nk + 1, [&](std::size_t t, double* x) {
     const double h = H[t];
     x[0] = h;
-    creep_columns(cb.poles, l, h, cb.B, x + 1);
+    creep_columns(cb, l, h, x + 1);
     return (*d.y)[t];
   }, init_poles(cb.taus, d), d.weight);
   std::vector<bool> constrained(nk + 1, signed_creep(cp));
@@ -393,7 +403,7 @@ EvalResult evaluate_joint_on_h(const FitData& d, const Basis& hb, const std::vec
     hb.columns(V[t], p, x);
     double h = 0;
     for (std::size_t i = 0; i < np; ++i) h += w_prev[i] * x[i];
-    creep_columns(cb.poles, l, h, cb.B, x + np);
+    creep_columns(cb, l, h, x + np);
     for (std::size_t k = 0; k < nk; ++k) {
       double bk = 0;
       for (std::size_t j = 0; j < nm; ++j) bk += cb.B[k][j];
