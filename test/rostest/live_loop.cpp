@@ -44,6 +44,7 @@ struct Loop {
   int diag_level = -1;
   bool watch_warned = false;
   std::size_t readings = 0;
+  std::function<void(double)> on_mae;  // called with every rolling-MAE figure [nm]
 
   Loop() {
     // a random walk through the compensated axis, one intent per encoder sample (seeded: the same every run)
@@ -68,6 +69,7 @@ struct Loop {
     mae = nh.subscribe<std_msgs::Float64>("/mm1/c/residual_mae", 10, [this](const std_msgs::Float64::ConstPtr& m) {
       mae_nm = m->data * 1e9;
       mae_stamp = ros::Time::now().toSec();
+      if (on_mae) on_mae(mae_nm);
     });
     diag = nh.subscribe<diagnostic_msgs::DiagnosticArray>(
         "/diagnostics", 20, [this](const diagnostic_msgs::DiagnosticArray::ConstPtr& a) {
@@ -124,15 +126,17 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   const auto wall0 = std::chrono::steady_clock::now();
   const auto wall = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count(); };
 
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(30.0)));
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(10.0)));
-  ASSERT_TRUE(ros::service::waitForService("/mm1/mm3e_sim/set_thermal_drift", ros::Duration(10.0)));
-  ASSERT_TRUE(ros::Time::waitForValid(ros::WallDuration(30.0))) << "no /clock from the simulated device";
+  // The nodes start within seconds on an idle host; these return as soon as they are up.
+  constexpr double kPatienceS = 60.0;
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(kPatienceS)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(kPatienceS)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/mm3e_sim/set_thermal_drift", ros::Duration(kPatienceS)));
+  ASSERT_TRUE(ros::Time::waitForValid(ros::WallDuration(kPatienceS))) << "no /clock from the simulated device";
   Loop loop;
   fs::create_directories(fs::path(out_dir).parent_path());
   loop.trace.open(fs::path(out_dir).parent_path() / "predictions_c.csv");
   loop.trace << "time_s,measured_nm,predicted_nm,intended_nm,commanded_v,corrected_v,fallback,status,model\n";
-  ASSERT_TRUE(loop.wait_for([&] { return loop.readings > 20; }, 1e9, 30.0)) << "no encoder readings of axis c";
+  ASSERT_TRUE(loop.wait_for([&] { return loop.readings > 20; }, 1e9, kPatienceS)) << "no encoder readings of axis c";
 
   // (1) compensated with the clean model: the rolling MAE is under the threshold
   const double t_start = loop.now();
@@ -207,20 +211,19 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   }, 600.0)) << "rolling MAE " << loop.mae_nm << " nm, diagnostics '" << loop.diag_message << "'";
   std::cout << "[live_loop] (4) reloaded; rolling MAE " << mae_before << " nm before, " << loop.mae_nm << " nm "
             << loop.now() - t_reload << " s after, diagnostics '" << loop.diag_message << "'\n";
-  // and the watch stays quiet for another two windows (a WARN needs watch_hold_s above the threshold)
+  // and the watch stays quiet for another two windows (a WARN needs watch_hold_s above the threshold). Every
+  // figure counts, in its callback: several that one spin delivers together (a loaded host) are several figures.
   double worst = loop.mae_nm, sum = 0.0;
   int n = 0;
   loop.watch_warned = false;
-  double last_stamp = loop.mae_stamp;
-  loop.wait_for([&] {
-    if (loop.mae_stamp > last_stamp && std::isfinite(loop.mae_nm)) {
-      last_stamp = loop.mae_stamp;
-      worst = std::max(worst, loop.mae_nm);
-      sum += loop.mae_nm;
-      ++n;
-    }
-    return false;
-  }, 120.0);
+  loop.on_mae = [&](double mae_nm) {
+    if (!std::isfinite(mae_nm)) return;
+    worst = std::max(worst, mae_nm);
+    sum += mae_nm;
+    ++n;
+  };
+  loop.wait_for([] { return false; }, 120.0);
+  loop.on_mae = nullptr;
   // The rolling MAE once rose again after the reload (mean 35–52 nm over these 120 s in some runs): the snapshot
   // bag was written stream by stream, reading it took 12.5 s, the reload stalled the callback thread for that
   // long (~4000 samples lost at 30×), and the base was warmed from rest. Now it stays near the floor (16.8 nm).

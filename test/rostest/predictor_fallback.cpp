@@ -14,9 +14,9 @@ TEST(PredictorFallback, BrokenModelFileGivesBoundedUncorrectedCommands) {
         for (const auto& s : m->status) diags.push_back(s);
       });
   piezo::test::FakeDriver drv;
-  ASSERT_TRUE(drv.wait_connected(20.0)) << "predictor topics not connected";
+  ASSERT_TRUE(drv.wait_connected()) << "predictor topics not connected";
   drv.intend(5.0);
-  for (int i = 0; i < 12; ++i) drv.cycle();
+  for (int i = 0; i < 12; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   ASSERT_GE(drv.commands.size(), 6u);
   double prev = 0.0;
   for (const auto& c : drv.commands) {
@@ -33,21 +33,19 @@ TEST(PredictorFallback, BrokenModelFileGivesBoundedUncorrectedCommands) {
 
   // Reloading the same broken file fails and says so.
   std_srvs::Trigger t;
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(5)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(piezo::test::kPatienceS)));
   ASSERT_TRUE(ros::service::call("/mm1/predictor/reload_model", t));
   EXPECT_FALSE(t.response.success);
   EXPECT_NE(t.response.message.find("broken_model.yaml"), std::string::npos) << t.response.message;
 
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(5.0);
-  bool seen = false;
-  while (!seen && ros::WallTime::now() < end) {
-    ros::WallDuration(0.05).sleep();
-    ros::spinOnce();
+  // The diagnostics updater publishes on its own period: wait until a status at ERROR names the model.
+  const bool seen = piezo::test::FakeDriver::wait([&] {
     for (const auto& s : diags)
       if (s.level == diagnostic_msgs::DiagnosticStatus::ERROR && s.hardware_id == "piezo_predictor" &&
           s.message.find("model unavailable") != std::string::npos)
-        seen = true;
-  }
+        return true;
+    return false;
+  });
   EXPECT_TRUE(seen) << "no ERROR diagnostics naming the unavailable model";
 }
 

@@ -19,9 +19,9 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   tf2_ros::Buffer tf;
   tf2_ros::TransformListener listener(tf);
   piezo::test::FakeDriver drv;
-  ASSERT_TRUE(drv.wait_connected(20.0)) << "predictor topics not connected";
+  ASSERT_TRUE(drv.wait_connected()) << "predictor topics not connected";
   drv.intend(30.0);
-  for (int i = 0; i < 15; ++i) drv.cycle();
+  for (int i = 0; i < 15; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   ASSERT_FALSE(drv.commands.empty());
   ASSERT_FALSE(drv.predictions.empty());
   const auto on = drv.predictions.back();
@@ -37,11 +37,11 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
 
   std_srvs::SetBool off;
   off.request.data = false;
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/set_compensation", ros::Duration(5)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/set_compensation", ros::Duration(piezo::test::kPatienceS)));
   ASSERT_TRUE(ros::service::call("/mm1/predictor/set_compensation", off));
   EXPECT_TRUE(off.response.success);
   const std::size_t n = drv.commands.size();
-  for (int i = 0; i < 5; ++i) drv.cycle();
+  for (int i = 0; i < 5; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   ASSERT_GT(drv.commands.size(), n);
   EXPECT_NEAR(drv.commands.back().voltage, 30.0, 1e-12) << "compensation off sends the intent unchanged";
   EXPECT_FALSE(drv.predictions.back().compensation_active);
@@ -49,23 +49,28 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   std_srvs::SetBool again;
   again.request.data = true;
   ASSERT_TRUE(ros::service::call("/mm1/predictor/set_compensation", again));
-  for (int i = 0; i < 3; ++i) drv.cycle();
+  for (int i = 0; i < 3; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   EXPECT_TRUE(drv.predictions.back().compensation_active);
   EXPECT_GT(std::abs(drv.commands.back().voltage - 30.0), 0.05);
 
   for (const char* child : {"mm1/tip_measured", "mm1/tip_predicted", "mm1/tip_intended"}) {
     std::string err;
-    EXPECT_TRUE(tf.canTransform("mm1/base", child, ros::Time(0), ros::Duration(3.0), &err)) << child << ": " << err;
+    EXPECT_TRUE(tf.canTransform("mm1/base", child, ros::Time(0), ros::Duration(piezo::test::kPatienceS), &err)) << child << ": " << err;
   }
-  const auto t = tf.lookupTransform("mm1/base", "mm1/tip_measured", ros::Time(0));
+  // The frame of the last sample (stamped with it): wait for it rather than read whatever the listener has so far.
+  const ros::Time last_stamp = drv.predictions.back().header.stamp;
+  std::string err;
+  ASSERT_TRUE(tf.canTransform("mm1/base", "mm1/tip_measured", last_stamp, ros::Duration(piezo::test::kPatienceS), &err))
+      << err;
+  const auto t = tf.lookupTransform("mm1/base", "mm1/tip_measured", last_stamp);
   EXPECT_NEAR(t.transform.translation.z, drv.predictions.back().measured_position, 1e-7);  // axis c → z
 
   // 3 samples lost, then 60 more: ~snapshot writes the 60 after the gap (over 60 % of the window) and says so;
   // the bag reads at a constant rate, as the offline tools require
   drv.lose(3);
-  for (int i = 0; i < 60; ++i) drv.cycle();
+  for (int i = 0; i < 60; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   std_srvs::Trigger snap;
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(5)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(piezo::test::kPatienceS)));
   ASSERT_TRUE(ros::service::call("/mm1/predictor/snapshot", snap));
   ASSERT_TRUE(snap.response.success) << snap.response.message;
   std::cout << "[predictor_live] snapshot: " << snap.response.message << "\n";

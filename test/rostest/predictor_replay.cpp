@@ -4,8 +4,11 @@
 #include <gtest/gtest.h>
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
+#include <topic_tools/shape_shifter.h>
 
+#include <algorithm>
 #include <map>
+#include <set>
 
 #include "piezo_compensation/ros/predictor.h"
 
@@ -16,12 +19,26 @@ struct Expected {
   std::vector<double> drift_m;
 };
 
+// Deadline of a wait for something that takes seconds on an idle host (the nodes starting and connecting; the next
+// prediction of a running replay): the waits return as soon as their condition holds, so only a failing run pays it.
+constexpr double kPatienceS = 60.0;
+
+void ignore(const topic_tools::ShapeShifter::ConstPtr&) {}
+
 }  // namespace
 
 TEST(PredictorReplay, PredictionsMatchOfflineAndRecorded) {
   ros::NodeHandle nh, pnh("~");
   const std::string bag_path = pnh.param<std::string>("bag", ""), model = pnh.param<std::string>("model_file", "");
   std::vector<double> horizons = pnh.param<std::vector<double>>("drift_horizons_s", {1.0, 60.0});
+  // The player waits for a subscriber on every topic of the bag (--wait-for-subscribers): the predictor's inputs are
+  // the predictor's to take; we take the others, the last thing before the replay, once we listen to the predictions.
+  const auto predictor_inputs = pnh.param<std::vector<std::string>>("predictor_inputs", {});
+  const auto remapped = pnh.param<std::vector<std::string>>("remapped_topics", {});
+  const std::string remap_prefix = pnh.param<std::string>("remap_prefix", "");
+  std::map<double, piezo_compensation::Prediction> live;
+  auto sub = nh.subscribe<piezo_compensation::Prediction>("/mm1/c/prediction", 5000,
+      [&](const piezo_compensation::Prediction::ConstPtr& p) { live[p->header.stamp.toSec()] = *p; });
 
   // Offline: the same PredictorAxis the node runs, fed in bag order.
   piezo::predictor::PredictorSettings s;
@@ -33,8 +50,15 @@ TEST(PredictorReplay, PredictionsMatchOfflineAndRecorded) {
   piezo::predictor::PredictorAxis axis("c", model, piezo::predictor::load_model_file(model), s);
   std::map<double, Expected> expected;
   std::map<double, double> recorded;  // live demo predictions in the bag
+  std::set<std::string> others;         // the bag's topics as played that the predictor does not take
   {
     rosbag::Bag bag(bag_path, rosbag::bagmode::Read);
+    for (const rosbag::ConnectionInfo* c : rosbag::View(bag).getConnections()) {
+      const bool re = std::find(remapped.begin(), remapped.end(), c->topic) != remapped.end();
+      const std::string played = re ? remap_prefix + c->topic : c->topic;
+      if (std::find(predictor_inputs.begin(), predictor_inputs.end(), played) == predictor_inputs.end())
+        others.insert(played);
+    }
     for (const rosbag::MessageInstance& m : rosbag::View(bag)) {
       std::vector<piezo::predictor::PredictorAxis::Output> outs;
       if (m.getTopic() == "/mm1/c/voltage") {
@@ -50,17 +74,34 @@ TEST(PredictorReplay, PredictionsMatchOfflineAndRecorded) {
   }
   ASSERT_GT(expected.size(), 1000u) << bag_path << ": too few samples";
 
-  std::map<double, piezo_compensation::Prediction> live;
-  auto sub = nh.subscribe<piezo_compensation::Prediction>("/mm1/c/prediction", 5000,
-      [&](const piezo_compensation::Prediction::ConstPtr& p) { live[p->header.stamp.toSec()] = *p; });
-  // Wait for the replay to finish: all samples in, or the clock stops moving for a while.
-  ros::WallTime last_change = ros::WallTime::now();
+  // The predictor is up and we hear its predictions: then we subscribe to the rest, and the player starts.
+  const auto wait = [&](auto pred) {
+    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(kPatienceS);
+    while (ros::ok() && !pred() && ros::WallTime::now() < end) {
+      ros::WallDuration(0.01).sleep();
+      ros::spinOnce();
+    }
+    return pred();
+  };
+  ASSERT_TRUE(wait([&] { return sub.getNumPublishers() > 0; })) << "predictor not publishing predictions";
+  ASSERT_FALSE(predictor_inputs.empty()) << "~predictor_inputs not set";
+  std::vector<ros::Subscriber> sinks;
+  for (const auto& t : others)
+    sinks.push_back(nh.subscribe<topic_tools::ShapeShifter>(t, 1, &ignore));
+  // Wait for the replay to finish: the prediction of the bag's last sample (they come in order on one connection),
+  // or every sample's; a replay that stops making progress for kPatienceS gives up.
+  const double last_expected_s = expected.rbegin()->first;
+  const auto finished = [&] {
+    return live.size() >= expected.size() || (!live.empty() && live.rbegin()->first >= last_expected_s);
+  };
   std::size_t last_n = 0;
-  while (ros::ok() && live.size() < expected.size() && (ros::WallTime::now() - last_change).toSec() < 15.0) {
-    ros::WallDuration(0.05).sleep();
-    ros::spinOnce();
-    if (live.size() != last_n) last_n = live.size(), last_change = ros::WallTime::now();
+  while (ros::ok() && !finished()) {
+    last_n = live.size();
+    if (!wait([&] { return live.size() != last_n || finished(); })) break;
   }
+  sinks.clear();
+  EXPECT_TRUE(finished()) << "the replay stopped for " << kPatienceS << " s with " << live.size() << " of "
+                          << expected.size() << " predictions";
   ASSERT_GE(live.size(), expected.size() * 99 / 100) << "replay delivered too few predictions";
 
   std::size_t compared = 0;

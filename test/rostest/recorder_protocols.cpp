@@ -139,6 +139,7 @@ int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "recorder_protocols");
   ros::NodeHandle nh;
-  ros::Time::waitForValid(ros::WallDuration(20.0));
+  // recorder_protocols.test: the simulated device's /clock (returns at once without use_sim_time: recorder_params)
+  ros::Time::waitForValid(ros::WallDuration(60.0));
   return RUN_ALL_TESTS();
 }

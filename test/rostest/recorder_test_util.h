@@ -39,8 +39,8 @@ inline RecorderOptions options(const std::string& protocol, const std::string& p
   o.seed = 3;
   o.out = out;
   o.chunk_period_s = 2.0;
-  o.encoder_timeout_s = 5.0;
-  o.startup_timeout_s = 30.0;
+  o.encoder_timeout_s = 30.0;  // "driver dead" only after 30 s of wall time without a reading (the recorder's clock)
+  o.startup_timeout_s = 60.0;
   o.min_free_space_mb = 10.0;
   o.progress_period_s = 5.0;
   return o;
