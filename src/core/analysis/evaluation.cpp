@@ -126,7 +126,7 @@ SetMetrics metrics(const SeriesPrediction& p, const io::AxisSeries& ax, const st
   }
   return s;
 }
-double mean_of(const std::vector<double>& v, std::size_t b, std::size_t e) {
+double hold_mean(const std::vector<double>& v, std::size_t b, std::size_t e) {
   if (v.empty() || b >= e) return NAN;
   double s = 0;
   for (std::size_t i = b; i < e; ++i) s += v[i];
@@ -147,7 +147,7 @@ HoldErrors hold_errors(const std::vector<double>& predicted, const std::vector<d
   for (const auto& hold : find_holds(d)) {
     const std::size_t b = hold.end > hold.begin + w ? hold.end - w : hold.begin;
     if (!m[hold.end - 1] || !m[b]) continue;
-    const double e = mean_of(predicted, b, hold.end) - mean_of(reference, b, hold.end);
+    const double e = hold_mean(predicted, b, hold.end) - hold_mean(reference, b, hold.end);
     h.end_error_nm.push_back(e);
     sum += std::fabs(e);
     mx = std::max(mx, std::fabs(e));
@@ -191,10 +191,10 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
     FinalDeviation f;
     f.segment = h.segment;
     f.hold_s = h.duration_s;
-    f.measured_nm = mean_of(cax.position_nm, b, h.end);
-    f.truth_nm = cax.has_truth() ? mean_of(cax.true_position_nm, b, h.end) : NAN;
-    f.one_step_nm = mean_of(ev.creep_pred.one_step, b, h.end);
-    f.free_run_nm = mean_of(ev.creep_pred.free_run, b, h.end);
+    f.measured_nm = hold_mean(cax.position_nm, b, h.end);
+    f.truth_nm = cax.has_truth() ? hold_mean(cax.true_position_nm, b, h.end) : NAN;
+    f.one_step_nm = hold_mean(ev.creep_pred.one_step, b, h.end);
+    f.free_run_nm = hold_mean(ev.creep_pred.free_run, b, h.end);
     ev.finals.push_back(f);
   }
   return ev;

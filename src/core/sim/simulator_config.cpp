@@ -192,7 +192,7 @@ void read_effects(const YAML::Node& n, const std::string& where, SimulatorConfig
   }
 }
 
-int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
+int config_axis_index(const std::string& name) { return io::axis_index_or_none(name); }
 
 void require(bool ok, const std::string& param, const std::string& what) {
   if (!ok) throw std::invalid_argument("simulator parameter " + param + ": " + what);
@@ -204,7 +204,7 @@ void validate(const SimulatorConfig& c) {
   require(c.sample_rate_hz > 0.0 && std::isfinite(c.sample_rate_hz), "sample_rate_hz", "must be > 0");
   for (const auto& a : c.axes) {
     const std::string p = "axes." + a.name + ".";
-    require(axis_index(a.name) >= 0, "axes", "axis names must be a, b, c");
+    require(config_axis_index(a.name) >= 0, "axes", "axis names must be a, b, c");
     require(a.voltage_max_v > a.voltage_min_v, p + "voltage_max_v", "must exceed voltage_min_v");
     require(a.stroke_nm > 0.0, p + "stroke_nm", "must be > 0");
     require(a.loop_width_fraction >= 0.0 && a.loop_width_fraction < 0.5, p + "loop_width_fraction",
@@ -242,8 +242,8 @@ void validate(const SimulatorConfig& c) {
   require(t.noise_c >= 0.0, "effects.thermal_drift.noise_c", "must be >= 0");
   require(t.noise_correlation_s > 0.0, "effects.thermal_drift.noise_correlation_s", "must be > 0");
   require(t.lag_s > 0.0, "effects.thermal_drift.lag_s", "must be > 0");
-  require(axis_index(c.cross_axis.source_axis) >= 0, "effects.cross_axis.source_axis", "must be a, b or c");
-  require(axis_index(c.cross_axis.target_axis) >= 0, "effects.cross_axis.target_axis", "must be a, b or c");
+  require(config_axis_index(c.cross_axis.source_axis) >= 0, "effects.cross_axis.source_axis", "must be a, b or c");
+  require(config_axis_index(c.cross_axis.target_axis) >= 0, "effects.cross_axis.target_axis", "must be a, b or c");
   require(c.cross_axis.source_axis != c.cross_axis.target_axis, "effects.cross_axis.target_axis",
           "must differ from source_axis");
   require(c.encoder_periodic.period_nm > 0.0, "effects.encoder_periodic.period_nm", "must be > 0");
@@ -272,7 +272,7 @@ SimulatorConfig simulator_config_from_yaml(const YAML::Node& root, const std::st
       if (!kv.second.IsMap()) bad(where, "expected a map a/b/c");
       for (const auto& ax : kv.second) {
         const std::string name = ax.first.as<std::string>();
-        const int k = axis_index(name);
+        const int k = config_axis_index(name);
         if (k < 0) bad(where + "." + name, "unknown axis (valid: a, b, c)");
         read_axis(ax.second, where + "." + name, c.axes[k]);
       }

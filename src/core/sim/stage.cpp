@@ -11,7 +11,7 @@
 namespace piezo::sim {
 
 namespace {
-[[noreturn]] void bad(const std::string& where, const std::string& what) {
+[[noreturn]] void stage_error(const std::string& where, const std::string& what) {
   throw std::invalid_argument(where + ": " + what);
 }
 double number(const YAML::Node& n, const std::string& where) {
@@ -19,9 +19,9 @@ double number(const YAML::Node& n, const std::string& where) {
   try {
     v = n.as<double>();
   } catch (const YAML::Exception&) {
-    bad(where, "expected a number");
+    stage_error(where, "expected a number");
   }
-  if (!std::isfinite(v)) bad(where, "must be finite");
+  if (!std::isfinite(v)) stage_error(where, "must be finite");
   return v;
 }
 }  // namespace
@@ -33,7 +33,7 @@ StageConfig load_stage(const std::string& yaml_path) {
   } catch (const YAML::Exception& e) {
     throw std::invalid_argument(yaml_path + ": cannot read stage file: " + e.what());
   }
-  if (!root.IsMap()) bad(yaml_path, "expected a map (description, simulator, protocol, ...)");
+  if (!root.IsMap()) stage_error(yaml_path, "expected a map (description, simulator, protocol, ...)");
   StageConfig s;
   s.path = yaml_path;
   for (const auto& kv : root) {
@@ -44,29 +44,29 @@ StageConfig load_stage(const std::string& yaml_path) {
     } else if (key == "simulator") {
       s.simulator = simulator_config_from_yaml(kv.second, where);
     } else if (key == "protocol") {
-      if (!kv.second.IsScalar()) bad(where, "expected a protocol name");
+      if (!kv.second.IsScalar()) stage_error(where, "expected a protocol name");
       s.protocol = kv.second.as<std::string>();
       const auto names = protocols::protocol_names();
-      if (std::find(names.begin(), names.end(), s.protocol) == names.end()) bad(where, "unknown protocol");
+      if (std::find(names.begin(), names.end(), s.protocol) == names.end()) stage_error(where, "unknown protocol");
     } else if (key == "protocol_parameters") {
-      if (!kv.second.IsMap()) bad(where, "expected a map of protocol overrides");
+      if (!kv.second.IsMap()) stage_error(where, "expected a map of protocol overrides");
       s.protocol_parameters = kv.second;
     } else if (key == "voltage_offset_v") {
       s.voltage_offset_v = number(kv.second, where);
     } else if (key == "duration_s") {
       s.duration_s = number(kv.second, where);
-      if (s.duration_s <= 0.0) bad(where, "must be > 0");
+      if (s.duration_s <= 0.0) stage_error(where, "must be > 0");
     } else if (key == "axes") {
-      if (!kv.second.IsSequence() || kv.second.size() == 0) bad(where, "expected a non-empty list of " + io::axis_names_list());
+      if (!kv.second.IsSequence() || kv.second.size() == 0) stage_error(where, "expected a non-empty list of " + io::axis_names_list());
       s.axes.clear();
       for (const auto& a : kv.second) {
         const std::string name = a.as<std::string>();
-        if (io::axis_index_or_none(name) < 0) bad(where, "axes must be among " + io::axis_names_list() + ", got '" + name + "'");
-        if (std::find(s.axes.begin(), s.axes.end(), name) != s.axes.end()) bad(where, "axis '" + name + "' twice");
+        if (io::axis_index_or_none(name) < 0) stage_error(where, "axes must be among " + io::axis_names_list() + ", got '" + name + "'");
+        if (std::find(s.axes.begin(), s.axes.end(), name) != s.axes.end()) stage_error(where, "axis '" + name + "' twice");
         s.axes.push_back(name);
       }
     } else {
-      bad(where, "unknown key (valid: description, simulator, protocol, protocol_parameters, voltage_offset_v, "
+      stage_error(where, "unknown key (valid: description, simulator, protocol, protocol_parameters, voltage_offset_v, "
                  "duration_s, axes)");
     }
   }

@@ -37,7 +37,7 @@ void set_linear_edge(const KanNet& net, Eigen::VectorXd& p, int layer, int input
 // fit_dense.cpp): node 0 of the first hidden layer sums β_i·x_i, node 0 of each further layer passes it on,
 // every other edge into the output is zero; the other edges keep their random draws. The grids are placed on
 // the data before and after, so the lines hold over the training range.
-void linear_start(KanNet& net, Eigen::VectorXd& p, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) {
+void kan_linear_start(KanNet& net, Eigen::VectorXd& p, const Eigen::MatrixXd& x, const Eigen::VectorXd& y) {
   const ColumnLinearFit fit = linear_fit_columns(x, y);
   const Eigen::VectorXd& beta = fit.beta;
   const std::vector<int>& w = net.shape().widths;
@@ -59,7 +59,7 @@ KanTrial train_kan(const training::PreparedData& data, const KanShape& shape, in
   KanNet net(shape);
   Eigen::VectorXd init = net.initial_params(cfg.seed);
   net.update_grids(init, data.x_train);
-  if (linear_init) linear_start(net, init, data.x_train, data.y_train);
+  if (linear_init) kan_linear_start(net, init, data.x_train, data.y_train);
   const KanObjective train_obj(net, data.x_train, data.y_train);
   const KanObjective val_obj(net, data.x_validation, data.y_validation);
   // The objectives read the grids through `net`, so updating them in the hook is seen by later batches.
