@@ -12,6 +12,8 @@
 #include <string>
 #include <vector>
 
+#include "wall_wait.h"
+
 namespace {
 
 std::string g_prefix, g_demo_node = "/mm1/piezo_demo";
@@ -23,27 +25,12 @@ constexpr double kPatienceS = 60.0;      // the demo closing its files and leavi
 
 // The JSON as the demo wrote it, once it is complete (it is created with the CSV and written after it).
 bool load_complete_json(const std::string& path, YAML::Node& j) {
-  try {
-    j = YAML::LoadFile(path);
-    return j.IsMap() && j["compensated_max_pct"] && j["uncompensated_late_samples"];
-  } catch (const std::exception&) {
-    return false;
-  }
-}
-
-bool registered(const std::string& node) {
-  std::vector<std::string> nodes;
-  return !ros::master::getNodes(nodes) || std::find(nodes.begin(), nodes.end(), node) != nodes.end();
+  return piezo::test::load_complete_yaml(path, {"compensated_max_pct", "uncompensated_late_samples"}, j);
 }
 
 template <typename Pred>
 bool wait(Pred pred, double timeout_s) {
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-  while (ros::ok() && ros::WallTime::now() < end) {
-    if (pred()) return true;
-    ros::WallDuration(0.2).sleep();
-  }
-  return pred();
+  return piezo::test::wall_wait(pred, timeout_s, 0.2);
 }
 
 TEST(DemoLockstep, SawtoothInStepAndCompensated) {
@@ -53,7 +40,7 @@ TEST(DemoLockstep, SawtoothInStepAndCompensated) {
   ASSERT_TRUE(wait([&] { return load_complete_json(json, j); }, kRunPatienceS))
       << json << " not written within " << kRunPatienceS << " s";
   // Both files are closed when the demo has left (it returns from main after closing them).
-  if (!wait([&] { return !registered(g_demo_node); }, kPatienceS))
+  if (!wait([&] { return !piezo::test::node_registered(g_demo_node); }, kPatienceS))
     std::printf("demo_lockstep: %s still registered %.0f s after its JSON; reading the CSV anyway\n",
                 g_demo_node.c_str(), kPatienceS);
   std::ifstream csv(g_prefix + ".csv");

@@ -22,6 +22,7 @@
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/ros/mm3e_driver.h"
 #include "piezo_compensation/ros/mm3e_sim.h"
+#include "wall_wait.h"
 
 using piezo_compensation::AxisVoltage;
 using piezo_compensation::EncoderPosition;
@@ -97,12 +98,7 @@ class Bench {
 
   template <typename Pred>
   bool wait(Pred pred, double seconds) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(seconds);
-    while (ros::ok() && ros::WallTime::now() < end) {
-      if (pred()) return true;
-      ros::WallDuration(0.01).sleep();
-    }
-    return pred();
+    return piezo::test::wall_wait(pred, seconds, 0.01);
   }
 
   void command(int axis, double v) {

@@ -20,6 +20,7 @@
 #include <vector>
 
 #include "piezo_compensation/Prediction.h"
+#include "wall_wait.h"
 
 namespace {
 
@@ -39,27 +40,12 @@ constexpr double kPatienceS = 60.0;      // the demo closing its files and leavi
 
 // The JSON as the demo wrote it, once it is complete (it is created with the CSV and written after it).
 bool load_complete_json(const std::string& path, YAML::Node& j) {
-  try {
-    j = YAML::LoadFile(path);
-    return j.IsMap() && j["hold_trim_trimmed_worst_nm"] && j["trimmed_active_samples"];
-  } catch (const std::exception&) {
-    return false;
-  }
-}
-
-bool registered(const std::string& node) {
-  std::vector<std::string> nodes;
-  return !ros::master::getNodes(nodes) || std::find(nodes.begin(), nodes.end(), node) != nodes.end();
+  return piezo::test::load_complete_yaml(path, {"hold_trim_trimmed_worst_nm", "trimmed_active_samples"}, j);
 }
 
 template <typename Pred>
 bool wait(Pred pred, double timeout_s) {
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-  while (ros::ok() && ros::WallTime::now() < end) {
-    if (pred()) return true;
-    ros::WallDuration(0.05).sleep();
-  }
-  return pred();
+  return piezo::test::wall_wait(pred, timeout_s, 0.05);
 }
 
 TEST(HoldTrim, TrimmedHoldAtTheAveragingLimit) {
@@ -88,7 +74,7 @@ TEST(HoldTrim, TrimmedHoldAtTheAveragingLimit) {
   // The demo has left (its files closed); then one more prediction than we had: the driver's idle SYNC keeps the
   // device sampling, so one comes after the run's on the same connection, unless we lag far behind, and then the
   // run's predictions are still coming: we wait for at least 40 000 of them as well.
-  if (!wait([&] { return !registered(g_demo_node); }, kPatienceS))
+  if (!wait([&] { return !piezo::test::node_registered(g_demo_node); }, kPatienceS))
     std::printf("%s: %s still registered %.0f s after its JSON\n", g_label.c_str(), g_demo_node.c_str(), kPatienceS);
   const std::size_t at_exit = [&] { std::lock_guard<std::mutex> lock(mu); return seen.size(); }();
   wait([&] {

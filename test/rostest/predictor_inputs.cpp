@@ -16,6 +16,7 @@
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
+#include "wall_wait.h"
 
 using piezo_compensation::AxisVoltage;
 using piezo_compensation::EncoderPosition;
@@ -30,14 +31,7 @@ constexpr double kPatienceS = 60.0;
 // Spins until pred() holds (true) or timeout_s of wall time pass (false).
 template <typename Pred>
 bool wait(Pred pred, double timeout_s = kPatienceS) {
-  const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-  while (ros::ok()) {
-    ros::spinOnce();
-    if (pred()) return true;
-    if (ros::WallTime::now() >= end) return false;
-    ros::WallDuration(0.01).sleep();
-  }
-  return false;
+  return piezo::test::wall_wait(pred, timeout_s, 0.01, true);
 }
 
 piezo::models::EffectTerm linear_term(const std::string& signal, const std::string& family, double center,

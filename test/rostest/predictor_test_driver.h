@@ -13,6 +13,7 @@
 #include "piezo_compensation/IntendedMotion.h"
 #include "piezo_compensation/Prediction.h"
 #include "piezo_compensation/VoltageCommand.h"
+#include "wall_wait.h"
 
 namespace piezo::test {
 
@@ -42,14 +43,7 @@ class FakeDriver {
   // failing run pays the deadline.
   template <typename Pred>
   static bool wait(Pred pred, double timeout_s = kPatienceS) {
-    const ros::WallTime end = ros::WallTime::now() + ros::WallDuration(timeout_s);
-    while (ros::ok()) {
-      ros::spinOnce();
-      if (pred()) return true;
-      if (ros::WallTime::now() >= end) return false;
-      ros::WallDuration(0.002).sleep();
-    }
-    return false;
+    return wall_wait(pred, timeout_s, 0.002, true);
   }
 
   void intend(double voltage_v) {

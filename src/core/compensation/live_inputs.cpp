@@ -20,6 +20,8 @@ void keep(std::deque<LiveInputs::Report>& q, std::uint32_t seq, double v) {
 }
 
 const auto by_seq = [](const LiveInputs::Report& r) { return r.seq; };
+// upper_bound on the stamp: the first aux value stamped after t
+const auto stamped_after = [](double t, const LiveInputs::Aux& a) { return t < a.stamp_s; };
 
 }  // namespace
 
@@ -32,7 +34,7 @@ void LiveInputs::add_reading(const std::string& axis, std::uint32_t seq, double 
 void LiveInputs::add_aux(const std::string& name, double value, double stamp_s, double time_s) {
   auto& q = aux_[name];
   // usually appended; a message stamped before the last one goes to its place (a sensor's messages may overtake)
-  auto at = std::upper_bound(q.begin(), q.end(), stamp_s, [](double t, const Aux& a) { return t < a.stamp_s; });
+  auto at = std::upper_bound(q.begin(), q.end(), stamp_s, stamped_after);
   q.insert(at, Aux{value, stamp_s, time_s});
   while (q.size() > kAuxKept) q.pop_front();
 }
@@ -48,7 +50,7 @@ const LiveInputs::Aux* LiveInputs::aux(const std::string& name, double stamp_s) 
   auto it = aux_.find(name);
   if (it == aux_.end() || it->second.empty()) return nullptr;
   const auto& q = it->second;
-  auto after = std::upper_bound(q.begin(), q.end(), stamp_s, [](double t, const Aux& a) { return t < a.stamp_s; });
+  auto after = std::upper_bound(q.begin(), q.end(), stamp_s, stamped_after);
   return after == q.begin() ? &q.front() : &*std::prev(after);
 }
 
