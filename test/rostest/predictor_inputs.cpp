@@ -119,8 +119,8 @@ TEST(PredictorInputs, AuxGainCrossAxisAndTimeTermsMatchOfflineAndFallBackWithout
     const double temperature = temperature_at(i);
     const auto seq = static_cast<std::uint32_t>(100 + i);
     // The temperature goes out kLead samples ahead, stamped with its own sample's time: the predictor takes the value
-    // stamped at or before each sample, so the order in which the two topics' messages arrive does not matter (a
-    // temperature step sent just before the voltage once arrived after it on a loaded host: 20 nm off).
+    // stamped at or before each sample, so the order in which the two topics' messages arrive does not matter (on a
+    // loaded host a temperature sent just before its voltage may arrive after it).
     constexpr std::size_t kLead = 5;
     for (std::size_t k = (i == 0 ? 0 : i + kLead); k <= i + kLead; ++k)
       if (k < n_total && (k < gap_begin || k >= gap_end)) {

@@ -2,8 +2,7 @@
 //
 // Creep filters decay geometrically: a filter state whose input has gone to zero (a Preisach piece outside its knot
 // range, a decayed initial state) passes through the subnormal range on its way to zero, and there every multiply
-// is a microcode assist of ~100 cycles. In fit_pi_creep's per-piece filter bank that was 45 % of a
-// preisach_creep_prony fit's time (test_residual_gain_drift: 58.7 → 35.8 s of CPU, printed figures identical). A
+// is a microcode assist of ~100 cycles: in fit_pi_creep's per-piece filter bank, most of a Preisach fit's time. A
 // value that small is zero for any position in nanometres, so flushing it changes no result that means anything.
 //
 // The guard sets FTZ and DAZ in MXCSR (x86 SSE/AVX) and restores the previous mode when it goes out of scope, so
