@@ -1,6 +1,7 @@
 // Fitting of kinds "pi", "pi_creep_*" (moved from models/pi_model.cpp; the model itself stays in models/).
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <functional>
 #include <stdexcept>
 
@@ -100,6 +101,36 @@ struct StaticGram {
   Eigen::MatrixXd block;  // (n + 2)², lower triangle; empty until the first evaluation filled it
 };
 
+// The lower-triangle 4×4 tiles of XᵀX over a chunk of `rows` rows, added to A (both row-major with row stride ld,
+// a multiple of 4; padding columns are zero). Tiles whose rows all lie before `skip_rows` are left out (their sums
+// are kept from an earlier evaluation). Each pair's sum runs over the rows in order, one multiply and one add per
+// row, in both clones (AVX2 has no FMA), so every CPU gives the same bits; the 4×4 tile stays in registers, where
+// a dot product per pair reloaded both columns for every pair.
+using Lanes4 = double __attribute__((vector_size(32)));
+__attribute__((target_clones("avx2", "default"))) void chunk_gram(const double* __restrict X, std::size_t rows,
+                                                                   std::size_t ld, std::size_t skip_rows,
+                                                                   double* __restrict A) {
+  for (std::size_t ib = 0; ib < ld; ib += 4) {
+    if (ib + 4 <= skip_rows) continue;
+    for (std::size_t jb = 0; jb <= ib; jb += 4) {
+      Lanes4 t0 = {0, 0, 0, 0}, t1 = t0, t2 = t0, t3 = t0;
+      for (std::size_t r = 0; r < rows; ++r) {
+        const double* x = X + r * ld;
+        Lanes4 xj;
+        std::memcpy(&xj, x + jb, sizeof xj);
+        t0 += x[ib] * xj, t1 += x[ib + 1] * xj, t2 += x[ib + 2] * xj, t3 += x[ib + 3] * xj;
+      }
+      const Lanes4* t[4] = {&t0, &t1, &t2, &t3};
+      for (std::size_t k = 0; k < 4; ++k) {
+        Lanes4 a;
+        std::memcpy(&a, A + (ib + k) * ld + jb, sizeof a);
+        a += *t[k];
+        std::memcpy(A + (ib + k) * ld + jb, &a, sizeof a);
+      }
+    }
+  }
+}
+
 // Weighted Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
 // Extra columns a_j^(t+1) for the poles in `init` absorb the unknown initial state of slow modes: a recording
 // never starts from the rest the model's reset assumes, and without them the first hours bias the creep fit.
@@ -110,30 +141,35 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   const std::size_t P = P0 + init.size();
   std::vector<double> e(init);
   // Each row is [x, y, 1]·√w, so one Gram of a chunk gives every sum at once (Σw·xxᵀ, Σw·xy, Σw·x, Σw·y², Σw·y,
-  // Σw). Few columns (the creep searches have 7–20), or only the pairs with a trailing column: a dot product per
-  // pair of the chunk's columns, which in a 32-row chunk stay in the L1 cache; Eigen's blocked rank update spends
-  // most of its time packing there. Many columns (Preisach pieces): the rank update.
+  // Σw). Few columns (the creep searches have 7–20), or only the pairs with a trailing column: 4×4 tiles of a
+  // 32-row chunk (chunk_gram). Many columns (Preisach pieces): Eigen's blocked rank update.
   const Eigen::Index Y = static_cast<Eigen::Index>(P), ONE = Y + 1, Q = ONE + 1;
   const Eigen::Index S = fixed ? static_cast<Eigen::Index>(fixed->n) : 0;
   const bool reuse = fixed && fixed->block.rows() == S + 2;
   // The semantic index of a fixed column (its leading position, or S for y and S + 1 for the constant), else -1.
   auto fixed_index = [&](Eigen::Index i) -> Eigen::Index { return i < S ? i : i == Y ? S : i == ONE ? S + 1 : -1; };
   const bool rank_update = Q > 32 && !reuse;
-  const Eigen::Index kChunk = rank_update ? 2048 : 32;
-  Eigen::MatrixXd X(kChunk, Q);  // column-major: each column's chunk is contiguous
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
   std::vector<double> x(static_cast<std::size_t>(Q));
+  // Tile layout: the fixed columns first (the S leading ones, y, 1), then the others, so the fixed pairs are whole
+  // tiles that a reuse skips. phys[i]: where semantic column i sits in a row.
+  const std::size_t ld = (static_cast<std::size_t>(Q) + 3) / 4 * 4;
+  std::vector<std::size_t> phys(static_cast<std::size_t>(Q));
+  for (Eigen::Index i = 0; i < Q; ++i) {
+    const Eigen::Index fi = fixed_index(i);
+    phys[static_cast<std::size_t>(i)] = static_cast<std::size_t>(fi >= 0 ? fi : i + 2);
+  }
+  const Eigen::Index kChunk = rank_update ? 2048 : 32;
+  Eigen::MatrixXd X(rank_update ? kChunk : 0, rank_update ? Q : 0);  // column-major: each column's chunk contiguous
+  std::vector<double> R(rank_update ? 0 : static_cast<std::size_t>(kChunk) * ld, 0.0), AT(rank_update ? 0 : ld * ld, 0.0);
+  const std::size_t skip_rows = reuse ? static_cast<std::size_t>(S + 2) : 0;
   Eigen::Index fill = 0;
   auto flush = [&]() {
     if (!fill) return;
-    const auto Xc = X.topRows(fill);
-    if (rank_update) {
-      A.selfadjointView<Eigen::Lower>().rankUpdate(Xc.transpose());
-    } else {
-      for (Eigen::Index i = 0; i < Q; ++i)
-        for (Eigen::Index j = 0; j <= i; ++j)
-          if (!reuse || fixed_index(i) < 0 || fixed_index(j) < 0) A(i, j) += Xc.col(i).dot(Xc.col(j));
-    }
+    if (rank_update)
+      A.selfadjointView<Eigen::Lower>().rankUpdate(X.topRows(fill).transpose());
+    else
+      chunk_gram(R.data(), static_cast<std::size_t>(fill), ld, skip_rows, AT.data());
     fill = 0;
   };
   for (std::size_t t = 0; t < N; ++t) {
@@ -146,10 +182,25 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
       e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
     }
     const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
-    for (Eigen::Index j = 0; j < Q; ++j) X(fill, j) = x[static_cast<std::size_t>(j)] * sw;
+    if (rank_update) {
+      for (Eigen::Index j = 0; j < Q; ++j) X(fill, j) = x[static_cast<std::size_t>(j)] * sw;
+    } else {
+      // phys as three runs: the S leading columns, then y and 1, then the rest.
+      double* r = R.data() + static_cast<std::size_t>(fill) * ld;
+      const std::size_t s = static_cast<std::size_t>(S), y = static_cast<std::size_t>(Y);
+      for (std::size_t j = 0; j < s; ++j) r[j] = x[j] * sw;
+      r[s] = x[y] * sw, r[s + 1] = sw;
+      for (std::size_t j = s; j < y; ++j) r[j + 2] = x[j] * sw;
+    }
     if (++fill == kChunk) flush();
   }
   flush();
+  if (!rank_update)
+    for (Eigen::Index i = 0; i < Q; ++i)
+      for (Eigen::Index j = 0; j <= i; ++j) {
+        const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
+        A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
+      }
   if (fixed) {
     if (!reuse) fixed->block = Eigen::MatrixXd::Zero(S + 2, S + 2);
     for (Eigen::Index i = 0; i < Q; ++i)
