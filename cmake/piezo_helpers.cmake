@@ -49,6 +49,12 @@ function(piezo_test_budget test)
     set(resources cpu:1)
   endif()
   set_tests_properties(${test} PROPERTIES LABELS ${label} TIMEOUT ${timeout} COST ${cost} RESOURCE_GROUPS ${resources})
+  # A slow computing test has one core (its cpu slot): the trainer's OpenMP shards run on one thread (the same
+  # result for 1 or 2 threads, training/trainer.cpp). Two threads on a core another test is using wait at every
+  # barrier for the one descheduled: a stage-matrix cell took 21 s of CPU instead of 11 that way.
+  if(label STREQUAL "slow" AND NOT test MATCHES "_rostest_")
+    set_property(TEST ${test} APPEND PROPERTY ENVIRONMENT OMP_THREAD_LIMIT=1)
+  endif()
 endfunction()
 
 # The CTest name of a test declared by the helpers: a gtest target, a rostest launch file's base name, or a
