@@ -178,6 +178,19 @@ function(piezo_unit_test_shards name)
   endif()
 endfunction()
 
+# piezo_reference_fixture(<setup test> <env var> <file> <tests...>): the setup test (a gtest target or shard name)
+# writes a figure to <file> once per ctest run; the tests need it first and find <file> in <env var>.
+function(piezo_reference_fixture setup var file)
+  if(CATKIN_ENABLE_TESTING)
+    set_tests_properties(_ctest_${PROJECT_NAME}_gtest_${setup} PROPERTIES FIXTURES_SETUP ${setup}
+                         ENVIRONMENT ${var}=${file})
+    foreach(name ${ARGN})
+      set_tests_properties(_ctest_${PROJECT_NAME}_gtest_${name} PROPERTIES FIXTURES_REQUIRED ${setup}
+                           ENVIRONMENT ${var}=${file})
+    endforeach()
+  endif()
+endfunction()
+
 # piezo_ros_unit_test(<name> <sources...>): GoogleTest that needs the ROS-side library but no roscore.
 function(piezo_ros_unit_test name)
   if(CATKIN_ENABLE_TESTING)

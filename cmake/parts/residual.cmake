@@ -20,6 +20,17 @@ piezo_unit_test(test_residual_mid_history test/unit/test_residual_mid_history.cp
 piezo_unit_test(test_residual_two_effects test/unit/test_residual_two_effects.cpp)
 piezo_unit_test(test_residual_steps test/unit/test_residual_steps.cpp)
 piezo_unit_test(test_eval_stream test/unit/test_eval_stream.cpp)
+# The clean reference figures several of the binaries above compare against, each a fit on 6 h of data: computed
+# once per ctest run by a fixture instead of in every binary (a binary run by hand computes its own).
+piezo_unit_test_shards(test_residual_refs test/unit/test_residual_refs.cpp SHARDS
+                       sim_clean ResidualRefs.SimClean gain_base ResidualRefs.GainBase)
+set(residual_refs ${CMAKE_BINARY_DIR}/test_results/refs)
+piezo_reference_fixture(test_residual_refs_sim_clean PIEZO_REF_RESIDUAL_SIM_CLEAN
+                        ${residual_refs}/residual_sim_clean.txt test_residual_sim test_residual_sim_coupling
+                        test_residual_sim_periodic test_residual_sim_disturbance)
+piezo_reference_fixture(test_residual_refs_gain_base PIEZO_REF_RESIDUAL_GAIN_BASE
+                        ${residual_refs}/residual_gain_base.txt test_residual_gain_drift
+                        test_residual_gain_other_axis test_residual_gain_temperature test_residual_two_effects)
 if(TARGET test_residual_augmented)
   target_compile_definitions(test_residual_augmented PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
 endif()
@@ -27,4 +38,5 @@ piezo_slow_tests(test_residual_loop test_residual_sim test_residual_sim_coupling
                  test_residual_sim_disturbance test_residual_gain test_residual_gain_drift test_residual_preisach
                  test_residual_mid_history test_residual_loop_signals test_residual_loop_coupling
                  test_residual_sim_clean test_residual_gain_temperature test_residual_gain_other_axis
-                 test_residual_two_effects test_residual_steps)
+                 test_residual_two_effects test_residual_steps test_residual_refs_sim_clean
+                 test_residual_refs_gain_base)

@@ -68,14 +68,17 @@ class LowpassLinearModel : public models::Model {
 
 // A physics base for the simulator tests (by default the fast PI hysteresis + LTI creep) on axis c;
 // PIEZO_RESIDUAL_BASE=<kind> tries another by hand.
+inline std::string physics_base_kind(const std::string& default_kind = "pi_creep_lti") {
+  const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
+  return kind ? kind : default_kind;
+}
 inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val,
                                          const std::string& default_kind = "pi_creep_lti") {
   training::FitRequest req;
   req.train = &fit;
   req.validation = &val;
   req.axis = "c";
-  const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
-  return training::fit_model(kind ? kind : default_kind, req);
+  return training::fit_model(physics_base_kind(default_kind), req);
 }
 
 inline void register_test_kind() {

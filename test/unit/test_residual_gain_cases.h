@@ -19,7 +19,9 @@
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/training/fitters.h"
+#include "piezo_compensation/util/fingerprint.h"
 
+#include "test_reference_figure.h"
 #include "test_residual_common.h"
 
 namespace piezo::test::gain {
@@ -130,16 +132,29 @@ inline pa::ResidualResult trace(Gain kind) {
 
 // (d)'s free-run TEST MAE against the truth when the loop adds nothing there (asserted by the (d) test): the
 // base alone, warm-started from TRAIN as the loop runs TEST.
+inline double clean_base_truth_mae(const io::Dataset& clean) {
+  const Split s = split(clean);
+  const auto base = fit_base(s.train.slice(0, s.n_fit), s.train.slice(s.n_fit, s.train.size()));
+  models::StreamOptions so;
+  so.warmup = &s.train;
+  const auto pred = models::stream_model(*base, s.test, "c", so).prediction;
+  const double m = pa::error_stats(pred, s.test.axis("c").true_position_nm).mae_nm;
+  std::cerr << "(d) base alone: TEST MAE vs truth " << m << " nm\n";
+  return m;
+}
+
+// What clean_base_truth_mae depends on, to check a figure the CTest fixture (test_residual_refs) wrote.
+constexpr const char* kCleanRefEnv = "PIEZO_REF_RESIDUAL_GAIN_BASE";
+inline std::string clean_key(const io::Dataset& clean) {
+  return "residual_gain base alone " + util::fingerprint(clean) + " base " + physics_base_kind("preisach_creep_prony") +
+         " train_fraction " + std::to_string(kTrainFraction) + " validation_fraction " +
+         std::to_string(options().validation_fraction);
+}
+
 inline double clean_base_truth_mae() {
   static const double mae = [] {
-    const Split s = split(with_gain(Gain::kNone));
-    const auto base = fit_base(s.train.slice(0, s.n_fit), s.train.slice(s.n_fit, s.train.size()));
-    models::StreamOptions so;
-    so.warmup = &s.train;
-    const auto pred = models::stream_model(*base, s.test, "c", so).prediction;
-    const double m = pa::error_stats(pred, s.test.axis("c").true_position_nm).mae_nm;
-    std::cerr << "(d) base alone: TEST MAE vs truth " << m << " nm\n";
-    return m;
+    const io::Dataset clean = with_gain(Gain::kNone);
+    return reference_figure(kCleanRefEnv, clean_key(clean), [&] { return clean_base_truth_mae(clean); });
   }();
   return mae;
 }

@@ -14,7 +14,9 @@
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/simulator_config.h"
 #include "piezo_compensation/training/fitters.h"
+#include "piezo_compensation/util/fingerprint.h"
 
+#include "test_reference_figure.h"
 #include "test_residual_common.h"
 
 namespace pa = piezo::analysis;
@@ -58,12 +60,25 @@ inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const pie
   return piezo::test::fit_physics_base(fit, val);
 }
 
+// The same protocol without an effect: the base's TEST MAE there.
+inline double clean_mae(const piezo::io::Dataset& clean) {
+  const Split s = split(clean);
+  const auto base = fit_base(s.train, options());
+  const auto pred = [&] { piezo::models::StreamOptions so; so.warmup = &s.train; return piezo::models::stream_model(*base, s.test, "c", so).prediction; }();
+  return pa::error_stats(pred, s.test.axis("c").position_nm).mae_nm;
+}
+
+// What clean_mae depends on, to check a figure the CTest fixture (test_residual_refs) wrote.
+constexpr const char* kCleanRefEnv = "PIEZO_REF_RESIDUAL_SIM_CLEAN";
+inline std::string clean_key(const piezo::io::Dataset& clean) {
+  return "residual_sim clean " + piezo::util::fingerprint(clean) + " base " + piezo::test::physics_base_kind() +
+         " validation_fraction " + std::to_string(options().validation_fraction);
+}
+
 inline double clean_mae() {
   static const double mae = [] {
-    const Split s = split(simulate(""));
-    const auto base = fit_base(s.train, options());
-    const auto pred = [&] { piezo::models::StreamOptions so; so.warmup = &s.train; return piezo::models::stream_model(*base, s.test, "c", so).prediction; }();
-    return pa::error_stats(pred, s.test.axis("c").position_nm).mae_nm;
+    const piezo::io::Dataset clean = simulate("");
+    return piezo::test::reference_figure(kCleanRefEnv, clean_key(clean), [&] { return clean_mae(clean); });
   }();
   return mae;
 }
