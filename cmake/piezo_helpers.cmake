@@ -182,11 +182,11 @@ endfunction()
 # writes a figure to <file> once per ctest run; the tests need it first and find <file> in <env var>.
 function(piezo_reference_fixture setup var file)
   if(CATKIN_ENABLE_TESTING)
-    set_tests_properties(_ctest_${PROJECT_NAME}_gtest_${setup} PROPERTIES FIXTURES_SETUP ${setup}
-                         ENVIRONMENT ${var}=${file})
+    set_tests_properties(_ctest_${PROJECT_NAME}_gtest_${setup} PROPERTIES FIXTURES_SETUP ${setup})
+    set_property(TEST _ctest_${PROJECT_NAME}_gtest_${setup} APPEND PROPERTY ENVIRONMENT ${var}=${file})
     foreach(name ${ARGN})
-      set_tests_properties(_ctest_${PROJECT_NAME}_gtest_${name} PROPERTIES FIXTURES_REQUIRED ${setup}
-                           ENVIRONMENT ${var}=${file})
+      set_tests_properties(_ctest_${PROJECT_NAME}_gtest_${name} PROPERTIES FIXTURES_REQUIRED ${setup})
+      set_property(TEST _ctest_${PROJECT_NAME}_gtest_${name} APPEND PROPERTY ENVIRONMENT ${var}=${file})
     endforeach()
   endif()
 endfunction()

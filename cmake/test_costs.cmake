@@ -20,7 +20,8 @@ function(piezo_test_costs)
 endfunction()
 
 piezo_test_costs(
-  # computing tests [s of CPU]
+  # computing tests [s of CPU]; the reference fixtures first, as four tests each wait for one
+  test_residual_refs_sim_clean 99  test_residual_refs_gain_base 98
   test_residual_sim 40  test_stage_matrix_mm3e_preisach_creep 44  test_residual_two_effects 32
   test_residual_gain_temperature 30  test_residual_sim_coupling 26  test_residual_sim_disturbance 25
   test_residual_sim_periodic 25  test_stage_matrix_mm3e_pi_creep 25  test_residual_gain_other_axis 25
