@@ -61,6 +61,53 @@ TEST(CreepModels, LtiRecoversSpringDamperPairs) {
   EXPECT_NEAR(m.creep().gains_nm_per_v[1], 0.8, 0.05);
 }
 
+// A backfitting refit (training::refit_options) starts the law from the previous model's time constants and only
+// refines near them, one round as the alternation does: from constants 0.1 decade off (a refit's data moved little)
+// it comes back to the truth, like the full search.
+TEST(CreepModels, LtiWarmStartRefinesFromThePreviousTimeConstants) {
+  CreepParams cp;
+  cp.kind = CreepKind::kLti;
+  cp.taus_s = {30.0, 1500.0};
+  cp.gains_nm_per_v = {1.2, 0.8};
+  const io::Dataset d = generate(cp, 2.0);
+  CreepParams off = cp;
+  off.taus_s = {30.0 * 1.26, 1500.0 / 1.26};
+  const PiCreepModel previous(kR, kW, 10.0, off, 11.0);
+  YAML::Node given;
+  given["thresholds_v"] = kR;
+  given["creep_input"] = "voltage";
+  const YAML::Node o = training::refit_options(previous, given);
+  ASSERT_TRUE(o["warm_start"] && o["warm_start"].as<bool>());
+  ASSERT_EQ(o["taus_s"].as<std::vector<double>>(), off.taus_s);
+  EXPECT_EQ(o["creep_input"].as<std::string>(), "voltage");  // what the caller gave stays
+  training::FitRequest req;
+  req.train = &d;
+  req.options = o;
+  const auto fitted = training::fit_model("pi_creep_lti", req);
+  const auto& m = dynamic_cast<const PiCreepModel&>(*fitted);
+  ASSERT_EQ(m.creep().taus_s.size(), 2u);
+  EXPECT_NEAR(std::log10(m.creep().taus_s[0]), std::log10(30.0), 0.05);
+  EXPECT_NEAR(std::log10(m.creep().taus_s[1]), std::log10(1500.0), 0.05);
+  // Only near: from a constant a decade off, the refit stays within half a decade of it (the full search would not).
+  CreepParams far = cp;
+  far.taus_s = {3.0, 1500.0};
+  req.options = training::refit_options(PiCreepModel(kR, kW, 10.0, far, 11.0), given);
+  const auto near = training::fit_model("pi_creep_lti", req);
+  EXPECT_LE(dynamic_cast<const PiCreepModel&>(*near).creep().taus_s[0], 3.0 * std::pow(10.0, 0.5) + 1e-9);
+  // Options given by the caller win; a warm start needs the law's start.
+  given["taus_s"] = std::vector<double>{5.0, 50.0};
+  EXPECT_EQ(training::refit_options(previous, given)["taus_s"].as<std::vector<double>>(), (std::vector<double>{5.0, 50.0}));
+  YAML::Node bad;
+  bad["warm_start"] = true;
+  req.options = bad;
+  try {
+    training::fit_model("pi_creep_lti", req);
+    ADD_FAILURE() << "warm_start without taus_s was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("warm_start"), std::string::npos) << e.what();
+  }
+}
+
 TEST(CreepModels, LtiOnTheHysteresisOutputRecoversByAlternatingLeastSquares) {
   CreepParams cp;
   cp.kind = CreepKind::kLti;

@@ -72,12 +72,15 @@ inline std::string physics_base_kind(const std::string& default_kind = "pi_creep
   const char* kind = std::getenv("PIEZO_RESIDUAL_BASE");
   return kind ? kind : default_kind;
 }
+// `previous` (optional): the base a backfitting round replaces; the refit starts from its creep law.
 inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val,
-                                         const std::string& default_kind = "pi_creep_lti") {
+                                         const std::string& default_kind = "pi_creep_lti",
+                                         const models::Model* previous = nullptr) {
   training::FitRequest req;
   req.train = &fit;
   req.validation = &val;
   req.axis = "c";
+  if (previous) req.options = training::refit_options(*previous, req.options);
   return training::fit_model(physics_base_kind(default_kind), req);
 }
 

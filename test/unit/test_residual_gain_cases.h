@@ -107,8 +107,9 @@ inline pa::ResidualOptions options() {
   return o;
 }
 
-inline models::ModelPtr fit_base(const io::Dataset& fit, const io::Dataset& val) {
-  return fit_physics_base(fit, val, "preisach_creep_prony");
+inline models::ModelPtr fit_base(const io::Dataset& fit, const io::Dataset& val,
+                                 const models::Model* previous = nullptr) {
+  return fit_physics_base(fit, val, "preisach_creep_prony", previous);
 }
 
 struct Split {
@@ -125,7 +126,9 @@ inline Split split(const io::Dataset& d) {
 inline pa::ResidualResult trace(Gain kind) {
   const Split s = split(with_gain(kind));
   pa::ResidualOptions o = options();
-  o.refit_base = [](const io::Dataset& fit, const io::Dataset& val) { return fit_base(fit, val); };
+  o.refit_base = [](const io::Dataset& fit, const io::Dataset& val, const models::Model& previous) {
+    return fit_base(fit, val, &previous);
+  };
   const auto base = fit_base(s.train.slice(0, s.n_fit), s.train.slice(s.n_fit, s.train.size()));
   return pa::trace_residual(*base, s.train, s.test, o);
 }

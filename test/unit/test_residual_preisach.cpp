@@ -33,7 +33,9 @@ TEST(ResidualPreisach, ResidualLoopAddsNothingOnPreisachCreepProtocolData) {
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   auto fit = [](const io::Dataset& f, const io::Dataset& v) { return test::fit_physics_base(f, v, "preisach_creep_prony"); };
-  o.refit_base = fit;
+  o.refit_base = [](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) {
+    return test::fit_physics_base(f, v, "preisach_creep_prony", &previous);
+  };
   const auto base = fit(train.slice(0, n_fit), train.slice(n_fit, train.size()));
   const analysis::ResidualResult r = analysis::trace_residual(*base, train, test, o);
   std::cout << "residual loop on a " << base->kind() << " base: TEST MAE " << r.before_test.mae_nm << " -> "
@@ -64,7 +66,9 @@ TEST(ResidualPreisach, CreepProtocolWithAPiBaseAddsNoPeriodicSignalOrTimeEffect)
   auto fit = [](const io::Dataset& f, const io::Dataset& v) { return test::fit_physics_base(f, v, "pi_creep_lti"); };
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
-  o.refit_base = fit;
+  o.refit_base = [](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) {
+    return test::fit_physics_base(f, v, "pi_creep_lti", &previous);
+  };
   const auto base = fit(train.slice(0, n_fit), train.slice(n_fit, train.size()));
   const analysis::ResidualResult r = analysis::trace_residual(*base, train, test, o);
   std::cerr << "creep protocol, PI + LTI base: TEST MAE vs truth " << r.before_test_truth.mae_nm << " -> "

@@ -50,14 +50,16 @@ inline pa::ResidualOptions options() {
   return o;
 }
 
-inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val);
+inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val,
+                                        const piezo::models::Model* previous = nullptr);
 inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& train, const pa::ResidualOptions& o) {
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   return fit_base(train.slice(0, n_fit), train.slice(n_fit, train.size()));
 }
 
-inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val) {
-  return piezo::test::fit_physics_base(fit, val);
+inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val,
+                                        const piezo::models::Model* previous) {
+  return piezo::test::fit_physics_base(fit, val, "pi_creep_lti", previous);
 }
 
 // The same protocol without an effect: the base's TEST MAE there.
@@ -86,7 +88,9 @@ inline double clean_mae() {
 inline pa::ResidualResult trace(const std::string& effect) {
   const Split s = split(simulate(effect));
   pa::ResidualOptions o = options();
-  o.refit_base = [&](const piezo::io::Dataset& fit, const piezo::io::Dataset& val) { return fit_base(fit, val); };
+  o.refit_base = [&](const piezo::io::Dataset& fit, const piezo::io::Dataset& val, const piezo::models::Model& previous) {
+    return fit_base(fit, val, &previous);
+  };
   const auto base = fit_base(s.train, o);
   return pa::trace_residual(*base, s.train, s.test, o);
 }

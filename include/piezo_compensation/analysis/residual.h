@@ -106,7 +106,10 @@ struct ResidualOptions {
   // Refits the base model on TRAIN's fit and validation parts (whose positions are then measurement minus the
   // effect terms): after each added effect the base and the terms are refitted alternately (backfitting), so a
   // base that absorbed part of the effect when first fitted gives it back. Empty = the base stays as given.
-  std::function<models::ModelPtr(const io::Dataset& fit_part, const io::Dataset& validation_part)> refit_base;
+  // `previous` is the base being replaced: a refit may start from its creep law (training::refit_options).
+  std::function<models::ModelPtr(const io::Dataset& fit_part, const io::Dataset& validation_part,
+                                 const models::Model& previous)>
+      refit_base;
   int backfit_iterations = 2;
   // Refits after a gain family is added (a gain is absorbed by the base more than an additive term; each refit
   // after the first takes out the secant estimate of the joint fit's gain, see trace_residual).

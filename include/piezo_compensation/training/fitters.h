@@ -30,13 +30,19 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request);
 models::ModelPtr fit_linear(const FitRequest& req);
 
 // options: n_play (by validation, else 12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti
-// start values; fix_taus: true keeps them), t1_s / alpha (fix instead of searching), decades, modes_per_decade, tau_min_s, tau_max_s (clamped
-// to [2 samples, training duration]), creep_input (auto|voltage|hysteresis), hold_weight (auto|off|factor),
+// start values; fix_taus: true keeps them), t1_s / alpha (fix instead of searching), warm_start (taus_s, t1_s or alpha
+// a start refined near it), decades, modes_per_decade, tau_min_s, tau_max_s (clamped to [2 samples, training
+// duration]), creep_input (auto|voltage|hysteresis), hold_weight (auto|off|factor),
 // min_slope_fraction, refit_with_validation (false; pi, pi_creep_prony, preisach kinds). Kinds pi, pi_creep_log,
 // pi_creep_lti, pi_creep_fractional, pi_creep_prony; with preisach also "preisach" (kNone) and
 // "preisach_creep_prony" (kProny), which take knots_per_span (≤ 65, default min(n_play, 12)) and piece_smoothing
 // (0.1).
 models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, bool preisach = false);
+
+// The options that refit `previous` on new data (a backfitting round of `piezo residual`): its creep law's time
+// constants (taus_s, t1_s or alpha) as a start refined near it (warm_start) rather than searched over the whole
+// range; the rest is chosen again. Options the caller gave win. Other kinds: `options` unchanged.
+YAML::Node refit_options(const models::Model& previous, const YAML::Node& options);
 
 // Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]
 // (Lawson–Hanson active set). G must be positive definite on the free set.

@@ -60,7 +60,7 @@ void Backfitter::refit_once(const std::vector<EffectTerm>& terms, const Level& l
   auto& pos = adj.axis(o_.axis).position_nm;
   for (std::size_t i = 0; i < n; ++i)
     pos[i] = c_.measured[i] - (p[i] - c_.x_base[i]) - (kappa - 1.0) * (part.empty() ? 0.0 : part[i]);
-  models::ModelPtr nb = o_.refit_base(adj.slice(0, v_.n_fit()), adj.slice(v_.n_fit(), n));
+  models::ModelPtr nb = o_.refit_base(adj.slice(0, v_.n_fit()), adj.slice(v_.n_fit(), n), *base);
   if (!nb) throw std::runtime_error("refit_base returned no model");
   models::ModelPtr runner = nb->clone();
   models::StreamOptions so;
