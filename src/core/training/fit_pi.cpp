@@ -131,6 +131,43 @@ __attribute__((target_clones("avx2", "default"))) void chunk_gram(const double* 
   }
 }
 
+// The semantic index of fixed column i of a Gram [x (Y columns), y, 1] whose S leading columns are fixed: its leading
+// position, S for y, S + 1 for the constant; -1 for the others.
+Eigen::Index fixed_column(Eigen::Index i, Eigen::Index S, Eigen::Index Y) {
+  return i < S ? i : i == Y ? S : i == Y + 1 ? S + 1 : -1;
+}
+
+// The fixed pairs of A (lower triangle): stored in `fixed` by the first evaluation of a search, taken from it by
+// the later ones (reuse).
+void keep_or_reuse(StaticGram& fixed, bool reuse, Eigen::Index Y, Eigen::MatrixXd& A) {
+  const Eigen::Index S = static_cast<Eigen::Index>(fixed.n);
+  if (!reuse) fixed.block = Eigen::MatrixXd::Zero(S + 2, S + 2);
+  for (Eigen::Index i = 0; i < A.rows(); ++i)
+    for (Eigen::Index j = 0; j <= i; ++j) {
+      const Eigen::Index fi = fixed_column(i, S, Y), fj = fixed_column(j, S, Y);
+      if (fi < 0 || fj < 0) continue;
+      double& kept = fixed.block(std::max(fi, fj), std::min(fi, fj));
+      if (reuse)
+        A(i, j) = kept;
+      else
+        kept = A(i, j);
+    }
+}
+
+// The sums of a Gram A of rows [x (P columns), y, 1] (lower triangle).
+training::GramStats gram_stats(const Eigen::MatrixXd& A, std::size_t P) {
+  const Eigen::Index Y = static_cast<Eigen::Index>(P), ONE = Y + 1;
+  training::GramStats g(P);
+  g.sxx = A.topLeftCorner(Y, Y);
+  g.sxx = g.sxx.selfadjointView<Eigen::Lower>();
+  g.sxy = A.row(Y).head(Y).transpose();
+  g.sx = A.row(ONE).head(Y).transpose();
+  g.syy = A(Y, Y);
+  g.sy = A(ONE, Y);
+  g.n = A(ONE, ONE);
+  return g;
+}
+
 // Weighted Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
 // Extra columns a_j^(t+1) for the poles in `init` absorb the unknown initial state of slow modes: a recording
 // never starts from the rest the model's reset assumes, and without them the first hours bias the creep fit.
@@ -146,8 +183,7 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   const Eigen::Index Y = static_cast<Eigen::Index>(P), ONE = Y + 1, Q = ONE + 1;
   const Eigen::Index S = fixed ? static_cast<Eigen::Index>(fixed->n) : 0;
   const bool reuse = fixed && fixed->block.rows() == S + 2;
-  // The semantic index of a fixed column (its leading position, or S for y and S + 1 for the constant), else -1.
-  auto fixed_index = [&](Eigen::Index i) -> Eigen::Index { return i < S ? i : i == Y ? S : i == ONE ? S + 1 : -1; };
+  auto fixed_index = [&](Eigen::Index i) { return fixed_column(i, S, Y); };
   const bool rank_update = Q > 32 && !reuse;
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
   std::vector<double> x(static_cast<std::size_t>(Q));
@@ -201,28 +237,8 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
         const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
         A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
       }
-  if (fixed) {
-    if (!reuse) fixed->block = Eigen::MatrixXd::Zero(S + 2, S + 2);
-    for (Eigen::Index i = 0; i < Q; ++i)
-      for (Eigen::Index j = 0; j <= i; ++j) {
-        const Eigen::Index fi = fixed_index(i), fj = fixed_index(j);
-        if (fi < 0 || fj < 0) continue;
-        double& kept = fixed->block(std::max(fi, fj), std::min(fi, fj));
-        if (reuse)
-          A(i, j) = kept;
-        else
-          kept = A(i, j);
-      }
-  }
-  training::GramStats g(P);
-  g.sxx = A.topLeftCorner(Y, Y);
-  g.sxx = g.sxx.selfadjointView<Eigen::Lower>();
-  g.sxy = A.row(Y).head(Y).transpose();
-  g.sx = A.row(ONE).head(Y).transpose();
-  g.syy = A(Y, Y);
-  g.sy = A(ONE, Y);
-  g.n = A(ONE, ONE);
-  return g;
+  if (fixed) keep_or_reuse(*fixed, reuse, Y, A);
+  return gram_stats(A, P);
 }
 
 // Least squares on the Gram sums; columns flagged constrained stay ≥ their lower bound (`lower`, 0 where it is
