@@ -178,13 +178,12 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   const std::size_t P = P0 + init.size();
   std::vector<double> e(init);
   // Each row is [x, y, 1]·√w, so one Gram of a chunk gives every sum at once (Σw·xxᵀ, Σw·xy, Σw·x, Σw·y², Σw·y,
-  // Σw). Few columns (the creep searches have 7–20), or only the pairs with a trailing column: 4×4 tiles of a
-  // 32-row chunk (chunk_gram). Many columns (Preisach pieces): Eigen's blocked rank update.
+  // Σw): 4×4 tiles of a 32-row chunk (chunk_gram), for the creep searches' 7–20 columns as for the Preisach
+  // kinds' 100 or more (where its AVX2 clone is faster than Eigen's rank update, built for SSE2).
   const Eigen::Index Y = static_cast<Eigen::Index>(P), ONE = Y + 1, Q = ONE + 1;
   const Eigen::Index S = fixed ? static_cast<Eigen::Index>(fixed->n) : 0;
   const bool reuse = fixed && fixed->block.rows() == S + 2;
   auto fixed_index = [&](Eigen::Index i) { return fixed_column(i, S, Y); };
-  const bool rank_update = Q > 32 && !reuse;
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
   std::vector<double> x(static_cast<std::size_t>(Q));
   // Tile layout: the fixed columns first (the S leading ones, y, 1), then the others, so the fixed pairs are whole
@@ -195,17 +194,13 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
     const Eigen::Index fi = fixed_index(i);
     phys[static_cast<std::size_t>(i)] = static_cast<std::size_t>(fi >= 0 ? fi : i + 2);
   }
-  const Eigen::Index kChunk = rank_update ? 2048 : 32;
-  Eigen::MatrixXd X(rank_update ? kChunk : 0, rank_update ? Q : 0);  // column-major: each column's chunk contiguous
-  std::vector<double> R(rank_update ? 0 : static_cast<std::size_t>(kChunk) * ld, 0.0), AT(rank_update ? 0 : ld * ld, 0.0);
+  const Eigen::Index kChunk = 32;
+  std::vector<double> R(static_cast<std::size_t>(kChunk) * ld, 0.0), AT(ld * ld, 0.0);
   const std::size_t skip_rows = reuse ? static_cast<std::size_t>(S + 2) : 0;
   Eigen::Index fill = 0;
   auto flush = [&]() {
     if (!fill) return;
-    if (rank_update)
-      A.selfadjointView<Eigen::Lower>().rankUpdate(X.topRows(fill).transpose());
-    else
-      chunk_gram(R.data(), static_cast<std::size_t>(fill), ld, skip_rows, AT.data());
+    chunk_gram(R.data(), static_cast<std::size_t>(fill), ld, skip_rows, AT.data());
     fill = 0;
   };
   for (std::size_t t = 0; t < N; ++t) {
@@ -218,25 +213,20 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
       e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
     }
     const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
-    if (rank_update) {
-      for (Eigen::Index j = 0; j < Q; ++j) X(fill, j) = x[static_cast<std::size_t>(j)] * sw;
-    } else {
-      // phys as three runs: the S leading columns, then y and 1, then the rest.
-      double* r = R.data() + static_cast<std::size_t>(fill) * ld;
-      const std::size_t s = static_cast<std::size_t>(S), y = static_cast<std::size_t>(Y);
-      for (std::size_t j = 0; j < s; ++j) r[j] = x[j] * sw;
-      r[s] = x[y] * sw, r[s + 1] = sw;
-      for (std::size_t j = s; j < y; ++j) r[j + 2] = x[j] * sw;
-    }
+    // phys as three runs: the S leading columns, then y and 1, then the rest.
+    double* r = R.data() + static_cast<std::size_t>(fill) * ld;
+    const std::size_t s = static_cast<std::size_t>(S), y = static_cast<std::size_t>(Y);
+    for (std::size_t j = 0; j < s; ++j) r[j] = x[j] * sw;
+    r[s] = x[y] * sw, r[s + 1] = sw;
+    for (std::size_t j = s; j < y; ++j) r[j + 2] = x[j] * sw;
     if (++fill == kChunk) flush();
   }
   flush();
-  if (!rank_update)
-    for (Eigen::Index i = 0; i < Q; ++i)
-      for (Eigen::Index j = 0; j <= i; ++j) {
-        const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
-        A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
-      }
+  for (Eigen::Index i = 0; i < Q; ++i)
+    for (Eigen::Index j = 0; j <= i; ++j) {
+      const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
+      A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
+    }
   if (fixed) keep_or_reuse(*fixed, reuse, Y, A);
   return gram_stats(A, P);
 }
