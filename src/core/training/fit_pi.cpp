@@ -180,18 +180,17 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   // Each row is [x, y, 1]·√w, so one Gram of a chunk gives every sum at once (Σw·xxᵀ, Σw·xy, Σw·x, Σw·y², Σw·y,
   // Σw): 4×4 tiles of a 32-row chunk (chunk_gram), for the creep searches' 7–20 columns as for the Preisach
   // kinds' 100 or more (where its AVX2 clone is faster than Eigen's rank update, built for SSE2).
-  const Eigen::Index Y = static_cast<Eigen::Index>(P), ONE = Y + 1, Q = ONE + 1;
+  const Eigen::Index Y = static_cast<Eigen::Index>(P), Q = Y + 2;  // columns: x, y, 1
   const Eigen::Index S = fixed ? static_cast<Eigen::Index>(fixed->n) : 0;
   const bool reuse = fixed && fixed->block.rows() == S + 2;
-  auto fixed_index = [&](Eigen::Index i) { return fixed_column(i, S, Y); };
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
-  std::vector<double> x(static_cast<std::size_t>(Q));
+  std::vector<double> x(static_cast<std::size_t>(Y) + 1);  // the row's x, then its target y
   // Tile layout: the fixed columns first (the S leading ones, y, 1), then the others, so the fixed pairs are whole
   // tiles that a reuse skips. phys[i]: where semantic column i sits in a row.
   const std::size_t ld = (static_cast<std::size_t>(Q) + 3) / 4 * 4;
   std::vector<std::size_t> phys(static_cast<std::size_t>(Q));
   for (Eigen::Index i = 0; i < Q; ++i) {
-    const Eigen::Index fi = fixed_index(i);
+    const Eigen::Index fi = fixed_column(i, S, Y);
     phys[static_cast<std::size_t>(i)] = static_cast<std::size_t>(fi >= 0 ? fi : i + 2);
   }
   const Eigen::Index kChunk = 32;
@@ -205,7 +204,6 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   };
   for (std::size_t t = 0; t < N; ++t) {
     x[Y] = row(t, x.data());
-    x[ONE] = 1.0;
     for (std::size_t j = 0; j < e.size(); ++j) {
       x[P0 + j] = e[j];
       // A decayed initial state is set to 0 before it turns subnormal: its products would underflow on every
@@ -876,6 +874,16 @@ CreepParams PiCreepFit::initial_creep() const {
     cp0.t1_s = clamp_tau(opt_.t1_s);
     cp0.decades = std::max(1, std::min(cp0.decades, static_cast<int>(std::floor(std::log10(tau_hi_ / tau_lo_)))));
   }
+  if (kind_ == CreepKind::kFractional && opt_.alpha_given) cp0.alpha = opt_.alpha;
+  if (kind_ == CreepKind::kLti) {
+    // Given time constants, else spread evenly in log over the identifiable range.
+    const double lo = std::log10(tau_lo_), hi = std::log10(tau_hi_);
+    if (opt_.taus_given)
+      for (double t : opt_.taus_s) cp0.taus_s.push_back(clamp_tau(t));
+    else
+      for (int j = 0; j < opt_.n_pairs; ++j) cp0.taus_s.push_back(std::pow(10.0, lo + (hi - lo) * (j + 0.5) / opt_.n_pairs));
+    cp0.gains_nm_per_v.assign(cp0.taus_s.size(), 0.0);
+  }
   cp0.check_sizes();
   return cp0;
 }
@@ -990,6 +998,10 @@ void PiCreepFit::search_creep_law(CreepParams& cp, const SseFn& sse_fn, bool ref
     report("PI + creep fit");
     return sse_fn(c);
   };
+  // A warm start (the law given as a start, refit_options) searches as the alternation's refinements do: near the
+  // given values (a backfitting refit, whose data moved little; the alternation on H that follows refines them
+  // again), not over the whole range.
+  refine_only = refine_only || opt_.warm_start;
   switch (kind_) {
     case CreepKind::kNone:
     case CreepKind::kProny: break;
@@ -1000,8 +1012,7 @@ void PiCreepFit::search_creep_law(CreepParams& cp, const SseFn& sse_fn, bool ref
 }
 
 void PiCreepFit::search_log_t1(CreepParams& cp, const SseFn& sse_of, bool refine_only) const {
-  if (opt_.t1_given && !opt_.warm_start) return;
-  refine_only = refine_only || opt_.warm_start;
+  if (opt_.t1_given && !opt_.warm_start) return;  // fixed
   const double cur = std::log10(cp.t1_s), lo = std::log10(tau_lo_), hi = std::log10(tau_hi_) - 1.0;
   if (!(hi > lo)) return;
   const auto sse_at = [&](double lg) {
@@ -1016,11 +1027,7 @@ void PiCreepFit::search_log_t1(CreepParams& cp, const SseFn& sse_of, bool refine
 }
 
 void PiCreepFit::search_alpha(CreepParams& cp, const SseFn& sse_of, bool refine_only) const {
-  if (opt_.alpha_given) {
-    cp.alpha = opt_.alpha;
-    if (!opt_.warm_start) return;
-    refine_only = true;
-  }
+  if (opt_.alpha_given && !opt_.warm_start) return;  // fixed (initial_creep set it)
   const double cur = cp.alpha;
   cp.alpha = search_1d([&](double al) { CreepParams c = cp; c.alpha = al; return sse_of(c); },
                        refine_only ? std::max(0.02, cur - 0.1) : 0.03, refine_only ? std::min(0.98, cur + 0.1) : 0.97,
@@ -1028,20 +1035,9 @@ void PiCreepFit::search_alpha(CreepParams& cp, const SseFn& sse_of, bool refine_
 }
 
 void PiCreepFit::search_lti_taus(CreepParams& cp, const SseFn& sse_of, bool refine_only) const {
-  const double lo = std::log10(tau_lo_), hi = std::log10(tau_hi_);
-  if (refine_only) {
-  } else if (opt_.taus_given) {
-    cp.taus_s = opt_.taus_s;
-    for (double& t : cp.taus_s) t = clamp_tau(t);
-  } else {
-    for (int j = 0; j < opt_.n_pairs; ++j) cp.taus_s.push_back(std::pow(10.0, lo + (hi - lo) * (j + 0.5) / opt_.n_pairs));
-  }
-  if (cp.gains_nm_per_v.size() != cp.taus_s.size()) cp.gains_nm_per_v.assign(cp.taus_s.size(), 0.0);
-  // A warm start (given taus_s, warm_start) searches as the alternation's refinements do: one round near the given
-  // values (a backfitting refit, whose data moved little; the alternation on H that follows refines them again).
-  const bool refine = refine_only || (opt_.warm_start && opt_.taus_given);
-  const int rounds = refine ? 1 : opt_.search_rounds;
-  for (int round = refine ? 1 : 0; round < (refine ? 2 : rounds) && !opt_.fix_taus; ++round)
+  const double lo = std::log10(tau_lo_), hi = std::log10(tau_hi_);  // the start: initial_creep
+  const int rounds = refine_only ? 1 : opt_.search_rounds;
+  for (int round = refine_only ? 1 : 0; round < (refine_only ? 2 : rounds) && !opt_.fix_taus; ++round)
     for (std::size_t j = 0; j < cp.taus_s.size(); ++j) {
       auto f = [&](double lg) { CreepParams c = cp; c.taus_s[j] = std::pow(10.0, lg); return sse_of(c); };
       const double cur = std::log10(cp.taus_s[j]);
@@ -1195,18 +1191,18 @@ YAML::Node refit_options(const models::Model& previous, const YAML::Node& option
   YAML::Node o = options && options.IsMap() ? YAML::Clone(options) : YAML::Node(YAML::NodeType::Map);
   const auto* pc = dynamic_cast<const models::PiCreepModel*>(&previous);
   if (!pc) return o;
-  // Only the law: the play count, creep input and hold weight are chosen again. Keeping the first fit's play
-  // thresholds and creep input left a stroke gain's backfit at 6.76 nm against the truth where choosing again
-  // reaches 3.77 (test_residual_gain_drift): the base that absorbed the gain is not the structure to keep.
+  // Only the law: the play count, creep input and hold weight are chosen again, as the base that absorbed an effect
+  // is not the structure to keep (docs/closing-the-loop.md, backfitting).
   const CreepParams& cp = pc->creep();
-  const bool law_given = o["taus_s"] || o["t1_s"] || o["alpha"];
-  if (!law_given) {
-    if (cp.kind == CreepKind::kLti && !cp.taus_s.empty()) o["taus_s"] = cp.taus_s;
-    if (cp.kind == CreepKind::kLog) o["t1_s"] = cp.t1_s;
-    if (cp.kind == CreepKind::kFractional) o["alpha"] = cp.alpha;
-    if (cp.kind == CreepKind::kLti || cp.kind == CreepKind::kLog || cp.kind == CreepKind::kFractional)
-      o["warm_start"] = true;
+  if (o["taus_s"] || o["t1_s"] || o["alpha"]) return o;
+  switch (cp.kind) {
+    case CreepKind::kLti: o["taus_s"] = cp.taus_s; break;
+    case CreepKind::kLog: o["t1_s"] = cp.t1_s; break;
+    case CreepKind::kFractional: o["alpha"] = cp.alpha; break;
+    case CreepKind::kNone:
+    case CreepKind::kProny: return o;  // nothing to search
   }
+  o["warm_start"] = true;
   return o;
 }
 
