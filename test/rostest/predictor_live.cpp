@@ -60,11 +60,9 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
       if (!tf.canTransform("mm1/base", child, ros::Time(0))) return false;
     return true;
   };
-  const ros::WallTime tf_deadline = ros::WallTime::now() + ros::WallDuration(piezo::test::kPatienceS);
-  while (!frames_known() && ros::WallTime::now() < tf_deadline) {
-    ASSERT_TRUE(drv.cycle()) << "no prediction and command while waiting for the tf frames";
-    ros::WallDuration(0.05).sleep();
-  }
+  bool cycled = true;
+  piezo::test::wall_wait([&] { return frames_known() || !(cycled = drv.cycle()); }, piezo::test::kPatienceS, 0.05);
+  ASSERT_TRUE(cycled) << "no prediction and command while waiting for the tf frames";
   for (const char* child : {"mm1/tip_measured", "mm1/tip_predicted", "mm1/tip_intended"}) {
     std::string err;
     EXPECT_TRUE(tf.canTransform("mm1/base", child, ros::Time(0), ros::Duration(0.0), &err)) << child << ": " << err;
