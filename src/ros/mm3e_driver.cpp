@@ -51,6 +51,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   stamp_with_receive_time_ = r.flag("stamp_with_receive_time", true);
   sync_mode_ = r.flag("sync_mode", false);
   sync_idle_s_ = r.number("sync_idle_s", 0.5, 0.001, 60.0);
+  sync_max_in_flight_ = r.integer("sync_max_in_flight", 0, 0, 1000);
   if (sync_mode_ && 1.25 * sync_idle_s_ >= config.silence_reconnect_s)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +
@@ -97,6 +98,10 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     msg.position = e.position_m;
     msg.valid = e.valid;
     encoder_pub_[e.axis].publish(msg);
+    if (sync_mode_) {
+      std::lock_guard<std::mutex> lock(sync_mutex_);
+      on_sample_read_locked(e.axis);
+    }
   };
   cb.on_event = [](const std::string& text, bool error) {
     if (error)
@@ -130,7 +135,10 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     sync_idle_timer_ = nh_.createWallTimer(ros::WallDuration(sync_idle_s_ / 4), [this](const ros::WallTimerEvent&) {
       check_commanders();
       std::lock_guard<std::mutex> lock(sync_mutex_);
-      if ((ros::WallTime::now() - last_sync_wall_).toSec() >= sync_idle_s_) sync_locked();
+      if ((ros::WallTime::now() - last_sync_wall_).toSec() >= sync_idle_s_) {
+        in_flight_ = 0;  // a SYNC or its sample was lost (or nobody commands): count afresh from this one
+        sync_locked();
+      }
     });
   } else {
     tick_timer_ = nh_.createTimer(ros::Duration(1.0 / output_rate_hz), &DriverNode::on_tick, this);
@@ -199,7 +207,10 @@ void DriverNode::on_command(int axis, const VoltageCommand::ConstPtr& msg) {
     bool complete = true;
     for (int i = 0; i < can::kAxisCount; ++i)
       if (command_sub_[i].getNumPublishers() > 0 && !commanded_since_sync_[i]) complete = false;
-    if (complete) sync_locked();
+    if (complete && sync_max_in_flight_ > 0 && in_flight_ >= sync_max_in_flight_)
+      sync_waiting_ = true;  // goes out with the reading that brings in_flight_ under the bound
+    else if (complete)
+      sync_locked();
   } else {
     const double now = ros::Time::now().toSec();
     const double stamp = msg->header.stamp.isZero() ? std::nan("") : msg->header.stamp.toSec();
@@ -229,14 +240,24 @@ void DriverNode::on_tick(const ros::TimerEvent&) {
   core_->tick(ros::Time::now().toSec());
 }
 
+void DriverNode::on_sample_read_locked(int axis) {
+  // every axis reports each sample once: a sample is read when the first of its readings is out
+  if (++encoder_reports_[axis] <= samples_read_) return;
+  samples_read_ = encoder_reports_[axis];
+  if (in_flight_ > 0) --in_flight_;
+  if (sync_waiting_ && in_flight_ < sync_max_in_flight_) sync_locked();
+}
+
 void DriverNode::sync_locked() {
   // ramps of axes without a command this sample, and the watchdog, move on by one period first
   core_->tick(bus_time_s_);
   if (core_->sync()) {
     bus_time_s_ += sample_period_s_;
+    ++in_flight_;
   } else {
     ROS_WARN_STREAM_THROTTLE(2.0, "mm3e_driver: SYNC not sent (bus down); the controller is not sampling");
   }
+  sync_waiting_ = false;
   commanded_since_sync_.fill(false);
   last_sync_wall_ = ros::WallTime::now();
 }

@@ -34,6 +34,32 @@ sim::SimulatorConfig load_device_physics(const std::string& path) {
     return sim::simulator_config_from_yaml(root["simulator"], path + ": simulator");
   return sim::load_simulator_config(path);
 }
+
+// ~sync_max_time_scale: lock-step, but simulated time never runs ahead of max_scale × wall time. A consumer
+// that stalls still costs no samples (the driver's SYNC waits for it); the ceiling keeps the rate where the
+// nodes' timers and queues were sized (a ROS timer at 1 s of simulated time fires at max_scale Hz of wall time).
+// After a stall the pace restarts from now: lost wall time is not caught up in a burst.
+class SyncPace {
+ public:
+  SyncPace(double max_scale, double sim0_s) : max_scale_(max_scale), sim0_s_(sim0_s), wall0_(Clock::now()) {}
+  void wait(double sim_now_s) {
+    if (max_scale_ <= 0.0) return;
+    const auto due = wall0_ + std::chrono::duration_cast<Clock::duration>(
+                                  std::chrono::duration<double>((sim_now_s - sim0_s_) / max_scale_));
+    const auto now = Clock::now();
+    if (now > due + std::chrono::milliseconds(250)) {
+      wall0_ = now;
+      sim0_s_ = sim_now_s;
+    } else if (now < due) {
+      std::this_thread::sleep_until(due);
+    }
+  }
+
+ private:
+  using Clock = std::chrono::steady_clock;
+  double max_scale_, sim0_s_;
+  Clock::time_point wall0_;
+};
 }  // namespace
 
 SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
@@ -58,6 +84,10 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   if (sync_mode_ && !publish_clock_)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
                                 " needs ~publish_clock: true (simulated time advances one period per SYNC)");
+  sync_max_time_scale_ = r.number("sync_max_time_scale", 0.0, 0.0, 1000.0);
+  if (sync_max_time_scale_ > 0.0 && !sync_mode_)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_max_time_scale") +
+                                " only applies with ~sync_mode: true (without it ~time_scale sets the pace)");
   clock_rate_hz_ = r.number("clock_rate_hz", 200.0, 1.0, 5000.0);
   fault_silence_s_ = r.number("fault_silence_s", 1.0, 0.0, 600.0);
   const int seed = r.integer("seed", 1, 0, 2147483647);
@@ -217,6 +247,7 @@ void SimNode::run_synchronous() {
   // are handled in bus order, so the set points written before a SYNC are in that sample.
   const double period_s = device_->period_s();
   double sim_now_s = ros::WallTime::now().toSec();
+  SyncPace pace(sync_max_time_scale_, sim_now_s);
   std::vector<can::ReceivedFrame> in;
   while (running_ && ros::ok()) {
     in.clear();
@@ -230,13 +261,15 @@ void SimNode::run_synchronous() {
       ROS_ERROR_STREAM_THROTTLE(1.0, "mm3e_sim: " << e.what());
       std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
-    std::lock_guard<std::mutex> lock(mutex_);
+    std::unique_lock<std::mutex> lock(mutex_);
     if (in.empty()) publish_clock(sim_now_s);  // for nodes that start while nobody asks for samples
     for (const auto& rf : in)
       if (device_->handle(rf.frame) == can::DeviceCore::Handled::kSync) {
         sim_now_s += period_s;
         step_once(sim_now_s);
       }
+    lock.unlock();
+    pace.wait(sim_now_s);
   }
 }
 

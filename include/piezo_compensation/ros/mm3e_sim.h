@@ -45,6 +45,7 @@ class SimNode {
   double time_scale_ = 1.0;
   bool publish_clock_ = false;
   bool sync_mode_ = false;  // ~sync_mode: sample on the driver's SYNC frames, not on a clock
+  double sync_max_time_scale_ = 0.0;  // ~sync_max_time_scale: ceiling on simulated/wall time in sync mode (0: none)
   std::uint32_t sequence_ = 0;
   double clock_rate_hz_ = 200.0;
   double fault_silence_s_ = 1.0;
