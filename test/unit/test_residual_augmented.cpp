@@ -74,6 +74,26 @@ TEST(ResidualAugmented, RateAndPlayAndSinCos) {
   }
 }
 
+TEST(ResidualAugmented, LowPassedRateHasNoRiseFromZero) {
+  // A steady ramp of 0.5 V per sample, low-passed over 240 s at 1 Hz: the debiased filter reads 0.5 V (and
+  // 0.25 V² signed) from the first step on. Started at zero and not debiased it rose over ~3τ, a start-up decay
+  // the loop's fit traded against the base's start transients (docs/closing-the-loop.md, "Live loop").
+  pm::EffectTermStream s({make("rate", "voltage", 3, 0.0, 240.0)}, 1.0);
+  double z[3];
+  for (int i = 0; i < 50; ++i) {
+    const double v = 0.5 * i;
+    s.raw(v, 0.0, nullptr, z);
+    if (i == 0) {
+      EXPECT_DOUBLE_EQ(z[1], 0.0) << "no step before the second sample";
+    } else {
+      EXPECT_NEAR(z[0], 0.5, 1e-12) << "sample " << i;
+      EXPECT_NEAR(z[1], 0.5, 1e-12) << "sample " << i;
+      EXPECT_NEAR(z[2], 0.25, 1e-12) << "sample " << i;
+    }
+    s.commit(v, 0.0, nullptr);
+  }
+}
+
 TEST(ResidualAugmented, RoundTripCloneAndStreamingEqualsFreshRun) {
   piezo::test::register_test_kind();
   const piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kAuxTemperature, 0.2, 11);

@@ -75,7 +75,10 @@ class EffectTermStream {
   void standardised(double voltage_v, double base_position_nm, const double* columns, double* out) const;
   // offset + Σ w · standardised regressors.
   double correction(double voltage_v, double base_position_nm, const double* columns) const;
-  void commit(double voltage_v, double base_position_nm, const double* columns);
+  // Commits the sample; returns its correction (what correction() gave before the commit), from the same pass.
+  double commit(double voltage_v, double base_position_nm, const double* columns);
+  // raw() then commit() in one pass over the terms (each term reads only its own state): the same numbers.
+  void raw_and_commit(double voltage_v, double base_position_nm, const double* columns, double* out);
 
  private:
   struct Impl;

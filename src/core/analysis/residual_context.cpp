@@ -59,9 +59,8 @@ std::vector<double> regressors(const Context& c, const std::vector<EffectTerm>& 
   std::vector<double> Z(n * k), buf(k_all), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < n; ++i) {
     cols.fill(i, colv.data());
-    stream.raw(c.voltage[i], c.x_base[i], colv.data(), buf.data());
+    stream.raw_and_commit(c.voltage[i], c.x_base[i], colv.data(), buf.data());
     std::copy(buf.begin() + static_cast<long>(skip), buf.end(), Z.begin() + static_cast<long>(i * k));
-    stream.commit(c.voltage[i], c.x_base[i], colv.data());
   }
   return Z;
 }
@@ -78,8 +77,7 @@ void fit_pass(const Context& c, std::vector<EffectTerm>& terms, Level& level, st
   std::vector<double> Z(n * k), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < n; ++i) {
     cols.fill(i, colv.data());
-    stream.raw(c.voltage[i], c.x_base[i], colv.data(), Z.data() + i * k);
-    stream.commit(c.voltage[i], c.x_base[i], colv.data());
+    stream.raw_and_commit(c.voltage[i], c.x_base[i], colv.data(), Z.data() + i * k);
   }
   std::vector<double> mu(k, 0.0), sd(k, 0.0);
   const double rows = static_cast<double>(b - a);
@@ -138,9 +136,8 @@ std::vector<double> corrected(const Context& c, const std::vector<EffectTerm>& t
   std::vector<double> out(c.x_base.size()), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < out.size(); ++i) {
     cols.fill(i, colv.data());
-    out[i] = c.x_base[i] + stream.correction(c.voltage[i], c.x_base[i], colv.data());
+    out[i] = c.x_base[i] + stream.commit(c.voltage[i], c.x_base[i], colv.data());
     for (std::size_t j = 0; j < level.transient_nm.size(); ++j) out[i] += level.transient_nm[j] * c.transient[j][i];
-    stream.commit(c.voltage[i], c.x_base[i], colv.data());
   }
   return out;
 }

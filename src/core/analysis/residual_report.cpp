@@ -73,7 +73,7 @@ std::vector<double> explaining_variable(const models::AugmentedModel& m, std::si
   std::vector<double> out(data.size()), buf(stream.num_regressors()), colv(std::max<std::size_t>(1, cols.size()));
   for (std::size_t i = 0; i < data.size(); ++i) {
     cols.fill(i, colv.data());
-    stream.raw(ax.voltage_v[i], xb[i], colv.data(), buf.data());
+    stream.raw_and_commit(ax.voltage_v[i], xb[i], colv.data(), buf.data());
     const double* z = buf.data() + first;
     if (target.type == "sincos") {
       double ph = std::atan2(z[0], z[1]) / 6.283185307179586;
@@ -87,7 +87,6 @@ std::vector<double> explaining_variable(const models::AugmentedModel& m, std::si
     } else {
       out[i] = z[0];
     }
-    stream.commit(ax.voltage_v[i], xb[i], colv.data());
   }
   return std::vector<double>(out.end() - static_cast<long>(keep), out.end());
 }

@@ -149,6 +149,7 @@ struct TermState {
   double lp[3] = {0, 0, 0};
   double play = 0.0;
   double prev = 0.0;
+  double decay = 1.0;  // rate terms: α^n after n steps, the weight the zero start still has in lp
 };
 
 // What a term's strings say, resolved once when the stream is built (the per-sample loop compares no strings).
@@ -186,9 +187,24 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
     out[0] = std::sin(ph);
     out[1] = std::cos(ph);
   } else if (c.kind == TermKind::rate) {
-    const double d = st.fresh ? 0.0 : s - st.prev;
-    const double raw[3] = {d, std::fabs(d), d * std::fabs(d)};
-    for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = lowpass(i, raw[i]);
+    // The low-passed steps start from zero and are divided by 1 − αⁿ (a debiased mean): from the first step on
+    // they estimate the recent step statistics, with no rise from zero. Started at zero and not debiased, |ΔV|
+    // rose to its level over a few τ, a decay the fit traded against the base's start transients: 250 nm per
+    // volt of step, fitted on a 14-min snapshot, then a constant offset once the filter had settled.
+    double decay_new = st.decay;
+    if (st.fresh) {
+      for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = 0.0;  // no step yet: nothing is known
+    } else {
+      const double d = s - st.prev;
+      const double raw[3] = {d, std::fabs(d), d * std::fabs(d)};
+      const double a = c.alpha > 0.0 ? c.alpha : 0.0;
+      decay_new = st.decay * a;
+      for (int i = 0; i < 3; ++i) {
+        lp_new[i] = a * st.lp[i] + (1.0 - a) * raw[i];
+        out[i] = lp_new[i] / (1.0 - decay_new);
+      }
+    }
+    if (next) next->decay = decay_new;
   } else if (c.kind == TermKind::gain || c.kind == TermKind::gain_quadratic) {
     const double g = (lowpass(0, lagged) - t.pre_center) / t.pre_scale;
     lp_new[0] = lowpass(0, lagged);
@@ -245,6 +261,7 @@ struct EffectTermStream::Impl {
           for (int q = 0; q < 3; ++q) st.lp[q] = next.lp[q];
           st.play = next.play;
           st.prev = next.prev;
+          st.decay = next.decay;
           st.fresh = false;
         }
         for (std::size_t r = 0; r < consts[i].regressors; ++r) {
@@ -329,9 +346,13 @@ double EffectTermStream::correction(double v, double x, const double* cols) cons
   return impl_->run(v, x, cols, nullptr, nullptr);
 }
 
-void EffectTermStream::commit(double v, double x, const double* cols) {
+double EffectTermStream::commit(double v, double x, const double* cols) {
   // Each term reads only its own state before writing it, so the update can be in place.
-  impl_->run(v, x, cols, nullptr, &impl_->states);
+  return impl_->run(v, x, cols, nullptr, &impl_->states);
+}
+
+void EffectTermStream::raw_and_commit(double v, double x, const double* cols, double* out) {
+  impl_->run(v, x, cols, out, &impl_->states);
 }
 
 // ---- the model ---------------------------------------------------------------------------------------
@@ -420,9 +441,8 @@ void AugmentedModel::commit(const ModelInput& in, double position_nm) {
   split(in, ba, cols);
   ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
   const double x = base_->predict(bi);
-  const double corr = stream_.correction(in.voltage_v, x, cols.data());
+  const double corr = stream_.commit(in.voltage_v, x, cols.data());  // the stream reads x, not the base's state
   base_->commit(bi, position_nm - corr);
-  stream_.commit(in.voltage_v, x, cols.data());
   if (base_trace_) base_trace_->push_back(x);
 }
 

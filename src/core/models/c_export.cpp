@@ -251,7 +251,7 @@ const char* kAugmentedCode = R"C(
 typedef struct {
   PFX_base_state base;
   double ring[PFX_RING]; int pos[PFX_NT];
-  double lp[PFX_NT][3]; double play[PFX_NT]; double prev[PFX_NT]; int fresh[PFX_NT];
+  double lp[PFX_NT][3]; double play[PFX_NT]; double prev[PFX_NT]; double decay[PFX_NT]; int fresh[PFX_NT];
 } PFX_state;
 
 static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
@@ -264,7 +264,7 @@ static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
   for (i = 0; i < PFX_RING; ++i) st->ring[i] = 0.0;
   for (i = 0; i < PFX_NT; ++i) {
     st->pos[i] = 0; st->lp[i][0] = st->lp[i][1] = st->lp[i][2] = 0.0;
-    st->play[i] = 0.0; st->prev[i] = 0.0; st->fresh[i] = 1;
+    st->play[i] = 0.0; st->prev[i] = 0.0; st->decay[i] = 1.0; st->fresh[i] = 1;
   }
 }
 
@@ -281,7 +281,7 @@ static double PFX_run(PFX_state* st, double v, double x_base, const double* aux,
   for (pass = 0; pass < 2; ++pass) {
     double x_eff = x_base + corr;
     for (t = 0; t < PFX_NT; ++t) {
-      double s, lagged, q, o[3] = {0.0, 0.0, 0.0}, lpn[3] = {0.0, 0.0, 0.0}, playn = st->play[t];
+      double s, lagged, q, o[3] = {0.0, 0.0, 0.0}, lpn[3] = {0.0, 0.0, 0.0}, playn = st->play[t], decayn = st->decay[t];
       int is_pos = PFX_signal[t] == -2;
       if (is_pos != (pass == 1)) continue;
       s = PFX_signal[t] >= 0 ? aux[PFX_signal[t]] : (is_pos ? x_eff : v);
@@ -296,11 +296,13 @@ static double PFX_run(PFX_state* st, double v, double x_base, const double* aux,
           break;
         }
         case 2: o[0] = sin(6.283185307179586 * lagged / PFX_period[t]); o[1] = cos(6.283185307179586 * lagged / PFX_period[t]); break;
-        case 3: {
-          double d = st->fresh[t] ? 0.0 : s - st->prev[t], raw[3];
+        case 3: {  /* low-passed steps from zero, debiased by 1 - alpha^n (no rise from zero) */
+          double d = s - st->prev[t], raw[3], a = PFX_alpha[t] > 0.0 ? PFX_alpha[t] : 0.0;
           int i;
+          if (st->fresh[t]) break;
           raw[0] = d; raw[1] = fabs(d); raw[2] = d * fabs(d);
-          for (i = 0; i < 3; ++i) o[i] = lpn[i] = PFX_lowpass(st, t, i, raw[i]);
+          decayn = st->decay[t] * a;
+          for (i = 0; i < 3; ++i) { lpn[i] = a * st->lp[t][i] + (1.0 - a) * raw[i]; o[i] = lpn[i] / (1.0 - decayn); }
           break;
         }
         case 4: { double u = (s - PFX_pc[t]) / PFX_ps[t]; o[0] = u * u; o[1] = u * u * u; break; }
@@ -320,7 +322,7 @@ static double PFX_run(PFX_state* st, double v, double x_base, const double* aux,
           st->pos[t] = (st->pos[t] + 1) % L;
         }
         for (i = 0; i < 3; ++i) st->lp[t][i] = lpn[i];
-        st->play[t] = playn; st->prev[t] = s; st->fresh[t] = 0;
+        st->play[t] = playn; st->prev[t] = s; st->decay[t] = decayn; st->fresh[t] = 0;
       }
       for (r = 0; r < PFX_nreg[t]; ++r) corr += PFX_w[3 * t + r] * (o[r] - PFX_c[3 * t + r]) / PFX_sc[3 * t + r];
     }
