@@ -22,7 +22,7 @@ endfunction()
 piezo_test_costs(
   # computing tests [s of CPU]; the reference fixtures first, as four tests each wait for one
   test_residual_refs_sim_clean 99  test_residual_refs_gain_base 98
-  test_residual_two_effects 32  test_residual_sim 31  test_stage_matrix_mm3e_preisach_creep 30
+  test_residual_two_effects 32  test_residual_sim 27  test_stage_matrix_mm3e_preisach_creep 30
   test_residual_gain_temperature 30  test_residual_sim_coupling 18  test_residual_sim_disturbance 25
   test_residual_sim_periodic 25  test_stage_matrix_mm3e_pi_creep 25  test_residual_gain_other_axis 25
   test_residual_gain_drift 25  test_stage_matrix_mm3e_preisach 24  test_stage_matrix_mm3e_pi 22

@@ -164,6 +164,8 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   ASSERT_TRUE(ros::service::call("/mm1/predictor/snapshot", snap));
   ASSERT_TRUE(snap.response.success) << snap.response.message;
   std::cout << "[live_loop] (3) snapshot: " << snap.response.message << "\n";
+  // Lock-step (live_loop.test): the device waits for the predictor, so a stalled host costs no sample.
+  EXPECT_EQ(snap.response.message.find(" gap"), std::string::npos) << "samples were lost in lock-step";
   const std::string bag = snap.response.message.substr(0, snap.response.message.find(" ("));
   fs::remove_all(out_dir);
   // Every family, the gain families included: the additive thermal effect must win against aux_gain on the same
