@@ -1,6 +1,7 @@
 # can/: MM3E frame codec, transports, driver and simulated-device cores, their nodes and tests.
 piezo_unit_test(test_can_codec test/unit/test_can_codec.cpp)
 piezo_unit_test(test_can_limiter test/unit/test_can_limiter.cpp)
+piezo_unit_test(test_can_lockstep test/unit/test_can_lockstep.cpp)
 piezo_unit_test(test_can_driver test/unit/test_can_driver.cpp)
 # 10^5 random steps of the command path (fixed seed); long mode: PIEZO_PROPERTY_STEPS=10000000
 piezo_unit_test(test_can_command_path test/unit/test_can_command_path.cpp)

@@ -51,7 +51,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   stamp_with_receive_time_ = r.flag("stamp_with_receive_time", true);
   sync_mode_ = r.flag("sync_mode", false);
   sync_idle_s_ = r.number("sync_idle_s", 0.5, 0.001, 60.0);
-  sync_max_in_flight_ = r.integer("sync_max_in_flight", 0, 0, 1000);
+  sync_gate_ = can::SyncGate(r.integer("sync_max_in_flight", 0, 0, 1000));
   if (sync_mode_ && 1.25 * sync_idle_s_ >= config.silence_reconnect_s)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +
@@ -100,7 +100,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     encoder_pub_[e.axis].publish(msg);
     if (sync_mode_) {
       std::lock_guard<std::mutex> lock(sync_mutex_);
-      on_sample_read_locked(e.axis);
+      if (sync_gate_.on_reading(e.axis)) sync_locked();
     }
   };
   cb.on_event = [](const std::string& text, bool error) {
@@ -136,7 +136,7 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
       check_commanders();
       std::lock_guard<std::mutex> lock(sync_mutex_);
       if ((ros::WallTime::now() - last_sync_wall_).toSec() >= sync_idle_s_) {
-        in_flight_ = 0;  // a SYNC or its sample was lost (or nobody commands): count afresh from this one
+        sync_gate_.idle();
         sync_locked();
       }
     });
@@ -203,14 +203,9 @@ void DriverNode::on_command(int axis, const VoltageCommand::ConstPtr& msg) {
   if (sync_mode_) {
     std::lock_guard<std::mutex> lock(sync_mutex_);
     out = core_->command(axis, msg->voltage, bus_time_s_, bus_time_s_);
-    commanded_since_sync_[axis] = true;
-    bool complete = true;
-    for (int i = 0; i < can::kAxisCount; ++i)
-      if (command_sub_[i].getNumPublishers() > 0 && !commanded_since_sync_[i]) complete = false;
-    if (complete && sync_max_in_flight_ > 0 && in_flight_ >= sync_max_in_flight_)
-      sync_waiting_ = true;  // goes out with the reading that brings in_flight_ under the bound
-    else if (complete)
-      sync_locked();
+    std::array<bool, can::kAxisCount> has_commander{};
+    for (int i = 0; i < can::kAxisCount; ++i) has_commander[i] = command_sub_[i].getNumPublishers() > 0;
+    if (sync_gate_.on_command(axis, has_commander)) sync_locked();
   } else {
     const double now = ros::Time::now().toSec();
     const double stamp = msg->header.stamp.isZero() ? std::nan("") : msg->header.stamp.toSec();
@@ -240,25 +235,15 @@ void DriverNode::on_tick(const ros::TimerEvent&) {
   core_->tick(ros::Time::now().toSec());
 }
 
-void DriverNode::on_sample_read_locked(int axis) {
-  // every axis reports each sample once: a sample is read when the first of its readings is out
-  if (++encoder_reports_[axis] <= samples_read_) return;
-  samples_read_ = encoder_reports_[axis];
-  if (in_flight_ > 0) --in_flight_;
-  if (sync_waiting_ && in_flight_ < sync_max_in_flight_) sync_locked();
-}
-
 void DriverNode::sync_locked() {
   // ramps of axes without a command this sample, and the watchdog, move on by one period first
   core_->tick(bus_time_s_);
-  if (core_->sync()) {
+  const bool sent = core_->sync();
+  if (sent)
     bus_time_s_ += sample_period_s_;
-    ++in_flight_;
-  } else {
+  else
     ROS_WARN_STREAM_THROTTLE(2.0, "mm3e_driver: SYNC not sent (bus down); the controller is not sampling");
-  }
-  sync_waiting_ = false;
-  commanded_since_sync_.fill(false);
+  sync_gate_.synced(sent);
   last_sync_wall_ = ros::WallTime::now();
 }
 

@@ -11,6 +11,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/can/lockstep.h"
 #include "piezo_compensation/ros/mm3e_params.h"
 #include "piezo_compensation/sim/simulator_config.h"
 
@@ -35,31 +36,6 @@ sim::SimulatorConfig load_device_physics(const std::string& path) {
   return sim::load_simulator_config(path);
 }
 
-// ~sync_max_time_scale: lock-step, but simulated time never runs ahead of max_scale × wall time. A consumer
-// that stalls still costs no samples (the driver's SYNC waits for it); the ceiling keeps the rate where the
-// nodes' timers and queues were sized (a ROS timer at 1 s of simulated time fires at max_scale Hz of wall time).
-// After a stall the pace restarts from now: lost wall time is not caught up in a burst.
-class SyncPace {
- public:
-  SyncPace(double max_scale, double sim0_s) : max_scale_(max_scale), sim0_s_(sim0_s), wall0_(Clock::now()) {}
-  void wait(double sim_now_s) {
-    if (max_scale_ <= 0.0) return;
-    const auto due = wall0_ + std::chrono::duration_cast<Clock::duration>(
-                                  std::chrono::duration<double>((sim_now_s - sim0_s_) / max_scale_));
-    const auto now = Clock::now();
-    if (now > due + std::chrono::milliseconds(250)) {
-      wall0_ = now;
-      sim0_s_ = sim_now_s;
-    } else if (now < due) {
-      std::this_thread::sleep_until(due);
-    }
-  }
-
- private:
-  using Clock = std::chrono::steady_clock;
-  double max_scale_, sim0_s_;
-  Clock::time_point wall0_;
-};
 }  // namespace
 
 SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
@@ -247,7 +223,7 @@ void SimNode::run_synchronous() {
   // are handled in bus order, so the set points written before a SYNC are in that sample.
   const double period_s = device_->period_s();
   double sim_now_s = ros::WallTime::now().toSec();
-  SyncPace pace(sync_max_time_scale_, sim_now_s);
+  can::SyncPace pace(sync_max_time_scale_, sim_now_s, wall_now_s());
   std::vector<can::ReceivedFrame> in;
   while (running_ && ros::ok()) {
     in.clear();
@@ -269,7 +245,8 @@ void SimNode::run_synchronous() {
         step_once(sim_now_s);
       }
     lock.unlock();
-    pace.wait(sim_now_s);
+    const double wait_s = pace.delay_s(sim_now_s, wall_now_s());
+    if (wait_s > 0.0) std::this_thread::sleep_for(std::chrono::duration<double>(wait_s));
   }
 }
 

@@ -42,6 +42,8 @@ struct AuxSignal {
 //   phase                       protocol phase code (integer; see protocols/protocol.h; metadata)
 struct Dataset {
   std::string source;                // file it came from, for error messages ("" if built in memory)
+  // The source for an error message: the file, or "data" for a data set built in memory.
+  std::string source_or_data() const { return source.empty() ? std::string("data") : source; }
   std::string time_clock;            // "ros": time_s are ROS time stamps (bags the nodes wrote); "": own time base
   std::vector<double> time_s;
   std::vector<AxisSeries> axes;      // in the order a, b, c among those present

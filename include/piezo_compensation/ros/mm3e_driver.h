@@ -14,6 +14,7 @@
 
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/can/driver_core.h"
+#include "piezo_compensation/can/lockstep.h"
 
 namespace piezo::mm3e {
 
@@ -45,22 +46,14 @@ class DriverNode {
   ros::Timer tick_timer_;
   // Synchronous mode (~sync_mode): the controller samples on our SYNC, not on its clock. Bus time advances one
   // encoder period per SYNC and is the limiter's clock, so slew and watchdog count samples, whatever the wall
-  // or ROS time does. A SYNC goes out once every commanded axis has its command for the sample, or after
-  // ~sync_idle_s without one (so an idle device still reports). With ~sync_max_in_flight K > 0 a complete set
-  // waits while K SYNCs have no reading yet, and goes out with the reading that brings it under K: a commander
-  // that answers both a reading and another message (the predictor: the encoder and the intent) completes two
-  // sets per sample, which unbounded would run the device ahead of every consumer until a queue overflows.
+  // or ROS time does. When a SYNC goes out is can::SyncGate (every commanded axis has its command for the sample,
+  // at most ~sync_max_in_flight SYNCs without a reading), or after ~sync_idle_s without one (so an idle device
+  // still reports).
   bool sync_mode_ = false;
   double sync_idle_s_ = 0.5;
-  int sync_max_in_flight_ = 0;  // 0: no bound
-  std::mutex sync_mutex_;
+  std::mutex sync_mutex_;  // sync_gate_, bus_time_s_, last_sync_wall_: the command, reading and idle paths
   double bus_time_s_ = 0.0;
-  std::array<bool, can::kAxisCount> commanded_since_sync_{};
-  bool sync_waiting_ = false;  // a complete set waits for a reading (sync_max_in_flight_)
-  int in_flight_ = 0;          // SYNCs sent whose sample has not been read yet
-  std::array<std::uint64_t, can::kAxisCount> encoder_reports_{};  // readings published, per axis
-  std::uint64_t samples_read_ = 0;                                // the most of any axis
-  void on_sample_read_locked(int axis);
+  can::SyncGate sync_gate_;
   ros::WallTime last_sync_wall_;
   ros::WallTimer sync_idle_timer_;
   ros::WallTimer diag_timer_;

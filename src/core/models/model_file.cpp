@@ -139,7 +139,7 @@ void check_model_matches_data(const Model& m, const io::Dataset& data, const std
   if (std::abs(rate - m.meta.sample_rate_hz) > 0.01 * m.meta.sample_rate_hz) {
     std::ostringstream os;
     os << where << ": sample_rate_hz " << m.meta.sample_rate_hz << " Hz does not match the data's " << rate << " Hz ("
-       << (data.source.empty() ? std::string("data") : data.source) << ")";
+       << data.source_or_data() << ")";
     throw ModelFileError(os.str());
   }
   // Inputs as every tool streams them (model_stream.h's one resolver): time_s, aux columns and the other axes'

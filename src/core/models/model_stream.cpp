@@ -20,7 +20,6 @@ namespace {
 bool ends_with(const std::string& s, const std::string& suffix) {
   return s.size() > suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
 }
-std::string where(const io::Dataset& d) { return d.source.empty() ? std::string("data") : d.source; }
 }  // namespace
 
 InputSource classify_input(const std::string& name, const std::string& own_axis, const std::vector<std::string>& axis_names) {
@@ -58,7 +57,7 @@ InputResolver::InputResolver(const io::Dataset& data, const std::vector<std::str
     try {
       s = classify_input(name, own_axis, axis_names);
     } catch (const io::DataError& e) {
-      throw io::DataError(where(data) + ": " + e.what());
+      throw io::DataError(data.source_or_data() + ": " + e.what());
     }
     const std::vector<double>* col = nullptr;
     switch (s.kind) {
@@ -69,7 +68,7 @@ InputResolver::InputResolver(const io::Dataset& data, const std::vector<std::str
         if (const io::AuxSignal* a = data.find_aux(name)) col = &a->values;
         break;
     }
-    if (!col) throw io::DataError(where(data) + ": the model reads column " + name + ", which the data does not have");
+    if (!col) throw io::DataError(data.source_or_data() + ": the model reads column " + name + ", which the data does not have");
     sources_.push_back(s);
     cols_.push_back(col);
     lagged_.push_back(s.kind == InputSource::Kind::kAxisPosition);

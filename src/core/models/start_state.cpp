@@ -15,7 +15,6 @@ namespace {
 // good. Measured on the stage matrix's separate recordings, seeds 22–24: 4–16 give the same pass counts within ±5 %.
 constexpr double kStartMargin = 8.0;
 
-std::string where(const io::Dataset& d) { return d.source.empty() ? std::string("data") : d.source; }
 
 std::string fmt(double x, int digits) {
   std::ostringstream s;
@@ -34,13 +33,13 @@ std::size_t window_rows(const io::Dataset& data, double window_s) {
 void check_window(const io::Dataset& data, const std::string& axis, double window_s, std::size_t k) {
   const io::AxisSeries& ax = data.axis(axis);
   if (k >= data.size())
-    throw io::DataError(where(data) + ": the start window of " + fmt(window_s, 6) +
+    throw io::DataError(data.source_or_data() + ": the start window of " + fmt(window_s, 6) +
                         " s covers the whole data set; nothing is left after it");
   for (std::size_t i = 0; i < k; ++i) {
     if (!std::isfinite(ax.voltage_v[i]))
-      throw io::DataError(where(data) + ": the start window holds a non-finite voltage at row " + std::to_string(i + 1));
+      throw io::DataError(data.source_or_data() + ": the start window holds a non-finite voltage at row " + std::to_string(i + 1));
     if (!std::isfinite(ax.position_nm[i]))
-      throw io::DataError(where(data) + ": the start window holds a non-finite measured position at row " +
+      throw io::DataError(data.source_or_data() + ": the start window holds a non-finite measured position at row " +
                           std::to_string(i + 1) + " (the window needs every reading)");
   }
 }
@@ -229,7 +228,7 @@ void prepare_start(Model& model, const io::Dataset& data, const std::string& axi
 std::size_t start_window_rows(const io::Dataset& data, const std::string& axis, double window_s) {
   if (!(window_s > 0) || !std::isfinite(window_s))
     throw std::invalid_argument("start window must be a finite time > 0 s (got " + fmt(window_s, 6) + ")");
-  if (data.empty()) throw io::DataError(where(data) + ": no rows for the start window");
+  if (data.empty()) throw io::DataError(data.source_or_data() + ": no rows for the start window");
   const std::size_t k = window_rows(data, window_s);
   check_window(data, axis, window_s, k);
   return k;
