@@ -35,7 +35,6 @@ sim::SimulatorConfig load_device_physics(const std::string& path) {
     return sim::simulator_config_from_yaml(root["simulator"], path + ": simulator");
   return sim::load_simulator_config(path);
 }
-
 }  // namespace
 
 SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {

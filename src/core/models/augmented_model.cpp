@@ -188,16 +188,16 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
     out[1] = std::cos(ph);
   } else if (c.kind == TermKind::rate) {
     // The low-passed steps start from zero and are divided by 1 − αⁿ (a debiased mean): from the first step on
-    // they estimate the recent step statistics, with no rise from zero. Started at zero and not debiased, |ΔV|
-    // rose to its level over a few τ, a decay the fit traded against the base's start transients: 250 nm per
-    // volt of step, fitted on a 14-min snapshot, then a constant offset once the filter had settled.
+    // they estimate the recent step statistics. Not debiased, |ΔV| would rise from zero over a few τ, a start-up
+    // decay a fit can trade against the base's start transients and then carry as an offset once settled
+    // (docs/closing-the-loop.md, "Live loop").
     double decay_new = st.decay;
     if (st.fresh) {
       for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = 0.0;  // no step yet: nothing is known
     } else {
       const double d = s - st.prev;
       const double raw[3] = {d, std::fabs(d), d * std::fabs(d)};
-      const double a = c.alpha > 0.0 ? c.alpha : 0.0;
+      const double a = c.alpha;  // 0 without a time constant: the raw step
       decay_new = st.decay * a;
       for (int i = 0; i < 3; ++i) {
         lp_new[i] = a * st.lp[i] + (1.0 - a) * raw[i];

@@ -297,7 +297,7 @@ static double PFX_run(PFX_state* st, double v, double x_base, const double* aux,
         }
         case 2: o[0] = sin(6.283185307179586 * lagged / PFX_period[t]); o[1] = cos(6.283185307179586 * lagged / PFX_period[t]); break;
         case 3: {  /* low-passed steps from zero, debiased by 1 - alpha^n (no rise from zero) */
-          double d = s - st->prev[t], raw[3], a = PFX_alpha[t] > 0.0 ? PFX_alpha[t] : 0.0;
+          double d = s - st->prev[t], raw[3], a = PFX_alpha[t];
           int i;
           if (st->fresh[t]) break;
           raw[0] = d; raw[1] = fabs(d); raw[2] = d * fabs(d);

@@ -15,7 +15,6 @@ namespace {
 // good. Measured on the stage matrix's separate recordings, seeds 22–24: 4–16 give the same pass counts within ±5 %.
 constexpr double kStartMargin = 8.0;
 
-
 std::string fmt(double x, int digits) {
   std::ostringstream s;
   s.precision(digits);
