@@ -168,14 +168,181 @@ training::GramStats gram_stats(const Eigen::MatrixXd& A, std::size_t P) {
   return g;
 }
 
+// A 1-D search over one LTI mode's time constant (search_lti_taus) changes two columns of the creep fit's rows:
+// that mode's filter state and its initial-state column. Every other column, the target and their Gram pairs are
+// the same for all evaluations of the search, so the rows are kept (weighted, the two columns last) with their Gram;
+// later evaluations refill the two columns and form only the tiles that hold them, in the same 32-row chunks (the
+// same sums, bit for bit, at a fraction of the cost). One per search: data, basis, creep input and weights fixed.
+struct ModeSearchRows {
+  std::vector<double> last_taus;   // the previous evaluation's time constants
+  std::vector<double> taus;        // those the rows were kept for (mode j's entry varies)
+  std::vector<char> slow;          // the modes with an initial-state column then
+  std::size_t j = 0;               // the mode searched
+  std::size_t ld = 0, skip = 0;    // row stride; physical columns before the varying ones (the others, y, 1)
+  std::vector<std::size_t> phys;   // semantic column → physical
+  std::vector<double> rows, gram;  // N × ld weighted rows; their ld × ld Gram (physical, lower triangle)
+  bool kept = false;
+};
+
+// Modes with an initial-state column: slower than 10 s, and faster than a third of the record (slower ones are
+// indistinguishable from the bias there).
+bool slow_mode(double tau, const FitData& d) {
+  return d.initial_state_terms && tau >= 10.0 && tau <= d.v->size() / d.rate / 3;
+}
+
+// The columns a kept search varies: mode j's state (semantic index mode_col) and, when it has one, its initial-state
+// column (init_col, else -1).
+struct VaryingColumns {
+  std::size_t mode_col = 0;
+  long init_col = -1;
+};
+
+enum class SearchStep { kFull, kKeep, kReuse };
+
+// How to evaluate the time constants `taus` within a search: reuse the kept rows when only mode j changed since
+// they were kept, keep them when exactly one mode changed since the last evaluation, else a full evaluation.
+// `q`: the Gram's columns (x, y, 1); rows over 256 MB are not kept.
+SearchStep search_step(ModeSearchRows* s, const CreepParams& cp, const FitData& d, std::size_t q) {
+  if (!s || cp.kind != CreepKind::kLti) return SearchStep::kFull;
+  const std::vector<double>& t = cp.taus_s;
+  std::vector<char> slow(t.size());
+  for (std::size_t k = 0; k < t.size(); ++k) slow[k] = slow_mode(t[k], d);
+  SearchStep step = SearchStep::kFull;
+  auto differ = [&](const std::vector<double>& ref, std::size_t except) {
+    std::size_t n = 0, at = 0;
+    for (std::size_t k = 0; k < t.size(); ++k)
+      if (k != except && t[k] != ref[k]) ++n, at = k;
+    return std::make_pair(n, at);
+  };
+  if (s->kept && s->taus.size() == t.size() && s->slow == slow && differ(s->taus, s->j).first == 0) {
+    step = SearchStep::kReuse;
+  } else if (s->last_taus.size() == t.size()) {
+    const auto [n, at] = differ(s->last_taus, t.size());
+    const std::size_t ld = (q + 3) / 4 * 4;
+    if (n == 1 && d.v->size() * ld * sizeof(double) <= (std::size_t{256} << 20)) {
+      step = SearchStep::kKeep;
+      s->j = at;
+      s->taus = t;
+      s->slow = slow;
+    }
+  }
+  s->last_taus = t;
+  return step;
+}
+
+// The physical layout of kept rows: the columns that do not vary in semantic order, then y and 1, then the varying.
+void keep_layout(ModeSearchRows& s, std::size_t P, const VaryingColumns& vc) {
+  const std::size_t Q = P + 2;
+  s.phys.assign(Q, 0);
+  std::size_t pos = 0;
+  for (std::size_t i = 0; i < P; ++i)
+    if (i != vc.mode_col && static_cast<long>(i) != vc.init_col) s.phys[i] = pos++;
+  s.phys[P] = pos++;
+  s.phys[P + 1] = pos++;
+  s.skip = pos;
+  s.phys[vc.mode_col] = pos++;
+  if (vc.init_col >= 0) s.phys[static_cast<std::size_t>(vc.init_col)] = pos++;
+  s.ld = (Q + 3) / 4 * 4;
+}
+
+// The varying columns of a kept search over mode j (search->j): the mode's column (first_mode + j) and its
+// initial-state column (after the P0 columns, at its rank among the slow modes) when it has one.
+VaryingColumns varying_columns(const ModeSearchRows* s, const std::vector<double>& taus, const FitData& d,
+                               std::size_t P0, std::size_t first_mode) {
+  VaryingColumns vc;
+  if (!s) return vc;
+  vc.mode_col = first_mode + s->j;
+  if (slow_mode(taus[s->j], d)) {
+    std::size_t rank = 0;
+    for (std::size_t k = 0; k < s->j; ++k) rank += slow_mode(taus[k], d);
+    vc.init_col = static_cast<long>(P0 + rank);
+  }
+  return vc;
+}
+
+// The semantic Gram from a physical one.
+training::GramStats semantic_gram(const std::vector<double>& AT, const std::vector<std::size_t>& phys, std::size_t ld,
+                                  std::size_t P) {
+  const Eigen::Index Q = static_cast<Eigen::Index>(P + 2);
+  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
+  for (Eigen::Index i = 0; i < Q; ++i)
+    for (Eigen::Index j = 0; j <= i; ++j) {
+      const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
+      A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
+    }
+  return gram_stats(A, P);
+}
+
+// The Gram of the kept rows with mode j's columns refilled: the mode filtered from u0 over the input U with pole a,
+// its initial-state column (when kept with one) from a.
+training::GramStats reuse_gram(ModeSearchRows& s, const std::vector<double>& U, double u0, double a,
+                               const std::vector<double>* weight, std::size_t P) {
+  const std::size_t N = U.size(), ld = s.ld, skip = s.skip;
+  const bool init = s.slow[s.j] != 0;
+  std::vector<double> AT(ld * ld, 0.0);
+  double l = u0, e = a;
+  const std::size_t kChunk = 32;
+  for (std::size_t c0 = 0; c0 < N; c0 += kChunk) {
+    const std::size_t rows = std::min(kChunk, N - c0);
+    for (std::size_t t = c0; t < c0 + rows; ++t) {
+      const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
+      double* r = s.rows.data() + t * ld;
+      l = a * l + (1 - a) * U[t];
+      r[skip] = l * sw;
+      if (init) {
+        r[skip + 1] = e * sw;
+        e = e < 1e-100 ? 0.0 : e * a;
+      }
+    }
+    chunk_gram(s.rows.data() + c0 * ld, rows, ld, skip, AT.data());
+  }
+  for (std::size_t i = 0; i < skip; ++i)
+    for (std::size_t k = 0; k <= i; ++k) AT[i * ld + k] = s.gram[i * ld + k];
+  return semantic_gram(AT, s.phys, ld, P);
+}
+
+// stream_gram into kept rows (ModeSearchRows): every row stored in the keep layout, the Gram of each 32-row chunk
+// formed from them as stream_gram forms it.
+training::GramStats kept_gram(std::size_t N, std::size_t P0, const std::function<double(std::size_t, double*)>& row,
+                              const std::vector<double>& init, const std::vector<double>* weight, ModeSearchRows& s,
+                              const VaryingColumns& vc) {
+  const std::size_t P = P0 + init.size(), Y = P;
+  keep_layout(s, P, vc);
+  const std::size_t ld = s.ld;
+  s.rows.assign(N * ld, 0.0);
+  std::vector<double> AT(ld * ld, 0.0), x(P + 1), e(init);
+  const std::size_t kChunk = 32;
+  for (std::size_t c0 = 0; c0 < N; c0 += kChunk) {
+    const std::size_t rows = std::min(kChunk, N - c0);
+    for (std::size_t t = c0; t < c0 + rows; ++t) {
+      x[Y] = row(t, x.data());
+      for (std::size_t j = 0; j < e.size(); ++j) {
+        x[P0 + j] = e[j];
+        e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
+      }
+      const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
+      double* r = s.rows.data() + t * ld;
+      for (std::size_t i = 0; i <= Y; ++i) r[s.phys[i]] = x[i] * sw;
+      r[s.phys[Y + 1]] = sw;
+    }
+    chunk_gram(s.rows.data() + c0 * ld, rows, ld, 0, AT.data());
+  }
+  s.gram = AT;
+  s.kept = true;
+  return semantic_gram(AT, s.phys, ld, P);
+}
+
 // Weighted Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
 // Extra columns a_j^(t+1) for the poles in `init` absorb the unknown initial state of slow modes: a recording
 // never starts from the rest the model's reset assumes, and without them the first hours bias the creep fit.
 // `fixed` (optional): its leading columns' entries are taken from it once it holds them (and stored there first).
+// `keep` (optional): the rows are kept there in its layout (keep_layout, for the columns `vc`), with their Gram.
 training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::function<double(std::size_t, double*)>& row,
                                 const std::vector<double>& init = {}, const std::vector<double>* weight = nullptr,
-                                StaticGram* fixed = nullptr) {
+                                StaticGram* fixed = nullptr, ModeSearchRows* keep = nullptr,
+                                const VaryingColumns& vc = {}) {
   const std::size_t P = P0 + init.size();
+  if (keep) return kept_gram(N, P0, row, init, weight, *keep, vc);
   std::vector<double> e(init);
   // Each row is [x, y, 1]·√w, so one Gram of a chunk gives every sum at once (Σw·xxᵀ, Σw·xy, Σw·x, Σw·y², Σw·y,
   // Σw): 4×4 tiles of a 32-row chunk (chunk_gram), for the creep searches' 7–20 columns as for the Preisach
@@ -319,14 +486,11 @@ std::vector<double> poles_of(const std::vector<double>& taus, double rate) {
   return a;
 }
 
-// Poles of the modes whose initial state is worth estimating: slower than 10 s, and faster than a third of the
-// record (slower ones are indistinguishable from the bias there).
+// Poles of the modes whose initial state is worth estimating (slow_mode).
 std::vector<double> init_poles(const std::vector<double>& taus, const FitData& d) {
   std::vector<double> out;
-  if (!d.initial_state_terms) return out;
-  const double span_s = d.v->size() / d.rate;
   for (double t : taus)
-    if (t >= 10.0 && t <= span_s / 3) out.push_back(std::exp(-1.0 / (d.rate * t)));
+    if (slow_mode(t, d)) out.push_back(std::exp(-1.0 / (d.rate * t)));
   return out;
 }
 
@@ -381,17 +545,26 @@ EvalResult solve_pieces_and_creep(const training::GramStats& g, const Basis& hb,
 
 // Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
 // `fixed` (optional): the play pieces' Gram entries, shared by the evaluations of one creep-law search.
-EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0, StaticGram* fixed = nullptr) {
+// `search` (optional): the rows kept over a search of one LTI time constant (ModeSearchRows).
+EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0, StaticGram* fixed = nullptr,
+                    ModeSearchRows* search = nullptr) {
   const CreepBasis cb(cp, d.rate);
   const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
   const std::vector<double>& V = *d.v;
+  const std::vector<double> init = init_poles(cb.taus, d);
+  const SearchStep step = search_step(search, cp, d, np + nk + init.size() + 2);
+  if (step == SearchStep::kReuse) {
+    const auto g = reuse_gram(*search, V, V[0], cb.poles[search->j], d.weight, np + nk + init.size());
+    return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
+  }
   std::vector<double> p(hb.r.size(), V[0]), l(nm, V[0]);
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
     hb.columns(v, p, x);
     creep_columns(cb, l, v, x + np);
     return (*d.y)[t];
-  }, init_poles(cb.taus, d), d.weight, fixed);
+  }, init, d.weight, step == SearchStep::kKeep ? nullptr : fixed, step == SearchStep::kKeep ? search : nullptr,
+     varying_columns(step == SearchStep::kKeep ? search : nullptr, cb.taus, d, np + nk, np));
   return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
@@ -415,17 +588,23 @@ std::vector<double> hysteresis_series(const FitData& d, const Basis& hb, const s
 // explain the data almost equally well. H = hysteresis_series(d, hb, w). Returns w·s and θ/s (gains relative to
 // the rescaled H).
 EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& H, const std::vector<double>& w,
-                               const CreepParams& cp) {
+                               const CreepParams& cp, ModeSearchRows* search = nullptr) {
   const CreepBasis cb(cp, d.rate);
   const std::size_t nm = cb.taus.size(), nk = cb.B.size();
+  const std::vector<double> init = init_poles(cb.taus, d);
+  const SearchStep step = H.empty() ? SearchStep::kFull : search_step(search, cp, d, nk + 1 + init.size() + 2);
   // The modes start at rest at the H of the first sample's play states (every play at V[0]).
-  std::vector<double> l(nm, H.empty() ? 0.0 : H[0]);
-  const auto g = stream_gram(H.size(), nk + 1, [&](std::size_t t, double* x) {
-    const double h = H[t];
-    x[0] = h;
-    creep_columns(cb, l, h, x + 1);
-    return (*d.y)[t];
-  }, init_poles(cb.taus, d), d.weight);
+  const double h0 = H.empty() ? 0.0 : H[0];
+  std::vector<double> l(nm, h0);
+  const auto g = step == SearchStep::kReuse
+                     ? reuse_gram(*search, H, h0, cb.poles[search->j], d.weight, nk + 1 + init.size())
+                     : stream_gram(H.size(), nk + 1, [&](std::size_t t, double* x) {
+                         const double h = H[t];
+                         x[0] = h;
+                         creep_columns(cb, l, h, x + 1);
+                         return (*d.y)[t];
+                       }, init, d.weight, nullptr, step == SearchStep::kKeep ? search : nullptr,
+                       varying_columns(step == SearchStep::kKeep ? search : nullptr, cb.taus, d, nk + 1, 1));
   std::vector<bool> constrained(nk + 1, signed_creep(cp));
   constrained[0] = false;
   EvalResult res = solve(g, constrained);
@@ -913,7 +1092,8 @@ std::unique_ptr<PiCreepModel> PiCreepFit::fit_with(const FitData& d, const Basis
   CreepParams cp = cp0_;
   // Creep on the voltage: weights and creep coefficients are jointly linear.
   StaticGram pieces{r.pieces(), {}};
-  search_creep_law(cp, [&](const CreepParams& c) { return evaluate(dd, r, c, min_w0_, &pieces).sse; }, false);
+  ModeSearchRows kept;
+  search_creep_law(cp, [&](const CreepParams& c) { return evaluate(dd, r, c, min_w0_, &pieces, &kept).sse; }, false);
   EvalResult best = evaluate(dd, r, cp, min_w0_, &pieces);
   cp.set_coefficients(best.theta);
   if (v_model) *v_model = r.model(best.w, best.b, cp, rate_);
@@ -979,7 +1159,8 @@ EvalResult PiCreepFit::continue_on_h(const FitData& d, const Basis& r, CreepPara
   std::vector<double> w = best.w;
   for (int it = 0; it < iters; ++it) {
     const std::vector<double> H = hysteresis_series(d, r, w);
-    search_creep_law(cp, [&](const CreepParams& c) { return evaluate_creep_on_h(d, H, w, c).sse; }, true);
+    ModeSearchRows kept;
+    search_creep_law(cp, [&](const CreepParams& c) { return evaluate_creep_on_h(d, H, w, c, &kept).sse; }, true);
     EvalResult cr = evaluate_creep_on_h(d, H, w, cp);
     report("PI + creep fit");
     cp.set_coefficients(cr.theta);
