@@ -45,6 +45,53 @@ double cv_ev(const std::vector<FoldSums>& f, std::size_t k1) {
   return 1.0 - sse / sse0;
 }
 
+// Xᵀr, rᵀr and Σr over rows [a, e) of X (k1 columns, row-major) against r shifted circularly by `shift`. Each sum
+// runs over the rows in order; with K columns known at compile time the sums stay in registers.
+template <std::size_t K>
+void fold_sums_k(const double* X, const std::vector<double>& r, std::size_t a, std::size_t e, std::size_t shift,
+                 FoldSums& out) {
+  double b[K] = {};
+  double rr = 0, s = 0;
+  const std::size_t n = r.size();
+  for (std::size_t i = a; i < e; ++i) {
+    std::size_t src = i + shift;
+    if (src >= n) src -= n;
+    const double y = r[src];
+    const double* x = X + i * K;
+    for (std::size_t j = 0; j < K; ++j) b[j] += x[j] * y;
+    rr += y * y;
+    s += y;
+  }
+  for (std::size_t j = 0; j < K; ++j) out.b[static_cast<Eigen::Index>(j)] = b[j];
+  out.rr = rr;
+  out.s = s;
+}
+
+void fold_sums(const double* X, std::size_t k1, const std::vector<double>& r, std::size_t a, std::size_t e,
+               std::size_t shift, FoldSums& out) {
+  switch (k1) {
+    case 2: return fold_sums_k<2>(X, r, a, e, shift, out);
+    case 3: return fold_sums_k<3>(X, r, a, e, shift, out);
+    case 4: return fold_sums_k<4>(X, r, a, e, shift, out);
+    case 5: return fold_sums_k<5>(X, r, a, e, shift, out);
+    case 6: return fold_sums_k<6>(X, r, a, e, shift, out);
+    default: break;
+  }
+  const std::size_t n = r.size();
+  double rr = 0, s = 0;
+  for (std::size_t i = a; i < e; ++i) {
+    std::size_t src = i + shift;
+    if (src >= n) src -= n;
+    const double y = r[src];
+    const double* x = X + i * k1;
+    for (std::size_t j = 0; j < k1; ++j) out.b[static_cast<Eigen::Index>(j)] += x[j] * y;
+    rr += y * y;
+    s += y;
+  }
+  out.rr = rr;
+  out.s = s;
+}
+
 void fft(std::vector<std::complex<double>>& a) {
   const std::size_t n = a.size();
   for (std::size_t i = 1, j = 0; i < n; ++i) {
@@ -119,20 +166,8 @@ CvScore cv_explained_variance(const std::vector<double>& r, const std::vector<do
   auto score = [&](std::size_t shift) {
     std::vector<FoldSums> fs = base;
     for (int f = 0; f < folds; ++f) {
-      Eigen::VectorXd b = Eigen::VectorXd::Zero(k1);
-      double rr = 0, s = 0;
-      for (std::size_t i = edge[f]; i < edge[f + 1]; ++i) {
-        std::size_t src = i + shift;
-        if (src >= n) src -= n;
-        const double y = r[src];
-        const double* x = X.data() + i * k1;
-        for (std::size_t j = 0; j < k1; ++j) b[j] += x[j] * y;
-        rr += y * y;
-        s += y;
-      }
-      fs[f].b = b;
-      fs[f].rr = rr;
-      fs[f].s = s;
+      fs[f].b = Eigen::VectorXd::Zero(k1);
+      fold_sums(X.data(), k1, r, edge[f], edge[f + 1], shift, fs[f]);
     }
     return cv_ev(fs, k1);
   };

@@ -131,6 +131,54 @@ __attribute__((target_clones("avx2", "default"))) void chunk_gram(const double* 
   }
 }
 
+// R rows from `i0` of A against M blocks of 4 columns from `jb`, over a chunk: R·M accumulators in registers, each
+// summing its pair over the rows in order (the sums chunk_gram forms).
+template <int R, int M>
+__attribute__((always_inline)) inline void rows_against_blocks(const double* __restrict X, std::size_t rows,
+                                                               std::size_t ld, std::size_t i0, std::size_t jb,
+                                                               double* __restrict A) {
+  Lanes4 t[R][M] = {};
+  for (std::size_t r = 0; r < rows; ++r) {
+    const double* x = X + r * ld;
+    for (int m = 0; m < M; ++m) {
+      Lanes4 xj;
+      std::memcpy(&xj, x + jb + 4 * m, sizeof xj);
+      for (int k = 0; k < R; ++k) t[k][m] += x[i0 + k] * xj;
+    }
+  }
+  for (int k = 0; k < R; ++k)
+    for (int m = 0; m < M; ++m) {
+      double* a_row = A + (i0 + k) * ld + jb + 4 * m;
+      Lanes4 a;
+      std::memcpy(&a, a_row, sizeof a);
+      a += t[k][m];
+      std::memcpy(a_row, &a, sizeof a);
+    }
+}
+
+template <int R>
+__attribute__((always_inline)) inline void rows_against_all(const double* __restrict X, std::size_t rows,
+                                                            std::size_t ld, std::size_t i0, double* __restrict A) {
+  std::size_t jb = 0;
+  for (; jb + 16 <= ld; jb += 16) rows_against_blocks<R, 4>(X, rows, ld, i0, jb, A);
+  switch ((ld - jb) / 4) {
+    case 3: rows_against_blocks<R, 3>(X, rows, ld, i0, jb, A); break;
+    case 2: rows_against_blocks<R, 2>(X, rows, ld, i0, jb, A); break;
+    case 1: rows_against_blocks<R, 1>(X, rows, ld, i0, jb, A); break;
+    default: break;
+  }
+}
+
+// chunk_gram for one or two physical rows from `from` of A alone, each against every column (the pairs beyond the
+// diagonal land in A's unused upper triangle): the same sum per pair as chunk_gram forms, for a Gram where only the
+// last rows change.
+__attribute__((target_clones("avx2", "default"))) void chunk_gram_rows(const double* __restrict X, std::size_t rows,
+                                                                        std::size_t ld, std::size_t from,
+                                                                        std::size_t count, double* __restrict A) {
+  if (count == 2) rows_against_all<2>(X, rows, ld, from, A);
+  else rows_against_all<1>(X, rows, ld, from, A);
+}
+
 // The semantic index of fixed column i of a Gram [x (Y columns), y, 1] whose S leading columns are fixed: its leading
 // position, S for y, S + 1 for the constant; -1 for the others.
 Eigen::Index fixed_column(Eigen::Index i, Eigen::Index S, Eigen::Index Y) {
@@ -169,10 +217,11 @@ training::GramStats gram_stats(const Eigen::MatrixXd& A, std::size_t P) {
 }
 
 // A 1-D search over one LTI mode's time constant (search_lti_taus) changes two columns of the creep fit's rows:
-// that mode's filter state and its initial-state column. Every other column, the target and their Gram pairs are
-// the same for all evaluations of the search, so the rows are kept (weighted, the two columns last) with their Gram;
-// later evaluations refill the two columns and form only the tiles that hold them, in the same 32-row chunks (the
-// same sums, bit for bit, at a fraction of the cost). One per search: data, basis, creep input and weights fixed.
+// that mode's filter state and its initial-state column; a search over the fractional law's α (search_alpha), only
+// the creep column (the modes' weights, not the modes). Every other column, the target and their Gram pairs are the
+// same for all evaluations of the search, so the rows are kept (weighted, the varying columns last) with their Gram;
+// later evaluations refill the varying columns and form only their pairs, in the same 32-row chunks (the same sums,
+// bit for bit, at a fraction of the cost). One per search: data, basis, creep input and weights fixed.
 struct ModeSearchRows {
   std::vector<double> last_taus;   // the previous evaluation's time constants
   std::vector<double> taus;        // those the rows were kept for (mode j's entry varies)
@@ -182,6 +231,8 @@ struct ModeSearchRows {
   std::vector<std::size_t> phys;   // semantic column → physical
   std::vector<double> rows, gram;  // N × ld weighted rows; their ld × ld Gram (physical, lower triangle)
   bool kept = false;
+  bool fractional = false;         // kept for an α search: the modes' states of every row are kept too
+  std::vector<double> modes;       // fractional: N × (number of modes)
 };
 
 // Modes with an initial-state column: slower than 10 s, and faster than a third of the record (slower ones are
@@ -199,28 +250,45 @@ struct VaryingColumns {
 
 enum class SearchStep { kFull, kKeep, kReuse };
 
-// How to evaluate the time constants `taus` within a search: reuse the kept rows when only mode j changed since
-// they were kept, keep them when exactly one mode changed since the last evaluation, else a full evaluation.
-// `q`: the Gram's columns (x, y, 1); rows over 256 MB are not kept.
-SearchStep search_step(ModeSearchRows* s, const CreepParams& cp, const FitData& d, std::size_t q) {
-  if (!s || cp.kind != CreepKind::kLti) return SearchStep::kFull;
-  const std::vector<double>& t = cp.taus_s;
+// How to evaluate the law `cp` (modes `t`, CreepBasis::taus) within a search. LTI: reuse the kept rows when only
+// mode j changed since they were kept, keep them when exactly one mode changed since the last evaluation.
+// Fractional: reuse them when the modes are those they were kept for, keep them when the last evaluation had the
+// same modes. Else a full evaluation. `q`: the Gram's columns (x, y, 1); rows over 256 MB are not kept.
+SearchStep search_step(ModeSearchRows* s, const CreepParams& cp, const std::vector<double>& t, const FitData& d,
+                       std::size_t q) {
+  if (!s || (cp.kind != CreepKind::kLti && cp.kind != CreepKind::kFractional)) return SearchStep::kFull;
   std::vector<char> slow(t.size());
   for (std::size_t k = 0; k < t.size(); ++k) slow[k] = slow_mode(t[k], d);
+  const std::size_t ld = (q + 3) / 4 * 4;
+  const bool fits = d.v->size() * (ld + (cp.kind == CreepKind::kFractional ? t.size() : 0)) * sizeof(double) <=
+                    (std::size_t{256} << 20);
   SearchStep step = SearchStep::kFull;
+  if (cp.kind == CreepKind::kFractional) {
+    if (s->kept && s->fractional && s->taus == t && s->slow == slow) {
+      step = SearchStep::kReuse;
+    } else if (s->last_taus == t && fits) {
+      step = SearchStep::kKeep;
+      s->fractional = true;
+      s->j = 0;
+      s->taus = t;
+      s->slow = slow;
+    }
+    s->last_taus = t;
+    return step;
+  }
   auto differ = [&](const std::vector<double>& ref, std::size_t except) {
     std::size_t n = 0, at = 0;
     for (std::size_t k = 0; k < t.size(); ++k)
       if (k != except && t[k] != ref[k]) ++n, at = k;
     return std::make_pair(n, at);
   };
-  if (s->kept && s->taus.size() == t.size() && s->slow == slow && differ(s->taus, s->j).first == 0) {
+  if (s->kept && !s->fractional && s->taus.size() == t.size() && s->slow == slow && differ(s->taus, s->j).first == 0) {
     step = SearchStep::kReuse;
   } else if (s->last_taus.size() == t.size()) {
     const auto [n, at] = differ(s->last_taus, t.size());
-    const std::size_t ld = (q + 3) / 4 * 4;
-    if (n == 1 && d.v->size() * ld * sizeof(double) <= (std::size_t{256} << 20)) {
+    if (n == 1 && fits) {
       step = SearchStep::kKeep;
+      s->fractional = false;
       s->j = at;
       s->taus = t;
       s->slow = slow;
@@ -246,12 +314,14 @@ void keep_layout(ModeSearchRows& s, std::size_t P, const VaryingColumns& vc) {
 }
 
 // The varying columns of a kept search over mode j (search->j): the mode's column (first_mode + j) and its
-// initial-state column (after the P0 columns, at its rank among the slow modes) when it has one.
+// initial-state column (after the P0 columns, at its rank among the slow modes) when it has one; of an α search,
+// the creep column (first_mode).
 VaryingColumns varying_columns(const ModeSearchRows* s, const std::vector<double>& taus, const FitData& d,
                                std::size_t P0, std::size_t first_mode) {
   VaryingColumns vc;
   if (!s) return vc;
   vc.mode_col = first_mode + s->j;
+  if (s->fractional) return vc;
   if (slow_mode(taus[s->j], d)) {
     std::size_t rank = 0;
     for (std::size_t k = 0; k < s->j; ++k) rank += slow_mode(taus[k], d);
@@ -273,28 +343,18 @@ training::GramStats semantic_gram(const std::vector<double>& AT, const std::vect
   return gram_stats(A, P);
 }
 
-// The Gram of the kept rows with mode j's columns refilled: the mode filtered from u0 over the input U with pole a,
-// its initial-state column (when kept with one) from a.
-training::GramStats reuse_gram(ModeSearchRows& s, const std::vector<double>& U, double u0, double a,
-                               const std::vector<double>* weight, std::size_t P) {
-  const std::size_t N = U.size(), ld = s.ld, skip = s.skip;
-  const bool init = s.slow[s.j] != 0;
+// The Gram of the kept rows with the varying columns (`count`) refilled by refill(t, weight_sqrt, out).
+template <class Refill>
+training::GramStats reuse_gram(ModeSearchRows& s, std::size_t N, std::size_t count, const std::vector<double>* weight,
+                               std::size_t P, Refill&& refill) {
+  const std::size_t ld = s.ld, skip = s.skip;
   std::vector<double> AT(ld * ld, 0.0);
-  double l = u0, e = a;
   const std::size_t kChunk = 32;
   for (std::size_t c0 = 0; c0 < N; c0 += kChunk) {
     const std::size_t rows = std::min(kChunk, N - c0);
-    for (std::size_t t = c0; t < c0 + rows; ++t) {
-      const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
-      double* r = s.rows.data() + t * ld;
-      l = a * l + (1 - a) * U[t];
-      r[skip] = l * sw;
-      if (init) {
-        r[skip + 1] = e * sw;
-        e = e < 1e-100 ? 0.0 : e * a;
-      }
-    }
-    chunk_gram(s.rows.data() + c0 * ld, rows, ld, skip, AT.data());
+    for (std::size_t t = c0; t < c0 + rows; ++t)
+      refill(t, weight ? std::sqrt((*weight)[t]) : 1.0, s.rows.data() + t * ld + skip);
+    chunk_gram_rows(s.rows.data() + c0 * ld, rows, ld, skip, count, AT.data());
   }
   for (std::size_t i = 0; i < skip; ++i)
     for (std::size_t k = 0; k <= i; ++k) AT[i * ld + k] = s.gram[i * ld + k];
@@ -309,7 +369,7 @@ training::GramStats kept_gram(std::size_t N, std::size_t P0, const std::function
   const std::size_t P = P0 + init.size(), Y = P;
   keep_layout(s, P, vc);
   const std::size_t ld = s.ld;
-  s.rows.assign(N * ld, 0.0);
+  s.rows.resize(N * ld);  // every element written below (padding columns as zeros)
   std::vector<double> AT(ld * ld, 0.0), x(P + 1), e(init);
   const std::size_t kChunk = 32;
   for (std::size_t c0 = 0; c0 < N; c0 += kChunk) {
@@ -324,6 +384,7 @@ training::GramStats kept_gram(std::size_t N, std::size_t P0, const std::function
       double* r = s.rows.data() + t * ld;
       for (std::size_t i = 0; i <= Y; ++i) r[s.phys[i]] = x[i] * sw;
       r[s.phys[Y + 1]] = sw;
+      for (std::size_t i = Y + 2; i < ld; ++i) r[i] = 0.0;
     }
     chunk_gram(s.rows.data() + c0 * ld, rows, ld, 0, AT.data());
   }
@@ -531,6 +592,41 @@ void creep_columns(const CreepBasis& cb, std::vector<double>& l, double u, doubl
   }
 }
 
+// Where a fractional search being kept stores every row's mode states (null: not kept, or not fractional).
+double* kept_modes(ModeSearchRows* s, std::size_t N, std::size_t nm) {
+  if (!s || !s->fractional) return nullptr;
+  s->modes.resize(N * nm);
+  return s->modes.data();
+}
+
+// reuse_gram of a kept search: LTI mode j filtered from u0 over the input U (and its initial-state column, when kept
+// with one); fractional: the creep column Σ_j B_j·l_j from the kept mode states.
+training::GramStats reuse_search_gram(ModeSearchRows& s, const CreepBasis& cb, const std::vector<double>& U, double u0,
+                                      const std::vector<double>* weight, std::size_t P) {
+  const std::size_t N = U.size();
+  if (s.fractional) {
+    const std::vector<double>& B = cb.B[0];
+    const std::size_t nm = B.size();
+    return reuse_gram(s, N, 1, weight, P, [&](std::size_t t, double sw, double* out) {
+      const double* l = s.modes.data() + t * nm;
+      double c = 0;
+      for (std::size_t j = 0; j < nm; ++j) c += B[j] * l[j];
+      out[0] = c * sw;
+    });
+  }
+  const double a = cb.poles[s.j];
+  const bool init = s.slow[s.j] != 0;
+  double l = u0, e = a;
+  return reuse_gram(s, N, init ? 2 : 1, weight, P, [&](std::size_t t, double sw, double* out) {
+    l = a * l + (1 - a) * U[t];
+    out[0] = l * sw;
+    if (init) {
+      out[1] = e * sw;
+      e = e < 1e-100 ? 0.0 : e * a;
+    }
+  });
+}
+
 // Play pieces (≥ their lower bounds, smoothed) then nk creep columns (then initial-state columns): w and θ.
 EvalResult solve_pieces_and_creep(const training::GramStats& g, const Basis& hb, std::size_t nk, const CreepParams& cp,
                                   double min_w0) {
@@ -552,16 +648,18 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
   const std::size_t np = hb.pieces(), nm = cb.taus.size(), nk = cb.B.size();
   const std::vector<double>& V = *d.v;
   const std::vector<double> init = init_poles(cb.taus, d);
-  const SearchStep step = search_step(search, cp, d, np + nk + init.size() + 2);
+  const SearchStep step = search_step(search, cp, cb.taus, d, np + nk + init.size() + 2);
   if (step == SearchStep::kReuse) {
-    const auto g = reuse_gram(*search, V, V[0], cb.poles[search->j], d.weight, np + nk + init.size());
+    const auto g = reuse_search_gram(*search, cb, V, V[0], d.weight, np + nk + init.size());
     return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
   }
   std::vector<double> p(hb.r.size(), V[0]), l(nm, V[0]);
+  double* keep_modes = kept_modes(step == SearchStep::kKeep ? search : nullptr, V.size(), nm);
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
     hb.columns(v, p, x);
     creep_columns(cb, l, v, x + np);
+    if (keep_modes) std::copy(l.begin(), l.end(), keep_modes + t * nm);
     return (*d.y)[t];
   }, init, d.weight, step == SearchStep::kKeep ? nullptr : fixed, step == SearchStep::kKeep ? search : nullptr,
      varying_columns(step == SearchStep::kKeep ? search : nullptr, cb.taus, d, np + nk, np));
@@ -592,16 +690,18 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& H, c
   const CreepBasis cb(cp, d.rate);
   const std::size_t nm = cb.taus.size(), nk = cb.B.size();
   const std::vector<double> init = init_poles(cb.taus, d);
-  const SearchStep step = H.empty() ? SearchStep::kFull : search_step(search, cp, d, nk + 1 + init.size() + 2);
+  const SearchStep step = H.empty() ? SearchStep::kFull : search_step(search, cp, cb.taus, d, nk + 1 + init.size() + 2);
   // The modes start at rest at the H of the first sample's play states (every play at V[0]).
   const double h0 = H.empty() ? 0.0 : H[0];
   std::vector<double> l(nm, h0);
+  double* keep_modes = kept_modes(step == SearchStep::kKeep ? search : nullptr, H.size(), nm);
   const auto g = step == SearchStep::kReuse
-                     ? reuse_gram(*search, H, h0, cb.poles[search->j], d.weight, nk + 1 + init.size())
+                     ? reuse_search_gram(*search, cb, H, h0, d.weight, nk + 1 + init.size())
                      : stream_gram(H.size(), nk + 1, [&](std::size_t t, double* x) {
                          const double h = H[t];
                          x[0] = h;
                          creep_columns(cb, l, h, x + 1);
+                         if (keep_modes) std::copy(l.begin(), l.end(), keep_modes + t * nm);
                          return (*d.y)[t];
                        }, init, d.weight, nullptr, step == SearchStep::kKeep ? search : nullptr,
                        varying_columns(step == SearchStep::kKeep ? search : nullptr, cb.taus, d, nk + 1, 1));
