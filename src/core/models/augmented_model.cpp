@@ -9,6 +9,13 @@
 
 namespace piezo::models {
 
+// The streaming terms' kinds and state, in a named namespace: EffectTermStream::Impl holds them, and a class of
+// external linkage may not have fields of an anonymous namespace's types.
+namespace effect_stream {
+enum class TermKind { linear, play, sincos, rate, gain, gain_quadratic, powers };
+}  // namespace effect_stream
+using effect_stream::TermKind;
+
 namespace {
 constexpr double kTwoPi = 6.283185307179586;
 
@@ -44,7 +51,6 @@ std::vector<double> yaml_vec(const YAML::Node& n, const char* key) {
   return v;
 }
 // The term types, by name: the one list the type strings are read against.
-enum class TermKind { linear, play, sincos, rate, gain, gain_quadratic, powers };
 
 TermKind term_kind(const std::string& type) {
   static const std::pair<const char*, TermKind> kinds[] = {
@@ -141,7 +147,7 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
 }
 
 // ---- streaming terms -------------------------------------------------------------------------------
-namespace {
+namespace effect_stream {
 struct TermState {
   bool fresh = true;
   std::vector<double> ring;  // last L values of the signal, ring[pos] is the oldest
@@ -162,6 +168,11 @@ struct TermConst {
   bool scales_voltage = false; // a gain scales the voltage, not the base output
   std::size_t regressors = 1;
 };
+}  // namespace effect_stream
+using effect_stream::TermConst;
+using effect_stream::TermState;
+
+namespace {
 
 // Evaluates one term for the current signal value s; writes the raw regressors and, if next != null, the
 // state after committing s.
@@ -256,7 +267,7 @@ struct EffectTermStream::Impl {
           if (lag > 0) {
             if (st.fresh) std::fill(st.ring.begin(), st.ring.end(), s);
             st.ring[st.pos] = s;
-            st.pos = (st.pos + 1) % lag;
+            if (++st.pos == lag) st.pos = 0;
           }
           for (int q = 0; q < 3; ++q) st.lp[q] = next.lp[q];
           st.play = next.play;

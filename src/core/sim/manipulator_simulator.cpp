@@ -19,6 +19,14 @@ constexpr double kTwoPi = 6.283185307179586;
 
 using util::splitmix64;
 
+int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
+
+}  // namespace
+
+// The simulator's parts, in a named namespace: ManipulatorSimulator::Impl holds them, and a class of external
+// linkage may not have fields of an anonymous namespace's types.
+namespace manipulator_detail {
+
 // xoshiro256+ with Box–Muller normals: fast, and the same sequence on every platform.
 class Rng {
  public:
@@ -54,8 +62,6 @@ class Rng {
   bool has_spare_ = false;
 };
 
-int axis_index(const std::string& name) { return io::axis_index_or_none(name); }
-
 // The configured hysteresis model of one axis.
 class Hysteresis {
  public:
@@ -87,7 +93,10 @@ struct Axis {
   }
 };
 
-}  // namespace
+}  // namespace manipulator_detail
+using manipulator_detail::Axis;
+using manipulator_detail::Hysteresis;
+using manipulator_detail::Rng;
 
 struct ManipulatorSimulator::Impl {
   SimulatorConfig cfg;
