@@ -74,6 +74,32 @@ void BM_LstmInferencePerSample(benchmark::State& state) {
 }
 BENCHMARK(BM_LstmInferencePerSample);
 
+// One truncated-BPTT call as the trainer makes it: a shard of windows (a 32-window batch is split in two
+// shards), 16 warm-up + 32 scored steps, the default architecture; with the gradient (training) or without
+// (validation).
+void BM_LstmSequenceLossGrad(benchmark::State& state) {
+  const Eigen::Index B = state.range(0);
+  const bool with_grad = state.range(1) != 0;
+  const int warmup = 16, T = 32;
+  const models::LstmShape s{static_cast<int>(spec().size()), 1, 29};
+  const models::LstmNet net(s);
+  const Eigen::VectorXd p = net.initial_params(1);
+  std::mt19937_64 rng(5);
+  std::normal_distribution<double> n01;
+  std::vector<Eigen::MatrixXd> xs(warmup + T, Eigen::MatrixXd(s.inputs, B));
+  for (auto& x : xs)
+    for (Eigen::Index i = 0; i < x.size(); ++i) x.data()[i] = n01(rng);
+  Eigen::MatrixXd ys(T, B);
+  for (Eigen::Index i = 0; i < ys.size(); ++i) ys.data()[i] = n01(rng);
+  Eigen::VectorXd g = Eigen::VectorXd::Zero(p.size());
+  double sink = 0.0;
+  for (auto _ : state) sink += net.sequence_loss_grad(p, xs, ys, warmup, with_grad ? &g : nullptr);
+  benchmark::DoNotOptimize(sink);
+  benchmark::DoNotOptimize(g.data());
+  state.SetItemsProcessed(state.iterations() * B * T);
+}
+BENCHMARK(BM_LstmSequenceLossGrad)->Args({16, 1})->Args({100, 0});
+
 void BM_KanInferencePerSample(benchmark::State& state) {
   models::KanShape s;
   s.widths = {static_cast<int>(spec().size()), 4, 1};

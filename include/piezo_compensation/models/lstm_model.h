@@ -5,8 +5,8 @@
 #pragma once
 
 #include <Eigen/Dense>
-
 #include <cstdint>
+#include <vector>
 
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/models/model.h"
@@ -32,7 +32,8 @@ class LstmNet {
   Eigen::VectorXd initial_params(std::uint64_t seed) const;  // uniform ±1/√H, forget-gate bias 1
 
   // One time step of all layers for one sample. h, c: layers × hidden, read from *_in, written to *_out
-  // (may alias). Returns the head output for the new top h.
+  // (may alias). Returns the head output for the new top h. Allocation-free; the same operations in the same
+  // order as sequence_loss_grad, so streaming reproduces training bit for bit.
   double step(const double* params, const double* x, const double* h_in, const double* c_in, double* h_out,
               double* c_out) const;
 
@@ -41,12 +42,17 @@ class LstmNet {
   // Returns Σ squared errors; adds the truncated-BPTT gradient to *grad when non-null.
   double sequence_loss_grad(const Eigen::VectorXd& params, const std::vector<Eigen::MatrixXd>& xs,
                             const Eigen::MatrixXd& ys, int warmup, Eigen::VectorXd* grad) const;
+  // The same with the inputs in one matrix, inputs × (warmup + T)·B: columns τ·B … τ·B + B − 1 are step τ.
+  double sequence_loss_grad(const Eigen::VectorXd& params, const Eigen::MatrixXd& x,
+                            const Eigen::MatrixXd& ys, int warmup, Eigen::VectorXd* grad) const;
 
  private:
   LstmShape shape_;
   std::size_t num_params_ = 0;
   std::vector<Eigen::Index> layer_offset_;
   Eigen::Index head_offset_ = 0;
+  std::vector<double>
+      gate_coef_;  // 3 × 4H: the activation of each gate row (see the kernels in lstm_model.cpp)
   int layer_inputs(int l) const { return l == 0 ? shape_.inputs : shape_.hidden; }
 };
 

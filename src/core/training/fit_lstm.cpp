@@ -43,16 +43,15 @@ LstmObjective::LstmObjective(const LstmNet& net, const Eigen::MatrixXd& x, const
 
 double LstmObjective::loss_sum(const Eigen::VectorXd& params, const std::size_t* units, std::size_t n,
                                Eigen::VectorXd* grad) const {
-  const Eigen::Index B = static_cast<Eigen::Index>(n);
-  std::vector<Eigen::MatrixXd> xs(static_cast<std::size_t>(warmup_ + seq_len_), Eigen::MatrixXd::Zero(x_.rows(), B));
+  const Eigen::Index B = static_cast<Eigen::Index>(n), S = warmup_ + seq_len_;
+  Eigen::MatrixXd x(x_.rows(), S * B);  // step τ of sequence j in column τ·B + j
   Eigen::MatrixXd ys(seq_len_, B);
   for (Eigen::Index j = 0; j < B; ++j) {
-    const std::size_t s = starts_[units[j]];
-    for (int tau = 0; tau < warmup_ + seq_len_; ++tau)
-      xs[static_cast<std::size_t>(tau)].col(j) = x_.col(static_cast<Eigen::Index>(s - static_cast<std::size_t>(warmup_) + static_cast<std::size_t>(tau)));
-    ys.col(j) = y_.segment(static_cast<Eigen::Index>(s), seq_len_);
+    const Eigen::Index first = static_cast<Eigen::Index>(starts_[units[j]]) - warmup_;
+    for (Eigen::Index tau = 0; tau < S; ++tau) x.col(tau * B + j) = x_.col(first + tau);
+    ys.col(j) = y_.segment(first + warmup_, seq_len_);
   }
-  return net_.sequence_loss_grad(params, xs, ys, warmup_, grad);
+  return net_.sequence_loss_grad(params, x, ys, warmup_, grad);
 }
 
 }  // namespace
