@@ -10,7 +10,8 @@
 //   ~progress_period_s [s, wall]: a progress line with the ETA this often;
 //   ~hold_axes, ~hold_axes_v [V]: other axes given one constant intent each at the start (the monitor screenshots);
 //   ~lockstep: the device samples once per command (sim.launch lockstep:=true command_on_sample:=false): the
-//   next intent goes out once the predictor's prediction of the sample is in, so the demo paces the device.
+//   next intent goes out once the predictor's prediction of the sample is in, so the demo paces the device; it is
+//   stamped with that sample's stamp (the node then uses no ROS time: the lock-step rostests take it off /clock).
 #include <ros/callback_queue.h>
 #include <ros/ros.h>
 #include <std_srvs/SetBool.h>
@@ -108,7 +109,11 @@ int main(int argc, char** argv) {
         }
       }
       piezo_compensation::IntendedMotion im;
-      im.header.stamp = ros::Time::now();
+      // lock-step: the intent follows the sample just completed, so it carries that sample's stamp (what ROS time
+      // says then, without waiting on /clock: this node needs no clock of its own in lock-step)
+      const auto& rows = run->rows();
+      im.header.stamp = run->lockstep() && !rows.empty() && rows.back().stamp_s > 0.0 ? ros::Time(rows.back().stamp_s)
+                                                                                        : ros::Time::now();
       im.mode = piezo_compensation::IntendedMotion::VOLTAGE;
       im.voltage = n->intent_v;
       intended.publish(im);

@@ -63,6 +63,8 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     lim.max_frame_step_v = std::max(lim.max_frame_step_v, std::min(per_sample_v, 2 * can::kVoltageCeilingV));
     lim.max_unconfirmed_v = std::max(lim.max_unconfirmed_v, 2 * lim.max_frame_step_v);
     lim.max_step_dt_s = std::max(lim.max_step_dt_s, 1.0 / config.protocol.encoder_rate_hz);
+    // the sample's set points go out with its SYNC: one datagram per sample instead of one per frame
+    config.hold_until_sync = true;
   }
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;

@@ -116,12 +116,18 @@ SimNode::~SimNode() {
 }
 
 void SimNode::send_all(const std::vector<can_frame>& frames) {
-  if (wall_now_s() < silent_until_wall_s_ || !transport_->is_open()) return;
-  for (const auto& f : frames) {
+  if (frames.empty() || wall_now_s() < silent_until_wall_s_ || !transport_->is_open()) return;
+  // One sample's reports together (UDP: one datagram, not 6-7; SocketCAN: frame by frame). A refused frame is
+  // dropped, as by a controller whose transmit queue is full, and the rest go on: after a refused datagram its
+  // first frame counts as the dropped one and the others are sent again.
+  std::size_t done = 0;
+  while (done < frames.size()) {
     try {
-      transport_->send(f);
+      const std::size_t n = transport_->send_batch(frames.data() + done, frames.size() - done);
+      done += n == frames.size() - done ? n : n + 1;  // skip the refused frame (or datagram's first), go on
     } catch (const can::TransportError& e) {
       ROS_ERROR_STREAM_THROTTLE(1.0, "mm3e_sim: " << e.what());
+      ++done;
     }
   }
 }

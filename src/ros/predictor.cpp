@@ -3,12 +3,14 @@
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/ros/params.h"
 
+#include <diagnostic_msgs/DiagnosticArray.h>
 #include <diagnostic_updater/diagnostic_updater.h>
 #include <geometry_msgs/TransformStamped.h>
 #include <sensor_msgs/Temperature.h>
 #include <std_msgs/Float64.h>
 #include <std_srvs/SetBool.h>
 #include <std_srvs/Trigger.h>
+#include <tf2_msgs/TFMessage.h>
 #include <tf2_ros/transform_broadcaster.h>
 #include <visualization_msgs/MarkerArray.h>
 
@@ -282,7 +284,16 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   p.fused_position = u.fused_nm / kNmPerM;
   p.fused_position_sigma = u.fused_sigma_nm / kNmPerM;
   p.drift_horizons = s_.drift_horizons_s;
+  fill_command(out, u, applied, compensate, now);
+  fill_drift(out, now);
+  return out;
+}
 
+// The command part of a sample's output: the corrected voltage (and, when compensating, the command), the intended
+// position, the hold trim, fallback and status.
+void PredictorAxis::fill_command(Output& out, const compensation::SampleUpdate& u, double applied, bool compensate,
+                                 const ros::Time& now) {
+  Prediction& p = out.prediction;
   const bool sending = comp_->has_intent() && (compensate || s_.forward_when_off);
   compensation::CommandUpdate c;
   if (comp_->has_intent()) {
@@ -311,8 +322,12 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   if (p.status.empty() && feeder_->any_fallback()) p.status = input_status();
   if (fallback_now_ && !model_error_.empty()) p.status = "model unavailable: " + model_error_;
   if (fallback_now_) last_status_ = p.status;
+}
 
-  // Drift over the horizons for the voltage that will be held next.
+// Drift over the horizons for the voltage that will be held next (due once per drift_update_period_s; computed
+// here, or by the node's worker when drift_async).
+void PredictorAxis::fill_drift(Output& out, const ros::Time& now) {
+  Prediction& p = out.prediction;
   if (s_.drift_update_period_s <= 0.0 || last_forecast_.isZero() ||
       (now - last_forecast_).toSec() >= s_.drift_update_period_s || now < last_forecast_) {
     last_forecast_ = now;
@@ -328,7 +343,6 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   p.drift.resize(s_.drift_horizons_s.size());
   for (std::size_t i = 0; i < p.drift.size(); ++i)
     p.drift[i] = forecast_.ok && i < forecast_.drift_nm.size() ? forecast_.drift_nm[i] / kNmPerM : std::nan("");
-  return out;
 }
 
 std::string PredictorAxis::input_status() const {
@@ -362,6 +376,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
   subscribe_aux();
   markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 2);
   tf_ = std::make_unique<tf2_ros::TransformBroadcaster>();
+  tf_probe_ = nh_.advertise<tf2_msgs::TFMessage>("/tf", 100);
   srv_compensation_ = pnh_.advertiseService("set_compensation", &PredictorNode::on_set_compensation, this);
   srv_hold_trim_ = pnh_.advertiseService("set_hold_trim", &PredictorNode::on_set_hold_trim, this);
   srv_reload_ = pnh_.advertiseService("reload_model", &PredictorNode::on_reload, this);
@@ -602,7 +617,10 @@ void PredictorNode::setup_diagnostics_and_watch() {
       st.add("duration [s]", snapshot_->options().duration_s);
     });
   }
-  diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) { diag_->update(); });
+  diag_probe_ = nh_.advertise<diagnostic_msgs::DiagnosticArray>("/diagnostics", 1);
+  diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) {
+    if (diag_probe_.getNumSubscribers() > 0) diag_->update();
+  });
   if (s_.watch.noise_floor_nm > 0.0) {
     // rolling free-run MAE per axis [m] (SI), once a second
     for (auto& a : axes_) a->pub_watch = nh_.advertise<std_msgs::Float64>(a->logic->axis() + "/residual_mae", 2);
@@ -721,7 +739,8 @@ void PredictorNode::emit(Axis& a, std::vector<PredictorAxis::Output>& outs, cons
   }
   if (last_tf_.isZero() || (now - last_tf_).toSec() >= s_.tf_period_s || now < last_tf_) {
     last_tf_ = now;
-    publish_tf_and_markers(outs.back().prediction.header.stamp);
+    if (tf_probe_.getNumSubscribers() > 0 || markers_pub_.getNumSubscribers() > 0)
+      publish_tf_and_markers(outs.back().prediction.header.stamp);
   }
 }
 

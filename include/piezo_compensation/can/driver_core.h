@@ -29,6 +29,12 @@ struct DriverConfig {
   double reconnect_min_s = 0.1;       // [s] first reconnect delay, doubled per failure...
   double reconnect_max_s = 5.0;       // [s] ...up to this
   int receive_poll_ms = 20;           // [ms] receive thread wake-up period
+  // Synchronous mode (the node sets it with ~sync_mode): set points wait for the next sync() and go out with the
+  // SYNC in one Transport::send_batch (UDP: one datagram per sample, not one per frame). The controller takes them
+  // in bus order and uses them only at that SYNC's sample, so it sees the same; the limiter counts a set point as
+  // written when its batch is. Between two SYNCs time (the bus time) stands still, so an axis proposes at most one
+  // set point: a batch is at most one frame per axis and the SYNC.
+  bool hold_until_sync = false;
 };
 void validate(const DriverConfig& config);  // std::invalid_argument naming the field
 
@@ -98,6 +104,7 @@ class DriverCore {
   void tick(double now_s);
   // Synchronous mode: asks the controller for its next sample now (a SYNC frame). Call after the set points
   // of that sample have been written (command()/tick()): the bus keeps the order. False when the link is down.
+  // With hold_until_sync the set points held since the last SYNC go out with it, in the order they were written.
   bool sync();
 
   void halt();                 // hold every axis where it is and refuse commands until recover()
@@ -115,7 +122,9 @@ class DriverCore {
   using Clock = std::chrono::steady_clock;
   struct Axis;
   struct Pending;
+  struct Held;
   void send_locked(int axis, double voltage_v, double now_s, std::vector<Pending>& events);
+  void written_locked(int axis, double voltage_v, double now_s);
   void trip_locked(int axis, const std::string& why, std::vector<Pending>& events);
   void refused_locked(Axis& a);
   void close_locked(const std::string& reason, BusState state, std::vector<Pending>& events);
@@ -134,6 +143,8 @@ class DriverCore {
   bool halted_ = false;
   std::uint32_t command_counter_ = 0;
   std::uint8_t sync_counter_ = 0;
+  std::vector<Held> held_;  // hold_until_sync: set points written since the last SYNC, in order
+  std::vector<can_frame> batch_;  // sync(): the held frames and the SYNC, as sent
   double last_now_s_ = 0.0;  // latest caller time seen (command/tick): the time reports are checked at
   Clock::time_point last_rx_{}, last_heartbeat_{}, next_attempt_{};
   double backoff_s_ = 0.0;

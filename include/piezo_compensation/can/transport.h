@@ -1,10 +1,12 @@
 // One way to move `struct can_frame`s, two implementations: SocketCAN raw sockets (the real bus, vcan0) and
-// UDP datagrams carrying the same 16 bytes over loopback (machines whose kernel has no AF_CAN).
+// UDP datagrams carrying the same 16-byte frames over loopback (machines whose kernel has no AF_CAN): one frame per
+// datagram from send(), up to kMaxFramesPerDatagram back to back from send_batch().
 // Not thread-safe by itself: DriverCore serialises open/close/send and receives on one thread.
 #pragma once
 
 #include <linux/can.h>
 
+#include <cstddef>
 #include <cstdint>
 #include <memory>
 #include <stdexcept>
@@ -18,6 +20,10 @@ class TransportError : public std::runtime_error {
  public:
   using std::runtime_error::runtime_error;
 };
+
+// UDP: the most frames one datagram carries (send_batch packs, receive unpacks up to this many; a datagram that is
+// empty, not a whole number of frames or longer is malformed). One device sample is 6 frames + a heartbeat.
+constexpr std::size_t kMaxFramesPerDatagram = 16;
 
 struct ReceivedFrame {
   can_frame frame{};
@@ -35,10 +41,17 @@ class Transport {
   // listening: ECONNREFUSED, reported on the send after the lost one); the frame is dropped and
   // the caller counts it. Throws TransportError when the link is gone (interface down, socket error).
   virtual bool send(const can_frame& frame) = 0;
-  // Waits up to timeout_ms for frames and appends every frame available. Returns the number appended;
-  // throws TransportError when the link is gone.
+  // Sends `count` frames in this order. UDP packs them into as few datagrams as it can (kMaxFramesPerDatagram
+  // each; a datagram goes whole or not at all): one syscall and one wake-up of the receiver for a whole device
+  // sample instead of one per frame. Other transports (SocketCAN: one frame per write, as on the bus) send them one
+  // by one. Returns how many frames from the front were taken (count: all); stops at the first refusal, with
+  // send()'s meaning. Throws TransportError like send().
+  virtual std::size_t send_batch(const can_frame* frames, std::size_t count);
+  // Waits up to timeout_ms for frames and appends every frame available (a UDP datagram's frames in their order,
+  // all with its receive time). Returns the number appended; throws TransportError when the link is gone.
   virtual int receive(std::vector<ReceivedFrame>& out, int timeout_ms) = 0;
-  // Datagrams or frames the transport threw away as malformed (wrong size) since open.
+  // Datagrams or frames the transport threw away as malformed (wrong size) since open; a UDP datagram of the
+  // wrong size counts once, however many bytes it had.
   virtual std::uint64_t malformed_count() const { return 0; }
   // "socketcan:can0" or "udp:127.0.0.1:47001->47002", for logs and diagnostics.
   virtual std::string describe() const = 0;

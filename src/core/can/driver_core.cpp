@@ -39,6 +39,15 @@ struct DriverCore::Axis {
   bool has_encoder = false;
 };
 
+// A set point waiting for the next SYNC (hold_until_sync): its frame as encoded, for the limiter when it is written.
+struct DriverCore::Held {
+  int axis;
+  can_frame frame;
+  double voltage_v;  // encoded
+  double now_s;
+  std::uint32_t counter;
+};
+
 // Callbacks are collected under the lock and run after it is released.
 struct DriverCore::Pending {
   enum Kind { kVoltage, kEncoder, kEvent } kind;
@@ -103,6 +112,7 @@ void DriverCore::flush(std::vector<Pending>& events) {
 
 void DriverCore::close_locked(const std::string& reason, BusState state, std::vector<Pending>& events) {
   transport_->close();
+  held_.clear();  // never reached the bus; every axis takes a new baseline below
   bus_.state = state;
   bus_.last_error = reason;
   next_attempt_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(backoff_s_));
@@ -137,11 +147,15 @@ void DriverCore::send_locked(int axis, double voltage_v, double now_s, std::vect
     return;
   }
   if (!a.limiter.sendable(encoded_v)) return;
+  if (config_.hold_until_sync) {  // written with the next SYNC (sync()); the counter is this frame's already
+    held_.push_back({axis, f, encoded_v, now_s, command_counter_});
+    ++command_counter_;
+    return;
+  }
   try {
     if (transport_->send(f)) {
       ++command_counter_;
-      ++a.status.frames_sent;
-      a.limiter.sent(encoded_v, now_s);  // only a written frame moves the applied voltage
+      written_locked(axis, encoded_v, now_s);
     } else {
       refused_locked(a);
     }
@@ -150,6 +164,12 @@ void DriverCore::send_locked(int axis, double voltage_v, double now_s, std::vect
     // The receive thread owns reconnection; it sees the same failure on its next poll.
     bus_.last_error = e.what();
   }
+}
+
+void DriverCore::written_locked(int axis, double voltage_v, double now_s) {
+  Axis& a = *axes_[axis];
+  ++a.status.frames_sent;
+  a.limiter.sent(voltage_v, now_s);  // only a written frame moves the applied voltage
 }
 
 void DriverCore::refused_locked(Axis& a) {
@@ -221,15 +241,37 @@ void DriverCore::tick(double now_s) {
 
 bool DriverCore::sync() {
   std::lock_guard<std::mutex> lock(mutex_);
-  if (!transport_->is_open() || bus_.state == BusState::kBusOff) return false;
+  if (!transport_->is_open() || bus_.state == BusState::kBusOff) {
+    // held set points cannot go either: refused, like a send on a link that went down
+    for (const Held& h : held_) refused_locked(*axes_[h.axis]);
+    if (!held_.empty()) command_counter_ = held_.front().counter;
+    held_.clear();
+    return false;
+  }
+  std::vector<can_frame>& frames = batch_;  // reused: no allocation per sample
+  frames.clear();
+  for (const Held& h : held_) frames.push_back(h.frame);
+  frames.push_back(codec_.encode(SyncFrame{sync_counter_}));
+  std::size_t taken = 0;
   try {
-    if (!transport_->send(codec_.encode(SyncFrame{sync_counter_}))) {
-      ++bus_.send_failures;
-      return false;
-    }
+    taken = frames.size() == 1 ? (transport_->send(frames[0]) ? 1 : 0)
+                               : transport_->send_batch(frames.data(), frames.size());
   } catch (const TransportError& e) {
-    ++bus_.send_failures;
     bus_.last_error = e.what();  // the receive thread reconnects
+  }
+  // in order: the written set points move their axes, the first refused one and every one after it are refused
+  for (std::size_t i = 0; i < held_.size(); ++i) {
+    const Held& h = held_[i];
+    if (i < taken) {
+      written_locked(h.axis, h.voltage_v, h.now_s);
+    } else {
+      if (i == taken) command_counter_ = h.counter;  // the counter counts written frames
+      refused_locked(*axes_[h.axis]);
+    }
+  }
+  held_.clear();
+  if (taken < frames.size()) {
+    ++bus_.send_failures;
     return false;
   }
   ++sync_counter_;

@@ -12,6 +12,7 @@
 #include <sys/time.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cstring>
 
@@ -22,6 +23,14 @@ bool passes_filters(const can_frame& frame, const std::vector<can_filter>& filte
   for (const auto& f : filters)
     if ((frame.can_id & f.can_mask) == (f.can_id & f.can_mask)) return true;
   return false;
+}
+
+static_assert(sizeof(can_frame) == 16, "the UDP transport carries struct can_frame as 16 bytes");
+
+std::size_t Transport::send_batch(const can_frame* frames, std::size_t count) {
+  for (std::size_t i = 0; i < count; ++i)
+    if (!send(frames[i])) return i;
+  return count;
 }
 
 namespace {
@@ -72,10 +81,11 @@ class SocketTransport : public Transport {
       drain_error_queue();
     }
     int n = 0;
+    const std::size_t max_frames = frames_per_datagram();
     for (int i = 0; i < 256; ++i) {  // bounded so a flood cannot starve the caller's other work
       // One byte extra so an oversize datagram is detected rather than silently truncated.
-      unsigned char buf[sizeof(can_frame) + 1];
-      iovec iov{buf, sizeof buf};
+      unsigned char buf[kMaxFramesPerDatagram * sizeof(can_frame) + 1];
+      iovec iov{buf, max_frames * sizeof(can_frame) + 1};
       alignas(cmsghdr) char control[CMSG_SPACE(sizeof(timeval))];
       msghdr msg{};
       msg.msg_iov = &iov;
@@ -91,22 +101,32 @@ class SocketTransport : public Transport {
         }
         throw TransportError(describe() + ": receive failed: " + errno_text(errno));
       }
-      if (static_cast<std::size_t>(got) != sizeof(can_frame) || (msg.msg_flags & MSG_TRUNC)) {
+      // A whole number of frames, at least one and at most max_frames (SocketCAN: exactly one; a CAN FD frame or
+      // a stray datagram is malformed as a whole).
+      const std::size_t size = static_cast<std::size_t>(got);
+      if (size == 0 || size % sizeof(can_frame) != 0 || size > max_frames * sizeof(can_frame) ||
+          (msg.msg_flags & MSG_TRUNC)) {
         ++malformed_;
         continue;
       }
-      ReceivedFrame rf;
-      std::memcpy(&rf.frame, buf, sizeof(can_frame));
-      if (!accept(rf.frame)) continue;
-      rf.receive_time_s = timestamp_of(msg);
-      out.push_back(rf);
-      ++n;
+      double stamp = -1.0;  // one kernel stamp per datagram, read once
+      for (std::size_t off = 0; off < size; off += sizeof(can_frame)) {
+        ReceivedFrame rf;
+        std::memcpy(&rf.frame, buf + off, sizeof(can_frame));
+        if (!accept(rf.frame)) continue;
+        if (stamp < 0.0) stamp = timestamp_of(msg);
+        rf.receive_time_s = stamp;
+        out.push_back(rf);
+        ++n;
+      }
     }
     return n;
   }
 
  protected:
   virtual bool accept(const can_frame&) { return true; }
+  // Frames one read may carry: SocketCAN one (CAN_RAW delivers frame by frame), UDP up to kMaxFramesPerDatagram.
+  virtual std::size_t frames_per_datagram() const { return 1; }
   void enable_timestamps() {
     const int on = 1;
     if (setsockopt(fd_, SOL_SOCKET, SO_TIMESTAMP, &on, sizeof on) < 0)
@@ -255,6 +275,20 @@ class UdpTransport : public SocketTransport {
     return send_bytes(&frame, sizeof frame, reinterpret_cast<const sockaddr*>(&remote_), sizeof remote_);
   }
 
+  // The frames back to back, kMaxFramesPerDatagram per datagram: each datagram is one sendto and one wake-up of
+  // the receiver, and goes whole or not at all.
+  std::size_t send_batch(const can_frame* frames, std::size_t count) override {
+    std::size_t done = 0;
+    while (done < count) {
+      const std::size_t n = std::min(count - done, kMaxFramesPerDatagram);
+      if (!send_bytes(frames + done, n * sizeof(can_frame), reinterpret_cast<const sockaddr*>(&remote_),
+                      sizeof remote_))
+        return done;
+      done += n;
+    }
+    return done;
+  }
+
   std::string describe() const override {
     return "udp:" + options_.host + ":" + std::to_string(options_.local_port) + "->" +
            std::to_string(options_.remote_port);
@@ -262,6 +296,7 @@ class UdpTransport : public SocketTransport {
 
  protected:
   bool accept(const can_frame& frame) override { return passes_filters(frame, options_.filters); }
+  std::size_t frames_per_datagram() const override { return kMaxFramesPerDatagram; }
 
  private:
   UdpOptions options_;
