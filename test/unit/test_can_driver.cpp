@@ -244,6 +244,33 @@ TEST(CanDriver, SyncFollowsTheSetPointsOnTheBus) {
   EXPECT_EQ(driver.bus_status().syncs_sent, 5u);
 }
 
+TEST(CanDriver, HeldSetPointsGoOutWithTheirSync) {
+  // hold_until_sync (the node's sync mode): a set point waits for sync() and goes out in one datagram with the
+  // SYNC; it counts as written (and moves the limiter) only then, and the device has it in place at that SYNC
+  Device device;
+  Recorder rec;
+  DriverConfig c = driver_config();
+  c.hold_until_sync = true;
+  DriverCore driver(c, udp_factory(fast_protocol()), rec.callbacks());
+  driver.start();
+  ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }, 3000ms));
+  double t = 100.0;
+  driver.tick(t);
+  for (int k = 1; k <= 5; ++k) {
+    t += 0.1;
+    const double target = 3.0 + 2.0 * k;
+    const auto sent_before = driver.axis_status(2).frames_sent;
+    driver.command(2, target, t, t);
+    EXPECT_EQ(driver.axis_status(2).frames_sent, sent_before) << "a held set point was counted before its SYNC";
+    ASSERT_TRUE(driver.sync());
+    EXPECT_EQ(driver.axis_status(2).frames_sent, sent_before + 1);
+    ASSERT_TRUE(wait_for([&] { return device.syncs() >= k; }, 2000ms));
+    EXPECT_NEAR(device.voltages_at_last_sync()[2], target, 1e-3) << "SYNC " << k << " went without its set point";
+  }
+  EXPECT_EQ(driver.bus_status().syncs_sent, 5u);
+  EXPECT_EQ(driver.bus_status().send_failures, 0u);
+}
+
 TEST(CanDriver, GarbageDatagramsAreCountedNotFatal) {
   Device device;
   Recorder rec;
