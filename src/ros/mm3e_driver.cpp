@@ -51,7 +51,11 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   stamp_with_receive_time_ = r.flag("stamp_with_receive_time", true);
   sync_mode_ = r.flag("sync_mode", false);
   sync_idle_s_ = r.number("sync_idle_s", 0.5, 0.001, 60.0);
-  sync_gate_ = can::SyncGate(r.integer("sync_max_in_flight", 0, 0, 1000));
+  const int max_in_flight = r.integer("sync_max_in_flight", 0, 0, 1000);
+  if (max_in_flight > 0 && !sync_mode_)  // as mm3e_sim refuses sync_max_time_scale without sync_mode
+    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_max_in_flight") + " = " +
+                                std::to_string(max_in_flight) + ": bounds the SYNCs in flight, so it needs sync_mode");
+  sync_gate_ = can::SyncGate(max_in_flight);
   if (sync_mode_ && 1.25 * sync_idle_s_ >= config.silence_reconnect_s)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +

@@ -482,6 +482,20 @@ TEST(Driver, InvalidParametersAreNamed) {
       EXPECT_NE(std::string(e.what()).find("sync_idle_s"), std::string::npos) << e.what();
     }
   }
+  // A bound on the SYNCs in flight without synchronous mode: nothing it could bound.
+  {
+    ros::NodeHandle pnh("/bad_params/driver_in_flight");
+    pnh.setParam("transport", "udp");
+    pnh.setParam("udp_local_port", 47992);
+    pnh.setParam("udp_remote_port", 47993);
+    pnh.setParam("sync_max_in_flight", 2);
+    try {
+      piezo::mm3e::DriverNode node(ros::NodeHandle("/bad_params"), pnh);
+      ADD_FAILURE() << "sync_max_in_flight 2 without sync_mode accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("sync_max_in_flight"), std::string::npos) << e.what();
+    }
+  }
   {
     ros::NodeHandle spnh("/bad_params/sim_sync");
     spnh.setParam("transport", "udp");
