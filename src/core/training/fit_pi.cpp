@@ -330,17 +330,16 @@ VaryingColumns varying_columns(const ModeSearchRows* s, const std::vector<double
   return vc;
 }
 
-// The semantic Gram from a physical one.
-training::GramStats semantic_gram(const std::vector<double>& AT, const std::vector<std::size_t>& phys, std::size_t ld,
-                                  std::size_t P) {
-  const Eigen::Index Q = static_cast<Eigen::Index>(P + 2);
+// The semantic Gram (lower triangle) of a physical one: semantic column i sits at phys[i].
+Eigen::MatrixXd semantic_matrix(const std::vector<double>& AT, const std::vector<std::size_t>& phys, std::size_t ld) {
+  const Eigen::Index Q = static_cast<Eigen::Index>(phys.size());
   Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
   for (Eigen::Index i = 0; i < Q; ++i)
     for (Eigen::Index j = 0; j <= i; ++j) {
       const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
       A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
     }
-  return gram_stats(A, P);
+  return A;
 }
 
 // The Gram of the kept rows with the varying columns (`count`) refilled by refill(t, weight_sqrt, out).
@@ -358,39 +357,7 @@ training::GramStats reuse_gram(ModeSearchRows& s, std::size_t N, std::size_t cou
   }
   for (std::size_t i = 0; i < skip; ++i)
     for (std::size_t k = 0; k <= i; ++k) AT[i * ld + k] = s.gram[i * ld + k];
-  return semantic_gram(AT, s.phys, ld, P);
-}
-
-// stream_gram into kept rows (ModeSearchRows): every row stored in the keep layout, the Gram of each 32-row chunk
-// formed from them as stream_gram forms it.
-training::GramStats kept_gram(std::size_t N, std::size_t P0, const std::function<double(std::size_t, double*)>& row,
-                              const std::vector<double>& init, const std::vector<double>* weight, ModeSearchRows& s,
-                              const VaryingColumns& vc) {
-  const std::size_t P = P0 + init.size(), Y = P;
-  keep_layout(s, P, vc);
-  const std::size_t ld = s.ld;
-  s.rows.resize(N * ld);  // every element written below (padding columns as zeros)
-  std::vector<double> AT(ld * ld, 0.0), x(P + 1), e(init);
-  const std::size_t kChunk = 32;
-  for (std::size_t c0 = 0; c0 < N; c0 += kChunk) {
-    const std::size_t rows = std::min(kChunk, N - c0);
-    for (std::size_t t = c0; t < c0 + rows; ++t) {
-      x[Y] = row(t, x.data());
-      for (std::size_t j = 0; j < e.size(); ++j) {
-        x[P0 + j] = e[j];
-        e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
-      }
-      const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
-      double* r = s.rows.data() + t * ld;
-      for (std::size_t i = 0; i <= Y; ++i) r[s.phys[i]] = x[i] * sw;
-      r[s.phys[Y + 1]] = sw;
-      for (std::size_t i = Y + 2; i < ld; ++i) r[i] = 0.0;
-    }
-    chunk_gram(s.rows.data() + c0 * ld, rows, ld, 0, AT.data());
-  }
-  s.gram = AT;
-  s.kept = true;
-  return semantic_gram(AT, s.phys, ld, P);
+  return gram_stats(semantic_matrix(AT, s.phys, ld), P);
 }
 
 // Weighted Gram sums of rows produced one sample at a time: row(t, x) fills x (P values) and returns the target.
@@ -403,7 +370,6 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
                                 StaticGram* fixed = nullptr, ModeSearchRows* keep = nullptr,
                                 const VaryingColumns& vc = {}) {
   const std::size_t P = P0 + init.size();
-  if (keep) return kept_gram(N, P0, row, init, weight, *keep, vc);
   std::vector<double> e(init);
   // Each row is [x, y, 1]·√w, so one Gram of a chunk gives every sum at once (Σw·xxᵀ, Σw·xy, Σw·x, Σw·y², Σw·y,
   // Σw): 4×4 tiles of a 32-row chunk (chunk_gram), for the creep searches' 7–20 columns as for the Preisach
@@ -411,49 +377,50 @@ training::GramStats stream_gram(std::size_t N, std::size_t P0, const std::functi
   const Eigen::Index Y = static_cast<Eigen::Index>(P), Q = Y + 2;  // columns: x, y, 1
   const Eigen::Index S = fixed ? static_cast<Eigen::Index>(fixed->n) : 0;
   const bool reuse = fixed && fixed->block.rows() == S + 2;
-  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(Q, Q);
   std::vector<double> x(static_cast<std::size_t>(Y) + 1);  // the row's x, then its target y
   // Tile layout: the fixed columns first (the S leading ones, y, 1), then the others, so the fixed pairs are whole
-  // tiles that a reuse skips. phys[i]: where semantic column i sits in a row.
+  // tiles that a reuse skips; kept rows: keep_layout. phys[i]: where semantic column i sits in a row.
   const std::size_t ld = (static_cast<std::size_t>(Q) + 3) / 4 * 4;
   std::vector<std::size_t> phys(static_cast<std::size_t>(Q));
-  for (Eigen::Index i = 0; i < Q; ++i) {
-    const Eigen::Index fi = fixed_column(i, S, Y);
-    phys[static_cast<std::size_t>(i)] = static_cast<std::size_t>(fi >= 0 ? fi : i + 2);
-  }
-  const Eigen::Index kChunk = 32;
-  std::vector<double> R(static_cast<std::size_t>(kChunk) * ld, 0.0), AT(ld * ld, 0.0);
-  const std::size_t skip_rows = reuse ? static_cast<std::size_t>(S + 2) : 0;
-  Eigen::Index fill = 0;
-  auto flush = [&]() {
-    if (!fill) return;
-    chunk_gram(R.data(), static_cast<std::size_t>(fill), ld, skip_rows, AT.data());
-    fill = 0;
-  };
-  for (std::size_t t = 0; t < N; ++t) {
-    x[Y] = row(t, x.data());
-    for (std::size_t j = 0; j < e.size(); ++j) {
-      x[P0 + j] = e[j];
-      // A decayed initial state is set to 0 before it turns subnormal: its products would underflow on every
-      // remaining row, each a slow microcode assist (on hours of data, most of a creep-on-H fit's time).
-      e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
+  if (keep) {
+    keep_layout(*keep, P, vc);
+    phys = keep->phys;
+  } else {
+    for (Eigen::Index i = 0; i < Q; ++i) {
+      const Eigen::Index fi = fixed_column(i, S, Y);
+      phys[static_cast<std::size_t>(i)] = static_cast<std::size_t>(fi >= 0 ? fi : i + 2);
     }
-    const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
-    // phys as three runs: the S leading columns, then y and 1, then the rest.
-    double* r = R.data() + static_cast<std::size_t>(fill) * ld;
-    const std::size_t s = static_cast<std::size_t>(S), y = static_cast<std::size_t>(Y);
-    for (std::size_t j = 0; j < s; ++j) r[j] = x[j] * sw;
-    r[s] = x[y] * sw, r[s + 1] = sw;
-    for (std::size_t j = s; j < y; ++j) r[j + 2] = x[j] * sw;
-    if (++fill == kChunk) flush();
   }
-  flush();
-  for (Eigen::Index i = 0; i < Q; ++i)
-    for (Eigen::Index j = 0; j <= i; ++j) {
-      const std::size_t pi = phys[static_cast<std::size_t>(i)], pj = phys[static_cast<std::size_t>(j)];
-      A(i, j) = AT[std::max(pi, pj) * ld + std::min(pi, pj)];
+  // The rows of a chunk: a 32-row buffer, or (kept) their place among all N rows.
+  const std::size_t kChunk = 32;
+  std::vector<double> R(keep ? 0 : kChunk * ld, 0.0), AT(ld * ld, 0.0);
+  if (keep) keep->rows.resize(N * ld);  // every element written below (padding columns as zeros)
+  const std::size_t skip_rows = reuse && !keep ? static_cast<std::size_t>(S + 2) : 0;
+  for (std::size_t c0 = 0; c0 < N; c0 += kChunk) {
+    const std::size_t rows = std::min(kChunk, N - c0);
+    double* chunk = keep ? keep->rows.data() + c0 * ld : R.data();
+    for (std::size_t t = c0; t < c0 + rows; ++t) {
+      x[Y] = row(t, x.data());
+      for (std::size_t j = 0; j < e.size(); ++j) {
+        x[P0 + j] = e[j];
+        // A decayed initial state is set to 0 before it turns subnormal: its products would underflow on every
+        // remaining row, each a slow microcode assist (on hours of data, most of a creep-on-H fit's time).
+        e[j] = e[j] < 1e-100 ? 0.0 : e[j] * init[j];
+      }
+      const double sw = weight ? std::sqrt((*weight)[t]) : 1.0;
+      double* r = chunk + (t - c0) * ld;
+      for (Eigen::Index i = 0; i <= Y; ++i) r[phys[static_cast<std::size_t>(i)]] = x[static_cast<std::size_t>(i)] * sw;
+      r[phys[static_cast<std::size_t>(Y + 1)]] = sw;
+      for (std::size_t i = static_cast<std::size_t>(Q); i < ld; ++i) r[i] = 0.0;
     }
-  if (fixed) keep_or_reuse(*fixed, reuse, Y, A);
+    chunk_gram(chunk, rows, ld, skip_rows, AT.data());
+  }
+  if (keep) {
+    keep->gram = AT;
+    keep->kept = true;
+  }
+  Eigen::MatrixXd A = semantic_matrix(AT, phys, ld);
+  if (fixed && !keep) keep_or_reuse(*fixed, reuse, Y, A);
   return gram_stats(A, P);
 }
 
@@ -641,7 +608,7 @@ EvalResult solve_pieces_and_creep(const training::GramStats& g, const Basis& hb,
 
 // Creep on the voltage: play pieces and creep basis columns, all weights at once (play weights ≥ 0).
 // `fixed` (optional): the play pieces' Gram entries, shared by the evaluations of one creep-law search.
-// `search` (optional): the rows kept over a search of one LTI time constant (ModeSearchRows).
+// `search` (optional): the rows kept over a search of one LTI time constant or of α (ModeSearchRows).
 EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, double min_w0, StaticGram* fixed = nullptr,
                     ModeSearchRows* search = nullptr) {
   const CreepBasis cb(cp, d.rate);
@@ -653,16 +620,16 @@ EvalResult evaluate(const FitData& d, const Basis& hb, const CreepParams& cp, do
     const auto g = reuse_search_gram(*search, cb, V, V[0], d.weight, np + nk + init.size());
     return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
   }
+  ModeSearchRows* keep = step == SearchStep::kKeep ? search : nullptr;
   std::vector<double> p(hb.r.size(), V[0]), l(nm, V[0]);
-  double* keep_modes = kept_modes(step == SearchStep::kKeep ? search : nullptr, V.size(), nm);
+  double* keep_modes = kept_modes(keep, V.size(), nm);
   const auto g = stream_gram(V.size(), np + nk, [&](std::size_t t, double* x) {
     const double v = V[t];
     hb.columns(v, p, x);
     creep_columns(cb, l, v, x + np);
     if (keep_modes) std::copy(l.begin(), l.end(), keep_modes + t * nm);
     return (*d.y)[t];
-  }, init, d.weight, step == SearchStep::kKeep ? nullptr : fixed, step == SearchStep::kKeep ? search : nullptr,
-     varying_columns(step == SearchStep::kKeep ? search : nullptr, cb.taus, d, np + nk, np));
+  }, init, d.weight, fixed, keep, varying_columns(keep, cb.taus, d, np + nk, np));
   return solve_pieces_and_creep(g, hb, nk, cp, min_w0);
 }
 
@@ -694,7 +661,8 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& H, c
   // The modes start at rest at the H of the first sample's play states (every play at V[0]).
   const double h0 = H.empty() ? 0.0 : H[0];
   std::vector<double> l(nm, h0);
-  double* keep_modes = kept_modes(step == SearchStep::kKeep ? search : nullptr, H.size(), nm);
+  ModeSearchRows* keep = step == SearchStep::kKeep ? search : nullptr;
+  double* keep_modes = kept_modes(keep, H.size(), nm);
   const auto g = step == SearchStep::kReuse
                      ? reuse_search_gram(*search, cb, H, h0, d.weight, nk + 1 + init.size())
                      : stream_gram(H.size(), nk + 1, [&](std::size_t t, double* x) {
@@ -703,8 +671,7 @@ EvalResult evaluate_creep_on_h(const FitData& d, const std::vector<double>& H, c
                          creep_columns(cb, l, h, x + 1);
                          if (keep_modes) std::copy(l.begin(), l.end(), keep_modes + t * nm);
                          return (*d.y)[t];
-                       }, init, d.weight, nullptr, step == SearchStep::kKeep ? search : nullptr,
-                       varying_columns(step == SearchStep::kKeep ? search : nullptr, cb.taus, d, nk + 1, 1));
+                       }, init, d.weight, nullptr, keep, varying_columns(keep, cb.taus, d, nk + 1, 1));
   std::vector<bool> constrained(nk + 1, signed_creep(cp));
   constrained[0] = false;
   EvalResult res = solve(g, constrained);
