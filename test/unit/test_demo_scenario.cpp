@@ -47,7 +47,9 @@ YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, 
     if (!n) continue;
     if (n->set_mode) {
       const bool on = run.switches_hold_trim() ? n->hold_trim : n->compensated;
-      if (run.switches_hold_trim()) EXPECT_TRUE(n->compensated) << "hold_trim: compensation stays on";
+      if (run.switches_hold_trim()) {
+        EXPECT_TRUE(n->compensated) << "hold_trim: compensation stays on";
+      }
       mode = on ? 1 : 0;
       if (mode_switches) ++*mode_switches;
       if (modes) modes->push_back(on);

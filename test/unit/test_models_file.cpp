@@ -46,6 +46,8 @@ std::vector<ModelPtr> one_of_each_kind() {
     m->meta.training_source = "train.csv";
     m->meta.validation["one_step_mae_nm"] = 17.25;
     m->meta.created_utc = "2026-11-21T06:00:00Z";
+    m->meta.train_voltage_min_v = -12.5;
+    m->meta.train_voltage_max_v = 80.0;
   }
   return out;
 }
@@ -62,6 +64,8 @@ TEST(ModelFile, RoundTripEveryKindPredictsIdentically) {
     EXPECT_EQ(back->meta.training_source, "train.csv");
     EXPECT_EQ(back->meta.created_utc, m->meta.created_utc);
     EXPECT_DOUBLE_EQ(back->meta.validation.at("one_step_mae_nm"), 17.25);
+    EXPECT_DOUBLE_EQ(back->meta.train_voltage_min_v, -12.5);
+    EXPECT_DOUBLE_EQ(back->meta.train_voltage_max_v, 80.0);
     EXPECT_EQ(back->num_parameters(), m->num_parameters());
     m->reset(v[0], 1.0);
     back->reset(v[0], 1.0);
@@ -101,6 +105,10 @@ TEST(ModelFile, MalformedFilesGiveOneClearErrorNamingFileAndKey) {
       {"weights_type", "model.weights[0]: expected a finite number",
        [](YAML::Node& n) { n["model"]["weights"][0] = "x"; }},
       {"no_bias", "model.bias_nm: missing key", [](YAML::Node& n) { n["model"].remove("bias_nm"); }},
+      {"voltage_range", "training.voltage_min_v/voltage_max_v: expected two finite numbers, min <= max",
+       [](YAML::Node& n) { n["training"]["voltage_min_v"] = 90.0; }},
+      {"voltage_range_type", "training.voltage_min_v/voltage_max_v: expected two finite numbers",
+       [](YAML::Node& n) { n["training"]["voltage_max_v"] = "high"; }},
       {"bad_feature", "model.features.features[0].type: unknown feature type",
        [](YAML::Node& n) { n["model"]["features"]["features"][0]["type"] = "nope"; }},
   };

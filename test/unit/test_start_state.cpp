@@ -16,6 +16,7 @@
 #include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/training/fitters.h"
@@ -142,6 +143,97 @@ TEST(StartState, AtRestNoWorseThanOffsetOnly) {
   EXPECT_LE(est.start.rms_nm, est.start.rms_rest_nm);
   EXPECT_LE(est.score.mae_true, 1.05 * plain.score.mae_true + 0.5);
   EXPECT_LE(est.score.mae_meas, 1.05 * plain.score.mae_meas + 0.5);
+}
+
+// (d) The creep modes' states are fitted on the window (Model::linear_state_count), not only chosen among the
+// synthetic histories: a stage that rested 2000 s at 12 V (a voltage no candidate rests at) and then moved for
+// 5 min before the recording starts. The truth is the model itself (σ 5 nm readings), so only the state is unknown;
+// the stage matrix runs the fit on physics the models were not built from.
+models::PiCreepModel creep_truth() {
+  models::CreepParams cp;
+  cp.kind = models::CreepKind::kLti;
+  cp.taus_s = {3.0, 60.0, 900.0};
+  cp.gains_nm_per_v = {1.0, 1.5, 2.5};
+  return models::PiCreepModel({0, 8, 16, 32}, {8, 2, 1, 0.5}, 0, cp, 11.0);
+}
+
+io::Dataset creep_recording() {
+  models::PiCreepModel truth = creep_truth();
+  truth.reset(12.0, 0.0);
+  for (int i = 0; i < 22000; ++i) truth.commit({12.0, nullptr}, 0.0);  // 2000 s at 12 V
+  io::Dataset d;
+  auto& a = d.add_axis("c");
+  std::uint64_t x = 88172645463325252ull;
+  const int pre = 3300, n = 6600;  // 5 min unseen, then 10 min recorded
+  for (int i = 0; i < pre + n; ++i) {
+    const double t = i / 11.0;
+    const double v = 12.0 + 50.0 * std::sin(2 * M_PI * t / 97.0) * std::sin(2 * M_PI * t / 431.0);
+    const double y = truth.predict({v, nullptr});
+    truth.commit({v, nullptr}, y);
+    if (i < pre) continue;
+    x ^= x << 13, x ^= x >> 7, x ^= x << 17;  // xorshift: deterministic readings
+    const double u1 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
+    x ^= x << 13, x ^= x >> 7, x ^= x << 17;
+    const double u2 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
+    d.time_s.push_back(t - pre / 11.0);
+    a.voltage_v.push_back(v);
+    a.true_position_nm.push_back(y);
+    a.position_nm.push_back(y + 5.0 * std::sqrt(-2 * std::log(u1)) * std::cos(2 * M_PI * u2));
+  }
+  return d;
+}
+
+TEST(StartState, CreepStatesAreFittedOnTheWindow) {
+  const models::PiCreepModel m = creep_truth();
+  EXPECT_EQ(m.linear_state_count(), 3u);
+  {  // a shift moves the next prediction by itself, then decays with the mode
+    models::PiCreepModel c = m;
+    c.reset(5.0, 0.0);
+    const double y0 = c.predict({5.0, nullptr}), s0 = c.linear_state_nm(1);
+    c.shift_linear_state(1, 7.0);
+    EXPECT_NEAR(c.predict({5.0, nullptr}) - y0, 7.0, 1e-9);
+    EXPECT_NEAR(c.linear_state_nm(1) - s0, 7.0, 1e-9);
+  }
+  const io::Dataset rec = creep_recording();
+  models::StartOptions o;
+  o.window_s = 30.0;
+  const models::StartEstimate with = models::estimate_start(m, rec, "c", o);
+  o.fit_linear_states = false;
+  const models::StartEstimate without = models::estimate_start(m, rec, "c", o);
+  std::printf("with the creep states: %s\nwithout: %s\n", with.describe().c_str(), without.describe().c_str());
+  EXPECT_EQ(with.linear_states, 3u);
+  EXPECT_EQ(with.history.linear_shift_nm.size(), 3u);
+  EXPECT_EQ(without.linear_states, 0u);
+  EXPECT_TRUE(without.history.linear_shift_nm.empty());
+  // Scored after the window against the truth, each run as stream_model runs it (prepare_start, then the offset).
+  auto mae_after = [&](const models::StartEstimate& e) {
+    models::PiCreepModel c = m;
+    models::prepare_start(c, rec, "c", e.history);
+    double sum = 0;
+    std::size_t n = 0;
+    for (std::size_t i = 0; i < rec.size(); ++i) {
+      const models::ModelInput in{rec.axis("c").voltage_v[i], nullptr};
+      const double y = c.predict(in) + e.offset_nm;
+      c.commit(in, y);
+      if (i >= e.window_rows) sum += std::abs(y - rec.axis("c").true_position_nm[i]), ++n;
+    }
+    return sum / static_cast<double>(n);
+  };
+  const double a = mae_after(with), b = mae_after(without);
+  std::printf("MAE vs truth after the window: %.2f nm with the creep states, %.2f nm without\n", a, b);
+  EXPECT_LT(a, 0.7 * b);
+  EXPECT_TRUE(std::isfinite(with.offset_sigma_nm) && with.offset_sigma_nm > 0);
+  // A fitted model knows its training data's voltage range: the synthetic histories stay in it (above, without
+  // it, they span the window's voltage span on both sides of the first voltage: "rested at 85.69 V").
+  models::PiCreepModel ranged = m;
+  ranged.meta.train_voltage_min_v = -20.0;
+  ranged.meta.train_voltage_max_v = 62.0;
+  const models::StartEstimate r = models::estimate_start(ranged, rec, "c", o);
+  ASSERT_FALSE(r.history.rest) << r.describe();
+  for (double v : {r.history.reset_v, r.history.turn_v}) {
+    EXPECT_GE(v, -20.0) << r.describe();
+    EXPECT_LE(v, 62.0) << r.describe();
+  }
 }
 
 // (c) Bad input: one clear error naming what was wrong.

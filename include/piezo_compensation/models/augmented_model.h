@@ -100,6 +100,10 @@ class AugmentedModel : public Model {
   std::vector<std::string> aux_inputs() const override;  // base model's first, then the terms' columns
   YAML::Node to_yaml() const override;
   std::size_t num_parameters() const override;
+  // The base model's (the terms' states are not linear states).
+  std::size_t linear_state_count() const override { return base_->linear_state_count(); }
+  double linear_state_nm(std::size_t k) const override { return base_->linear_state_nm(k); }
+  void shift_linear_state(std::size_t k, double delta_nm) override { base_->shift_linear_state(k, delta_nm); }
 
   const Model& base() const { return *base_; }
   const std::vector<EffectTerm>& terms() const { return stream_.terms(); }

@@ -3,6 +3,7 @@
 
 #include <yaml-cpp/yaml.h>
 
+#include <limits>
 #include <map>
 #include <memory>
 #include <string>
@@ -23,6 +24,10 @@ struct ModelMeta {
   std::string training_source;                 // file(s) it was fitted on
   std::string time_clock;                      // what the training data's time_s was: "ros" (ROS time stamps,
                                                // a bag the nodes wrote) or "" (the data file's own time base)
+  // The applied voltage's range in the training data [V] (NaN: not known): where a history the model has not seen
+  // can have been (the start-up state estimate's synthetic histories span it).
+  double train_voltage_min_v = std::numeric_limits<double>::quiet_NaN();
+  double train_voltage_max_v = std::numeric_limits<double>::quiet_NaN();
   std::map<std::string, double> validation;    // e.g. {"one_step_mae_nm": 17.1, "free_run_mae_nm": 6.2}
   std::string created_utc;
   YAML::Node selection;                        // `--model auto`: the candidates' scores and the choice (or null)
@@ -66,6 +71,15 @@ class Model {
 
   // Number of trainable parameters (for reports).
   virtual std::size_t num_parameters() const = 0;
+
+  // Linear states (the start-up state estimate, models/start_state.h): parts of the state whose effect on the
+  // prediction adds linearly and then evolves on its own (creep modes: a shift decays with the mode's time
+  // constant, whatever the input does). A recording's first seconds fit them by least squares.
+  virtual std::size_t linear_state_count() const { return 0; }
+  // State k's share of the next prediction [nm] (k < linear_state_count()).
+  virtual double linear_state_nm(std::size_t /*k*/) const { return 0.0; }
+  // Moves state k so that the next prediction changes by delta_nm (later ones by what the state makes of it).
+  virtual void shift_linear_state(std::size_t /*k*/, double /*delta_nm*/) {}
 
   ModelMeta meta;
 };

@@ -35,6 +35,10 @@ class PiCreepModel : public Model {
   bool is_affine_in_voltage() const override { return false; }
   YAML::Node to_yaml() const override;
   std::size_t num_parameters() const override;
+  // The creep modes with a non-zero gain: each one's low-pass state (its share g·pole·l of the next prediction).
+  std::size_t linear_state_count() const override { return live_modes_.size(); }
+  double linear_state_nm(std::size_t k) const override;
+  void shift_linear_state(std::size_t k, double delta_nm) override;
 
   double predict_v(double voltage_v) const;
   // Exact inverse for the current state: the voltage whose predict() is target_nm (piecewise-linear, closed
@@ -64,6 +68,7 @@ class PiCreepModel : public Model {
   CreepParams creep_;
   double rate_hz_;
   std::vector<double> taus_, gains_, poles_;  // expanded creep modes
+  std::vector<std::size_t> live_modes_;       // modes with g·pole ≠ 0 (the linear states)
   std::vector<double> p_, l_;                 // state: play outputs, mode low-passes
 };
 

@@ -5,7 +5,10 @@
 // against the candidates' spread (rows where the unknown history still moves the prediction count little), and
 // among the candidates that fit about as well as the best, the one that needs the least offset is chosen: an
 // offset that a plausible state explains is left to the state, which the voltage sweeps into agreement later.
-// Generic: it only uses Model::reset/predict/commit/clone, so it works for every kind.
+// Then the chosen state's linear parts (Model::linear_state_count: the creep modes) are fitted on the window with
+// the offset, by a small ridge least-squares: each state's prior is how far the candidates put it, the offset's the
+// reading noise (docs/models.md, "Start-up state estimate").
+// Generic: it only uses the Model interface, so it works for every kind (kinds without linear states: no fit).
 //
 // It is the one anchor: stream_model's anchor_s (`piezo eval/residual --anchor-s`) runs it, and the estimator
 // (estimation::ErrorFilter) starts from its offset and σ in the compensator (the predictor's ~start_estimate_s,
@@ -15,6 +18,7 @@
 #include <cstddef>
 #include <limits>
 #include <string>
+#include <vector>
 
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
@@ -26,6 +30,7 @@ struct StartOptions {
   // false: offset only (the model is reset at rest at the first voltage and measured position: the plain anchor).
   bool search_history = true;
   // Turning points of the synthetic histories span this voltage range (a live node passes its voltage limits); NaN:
+  // the model's training voltage range (ModelMeta::train_voltage_min_v/max_v), or, when the model file has none,
   // the data's voltage span over all its rows (the applied voltage is the known input, not a measurement) laid
   // on both sides of the first voltage, so histories from above and from below are both tried.
   double voltage_min_v = std::numeric_limits<double>::quiet_NaN();
@@ -33,6 +38,8 @@ struct StartOptions {
   // Samples of synthetic history per candidate (each sample one model step at the data's rate): caps the longest
   // hold, so the search stays fast at kHz rates (there the long ages drop out).
   std::size_t max_history_samples = 20000;
+  // Fit the chosen candidate's linear states (Model::linear_state_count: creep modes) on the window as well.
+  bool fit_linear_states = true;
 };
 
 // One synthetic pre-history, at the data's rate: rest at reset_v, ramp to turn_v, ramp to the window's first
@@ -42,6 +49,8 @@ struct StartHistory {
   double reset_v = 0, turn_v = 0, start_v = 0;
   std::size_t ramp_to_turn_rows = 0, ramp_to_start_rows = 0, hold_rows = 0;
   double dt_s = 0;
+  // Then each linear state k moved by linear_shift_nm[k] (Model::shift_linear_state; empty: none).
+  std::vector<double> linear_shift_nm;
   std::string describe() const;  // "rest" or e.g. "from 42 V down, held 300 s"
 };
 
@@ -50,10 +59,11 @@ struct StartEstimate {
   std::size_t candidates = 0;         // how many were tried
   // Measured − predicted over the window, each row weighted by 1/(σ² + (spread/2)²): σ the reading noise (the
   // scatter of the residual's steps), spread the range of every non-diverging candidate's prediction at that row.
-  // Offset only (search_history false): the plain mean.
+  // With linear states fitted: the offset of that fit. Offset only (search_history false): the plain mean.
   double offset_nm = 0.0;
   // 1σ of the offset: half the weighted spread (what the unknown history may still shift) and the noise's share
-  // (its correlation counted); offset only: the scatter's share alone.
+  // (its correlation counted); with linear states fitted: the posterior σ of the fitted correction (offset and
+  // states) at the window's last row; offset only: the scatter's share alone.
   double offset_sigma_nm = 0.0;
   double rms_rest_nm = 0.0;           // weighted window RMS residual of the rest candidate (its own offset)
   double rms_best_nm = 0.0;           // the smallest weighted window RMS of any candidate
@@ -62,6 +72,11 @@ struct StartEstimate {
   // weights and the residuals' correlation; rest's), the one with the smallest |offset|, rest first on a tie.
   double spread_end_nm = 0.0;         // the candidates' spread at the window's last row (0 for offset only)
   std::size_t window_rows = 0;        // rows in the window (scoring starts at this row)
+  // The linear-state fit (StartOptions::fit_linear_states): states fitted (0: none, or the fit did not improve the
+  // window), the largest |shift| [nm] of one state's share of the prediction, and the weighted window RMS before.
+  std::size_t linear_states = 0;
+  double linear_shift_max_nm = 0.0;
+  double rms_before_states_nm = 0.0;
   StartHistory history;               // the chosen pre-history (prepare_start puts a model there)
   std::string describe() const;       // one line for logs and reports
 };
@@ -72,7 +87,7 @@ struct StartEstimate {
 StartEstimate estimate_start(const Model& model, const io::Dataset& data, const std::string& axis,
                              const StartOptions& o);
 
-// Puts `model` in the state `history` ends in, just before the data's row 0 (reset, then the synthetic rows with
+// Puts `model` in the state `history` ends in (its linear shifts included), just before the data's row 0 (reset, then the synthetic rows with
 // the model's inputs held at row 0's values; free-run). The data gives the first voltage, measurement and inputs.
 void prepare_start(Model& model, const io::Dataset& data, const std::string& axis, const StartHistory& history);
 

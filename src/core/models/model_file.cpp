@@ -20,6 +20,10 @@ YAML::Node model_to_file_yaml(const Model& m) {
   root["training"]["fingerprint"] = m.meta.training_fingerprint;
   root["training"]["source"] = m.meta.training_source;
   if (!m.meta.time_clock.empty()) root["training"]["time_clock"] = m.meta.time_clock;
+  if (std::isfinite(m.meta.train_voltage_min_v) && std::isfinite(m.meta.train_voltage_max_v)) {
+    root["training"]["voltage_min_v"] = m.meta.train_voltage_min_v;
+    root["training"]["voltage_max_v"] = m.meta.train_voltage_max_v;
+  }
   YAML::Node val(YAML::NodeType::Map);
   for (const auto& [k, v] : m.meta.validation) val[k] = v;
   root["validation"] = val;
@@ -80,6 +84,18 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
       if (t["fingerprint"]) m->meta.training_fingerprint = t["fingerprint"].as<std::string>();
       if (t["source"]) m->meta.training_source = t["source"].as<std::string>();
       if (t["time_clock"]) m->meta.time_clock = t["time_clock"].as<std::string>();
+      if (t["voltage_min_v"] || t["voltage_max_v"]) {
+        double lo = NAN, hi = NAN;
+        try {
+          lo = t["voltage_min_v"].as<double>();
+          hi = t["voltage_max_v"].as<double>();
+        } catch (const YAML::Exception&) {
+        }
+        if (!(std::isfinite(lo) && std::isfinite(hi) && lo <= hi))
+          throw top_err("training.voltage_min_v/voltage_max_v", "expected two finite numbers, min <= max");
+        m->meta.train_voltage_min_v = lo;
+        m->meta.train_voltage_max_v = hi;
+      }
     }
     if (const YAML::Node v = root["validation"]) {
       if (!v.IsMap()) throw top_err("validation", "expected a mapping");

@@ -56,6 +56,8 @@ PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double>
   if (!(rate_hz_ > 0)) throw std::runtime_error("PI model: sample rate must be > 0");
   creep_.modes(taus_, gains_);
   for (double t : taus_) poles_.push_back(std::exp(-1.0 / (rate_hz_ * t)));
+  for (std::size_t j = 0; j < taus_.size(); ++j)
+    if (gains_[j] * poles_[j] != 0.0) live_modes_.push_back(j);
   meta.sample_rate_hz = rate_hz_;
   reset(0.0, 0.0);
 }
@@ -89,6 +91,16 @@ void PiCreepModel::commit(const ModelInput& in, double) {
   const double h = hysteresis(v, p_, &p_);
   const double u = creep_.on_hysteresis ? h : v;
   for (std::size_t j = 0; j < taus_.size(); ++j) l_[j] = poles_[j] * l_[j] + (1 - poles_[j]) * u;
+}
+
+double PiCreepModel::linear_state_nm(std::size_t k) const {
+  const std::size_t j = live_modes_.at(k);
+  return gains_[j] * poles_[j] * l_[j];
+}
+
+void PiCreepModel::shift_linear_state(std::size_t k, double delta_nm) {
+  const std::size_t j = live_modes_.at(k);
+  l_[j] += delta_nm / (gains_[j] * poles_[j]);
 }
 
 double PiCreepModel::inverse(double target) const {
