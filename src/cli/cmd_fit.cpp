@@ -126,8 +126,9 @@ int run(int argc, char** argv) {
           if (!f) throw std::runtime_error(args.str("lasso-report") + ": cannot open for writing");
           f << report;
         }
-        std::cerr << "\nlasso kept " << kept << " of " << features::candidate_features().size()
-                  << " candidate features (λ_1se)\n";
+        const features::DataSpan span = io::data_span(train, axis);
+        std::cerr << "\nlasso kept " << kept << " of " << features::candidate_features(&span).size()
+                  << " candidate features the data can identify (λ_1se)\n";
         options["features"] = o["features"];
       } else {
         features::check_feature_set_name(set);  // validates the name

@@ -210,3 +210,23 @@ TEST(FeatureSets, StudySetIsCausalAndNamed) {
   EXPECT_FALSE(features::physics_features().uses_positions());
   EXPECT_THROW(features::named_features("nope"), std::runtime_error);
 }
+
+// The candidates placed on a recording keep only what it can identify: no time constant, window or lag over a
+// third of its length (a 20-s recording's lasso had weighted 2-h and 8-h low-passes ±10⁸ nm/V against each other).
+TEST(FeatureSpecs, CandidatesOnShortDataKeepOnlyWhatItCanIdentify) {
+  const FeatureSpec all = features::candidate_features();
+  io::DataSpan span;
+  span.voltage_min_v = 0, span.voltage_max_v = 100, span.duration_s = 20.0, span.sample_rate_hz = 5000;
+  const FeatureSpec kept = features::candidate_features(&span);
+  EXPECT_LT(kept.size(), all.size());
+  bool has_voltage = false;
+  for (const auto& f : kept.features) {
+    EXPECT_LE(f.time_constant_s, 20.0 / 3) << f.name();
+    EXPECT_LE(f.window_s, 20.0 / 3) << f.name();
+    EXPECT_LE(f.lag_s, 20.0 / 3) << f.name();
+    has_voltage |= f.type == "voltage";
+  }
+  EXPECT_TRUE(has_voltage);
+  span.duration_s = 1e7;  // a long recording keeps them all
+  EXPECT_EQ(features::candidate_features(&span).size(), all.size());
+}

@@ -115,3 +115,50 @@ TEST(LinearModel, PredictionOfSampleTDoesNotDependOnMeasurementT) {
   a.commit(in, 1e4);
   EXPECT_NE(c->predict(in), a.predict(in));
 }
+
+// A free run that amplifies its start error is numerically wild whatever its score: free_run_gain measures it (two
+// free runs started 1 µm apart), and fit_linear refits such a fit on its voltage features alone.
+TEST(LinearModel, AFreeRunThatAmplifiesItsStartIsRefittedOnTheVoltage) {
+  features::FeatureSpec spec;
+  features::FeatureDef f;
+  f.type = "voltage";
+  spec.features.push_back(f);
+  f = {};
+  f.type = "lagged_position";
+  f.lag_s = 1.0 / 11.0;
+  spec.features.push_back(f);
+  const auto v = testdata::random_walk_v(400, 5);
+  Eigen::VectorXd w(2);
+  for (double a : {0.5, 1.0, 1.05}) {
+    w << 10.0, a;
+    LinearModel m(spec, 11.0, w, 0.0);
+    const io::Dataset d = testdata::make_dataset(m, v, 11.0, 0.0, 1);
+    const double gain = training::free_run_gain(m, d, "c");
+    if (a < 1)
+      EXPECT_LE(gain, 0.5 + 1e-9);  // the first prediction carries a·Δ, later ones less
+    else if (a == 1.0)
+      EXPECT_NEAR(gain, 1.0, 1e-9);  // a random walk keeps its start
+    else
+      EXPECT_GT(gain, 1e6);  // 1.05^400
+  }
+  // Data made by that amplifying recursion (y_t = 1.05 y_{t−1} + 10 V_t): OLS finds it exactly, and the fit keeps
+  // only the voltage.
+  w << 10.0, 1.05;
+  LinearModel wild(spec, 11.0, w, 0.0);
+  const io::Dataset d = testdata::make_dataset(wild, v, 11.0, 0.0, 1);
+  training::FitRequest req;
+  req.train = &d;
+  req.options["features"] = spec.to_yaml();
+  std::string said;
+  req.progress = [&](double, double, const std::string& what) { said += what; };
+  const models::ModelPtr fitted = training::fit_model("linear", req);
+  EXPECT_FALSE(fitted->uses_position_history());
+  EXPECT_LE(training::free_run_gain(*fitted, d, "c"), 0.0);
+  EXPECT_NE(said.find("refitted on the voltage features"), std::string::npos) << said;
+  // Data from the stable one keeps its position feature.
+  w << 10.0, 0.5;
+  LinearModel tame(spec, 11.0, w, 0.0);
+  const io::Dataset stable = testdata::make_dataset(tame, v, 11.0, 0.0, 1);
+  req.train = &stable;
+  EXPECT_TRUE(training::fit_model("linear", req)->uses_position_history());
+}

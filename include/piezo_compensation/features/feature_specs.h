@@ -14,17 +14,24 @@ namespace piezo::features {
 // here it is D_{t−10}…D_{t−1} (causal).
 FeatureSpec study_features();
 
+// What a data-placed feature set is placed on: the training data's voltage extremes, length and rate.
+using DataSpan = io::DataSpan;
+
 // The §4.2 candidate set (lagged positions, last step, summed past steps, rolling exponential sums over several
 // windows and decays) plus the hysteresis-operator family the study did not try: play and stop operators at
-// several thresholds and low-passed play outputs with log-spaced time constants up to hours.
-FeatureSpec candidate_features();
+// several thresholds and low-passed play outputs with log-spaced time constants up to hours. With `span`: only the
+// candidates the data can identify (identifiable_on).
+FeatureSpec candidate_features(const DataSpan* span = nullptr);
+
+// The features of `spec` whose memory a recording of span.duration_s can show: time constants, windows and lags
+// up to a third of it (as the voltage_history set places its slowest low-pass). A slower one is a constant or the
+// voltage itself over the recording: on a 20-s recording the lasso weighted low-passes of 2 h and 8 h ±4·10⁷ and
+// 1.6·10⁸ nm/V against each other, exact on the recording and 10⁸ nm off from another start.
+FeatureSpec identifiable_on(const FeatureSpec& spec, const DataSpan& span);
 
 // Only voltage-history features (no positions): the candidates minus lagged positions. One-step = free-run.
 // Includes V² (asymmetry) and low-passed play outputs at 1 s … 8.3 h (creep of the hysteretic displacement).
 FeatureSpec physics_features();
-
-// What a data-placed feature set is placed on: the training data's voltage extremes, length and rate.
-using DataSpan = io::DataSpan;
 
 // Only voltage history, placed on the data itself (the neural kinds' default): V, ΔV, play operators at 3, 10,
 // 20 and 40 % of the voltage span, and low-passes of the 10 % play output with time constants at 1/3000, 1/300,

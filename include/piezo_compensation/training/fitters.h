@@ -27,7 +27,14 @@ const FitFn& fitter(const std::string& kind);
 models::ModelPtr fit_model(const std::string& kind, const FitRequest& request);
 
 // options: method (ols|ridge|lasso), ridge_lambda, lasso_choice (1se|min), folds, features (see fit_common.h).
+// A fit whose position features amplify a start error in free run (free_run_gain > kMaxFreeRunGain on the training
+// data) is refitted on its voltage features alone.
 models::ModelPtr fit_linear(const FitRequest& req);
+// The largest gap between two free runs of `model` over `data` started 1 µm apart (reset at the first voltage and
+// reading, and 1 µm above it), in µm per µm: 0 for a model that reads no positions, about 1 or less for a free run
+// that forgets or keeps its start, more for one that amplifies it (infinite when a run diverges).
+double free_run_gain(const models::Model& model, const io::Dataset& data, const std::string& axis);
+constexpr double kMaxFreeRunGain = 10.0;
 
 // options: n_play (by validation, else 12), thresholds_v (list, overrides n_play), n_pairs (lti, 2), taus_s (lti
 // start values; fix_taus: true keeps them), t1_s / alpha (fix instead of searching), warm_start (taus_s, t1_s or alpha

@@ -81,7 +81,16 @@ FeatureSpec physics_features() {
   return s;
 }
 
-FeatureSpec candidate_features() {
+FeatureSpec identifiable_on(const FeatureSpec& spec, const DataSpan& span) {
+  const double longest_s = span.duration_s / 3.0;
+  FeatureSpec out;
+  for (const FeatureDef& f : spec.features)
+    if (f.time_constant_s <= longest_s && f.window_s <= longest_s && f.lag_s <= longest_s) out.features.push_back(f);
+  return out;
+}
+
+FeatureSpec candidate_features(const DataSpan* span) {
+  if (span) return identifiable_on(candidate_features(), *span);
   FeatureSpec s;
   for (double steps : {1.0, 2.0, 5.0, 10.0, 20.0}) {
     FeatureDef f = def("lagged_position");

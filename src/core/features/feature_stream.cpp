@@ -9,7 +9,8 @@
 
 namespace piezo::features {
 
-namespace {
+// Named (not anonymous): FeatureStream::Impl holds these types, and in a unity build an anonymous one warns.
+namespace stream_detail {
 
 enum class Type { kVoltageSq, kVoltage, kStep, kStepSum, kExpSum, kLowpass, kPlay, kStop, kPlayLowpass, kLag, kMean, kAux };
 
@@ -65,7 +66,8 @@ struct Compiled {
   int aux_index = -1;
 };
 
-}  // namespace
+}  // namespace stream_detail
+using namespace stream_detail;
 
 std::string FeatureDef::name() const {
   if (type == "voltage") return "V";

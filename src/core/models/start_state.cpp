@@ -115,12 +115,17 @@ std::vector<double> stream_window(const Model& state, const io::Dataset& window,
   return stream_model(*m, window, axis, so).prediction;
 }
 
+// A candidate whose window diverged (the stream keeps it finite at ±1e12 nm): no plausible history.
+bool diverged(const std::vector<double>& p) {
+  return std::any_of(p.begin(), p.end(), [](double x) { return !(std::abs(x) < 1e11); });
+}
+
 // Per row, how far apart the candidates' predictions are: what the unknown history can still change there.
 // A candidate that diverges in the window (kept finite at ±1e12 nm by the stream) is no plausible history.
 std::vector<double> state_spread(const std::vector<std::vector<double>>& preds, std::size_t k) {
   std::vector<double> lo(k, INFINITY), hi(k, -INFINITY), s(k, 0.0);
   for (const auto& p : preds) {
-    if (std::any_of(p.begin(), p.end(), [](double x) { return !(std::abs(x) < 1e11); })) continue;
+    if (diverged(p)) continue;
     for (std::size_t i = 0; i < k; ++i) lo[i] = std::min(lo[i], p[i]), hi[i] = std::max(hi[i], p[i]);
   }
   for (std::size_t i = 0; i < k; ++i) s[i] = hi[i] >= lo[i] ? hi[i] - lo[i] : 0.0;
@@ -303,7 +308,7 @@ std::vector<double> state_prior(const std::vector<std::vector<double>>& preds,
                                 const std::vector<std::vector<double>>& states, std::size_t n_states) {
   std::vector<double> lo(n_states, INFINITY), hi(n_states, -INFINITY), s(n_states, 0.0);
   for (std::size_t c = 0; c < preds.size(); ++c) {
-    if (std::any_of(preds[c].begin(), preds[c].end(), [](double x) { return !(std::abs(x) < 1e11); })) continue;
+    if (diverged(preds[c])) continue;
     for (std::size_t j = 0; j < n_states; ++j) lo[j] = std::min(lo[j], states[c][j]), hi[j] = std::max(hi[j], states[c][j]);
   }
   for (std::size_t j = 0; j < n_states; ++j) s[j] = hi[j] > lo[j] && std::isfinite(hi[j] - lo[j]) ? 0.5 * (hi[j] - lo[j]) : 0.0;

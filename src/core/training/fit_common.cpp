@@ -171,7 +171,7 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
   } else if (f.IsScalar()) {
     const std::string name = f.as<std::string>();
     if (name == "lasso") {
-      LassoSelection sel = run_lasso(features::candidate_features(), *req.train, req.axis, {}, req.progress);
+      LassoSelection sel = run_lasso(features::candidate_features(&span), *req.train, req.axis, {}, req.progress);
       spec = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
       spec.mean.clear();
       spec.scale.clear();
