@@ -118,6 +118,17 @@ TEST(EvalReport, WritesMarkdownJsonAndTraces) {
   EXPECT_NEAR(js["models"][0]["hysteresis"]["one_step"]["vs_truth"]["mae_nm"].as<double>(), 0.0, 1e-6);
   EXPECT_TRUE(std::filesystem::exists(dir + "/traces_test.csv"));
   EXPECT_TRUE(std::filesystem::exists(dir + "/traces_creep.csv"));
+  // With an anchor the report says what the start estimate chose and fitted: here both creep modes' states.
+  EvalOptions anchored;
+  anchored.anchor_s = 30.0;
+  evs = {evaluate_model(model, "pi_lti", d, nullptr, anchored)};
+  ctx.anchor_s = anchored.anchor_s;
+  write_eval_report(dir, ctx, evs, d, nullptr);
+  const YAML::Node st = YAML::LoadFile(dir + "/report.json")["models"][0]["start_estimate"];
+  ASSERT_TRUE(st.IsMap());
+  EXPECT_EQ(st["creep_states_fitted"].as<int>(), 2);
+  EXPECT_EQ(st["creep_state_shifts_nm"].size(), 2u);
+  EXPECT_GT(st["candidates"].as<int>(), 1);
 }
 
 TEST(Evaluation, SegmentListsAndSegmentScoring) {
