@@ -25,8 +25,8 @@ FeatureSpec candidate_features(const DataSpan* span = nullptr);
 
 // The features of `spec` whose memory a recording of span.duration_s can show: time constants, windows and lags
 // up to a third of it (as the voltage_history set places its slowest low-pass). A slower one is a constant or the
-// voltage itself over the recording: on a 20-s recording the lasso weighted low-passes of 2 h and 8 h ±4·10⁷ and
-// 1.6·10⁸ nm/V against each other, exact on the recording and 10⁸ nm off from another start.
+// voltage itself over the recording, and a fit may weight such near-copies hugely against each other: exact on
+// that recording, far off from any other start (docs/models.md, "Separate recording").
 FeatureSpec identifiable_on(const FeatureSpec& spec, const DataSpan& span);
 
 // Only voltage-history features (no positions): the candidates minus lagged positions. One-step = free-run.

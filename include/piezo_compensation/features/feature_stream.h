@@ -35,6 +35,7 @@ struct FeatureDef {
   std::string signal;            // for "aux"
 
   std::string name() const;      // human-readable, e.g. "exp_sum(V, 5.45 s, a=0.95)"
+  bool reads_position() const;   // lagged_position, position_mean: the model's own past positions in free run
 };
 
 struct FeatureSpec {

@@ -78,7 +78,8 @@ struct DataSpan {
   double voltage_min_v = 0, voltage_max_v = 0, duration_s = 0, sample_rate_hz = 0;
   double voltage_span_v() const { return voltage_max_v - voltage_min_v; }
 };
-// duration_s = rows / rate (rows × sample period). Throws DataError like sample_period_s() on fewer than 2 rows.
+// duration_s = rows / rate (rows × sample period); the voltage extremes of the finite voltages (0 and 0 with none).
+// Throws DataError like sample_period_s() on fewer than 2 rows.
 DataSpan data_span(const Dataset& data, const std::string& axis);
 
 // The usual step of a time column: the median of its steps (a gap or a late sample does not move it); 0 with

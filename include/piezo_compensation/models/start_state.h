@@ -72,11 +72,10 @@ struct StartEstimate {
   // weights and the residuals' correlation; rest's), the one with the smallest |offset|, rest first on a tie.
   double spread_end_nm = 0.0;         // the candidates' spread at the window's last row (0 for offset only)
   std::size_t window_rows = 0;        // rows in the window (scoring starts at this row)
-  // The linear-state fit (StartOptions::fit_linear_states): states fitted (0: none, or the fit did not improve the
-  // window), the largest |shift| [nm] of one state's share of the prediction, and the weighted window RMS before.
+  // The linear-state fit (StartOptions::fit_linear_states): states fitted (0: the kind has none, or every candidate
+  // puts them at one place) and the largest |shift| [nm] of one state's share of the prediction.
   std::size_t linear_states = 0;
   double linear_shift_max_nm = 0.0;
-  double rms_before_states_nm = 0.0;
   StartHistory history;               // the chosen pre-history (prepare_start puts a model there)
   std::string describe() const;       // one line for logs and reports
 };

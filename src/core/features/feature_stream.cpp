@@ -175,10 +175,10 @@ FeatureSpec FeatureSpec::from_yaml(const YAML::Node& node) {
   return spec;
 }
 
+bool FeatureDef::reads_position() const { return type == "lagged_position" || type == "position_mean"; }
+
 bool FeatureSpec::uses_positions() const {
-  for (const auto& f : features)
-    if (f.type == "lagged_position" || f.type == "position_mean") return true;
-  return false;
+  return std::any_of(features.begin(), features.end(), [](const FeatureDef& f) { return f.reads_position(); });
 }
 
 std::vector<std::string> FeatureSpec::aux_signals() const {

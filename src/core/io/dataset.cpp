@@ -171,11 +171,13 @@ DataSpan data_span(const Dataset& data, const std::string& axis) {
   DataSpan s;
   s.sample_rate_hz = data.sample_rate_hz();
   s.duration_s = static_cast<double>(data.size()) / s.sample_rate_hz;
-  if (!v.empty()) {
-    const auto [lo, hi] = std::minmax_element(v.begin(), v.end());
-    s.voltage_min_v = *lo;
-    s.voltage_max_v = *hi;
-  }
+  bool any = false;
+  for (double x : v)
+    if (std::isfinite(x)) {
+      s.voltage_min_v = any ? std::min(s.voltage_min_v, x) : x;
+      s.voltage_max_v = any ? std::max(s.voltage_max_v, x) : x;
+      any = true;
+    }
   return s;
 }
 

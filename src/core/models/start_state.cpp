@@ -120,16 +120,22 @@ bool diverged(const std::vector<double>& p) {
   return std::any_of(p.begin(), p.end(), [](double x) { return !(std::abs(x) < 1e11); });
 }
 
-// Per row, how far apart the candidates' predictions are: what the unknown history can still change there.
-// A candidate that diverges in the window (kept finite at ±1e12 nm by the stream) is no plausible history.
-std::vector<double> state_spread(const std::vector<std::vector<double>>& preds, std::size_t k) {
-  std::vector<double> lo(k, INFINITY), hi(k, -INFINITY), s(k, 0.0);
-  for (const auto& p : preds) {
-    if (diverged(p)) continue;
-    for (std::size_t i = 0; i < k; ++i) lo[i] = std::min(lo[i], p[i]), hi[i] = std::max(hi[i], p[i]);
+// Per entry i < n, the range of values[c][i] over the plausible candidates c (those whose window `preds[c]` did not
+// diverge): how far the unknown history can move it; 0 where no candidate is plausible.
+std::vector<double> candidate_range(const std::vector<std::vector<double>>& values,
+                                    const std::vector<std::vector<double>>& preds, std::size_t n) {
+  std::vector<double> lo(n, INFINITY), hi(n, -INFINITY), r(n, 0.0);
+  for (std::size_t c = 0; c < preds.size(); ++c) {
+    if (diverged(preds[c])) continue;
+    for (std::size_t i = 0; i < n; ++i) lo[i] = std::min(lo[i], values[c][i]), hi[i] = std::max(hi[i], values[c][i]);
   }
-  for (std::size_t i = 0; i < k; ++i) s[i] = hi[i] >= lo[i] ? hi[i] - lo[i] : 0.0;
-  return s;
+  for (std::size_t i = 0; i < n; ++i) r[i] = hi[i] >= lo[i] && std::isfinite(hi[i] - lo[i]) ? hi[i] - lo[i] : 0.0;
+  return r;
+}
+
+// Per row, how far apart the candidates' predictions are: what the unknown history can still change there.
+std::vector<double> state_spread(const std::vector<std::vector<double>>& preds, std::size_t k) {
+  return candidate_range(preds, preds, k);
 }
 
 // The reading noise: the scatter of the residual's steps (the model follows the motion; a slow state error barely
@@ -303,15 +309,11 @@ StartEstimate choose_start(const std::vector<std::vector<double>>& preds, const 
   return e;
 }
 
-// Half the range of each linear state over the plausible (non-diverging) candidates: how far a history can put it.
+// Half the range of each linear state over the plausible candidates: how far a history can put it.
 std::vector<double> state_prior(const std::vector<std::vector<double>>& preds,
                                 const std::vector<std::vector<double>>& states, std::size_t n_states) {
-  std::vector<double> lo(n_states, INFINITY), hi(n_states, -INFINITY), s(n_states, 0.0);
-  for (std::size_t c = 0; c < preds.size(); ++c) {
-    if (diverged(preds[c])) continue;
-    for (std::size_t j = 0; j < n_states; ++j) lo[j] = std::min(lo[j], states[c][j]), hi[j] = std::max(hi[j], states[c][j]);
-  }
-  for (std::size_t j = 0; j < n_states; ++j) s[j] = hi[j] > lo[j] && std::isfinite(hi[j] - lo[j]) ? 0.5 * (hi[j] - lo[j]) : 0.0;
+  std::vector<double> s = candidate_range(states, preds, n_states);
+  for (double& x : s) x *= 0.5;
   return s;
 }
 
@@ -406,10 +408,8 @@ void apply_state_fit(const StateFit& f, const StateBasis& basis, StartEstimate* 
   e->rms_nm = f.rms_nm;
 }
 
-// The chosen candidate's linear states fitted on the window (StartOptions::fit_linear_states). Choosing among all
-// candidates by their fits with the states instead (the same basis serves every candidate) passed 80 / 64 / 65 of
-// the stage matrix's 132 separate-recording cells on seeds 22 / 23 / 24 against 73 / 65 / 68: within the seeds'
-// noise, so the candidate is chosen as before.
+// The chosen candidate's linear states fitted on the window (StartOptions::fit_linear_states); the candidate itself
+// is chosen by choose_start, without the states (docs/models.md, "Separate recording").
 void fit_linear_states(const Model& model, const io::Dataset& data, const std::string& axis, const io::Dataset& window,
                        const std::vector<StartHistory>& cands, const std::vector<std::vector<double>>& preds,
                        const std::vector<std::vector<double>>& states, std::size_t chosen,
@@ -441,7 +441,6 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
     std::vector<double> w;
     e = choose_start(preds, y, k, &chosen, &w);
     e.history = cands[chosen];
-    e.rms_before_states_nm = e.rms_nm;
     if (o.fit_linear_states) fit_linear_states(model, data, axis, window, cands, preds, states, chosen, w, &e);
   } else {  // offset only: rest, the plain mean over the window
     const WindowFit f = window_offset(y, preds[0].data(), k);

@@ -203,11 +203,9 @@ models::ModelMeta make_meta(const FitRequest& req) {
   m.training_fingerprint = util::fingerprint(*req.train);
   m.training_source = req.train->source;
   m.created_utc = utc_now_iso8601();
-  for (double v : req.train->axis(req.axis).voltage_v)
-    if (std::isfinite(v)) {
-      m.train_voltage_min_v = std::isfinite(m.train_voltage_min_v) ? std::min(m.train_voltage_min_v, v) : v;
-      m.train_voltage_max_v = std::isfinite(m.train_voltage_max_v) ? std::max(m.train_voltage_max_v, v) : v;
-    }
+  const io::DataSpan span = io::data_span(*req.train, req.axis);
+  m.train_voltage_min_v = span.voltage_min_v;
+  m.train_voltage_max_v = span.voltage_max_v;
   return m;
 }
 

@@ -75,7 +75,7 @@ models::ModelPtr fit_linear(const FitRequest& req) {
   if (gain > kMaxFreeRunGain) {
     features::FeatureSpec voltage_only;
     for (const auto& f : spec.features)
-      if (f.type != "lagged_position" && f.type != "position_mean") voltage_only.features.push_back(f);
+      if (!f.reads_position()) voltage_only.features.push_back(f);
     if (voltage_only.features.empty())
       throw std::runtime_error("linear fit: its position features amplify a start error " + std::to_string(gain) +
                                "x in free run and it has no other features");
