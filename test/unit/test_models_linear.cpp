@@ -153,6 +153,8 @@ TEST(LinearModel, AFreeRunThatAmplifiesItsStartIsRefittedOnTheVoltage) {
   req.progress = [&](double, double, const std::string& what) { said += what; };
   const models::ModelPtr fitted = training::fit_model("linear", req);
   EXPECT_FALSE(fitted->uses_position_history());
+  const auto& refit_spec = dynamic_cast<const LinearModel&>(*fitted).spec();
+  EXPECT_EQ(refit_spec.mean.size(), refit_spec.size());  // standardised like every fit (the lasso's penalty needs it)
   EXPECT_LE(training::free_run_gain(*fitted, d, "c"), 0.0);
   EXPECT_NE(said.find("refitted on the voltage features"), std::string::npos) << said;
   // Data from the stable one keeps its position feature.

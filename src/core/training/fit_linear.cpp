@@ -82,7 +82,7 @@ models::ModelPtr fit_linear(const FitRequest& req) {
     if (req.progress)
       req.progress(0, 0, "linear: position features amplify a start error " + std::to_string(gain) +
                              "x in free run; refitted on the voltage features");
-    m = fit_linear_on(voltage_only, req, method);
+    m = fit_linear_on(fit_standardisation(voltage_only, *req.train, req.axis), req, method);
   }
   m->meta = make_meta(req);
   return m;
