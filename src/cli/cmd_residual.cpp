@@ -126,8 +126,7 @@ int run(int argc, char** argv) {
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");
     models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : args.str("train"));
   } else {
-    const training::FitFn& fit = training::fitter(model_arg);
-    if (!fit) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
+    if (!training::fitter(model_arg)) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
     req.train = &fit_part;
     req.validation = &val_part;
@@ -135,7 +134,7 @@ int run(int argc, char** argv) {
     req.options = fit_options;
     req.seed = o.seed;
     std::cerr << "residual: fitting " << model_arg << " on " << fit_part.size() << " TRAIN rows\n";
-    base = fit(req);
+    base = training::fit_model(model_arg, req);
   }
   // Gate: a base model the data does not support is refused before any tracing.
   const analysis::ValidationScore base_score = analysis::score_validation(*base, train, n_fit, axis);

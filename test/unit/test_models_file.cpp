@@ -79,6 +79,46 @@ TEST(ModelFile, RoundTripEveryKindPredictsIdentically) {
   }
 }
 
+// The start estimate's learned prior of the linear (creep) states is kept per state; a list that does not fit the
+// model or holds a bad number is refused by name.
+TEST(ModelFile, StatePriorRoundTripsAndIsChecked) {
+  auto models = one_of_each_kind();
+  Model& lti = *models[3];  // pi_creep_lti with two creep modes
+  ASSERT_EQ(lti.linear_state_count(), 2u);
+  lti.meta.state_prior = {{1.5, 0.25, 3.0}, {-4.0, 0.5, 0.0}};
+  const std::string path = tmp("state_prior.yaml");
+  save_model(path, lti);
+  const ModelPtr back = load_model(path);
+  ASSERT_EQ(back->meta.state_prior.size(), 2u);
+  for (std::size_t k = 0; k < 2; ++k) {
+    EXPECT_DOUBLE_EQ(back->meta.state_prior[k].intercept_nm, lti.meta.state_prior[k].intercept_nm);
+    EXPECT_DOUBLE_EQ(back->meta.state_prior[k].slope_nm_per_v, lti.meta.state_prior[k].slope_nm_per_v);
+    EXPECT_DOUBLE_EQ(back->meta.state_prior[k].sigma_nm, lti.meta.state_prior[k].sigma_nm);
+  }
+  const YAML::Node root = YAML::LoadFile(path);
+  const std::vector<std::pair<std::string, std::function<void(YAML::Node&)>>> cases = {
+      {"training.state_prior: 1 entries for a model with 2 linear (creep) states",
+       [](YAML::Node& n) {
+         YAML::Node one;
+         one.push_back(YAML::Clone(n["training"]["state_prior"][0]));
+         n["training"]["state_prior"] = one;
+       }},
+      {"training.state_prior[1].sigma_nm: expected a finite number >= 0",
+       [](YAML::Node& n) { n["training"]["state_prior"][1]["sigma_nm"] = -1.0; }},
+      {"training.state_prior[0].slope_nm_per_v: expected a finite number",
+       [](YAML::Node& n) { n["training"]["state_prior"][0]["slope_nm_per_v"] = "steep"; }},
+      {"training.state_prior: expected a list", [](YAML::Node& n) { n["training"]["state_prior"] = 3.0; }},
+  };
+  for (const auto& [expect, edit] : cases) {
+    YAML::Node n = YAML::Clone(root);
+    edit(n);
+    write(path, YAML::Dump(n));
+    const std::string err = load_error(path);
+    EXPECT_EQ(err.rfind(path + ": ", 0), 0u) << err;
+    EXPECT_NE(err.find(expect), std::string::npos) << err;
+  }
+}
+
 TEST(ModelFile, MalformedFilesGiveOneClearErrorNamingFileAndKey) {
   auto models = one_of_each_kind();
   const std::string good = tmp("good.yaml");

@@ -16,6 +16,13 @@ namespace piezo::models {
 // The input of one sample (features/model_input.h): the layer below models owns it, models use it.
 using ModelInput = features::ModelInput;
 
+// Where training-like operation keeps one linear state (Model::linear_state_nm): a line in the applied voltage and
+// the scatter about it, both over the model's free run on its training data. The start estimate's prior for a
+// history it has not seen (models/start_state.h).
+struct LinearStatePrior {
+  double intercept_nm = 0, slope_nm_per_v = 0, sigma_nm = 0;
+};
+
 // Facts about a fitted model, stored in the model file beside the weights.
 struct ModelMeta {
   std::string axis = "c";
@@ -28,6 +35,7 @@ struct ModelMeta {
   // can have been (the start-up state estimate's synthetic histories span it).
   double train_voltage_min_v = std::numeric_limits<double>::quiet_NaN();
   double train_voltage_max_v = std::numeric_limits<double>::quiet_NaN();
+  std::vector<LinearStatePrior> state_prior;   // per linear state (empty: not learned, e.g. an older model file)
   std::map<std::string, double> validation;    // e.g. {"one_step_mae_nm": 17.1, "free_run_mae_nm": 6.2}
   std::string created_utc;
   YAML::Node selection;                        // `--model auto`: the candidates' scores and the choice (or null)

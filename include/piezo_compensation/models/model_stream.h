@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstddef>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -72,6 +73,8 @@ struct StreamOptions {
   // Free-run only: a diverging prediction is kept finite (±1e12 nm) instead of throwing, so metrics stay
   // defined (evaluation reports a diverging model; the residual loop refuses one).
   bool keep_diverging = false;
+  // Called after each row of `data` is committed (not the warm-up's), with the row and the model in its state.
+  std::function<void(std::size_t row, const Model& model)> after_row;
 };
 
 struct StreamResult {

@@ -6,8 +6,9 @@
 // among the candidates that fit about as well as the best, the one that needs the least offset is chosen: an
 // offset that a plausible state explains is left to the state, which the voltage sweeps into agreement later.
 // Then the chosen state's linear parts (Model::linear_state_count: the creep modes) are fitted on the window with
-// the offset, by a small ridge least-squares: each state's prior is how far the candidates put it, the offset's the
-// reading noise (docs/models.md, "Start-up state estimate").
+// the offset, by a small ridge least-squares: each state's prior is where training-like operation keeps it at the
+// first voltage (ModelMeta::state_prior; a model file without one: how far the candidates put it), the offset's
+// the reading noise (docs/models.md, "Start-up state estimate").
 // Generic: it only uses the Model interface, so it works for every kind (kinds without linear states: no fit).
 //
 // It is the one anchor: stream_model's anchor_s (`piezo eval/residual --anchor-s`) runs it, and the estimator
@@ -89,6 +90,12 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
 // Puts `model` in the state `history` ends in (its linear shifts included), just before the data's row 0 (reset, then the synthetic rows with
 // the model's inputs held at row 0's values; free-run). The data gives the first voltage, measurement and inputs.
 void prepare_start(Model& model, const io::Dataset& data, const std::string& axis, const StartHistory& history);
+
+// Where the model's free run over its training data keeps each linear state (ModelMeta::state_prior): per state a
+// least-squares line in the applied voltage and the RMS scatter about it, over a second pass of the data (the
+// first one a warm-up, so that no state is still settling from the reset). Empty when the model has no linear states
+// or its run does not stay finite. The fitters store it in every model file (training::fit_model).
+std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Dataset& train, const std::string& axis);
 
 // Rows of the first window_s seconds (at least 1). Throws like estimate_start for a bad window.
 std::size_t start_window_rows(const io::Dataset& data, const std::string& axis, double window_s);

@@ -23,7 +23,8 @@ using FitFn = std::function<models::ModelPtr(const FitRequest&)>;
 // The fitter of a kind; empty for kinds that cannot be fitted on their own ("augmented": `piezo residual`).
 // Throws std::runtime_error listing the known kinds for a name that is no kind.
 const FitFn& fitter(const std::string& kind);
-// fitter(kind)(request); throws when the kind cannot be fitted on its own.
+// fitter(kind)(request), then the model's ModelMeta::state_prior learned on the training data (the one way to fit
+// a kind: every caller goes through it); throws when the kind cannot be fitted on its own.
 models::ModelPtr fit_model(const std::string& kind, const FitRequest& request);
 
 // options: method (ols|ridge|lasso), ridge_lambda, lasso_choice (1se|min), folds, features (see fit_common.h).

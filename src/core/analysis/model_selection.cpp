@@ -497,8 +497,7 @@ Selection select_model(const SelectionRequest& rq) {
     const auto t0 = std::chrono::steady_clock::now();
     models::ModelPtr m;
     try {
-      const training::FitFn& fit = training::fitter(r.candidate.kind);
-      if (!fit) throw std::runtime_error("kind cannot be fitted on its own");
+      if (!training::fitter(r.candidate.kind)) throw std::runtime_error("kind cannot be fitted on its own");
       if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
       training::FitRequest fr;
       fr.train = rq.train;
@@ -508,7 +507,7 @@ Selection select_model(const SelectionRequest& rq) {
       fr.time_budget_s = rq.time_budget_s;
       fr.seed = rq.seed;
       fr.threads = rq.threads;
-      m = fit(fr);
+      m = training::fit_model(r.candidate.kind, fr);
       if (!m) throw std::runtime_error("the fit returned no model");
       m->meta.axis = rq.axis;
       m->meta.sample_rate_hz = rq.train->sample_rate_hz();

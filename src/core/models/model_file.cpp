@@ -10,6 +10,34 @@
 
 namespace piezo::models {
 
+namespace {
+// training.state_prior: one {intercept_nm, slope_nm_per_v, sigma_nm} per linear state of the model.
+std::vector<LinearStatePrior> read_state_prior(const YAML::Node& n, std::size_t states) {
+  const std::string key = "training.state_prior";
+  if (!n.IsSequence()) throw std::runtime_error(key + ": expected a list");
+  if (n.size() != states)
+    throw std::runtime_error(key + ": " + std::to_string(n.size()) + " entries for a model with " +
+                             std::to_string(states) + " linear (creep) states");
+  std::vector<LinearStatePrior> out;
+  for (std::size_t k = 0; k < n.size(); ++k) {
+    const std::string at = key + "[" + std::to_string(k) + "]";
+    if (!n[k].IsMap()) throw std::runtime_error(at + ": expected a mapping");
+    double x[3] = {NAN, NAN, NAN};
+    const char* names[3] = {"intercept_nm", "slope_nm_per_v", "sigma_nm"};
+    for (int f = 0; f < 3; ++f) {
+      try {
+        x[f] = n[k][names[f]].as<double>();
+      } catch (const YAML::Exception&) {
+      }
+      if (!std::isfinite(x[f]) || (f == 2 && x[f] < 0))
+        throw std::runtime_error(at + "." + names[f] + ": expected a finite number" + (f == 2 ? " >= 0" : ""));
+    }
+    out.push_back({x[0], x[1], x[2]});
+  }
+  return out;
+}
+}  // namespace
+
 YAML::Node model_to_file_yaml(const Model& m) {
   YAML::Node root;
   root["format_version"] = kModelFormatVersion;
@@ -23,6 +51,13 @@ YAML::Node model_to_file_yaml(const Model& m) {
   if (std::isfinite(m.meta.train_voltage_min_v) && std::isfinite(m.meta.train_voltage_max_v)) {
     root["training"]["voltage_min_v"] = m.meta.train_voltage_min_v;
     root["training"]["voltage_max_v"] = m.meta.train_voltage_max_v;
+  }
+  for (const LinearStatePrior& p : m.meta.state_prior) {
+    YAML::Node n;
+    n["intercept_nm"] = p.intercept_nm;
+    n["slope_nm_per_v"] = p.slope_nm_per_v;
+    n["sigma_nm"] = p.sigma_nm;
+    root["training"]["state_prior"].push_back(n);
   }
   YAML::Node val(YAML::NodeType::Map);
   for (const auto& [k, v] : m.meta.validation) val[k] = v;
@@ -96,6 +131,7 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
         m->meta.train_voltage_min_v = lo;
         m->meta.train_voltage_max_v = hi;
       }
+      if (t["state_prior"]) m->meta.state_prior = read_state_prior(t["state_prior"], m->linear_state_count());
     }
     if (const YAML::Node v = root["validation"]) {
       if (!v.IsMap()) throw top_err("validation", "expected a mapping");

@@ -104,6 +104,7 @@ void stream_rows(Model& model, const io::Dataset& data, const std::string& axis,
     }
     if (pred) (*pred)[i] = y;
     model.commit(in, free_run ? y : ax.position_nm[i]);
+    if (pred && o.after_row) o.after_row(i, model);
   }
 }
 }  // namespace

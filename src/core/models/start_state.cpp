@@ -309,28 +309,44 @@ StartEstimate choose_start(const std::vector<std::vector<double>>& preds, const 
   return e;
 }
 
-// Half the range of each linear state over the plausible candidates: how far a history can put it.
-std::vector<double> state_prior(const std::vector<std::vector<double>>& preds,
-                                const std::vector<std::vector<double>>& states, std::size_t n_states) {
-  std::vector<double> s = candidate_range(states, preds, n_states);
-  for (double& x : s) x *= 0.5;
-  return s;
+// Each linear state's prior at the window's start, as a scale s_j [nm] and a mean m_j [in s_j] relative to the
+// chosen candidate's state: the model's learned ModelMeta::state_prior at the first voltage (where training-like
+// operation keeps the state, and its scatter there) when the file has one for every state; otherwise half the
+// state's range over the plausible candidates (how far a history can put it), centred on the candidate.
+void state_prior(const Model& model, double v0, const std::vector<std::vector<double>>& preds,
+                 const std::vector<std::vector<double>>& states, std::size_t chosen, std::vector<double>* scale,
+                 std::vector<double>* mean) {
+  const std::size_t n = states[chosen].size();
+  mean->assign(n, 0.0);
+  const std::vector<LinearStatePrior>& learned = model.meta.state_prior;
+  if (learned.size() != n) {
+    *scale = candidate_range(states, preds, n);
+    for (double& x : *scale) x *= 0.5;
+    return;
+  }
+  scale->assign(n, 0.0);
+  for (std::size_t j = 0; j < n; ++j) {
+    (*scale)[j] = learned[j].sigma_nm;
+    if (learned[j].sigma_nm > 0)
+      (*mean)[j] = (learned[j].intercept_nm + learned[j].slope_nm_per_v * v0 - states[chosen][j]) / learned[j].sigma_nm;
+  }
 }
 
 // The linear states' responses over the window (the header): φ_j, the window's response to a shift of state j by
-// its prior s_j (state_prior), streamed from `history` (exact for linear states, and the same from every state).
+// its prior scale s_j (state_prior), streamed from `history` (exact for linear states, and the same from every state).
 struct StateBasis {
   std::vector<std::size_t> used;  // states with a prior > 0 (a state every candidate puts at one place is not fitted)
   std::vector<double> prior;      // s_j of every state
+  std::vector<double> mean;       // m_j of every state, in units of s_j
   std::vector<std::vector<double>> phi;
 };
 StateBasis state_basis(const Model& model, const io::Dataset& data, const std::string& axis, const io::Dataset& window,
                        const std::vector<std::vector<double>>& preds, const std::vector<std::vector<double>>& states,
-                       const StartHistory& history) {
+                       std::size_t chosen, const StartHistory& history) {
   StateBasis out;
   const std::size_t n_states = states.empty() ? 0 : states[0].size();
   if (n_states == 0) return out;
-  out.prior = state_prior(preds, states, n_states);
+  state_prior(model, data.axis(axis).voltage_v[0], preds, states, chosen, &out.prior, &out.mean);
   ModelPtr base = model.clone();
   prepare_start(*base, data, axis, history);
   const std::vector<double> p = stream_window(*base, window, axis);
@@ -347,7 +363,7 @@ StateBasis state_basis(const Model& model, const io::Dataset& data, const std::s
 }
 
 // One candidate's fit with its linear states: measured − predicted ≈ c + Σ_j δ_j φ_j with the row weights w, the
-// priors δ_j ~ N(0, s_j²) and c ~ N(0, noise²); the posterior mean (a ridge solve of 1 + states unknowns).
+// priors δ_j ~ N(m_j, 1) (in units of s_j) and c ~ N(0, noise²); the posterior mean (a ridge solve of 1 + states unknowns).
 struct StateFit {
   double offset_nm = 0, sigma_nm = 0, rms_nm = 0;
   std::vector<double> shift_nm;  // per state (0 for those not fitted)
@@ -369,7 +385,7 @@ StateFit solve_states(const StateBasis& basis, const double* y, const std::vecto
   }
   a = a.selfadjointView<Eigen::Lower>();
   a(0, 0) += 1.0 / (noise_nm * noise_nm);
-  for (Index j = 1; j < q; ++j) a(j, j) += 1.0;
+  for (Index j = 1; j < q; ++j) a(j, j) += 1.0, b[j] += basis.mean[basis.used[static_cast<std::size_t>(j - 1)]];
   const Eigen::LDLT<Eigen::MatrixXd> ldlt(a);
   const Eigen::VectorXd theta = ldlt.solve(b);
   if (!theta.allFinite()) return f;
@@ -414,7 +430,7 @@ void fit_linear_states(const Model& model, const io::Dataset& data, const std::s
                        const std::vector<StartHistory>& cands, const std::vector<std::vector<double>>& preds,
                        const std::vector<std::vector<double>>& states, std::size_t chosen,
                        const std::vector<double>& w, StartEstimate* e) {
-  const StateBasis basis = state_basis(model, data, axis, window, preds, states, cands[chosen]);
+  const StateBasis basis = state_basis(model, data, axis, window, preds, states, chosen, cands[chosen]);
   if (basis.used.empty()) return;
   const double* y = data.axis(axis).position_nm.data();
   const double noise = std::max(step_noise(y, preds[chosen].data(), w.size()), 1e-9);
@@ -453,6 +469,49 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
   e.window_rows = k;
   e.candidate = e.history.describe();
   return e;
+}
+
+std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Dataset& train, const std::string& axis) {
+  ModelPtr m = model.clone();
+  const std::size_t n = m->linear_state_count();
+  if (n == 0 || train.empty()) return {};
+  const std::vector<double>& v = train.axis(axis).voltage_v;
+  std::vector<double> volts;
+  std::vector<std::vector<double>> x(n);
+  bool finite = true;
+  StreamOptions so;
+  so.keep_diverging = true;
+  stream_model(*m, train, axis, so);  // a warm-up pass: the states as operation leaves them, not as a reset puts them
+  so.reset = false;
+  so.after_row = [&](std::size_t i, const Model& mm) {
+    if (!std::isfinite(v[i])) return;
+    volts.push_back(v[i]);
+    for (std::size_t k = 0; k < n; ++k) {
+      x[k].push_back(mm.linear_state_nm(k));
+      finite = finite && std::isfinite(x[k].back());
+    }
+  };
+  stream_model(*m, train, axis, so);
+  if (!finite || volts.empty()) return {};
+  const double cnt = static_cast<double>(volts.size());
+  double mv = 0, vv = 0;
+  for (double u : volts) mv += u;
+  mv /= cnt;
+  for (double u : volts) vv += (u - mv) * (u - mv);
+  std::vector<LinearStatePrior> out(n);
+  for (std::size_t k = 0; k < n; ++k) {
+    double mx = 0, vx = 0, ss = 0;
+    for (double s : x[k]) mx += s;
+    mx /= cnt;
+    for (std::size_t i = 0; i < volts.size(); ++i) vx += (volts[i] - mv) * (x[k][i] - mx);
+    const double slope = vv > 0 ? vx / vv : 0.0;
+    for (std::size_t i = 0; i < volts.size(); ++i) {
+      const double r = x[k][i] - mx - slope * (volts[i] - mv);
+      ss += r * r;
+    }
+    out[k] = {mx - slope * mv, slope, std::sqrt(ss / cnt)};
+  }
+  return out;
 }
 
 }  // namespace piezo::models

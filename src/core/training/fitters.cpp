@@ -4,6 +4,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/util/flush_subnormals.h"
 
 namespace piezo::training {
@@ -44,7 +45,10 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request) {
   const FitFn& fit = fitter(kind);
   if (!fit) throw std::runtime_error("kind '" + kind + "' cannot be fitted on its own");
   const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
-  return fit(request);
+  models::ModelPtr m = fit(request);
+  // Where the training keeps the linear states: the start estimate's prior on a recording it has not seen.
+  if (m && m->meta.state_prior.empty()) m->meta.state_prior = models::learn_state_prior(*m, *request.train, request.axis);
+  return m;
 }
 
 }  // namespace piezo::training
