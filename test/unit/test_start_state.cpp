@@ -427,6 +427,47 @@ TEST(StartStateTable, FittedOnOneSeedStartedMidMotionOnAnother) {
 // Cost at kHz rates: the window streamed once per candidate (the synthetic histories capped at max_history_samples,
 // so the long ages drop out). A 200 Hz preisach_creep_prony on 3 s of the 5 kHz stack150 stage's voltages (mapped
 // into the model's 0–4 V; timing only, the per-sample cost does not depend on the rate).
+// The window played backwards as a pre-history (StartOptions::replay_window): an LSTM that reads its own past
+// predictions starts from a hidden state that rest and ramps never reach; the window's own motion reaches one
+// close to where the stage's motion leaves it. The stage matrix's stack150_pi separate recording (seed 22, cut at
+// 2 s, window 1 s), the LSTM fitted as the matrix fits it.
+TEST(StartStateTable, ALstmStartsFromTheWindowPlayedBackwards) {
+  const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/stack150_pi.yaml");
+  const io::Dataset all = sim::simulate_stage(stage, 21, 0.0);
+  const io::Dataset train = all.slice(0, all.size() * 4 / 5), val = all.slice(all.size() * 4 / 5, all.size());
+  training::FitRequest req;
+  req.train = &train;
+  req.validation = &val;
+  req.options = YAML::Load("{steps: 800, patience: 0}");
+  req.seed = 3;
+  const models::ModelPtr m = training::fit_model("lstm", req);
+  const io::Dataset whole = sim::simulate_stage(stage, 22, 8.0);
+  std::size_t cut = static_cast<std::size_t>(std::lround(2.0 * whole.sample_rate_hz()));
+  const auto& v = whole.axis("c").voltage_v;
+  while (cut + 1 < v.size() && (v[cut] == v[cut - 1] || v[cut + 1] == v[cut])) ++cut;
+  const io::Dataset rec = whole.slice(cut, whole.size());
+  auto mae_after = [&](bool replay) {
+    models::StartOptions o;
+    o.window_s = 1.0;
+    o.replay_window = replay;
+    const models::StartEstimate e = models::estimate_start(*m, rec, "c", o);
+    models::ModelPtr c = m->clone();
+    models::prepare_start(*c, rec, "c", e.history);
+    models::StreamOptions so;
+    so.reset = false;
+    so.keep_diverging = true;
+    const std::vector<double> p = models::stream_model(*c, rec, "c", so).prediction;
+    double sum = 0;
+    for (std::size_t i = e.window_rows; i < rec.size(); ++i) sum += std::abs(p[i] + e.offset_nm - rec.axis("c").position_nm[i]);
+    std::printf("%s\n", e.describe().c_str());
+    return sum / static_cast<double>(rec.size() - e.window_rows);
+  };
+  const double with = mae_after(true), without = mae_after(false);
+  std::printf("lstm on stack150_pi's separate recording, MAE after the window: %.1f nm with the window played backwards, "
+              "%.1f nm without\n", with, without);
+  EXPECT_LT(with, 0.25 * without);
+}
+
 TEST(StartStateTable, CostAtFiveKilohertz) {
   const sim::StageConfig low = sim::load_stage(kSrc + "/config/stages/lowvolt_preisach_creep.yaml");
   const io::Dataset a = sim::simulate_stage(low, 11, 50.0);

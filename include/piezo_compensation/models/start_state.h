@@ -1,7 +1,7 @@
 // The start-up state estimate: a model started on a recording whose history it has not seen. The first window_s
 // seconds (applied voltage and measured position) choose the model's state at the recording's start among a few
-// synthetic pre-histories — rest, or arriving at the first voltage from above or below after a turning point, then
-// held there for several ages — and a constant offset. Each candidate's window is fitted by an offset weighted
+// synthetic pre-histories — rest, or arriving at the first voltage from above or below after a turning point, or
+// the window's own motion played backwards, then held there for several ages — and a constant offset. Each candidate's window is fitted by an offset weighted
 // against the candidates' spread (rows where the unknown history still moves the prediction count little), and
 // among the candidates that fit about as well as the best, the one that needs the least offset is chosen: an
 // offset that a plausible state explains is left to the state, which the voltage sweeps into agreement later.
@@ -39,6 +39,8 @@ struct StartOptions {
   // Samples of synthetic history per candidate (each sample one model step at the data's rate): caps the longest
   // hold, so the search stays fast at kHz rates (there the long ages drop out).
   std::size_t max_history_samples = 20000;
+  // Also try the window's own motion played backwards as pre-histories (StartHistory::replay_v).
+  bool replay_window = true;
   // Fit the chosen candidate's linear states (Model::linear_state_count: creep modes) on the window as well.
   bool fit_linear_states = true;
 };
@@ -50,6 +52,9 @@ struct StartHistory {
   double reset_v = 0, turn_v = 0, start_v = 0;
   std::size_t ramp_to_turn_rows = 0, ramp_to_start_rows = 0, hold_rows = 0;
   double dt_s = 0;
+  // Non-empty: after the ramp to turn_v, these voltages one per row (they end at start_v), instead of the ramp to
+  // start_v: the window's own motion played backwards as a pre-history of the same statistics.
+  std::vector<double> replay_v;
   // Then each linear state k moved by linear_shift_nm[k] (Model::shift_linear_state; empty: none).
   std::vector<double> linear_shift_nm;
   std::string describe() const;  // "rest" or e.g. "from 42 V down, held 300 s"

@@ -63,7 +63,7 @@ double ramp_rate_v_per_s(const std::vector<double>& v, std::size_t k, double dt_
 }
 
 // Rest, then from each side's turning points (a quarter to all of the way to the range's end), held for each age
-// that fits the synthetic-history budget.
+// that fits the synthetic-history budget; then the window played backwards (below).
 std::vector<StartHistory> candidates(const io::Dataset& data, const std::string& axis, std::size_t k,
                                      const StartOptions& o) {
   const std::vector<double>& v = data.axis(axis).voltage_v;
@@ -102,6 +102,26 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
           out.push_back(h);
         }
       }
+  }
+  // The window's own motion backwards, from its last voltage to v0, after a rest at either end of the range or at
+  // that last voltage: a pre-history with the window's statistics (its turning points, its rate), which the ramps
+  // above do not have (a recurrent model's state, small turning points near v0).
+  if (o.replay_window && k > 2) {
+    for (double reset_v : {lo, hi, v[k - 1]}) {
+      StartHistory h;
+      h.rest = false;
+      h.reset_v = reset_v;
+      h.turn_v = v[k - 1];
+      h.start_v = v0;
+      h.dt_s = dt;
+      h.ramp_to_turn_rows = reset_v == v[k - 1] ? 0 : rows(h.turn_v - h.reset_v);
+      h.replay_v.assign(v.rend() - static_cast<long>(k) + 1, v.rend());
+      for (double age_s : {0.0, 10.0, 100.0, 1000.0}) {
+        h.hold_rows = static_cast<std::size_t>(std::lround(age_s / dt));
+        if (h.ramp_to_turn_rows + h.replay_v.size() + h.hold_rows > o.max_history_samples) break;
+        out.push_back(h);
+      }
+    }
   }
   return out;
 }
@@ -182,6 +202,9 @@ Weighted weighted_offset(const double* y, const double* p, const std::vector<dou
 
 std::string StartHistory::describe() const {
   if (rest) return "rest at " + fmt(start_v, 4) + " V";
+  if (!replay_v.empty())
+    return "rested at " + fmt(reset_v, 4) + " V, the window backwards from " + fmt(turn_v, 4) + " V to " +
+           fmt(start_v, 4) + " V, held " + fmt(static_cast<double>(hold_rows) * dt_s, 4) + " s";
   return "rested at " + fmt(reset_v, 4) + " V, from " + fmt(turn_v, 4) + " V " + (turn_v > start_v ? "down" : "up") +
          " to " + fmt(start_v, 4) + " V, held " + fmt(static_cast<double>(hold_rows) * dt_s, 4) + " s";
 }
@@ -235,7 +258,8 @@ void prepare_start(Model& model, const io::Dataset& data, const std::string& axi
   } else {
     model.reset(h.reset_v, ax.position_nm[0]);
     run_rows(model, h.reset_v, h.turn_v, h.ramp_to_turn_rows, a);
-    run_rows(model, h.turn_v, h.start_v, h.ramp_to_start_rows, a);
+    for (double x : h.replay_v) run_rows(model, x, x, 1, a);
+    run_rows(model, h.turn_v, h.start_v, h.replay_v.empty() ? h.ramp_to_start_rows : 0, a);
     run_rows(model, h.start_v, h.start_v, h.hold_rows, a);
   }
   const std::size_t n = std::min(h.linear_shift_nm.size(), model.linear_state_count());
@@ -265,7 +289,7 @@ std::vector<std::vector<double>> candidate_windows(const Model& model, const io:
   if (!a.empty()) InputResolver(data, m->aux_inputs(), axis).fill(0, a.data());
   for (const StartHistory& h : cands) {
     const bool same_path = prev && !prev->rest && !h.rest && prev->turn_v == h.turn_v && prev->reset_v == h.reset_v &&
-                           h.hold_rows >= prev->hold_rows;
+                           prev->replay_v.size() == h.replay_v.size() && h.hold_rows >= prev->hold_rows;
     if (same_path)
       run_rows(*m, h.start_v, h.start_v, h.hold_rows - prev->hold_rows, a.empty() ? nullptr : a.data());
     else
