@@ -500,8 +500,10 @@ std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Da
   const std::size_t n = m->linear_state_count();
   if (n == 0 || train.empty()) return {};
   const std::vector<double>& v = train.axis(axis).voltage_v;
-  std::vector<double> volts;
-  std::vector<std::vector<double>> x(n);
+  // Sums for the per-state least-squares lines, kept about the first row's values (shifted sums: exact in a long
+  // run at constant memory, whatever the length of the training data).
+  double v_ref = NAN, cnt = 0, sv = 0, svv = 0;
+  std::vector<double> x_ref(n), sx(n, 0.0), sxx(n, 0.0), svx(n, 0.0);
   bool finite = true;
   StreamOptions so;
   so.keep_diverging = true;
@@ -509,31 +511,27 @@ std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Da
   so.reset = false;
   so.after_row = [&](std::size_t i, const Model& mm) {
     if (!std::isfinite(v[i])) return;
-    volts.push_back(v[i]);
+    if (std::isnan(v_ref)) {
+      v_ref = v[i];
+      for (std::size_t k = 0; k < n; ++k) x_ref[k] = mm.linear_state_nm(k);
+    }
+    const double dv = v[i] - v_ref;
+    cnt += 1, sv += dv, svv += dv * dv;
     for (std::size_t k = 0; k < n; ++k) {
-      x[k].push_back(mm.linear_state_nm(k));
-      finite = finite && std::isfinite(x[k].back());
+      const double dx = mm.linear_state_nm(k) - x_ref[k];
+      finite = finite && std::isfinite(dx);
+      sx[k] += dx, sxx[k] += dx * dx, svx[k] += dv * dx;
     }
   };
   stream_model(*m, train, axis, so);
-  if (!finite || volts.empty()) return {};
-  const double cnt = static_cast<double>(volts.size());
-  double mv = 0, vv = 0;
-  for (double u : volts) mv += u;
-  mv /= cnt;
-  for (double u : volts) vv += (u - mv) * (u - mv);
+  if (!finite || cnt == 0) return {};
+  const double mv = sv / cnt, var_v = std::max(svv / cnt - mv * mv, 0.0);
   std::vector<LinearStatePrior> out(n);
   for (std::size_t k = 0; k < n; ++k) {
-    double mx = 0, vx = 0, ss = 0;
-    for (double s : x[k]) mx += s;
-    mx /= cnt;
-    for (std::size_t i = 0; i < volts.size(); ++i) vx += (volts[i] - mv) * (x[k][i] - mx);
-    const double slope = vv > 0 ? vx / vv : 0.0;
-    for (std::size_t i = 0; i < volts.size(); ++i) {
-      const double r = x[k][i] - mx - slope * (volts[i] - mv);
-      ss += r * r;
-    }
-    out[k] = {mx - slope * mv, slope, std::sqrt(ss / cnt)};
+    const double mx = sx[k] / cnt, var_x = std::max(sxx[k] / cnt - mx * mx, 0.0), cov = svx[k] / cnt - mv * mx;
+    const double slope = var_v > 0 ? cov / var_v : 0.0;
+    // Residual variance of the line: var_x − slope·cov (≥ 0 up to rounding).
+    out[k] = {x_ref[k] + mx - slope * (v_ref + mv), slope, std::sqrt(std::max(var_x - slope * cov, 0.0))};
   }
   return out;
 }
