@@ -290,6 +290,15 @@ TEST(StartState, LearnedStatePriorPlacesTheSlowStates) {
   std::printf("MAE vs truth after the window: %.2f nm with the learned prior, %.2f nm with the candidates' range\n", with, without);
   EXPECT_LT(with, 0.7 * without);
   EXPECT_TRUE(models::learn_state_prior(models::PiCreepModel({0, 8}, {8, 2}, 0, {}, 11.0), train, "c").empty());
+  // A prior without scatter puts its states on its line at the first voltage (the window cannot move them).
+  models::PiCreepModel exact = truth;
+  exact.meta.state_prior = {{10.0, 0.0, 0.0}, {20.0, 0.0, 0.0}, {30.0, 0.5, 0.0}};
+  const models::StartEstimate e = models::estimate_start(exact, rec, "c", o);
+  models::prepare_start(exact, rec, "c", e.history);
+  const double v0 = rec.axis("c").voltage_v[0];
+  EXPECT_NEAR(exact.linear_state_nm(0), 10.0, 1e-3);
+  EXPECT_NEAR(exact.linear_state_nm(1), 20.0, 1e-3);
+  EXPECT_NEAR(exact.linear_state_nm(2), 30.0 + 0.5 * v0, 1e-3);
 }
 
 TEST(StartState, BadInputNamesTheProblem) {

@@ -350,16 +350,16 @@ void state_prior(const Model& model, double v0, const std::vector<std::vector<do
   }
   scale->assign(n, 0.0);
   for (std::size_t j = 0; j < n; ++j) {
-    (*scale)[j] = learned[j].sigma_nm;
-    if (learned[j].sigma_nm > 0)
-      (*mean)[j] = (learned[j].intercept_nm + learned[j].slope_nm_per_v * v0 - states[chosen][j]) / learned[j].sigma_nm;
+    // A state training kept exactly on its line (no scatter) is still moved there: a scale of 1 pm, not 0 (unfitted).
+    (*scale)[j] = std::max(learned[j].sigma_nm, 1e-3);
+    (*mean)[j] = (learned[j].intercept_nm + learned[j].slope_nm_per_v * v0 - states[chosen][j]) / (*scale)[j];
   }
 }
 
 // The linear states' responses over the window (the header): φ_j, the window's response to a shift of state j by
 // its prior scale s_j (state_prior), streamed from `history` (exact for linear states, and the same from every state).
 struct StateBasis {
-  std::vector<std::size_t> used;  // states with a prior > 0 (a state every candidate puts at one place is not fitted)
+  std::vector<std::size_t> used;  // states with a prior scale > 1e-6 nm (without a learned prior: a state every candidate puts at one place is not fitted)
   std::vector<double> prior;      // s_j of every state
   std::vector<double> mean;       // m_j of every state, in units of s_j
   std::vector<std::vector<double>> phi;
