@@ -477,6 +477,53 @@ TEST(StartStateTable, ALstmStartsFromTheWindowPlayedBackwards) {
   EXPECT_LT(with, 0.25 * without);
 }
 
+// Is the start σ honest? The estimator starts from the estimate's offset and σ (ErrorFilter::reset), so σ should
+// cover the model's mean error against the truth over the first 5 min after the window. Three creep kinds fitted on
+// each MM3E stage (seed 21, 2 h), each started cold mid-motion on six other recordings (seeds 22–27, cut after
+// 15 min, 30-s window): 72 starts. Measured (docs/models.md): 61 within 1σ, 69 within 2σ; the three outside are
+// PI-creep kinds on the Preisach-creep stage (a misspecified model: its error after the window, 77 nm on seed 22, is
+// the model's, which the window fits to the noise and so cannot see) and preisach_creep_prony on mm3e_pi (2.1σ).
+TEST(StartStateTable, TheStartSigmaCoversTheErrorAfterTheWindow) {
+  int n = 0, in1 = 0, in2 = 0;
+  for (const char* st : {"mm3e_pi", "mm3e_pi_creep", "mm3e_preisach", "mm3e_preisach_creep"}) {
+    const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/" + st + ".yaml");
+    const io::Dataset all = sim::simulate_stage(stage, 21, 7200.0);
+    const io::Dataset train = all.slice(0, all.size() * 4 / 5), val = all.slice(all.size() * 4 / 5, all.size());
+    for (const char* kind : {"pi_creep_lti", "pi_creep_prony", "preisach_creep_prony"}) {
+      training::FitRequest req;
+      req.train = &train;
+      req.validation = &val;
+      req.seed = 3;
+      const models::ModelPtr m = training::fit_model(kind, req);
+      for (std::uint64_t seed = 22; seed < 28; ++seed) {
+        const io::Dataset whole = sim::simulate_stage(stage, seed, 1800.0);
+        const auto& v = whole.axis("c").voltage_v;
+        std::size_t cut = static_cast<std::size_t>(std::lround(900.0 * whole.sample_rate_hz()));
+        while (cut + 1 < v.size() && (v[cut] == v[cut - 1] || v[cut + 1] == v[cut])) ++cut;
+        const io::Dataset rec = whole.slice(cut, whole.size());
+        models::StreamOptions o;
+        o.anchor_s = 30.0;
+        o.keep_diverging = true;
+        models::ModelPtr c = m->clone();
+        const models::StreamResult r = models::stream_model(*c, rec, "c", o);
+        const auto& truth = rec.axis("c").true_position_nm;
+        const std::size_t end = std::min(rec.size(), r.first_scored + static_cast<std::size_t>(300.0 * rec.sample_rate_hz()));
+        double bias = 0;
+        for (std::size_t i = r.first_scored; i < end; ++i) bias += r.prediction[i] - truth[i];
+        bias /= static_cast<double>(end - r.first_scored);
+        const double z = bias / r.start.offset_sigma_nm;
+        ++n, in1 += std::abs(z) <= 1.0, in2 += std::abs(z) <= 2.0;
+        if (std::abs(z) > 2.0) std::printf("%s %s seed %llu: %.1f nm after the window, sigma %.1f nm (%.1f sigma)\n", st, kind,
+                                           static_cast<unsigned long long>(seed), bias, r.start.offset_sigma_nm, z);
+      }
+    }
+  }
+  std::printf("start sigma: the mean error over 5 min after the window within 1 sigma on %d of %d starts, within 2 sigma on %d\n",
+              in1, n, in2);
+  EXPECT_GE(in2, 0.9 * n);  // nominal 95 %
+  EXPECT_GE(in1, 0.6 * n);  // nominal 68 %
+}
+
 TEST(StartStateTable, CostAtFiveKilohertz) {
   const sim::StageConfig low = sim::load_stage(kSrc + "/config/stages/lowvolt_preisach_creep.yaml");
   const io::Dataset a = sim::simulate_stage(low, 11, 50.0);
