@@ -97,8 +97,10 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
 void prepare_start(Model& model, const io::Dataset& data, const std::string& axis, const StartHistory& history);
 
 // Where the model's free run over its training data keeps each linear state (ModelMeta::state_prior): per state a
-// least-squares line in the applied voltage and the RMS scatter about it, over a second pass of the data (the
-// first one a warm-up, so that no state is still settling from the reset). Empty when the model has no linear states
+// least-squares line in the applied voltage and the RMS scatter about it, over a pass of the data after a warm-up
+// pass (so that no state is still settling from the reset). The σ adds half the gap between two warm-ups started at
+// rest at either end of the data's voltage range: a state that one training length does not settle (a mode much
+// slower than the recording) keeps a wide prior. Empty for a run that does not stay finite (e.g. a NaN voltage). Empty when the model has no linear states
 // or its run does not stay finite. The fitters store it in every model file (training::fit_model).
 std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Dataset& train, const std::string& axis);
 

@@ -496,21 +496,34 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
 }
 
 std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Dataset& train, const std::string& axis) {
-  ModelPtr m = model.clone();
-  const std::size_t n = m->linear_state_count();
-  if (n == 0 || train.empty()) return {};
+  if (train.empty()) return {};
+  const std::size_t n = model.linear_state_count();
+  if (n == 0) return {};
   const std::vector<double>& v = train.axis(axis).voltage_v;
+  double v_lo = INFINITY, v_hi = -INFINITY, v_sum = 0, v_n = 0;
+  for (double x : v)
+    if (std::isfinite(x)) v_lo = std::min(v_lo, x), v_hi = std::max(v_hi, x), v_sum += x, ++v_n;
+  if (!(v_hi >= v_lo)) return {};
+  // Warm-up passes over the data from a rest at its mean voltage (it continues into the measured pass) and at either
+  // end of its range: how far apart the two ends leave each state is what one training length cannot tell about it
+  // (a mode much slower than the recording keeps its start), and widens its prior.
+  StreamOptions so;
+  so.keep_diverging = true;
+  so.reset = false;
+  const double y0 = train.axis(axis).position_nm[0];
+  ModelPtr m = model.clone(), lo = model.clone(), hi = model.clone();
+  m->reset(v_sum / v_n, y0);
+  lo->reset(v_lo, y0);
+  hi->reset(v_hi, y0);
+  for (Model* w : {m.get(), lo.get(), hi.get()}) stream_model(*w, train, axis, so);
+  std::vector<double> unsettled(n);
+  for (std::size_t k = 0; k < n; ++k) unsettled[k] = std::abs(lo->linear_state_nm(k) - hi->linear_state_nm(k));
   // Sums for the per-state least-squares lines, kept about the first row's values (shifted sums: exact in a long
   // run at constant memory, whatever the length of the training data).
   double v_ref = NAN, cnt = 0, sv = 0, svv = 0;
   std::vector<double> x_ref(n), sx(n, 0.0), sxx(n, 0.0), svx(n, 0.0);
-  bool finite = true;
-  StreamOptions so;
-  so.keep_diverging = true;
-  stream_model(*m, train, axis, so);  // a warm-up pass: the states as operation leaves them, not as a reset puts them
-  so.reset = false;
   so.after_row = [&](std::size_t i, const Model& mm) {
-    if (!std::isfinite(v[i])) return;
+    if (!std::isfinite(v[i])) return;  // (a non-finite voltage leaves the states non-finite: no prior, below)
     if (std::isnan(v_ref)) {
       v_ref = v[i];
       for (std::size_t k = 0; k < n; ++k) x_ref[k] = mm.linear_state_nm(k);
@@ -519,19 +532,22 @@ std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Da
     cnt += 1, sv += dv, svv += dv * dv;
     for (std::size_t k = 0; k < n; ++k) {
       const double dx = mm.linear_state_nm(k) - x_ref[k];
-      finite = finite && std::isfinite(dx);
       sx[k] += dx, sxx[k] += dx * dx, svx[k] += dv * dx;
     }
   };
   stream_model(*m, train, axis, so);
-  if (!finite || cnt == 0) return {};
+  if (cnt == 0) return {};
   const double mv = sv / cnt, var_v = std::max(svv / cnt - mv * mv, 0.0);
   std::vector<LinearStatePrior> out(n);
   for (std::size_t k = 0; k < n; ++k) {
     const double mx = sx[k] / cnt, var_x = std::max(sxx[k] / cnt - mx * mx, 0.0), cov = svx[k] / cnt - mv * mx;
     const double slope = var_v > 0 ? cov / var_v : 0.0;
-    // Residual variance of the line: var_x − slope·cov (≥ 0 up to rounding).
-    out[k] = {x_ref[k] + mx - slope * (v_ref + mv), slope, std::sqrt(std::max(var_x - slope * cov, 0.0))};
+    // The scatter about the line (its residual variance var_x − slope·cov, ≥ 0 up to rounding) and half the gap the
+    // two warm-ups left.
+    const double scatter2 = std::max(var_x - slope * cov, 0.0), half_gap = 0.5 * unsettled[k];
+    out[k] = {x_ref[k] + mx - slope * (v_ref + mv), slope, std::sqrt(scatter2 + half_gap * half_gap)};
+    if (!std::isfinite(out[k].intercept_nm) || !std::isfinite(out[k].slope_nm_per_v) || !std::isfinite(out[k].sigma_nm))
+      return {};  // a diverging or non-finite run: no prior (the model file could not hold it)
   }
   return out;
 }

@@ -47,7 +47,14 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request) {
   const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   models::ModelPtr m = fit(request);
   // Where the training keeps the linear states: the start estimate's prior on a recording it has not seen.
-  if (m && m->meta.state_prior.empty()) m->meta.state_prior = models::learn_state_prior(*m, *request.train, request.axis);
+  // A failure here leaves the model without a prior (the start estimate then uses the candidates'), not unfitted.
+  if (m && m->meta.state_prior.empty()) {
+    try {
+      m->meta.state_prior = models::learn_state_prior(*m, *request.train, request.axis);
+    } catch (const std::exception&) {
+      m->meta.state_prior.clear();
+    }
+  }
   return m;
 }
 
