@@ -159,6 +159,25 @@ models::PiCreepModel creep_truth() {
   return models::PiCreepModel({0, 8, 16, 32}, {8, 2, 1, 0.5}, 0, cp, 11.0);
 }
 
+// The creep stage's motion about 12 V, at time t_s.
+double creep_motion_v(double t_s) {
+  return 12.0 + 50.0 * std::sin(2 * M_PI * t_s / 97.0) * std::sin(2 * M_PI * t_s / 431.0);
+}
+
+// MAE against the truth after the window of `e`, `m` run as stream_model runs it (prepare_start, then the offset).
+double mae_vs_truth_after(models::PiCreepModel m, const io::Dataset& rec, const models::StartEstimate& e) {
+  models::prepare_start(m, rec, "c", e.history);
+  double sum = 0;
+  std::size_t n = 0;
+  for (std::size_t i = 0; i < rec.size(); ++i) {
+    const models::ModelInput in{rec.axis("c").voltage_v[i], nullptr};
+    const double y = m.predict(in) + e.offset_nm;
+    m.commit(in, y);
+    if (i >= e.window_rows) sum += std::abs(y - rec.axis("c").true_position_nm[i]), ++n;
+  }
+  return sum / static_cast<double>(n);
+}
+
 io::Dataset creep_recording() {
   models::PiCreepModel truth = creep_truth();
   truth.reset(12.0, 0.0);
@@ -169,7 +188,7 @@ io::Dataset creep_recording() {
   const int pre = 3300, n = 6600;  // 5 min unseen, then 10 min recorded
   for (int i = 0; i < pre + n; ++i) {
     const double t = i / 11.0;
-    const double v = 12.0 + 50.0 * std::sin(2 * M_PI * t / 97.0) * std::sin(2 * M_PI * t / 431.0);
+    const double v = creep_motion_v(t);
     const double y = truth.predict({v, nullptr});
     truth.commit({v, nullptr}, y);
     if (i < pre) continue;
@@ -207,21 +226,7 @@ TEST(StartState, CreepStatesAreFittedOnTheWindow) {
   EXPECT_EQ(with.history.linear_shift_nm.size(), 3u);
   EXPECT_EQ(without.linear_states, 0u);
   EXPECT_TRUE(without.history.linear_shift_nm.empty());
-  // Scored after the window against the truth, each run as stream_model runs it (prepare_start, then the offset).
-  auto mae_after = [&](const models::StartEstimate& e) {
-    models::PiCreepModel c = m;
-    models::prepare_start(c, rec, "c", e.history);
-    double sum = 0;
-    std::size_t n = 0;
-    for (std::size_t i = 0; i < rec.size(); ++i) {
-      const models::ModelInput in{rec.axis("c").voltage_v[i], nullptr};
-      const double y = c.predict(in) + e.offset_nm;
-      c.commit(in, y);
-      if (i >= e.window_rows) sum += std::abs(y - rec.axis("c").true_position_nm[i]), ++n;
-    }
-    return sum / static_cast<double>(n);
-  };
-  const double a = mae_after(with), b = mae_after(without);
+  const double a = mae_vs_truth_after(m, rec, with), b = mae_vs_truth_after(m, rec, without);
   std::printf("MAE vs truth after the window: %.2f nm with the creep states, %.2f nm without\n", a, b);
   EXPECT_LT(a, 0.7 * b);
   EXPECT_TRUE(std::isfinite(with.offset_sigma_nm) && with.offset_sigma_nm > 0);
@@ -250,8 +255,7 @@ TEST(StartState, LearnedStatePriorPlacesTheSlowStates) {
     t.reset(12.0, 0.0);
     auto& a = train.add_axis("c");
     for (int i = 0; i < 39600; ++i) {  // 1 h of the recording's kind of motion, another stretch of it
-      const double s = (i + 20000) / 11.0;
-      const double v = 12.0 + 50.0 * std::sin(2 * M_PI * s / 97.0) * std::sin(2 * M_PI * s / 431.0);
+      const double v = creep_motion_v((i + 20000) / 11.0);
       train.time_s.push_back(i / 11.0);
       a.voltage_v.push_back(v);
       a.position_nm.push_back(t.predict({v, nullptr}));
@@ -272,18 +276,8 @@ TEST(StartState, LearnedStatePriorPlacesTheSlowStates) {
   learned.meta.state_prior = prior;
   auto mae_after = [&](const models::PiCreepModel& m) {
     const models::StartEstimate e = models::estimate_start(m, rec, "c", o);
-    models::PiCreepModel c = m;
-    models::prepare_start(c, rec, "c", e.history);
-    double sum = 0;
-    std::size_t n = 0;
-    for (std::size_t i = 0; i < rec.size(); ++i) {
-      const models::ModelInput in{rec.axis("c").voltage_v[i], nullptr};
-      const double y = c.predict(in) + e.offset_nm;
-      c.commit(in, y);
-      if (i >= e.window_rows) sum += std::abs(y - rec.axis("c").true_position_nm[i]), ++n;
-    }
     std::printf("%s\n", e.describe().c_str());
-    return sum / static_cast<double>(n);
+    return mae_vs_truth_after(m, rec, e);
   };
   const double with = mae_after(learned), without = mae_after(truth);
   std::printf("MAE vs truth after the window: %.2f nm with the learned prior, %.2f nm with the candidates' range\n", with, without);

@@ -357,9 +357,12 @@ void state_prior(const Model& model, double v0, const std::vector<std::vector<do
 }
 
 // The linear states' responses over the window (the header): φ_j, the window's response to a shift of state j by
-// its prior scale s_j (state_prior), streamed from `history` (exact for linear states, and the same from every state).
+// its prior scale s_j (state_prior), streamed from `history` = candidate `chosen` (exact for linear states, and the
+// same from every state) less that candidate's own window preds[chosen].
 struct StateBasis {
-  std::vector<std::size_t> used;  // states with a prior scale > 1e-6 nm (without a learned prior: a state every candidate puts at one place is not fitted)
+  // States with a prior scale > 1e-6 nm (without a learned prior, a state every candidate puts at one place is not
+  // fitted).
+  std::vector<std::size_t> used;
   std::vector<double> prior;      // s_j of every state
   std::vector<double> mean;       // m_j of every state, in units of s_j
   std::vector<std::vector<double>> phi;
@@ -373,7 +376,7 @@ StateBasis state_basis(const Model& model, const io::Dataset& data, const std::s
   state_prior(model, data.axis(axis).voltage_v[0], preds, states, chosen, &out.prior, &out.mean);
   ModelPtr base = model.clone();
   prepare_start(*base, data, axis, history);
-  const std::vector<double> p = stream_window(*base, window, axis);
+  const std::vector<double>& p = preds[chosen];  // the window from `history`, streamed by candidate_windows
   for (std::size_t j = 0; j < n_states; ++j) {
     if (!(out.prior[j] > 1e-6)) continue;
     ModelPtr m = base->clone();
