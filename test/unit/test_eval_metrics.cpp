@@ -129,6 +129,9 @@ TEST(EvalReport, WritesMarkdownJsonAndTraces) {
   EXPECT_EQ(st["creep_states_fitted"].as<int>(), 2);
   EXPECT_EQ(st["creep_state_shifts_nm"].size(), 2u);
   EXPECT_GT(st["candidates"].as<int>(), 1);
+  EXPECT_GT(st["window_swept_fraction"].as<double>(), 0.0);
+  EXPECT_NEAR(st["window_swept_fraction"].as<double>(),
+              st["window_swept_v"].as<double>() / st["voltage_range_v"].as<double>(), 1e-8);  // JSON: 10 digits
 }
 
 TEST(Evaluation, SegmentListsAndSegmentScoring) {

@@ -243,6 +243,33 @@ TEST(StartState, CreepStatesAreFittedOnTheWindow) {
   }
 }
 
+// The estimate says how much of the voltage range its window swept: the hysteresis memory of wider swings is not in
+// the window (docs/models.md, "Separate recording": MM3E 30-s windows 2.7x the continuation, 300-s ones 1.07x), and
+// below half the range the line advises a longer window. Without a training range the data's span is the range.
+TEST(StartState, TheReportSaysHowMuchOfTheRangeTheWindowSwept) {
+  const io::Dataset rec = creep_recording();
+  models::PiCreepModel m = creep_truth();
+  m.meta.train_voltage_min_v = -40.0;
+  m.meta.train_voltage_max_v = 64.0;
+  models::StartOptions o;
+  const auto& v = rec.axis("c").voltage_v;
+  for (double window_s : {30.0, 300.0}) {
+    o.window_s = window_s;
+    const models::StartEstimate e = models::estimate_start(m, rec, "c", o);
+    const auto [lo, hi] = std::minmax_element(v.begin(), v.begin() + static_cast<long>(e.window_rows));
+    std::printf("%.0f-s window: %s\n", window_s, e.describe().c_str());
+    EXPECT_DOUBLE_EQ(e.window_swept_v, *hi - *lo);
+    EXPECT_DOUBLE_EQ(e.range_v, 104.0);
+    const bool advised = e.describe().find("longer window") != std::string::npos;
+    EXPECT_EQ(advised, e.swept_fraction() < models::kWindowSweepAdvised) << e.describe();
+    if (window_s == 30.0) EXPECT_LT(e.swept_fraction(), models::kWindowSweepAdvised);
+    else EXPECT_GT(e.swept_fraction(), models::kWindowSweepAdvised);
+  }
+  const models::StartEstimate data_range = models::estimate_start(creep_truth(), rec, "c", o);
+  const auto [dlo, dhi] = std::minmax_element(v.begin(), v.end());
+  EXPECT_DOUBLE_EQ(data_range.range_v, *dhi - *dlo);
+}
+
 // The learned prior (ModelMeta::state_prior, what training::fit_model stores): where an hour of the same kind of
 // operation kept each creep state. A fast mode follows the voltage (its line's slope is its gain), a slow one sits
 // near its mean whatever the voltage (the warm-up pass: not where a reset at the first voltage put it); with it the

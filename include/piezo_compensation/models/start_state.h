@@ -82,9 +82,17 @@ struct StartEstimate {
   // puts them at one place) and the largest |shift| [nm] of one state's share of the prediction.
   std::size_t linear_states = 0;
   double linear_shift_max_nm = 0.0;
+  // How much of the voltage range the window swept: (max − min of its voltage) / the candidates' range (the training
+  // range, or the limits given). The memory of a swing wider than the window's is not in the window: below
+  // kWindowSweepAdvised the report says so (a longer window that sweeps the range starts better; docs/models.md).
+  double window_swept_v = 0.0, range_v = 0.0;
+  double swept_fraction() const { return range_v > 0 ? window_swept_v / range_v : 0.0; }
   StartHistory history;               // the chosen pre-history (prepare_start puts a model there)
   std::string describe() const;       // one line for logs and reports
 };
+
+// Below this fraction of the voltage range swept in the window, StartEstimate::describe() advises a longer window.
+inline constexpr double kWindowSweepAdvised = 0.5;
 
 // Throws std::invalid_argument for window_s ≤ 0 or not finite; io::DataError naming the source when the window
 // covers the whole data set (nothing left after it) or holds a non-finite voltage or measured position; the

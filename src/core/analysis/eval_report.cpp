@@ -48,6 +48,8 @@ void json_start(util::JsonWriter& j, const models::StartEstimate& st) {
   j.kv("candidate", st.candidate).kv("candidates", st.candidates).kv("window_rows", st.window_rows);
   j.kv("offset_nm", st.offset_nm).kv("offset_sigma_nm", st.offset_sigma_nm);
   j.kv("window_rms_offset_only_nm", st.rms_rest_nm).kv("window_rms_nm", st.rms_nm);
+  // The share of the voltage range the window swept (the memory of wider swings is not in it).
+  j.kv("window_swept_v", st.window_swept_v).kv("voltage_range_v", st.range_v).kv("window_swept_fraction", st.swept_fraction());
   // The creep states fitted on the window (0 for a kind without linear states): each one's shift of the
   // prediction at the window's start [nm].
   j.kv("creep_states_fitted", st.linear_states).key("creep_state_shifts_nm").begin_array();

@@ -126,6 +126,16 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
   return out;
 }
 
+// The voltage range the window's sweep is measured against: the given limits (the training range), else the data's
+// voltage span over all its rows.
+double window_range_v(const io::Dataset& data, const std::string& axis, const StartOptions& o) {
+  if (std::isfinite(o.voltage_min_v) && std::isfinite(o.voltage_max_v)) return o.voltage_max_v - o.voltage_min_v;
+  double lo = INFINITY, hi = -INFINITY;
+  for (double x : data.axis(axis).voltage_v)
+    if (std::isfinite(x)) lo = std::min(lo, x), hi = std::max(hi, x);
+  return hi > lo ? hi - lo : 0.0;
+}
+
 // The candidate's window, free run from its state.
 std::vector<double> stream_window(const Model& state, const io::Dataset& window, const std::string& axis) {
   ModelPtr m = state.clone();
@@ -218,6 +228,11 @@ std::string StartEstimate::describe() const {
     s << ", " << linear_states << " creep states fitted (largest shift " << linear_shift_max_nm << " nm)";
   s << ", offset " << offset_nm << " +- " << offset_sigma_nm << " nm, window RMS " << rms_rest_nm
     << " nm offset-only -> " << rms_nm << " nm";  // ASCII: rosconsole logs do not keep UTF-8
+  if (range_v > 0) {
+    s << "; the window swept " << std::lround(100.0 * swept_fraction()) << " % of the " << range_v << " V range";
+    if (swept_fraction() < kWindowSweepAdvised)
+      s << " (the memory of wider swings is not in it: a longer window that sweeps the range starts better)";
+  }
   return s.str();
 }
 
@@ -494,6 +509,10 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
   }
   e.candidates = cands.size();
   e.window_rows = k;
+  const auto& v = data.axis(axis).voltage_v;
+  const auto [lo, hi] = std::minmax_element(v.begin(), v.begin() + static_cast<long>(k));
+  e.window_swept_v = *hi - *lo;
+  e.range_v = window_range_v(data, axis, range);
   e.candidate = e.history.describe();
   return e;
 }
