@@ -133,8 +133,16 @@ TEST(ModelSelection, AutoChoosesByTheSlowErrorOnAnotherStage) {
   EXPECT_TRUE(y["candidates"][sel.best]["overall_nm"]);
   const std::string table = analysis::selection_table(sel);
   EXPECT_TRUE(has(table, "**chosen**")) << table;
-  EXPECT_TRUE(has(table, "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | overall [nm] |"))
+  EXPECT_TRUE(has(table, "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | carry-over [nm] | "
+                        "overall [nm] |"))
       << table;
+  // The carry-over fold ran for every candidate that passed (10 s of training at 200 Hz: 1000 rows per half).
+  for (std::size_t k = 0; k < sel.table.size(); ++k)
+    if (sel.table[k].refused.empty()) {
+      EXPECT_EQ(sel.table[k].slow.blocks.carry.size(), 32u) << sel.table[k].candidate.label;
+      EXPECT_TRUE(std::isfinite(sel.table[k].slow.carry_nm)) << sel.table[k].candidate.label;
+      EXPECT_TRUE(y["candidates"][k]["carry_over_nm"]) << sel.table[k].candidate.label;
+    }
   EXPECT_TRUE(has(table, "Choice: " + sel.reason)) << table;
   std::printf("%s\n", table.c_str());
 }
@@ -318,6 +326,48 @@ TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPartAndIsScoredAfterAWindow
   // A short validation part (100 s, under 8 or 32 blocks) is cut into eighths or 32 blocks (3.1 s: 31 rows).
   EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c", eighths).block_s, 12.5, 1e-9);
   EXPECT_NEAR(analysis::slow_score(m, d, 5000, "c").block_s, 3.1, 1e-9);
+}
+
+// The carry-over fold (SlowScoreOptions::carry_fold): the half-fit model runs free from rest over the whole training
+// part and is scored in blocks over its second half only. The probe predicts (t since reset)²: against a position
+// of 0 everywhere its block means are known in closed form; in the overall the column counts carry_weight.
+TEST(SlowScore, TheCarryOverFoldScoresTheSecondHalfOfTheTrainingPart) {
+  io::Dataset d;
+  auto& a = d.add_axis("c");
+  for (int i = 0; i < 6000; ++i) {
+    d.time_s.push_back(0.1 * i);
+    a.voltage_v.push_back(std::sin(0.01 * i));
+    a.position_nm.push_back(0.0);
+  }
+  const ResetModel m;
+  analysis::SlowScoreOptions o;
+  o.min_blocks = 8;
+  const std::vector<double> e = analysis::carry_over_errors(m, d, 3000, "c", o);
+  ASSERT_EQ(e.size(), 10u);  // rows 3000…5999 in 30-s blocks of 300 rows
+  for (std::size_t b = 0; b < e.size(); ++b) {
+    double mean = 0;  // mean of 0.01·k² over the block's rows k
+    for (std::size_t k = 3000 + 300 * b; k < 3300 + 300 * b; ++k) mean += 0.01 * double(k) * double(k) / 300.0;
+    EXPECT_NEAR(e[b], mean, 1e-6 * mean);
+  }
+  EXPECT_TRUE(analysis::carry_over_errors(m, d, 6000, "c", o).empty());
+  // The column in the overall: moves of 1 nm and a carry-over of 100 nm at weight 1 → √((1 + ε)(100 + ε)) − ε,
+  // ε the 1e-3-nm floor of the noise.
+  analysis::SlowErrors b;
+  b.moves = {1.0, 1.0};
+  b.carry = {100.0, 100.0};
+  analysis::SlowScoreOptions w;
+  w.noise_nm = 1e-9;
+  const analysis::SlowScore s = analysis::summarise_slow(b, w);
+  EXPECT_NEAR(s.carry_nm, 100.0, 1e-9);
+  EXPECT_NEAR(s.overall_nm, std::sqrt(1.001 * 100.001) - 0.001, 1e-9);
+  // A candidate clearly worse on the carry-over alone is not within the noise of one that carries over.
+  analysis::SlowErrors good = b, bad = b;
+  good.carry = {1, 1.2, 0.9, 1.1, 1, 1.05, 0.95, 1};
+  bad.carry = {30, 31, 29, 30, 32, 28, 30, 31};
+  good.moves = bad.moves = {1, 1, 1, 1, 1, 1, 1, 1};
+  std::vector<std::string> worse;
+  EXPECT_FALSE(analysis::within_noise(analysis::summarise_slow(good, w), analysis::summarise_slow(bad, w), &worse));
+  EXPECT_EQ(worse, std::vector<std::string>{"carry-over"});
 }
 
 // End to end on creep-protocol data with settings no other test uses (issue 26's done-when "auto's worst hold end

@@ -98,6 +98,14 @@ struct SlowScoreOptions {
   int cold_starts = 4;
   double cold_weight = 0.25;
   bool cold_start_estimate = false;
+  // The carry-over fold (select_model; issue 26, a model that holds on the next recording): each candidate fitted
+  // again on the first half of the training part alone and run free through that half into the second half, which
+  // it has not seen: its block errors there are the column "carry-over", weighted carry_weight in overall. It
+  // measures what the continuation's short tail cannot: whether the kind, fitted on this much of this stage, carries
+  // over to motion it was not fitted on (a separate recording of the stage: docs/models.md). Costs one more fit on
+  // half the data per candidate; off when the training part has fewer than 2·min_blocks rows.
+  bool carry_fold = true;
+  double carry_weight = 1.0;
   int min_blocks = 32;
   double noise_nm = 0.0;  // noise of a block mean [nm]; 0: select_model estimates it (σ of a reading / √rows)
 };
@@ -112,7 +120,7 @@ std::vector<VoltageHold> voltage_holds(const io::Dataset& data, const std::strin
 // Per column, |mean error| of each block [nm], in time order (same rows for every candidate on the same data,
 // so two candidates' vectors pair entry by entry).
 struct SlowErrors {
-  std::vector<double> moves, holds, hold_ends, cold;
+  std::vector<double> moves, holds, hold_ends, cold, carry;
 };
 // Block errors of `prediction` against `reference` on rows [from, reference.size()) (moves, holds, hold ends;
 // `cold` is left empty). block = samples per block; partial blocks of at least half a block count.
@@ -125,7 +133,8 @@ std::vector<double> block_errors(const std::vector<double>& prediction, const st
 
 struct SlowScore {
   SlowErrors blocks;
-  double moves_nm = NAN, holds_nm = NAN, hold_ends_nm = NAN, worst_hold_end_nm = NAN, cold_nm = NAN, overall_nm = NAN;
+  double moves_nm = NAN, holds_nm = NAN, hold_ends_nm = NAN, worst_hold_end_nm = NAN, cold_nm = NAN, carry_nm = NAN,
+         overall_nm = NAN;
   double hold_ends_truth_nm = NAN, worst_hold_end_truth_nm = NAN;  // vs the true position (simulated data)
   double block_s = NAN;  // the block used (block_s, or shorter on a short validation part)
   bool valid() const { return std::isfinite(overall_nm); }
@@ -137,6 +146,11 @@ SlowScore summarise_slow(const SlowErrors& blocks, const SlowScoreOptions& o = {
 SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
                      const std::string& axis, const SlowScoreOptions& o = {},
                      const std::vector<double>* warm_free_run = nullptr);
+// The carry-over fold's block errors (SlowScoreOptions::carry_fold): `half_fit`, fitted on train's first `half`
+// rows, run free from rest over all of train; |mean error| of blocks over rows [half, end) (a 30-s block, at most
+// 1/min_blocks of those rows). Runs the model only through models::stream_model.
+std::vector<double> carry_over_errors(const models::Model& half_fit, const io::Dataset& train, std::size_t half,
+                                      const std::string& axis, const SlowScoreOptions& o = {});
 
 // The choice among scored candidates. best_overall: the lowest overall; chosen: of the candidates within the
 // noise of it (no column on which it is clearly better by training::validation_prefers over the paired block

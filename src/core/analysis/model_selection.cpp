@@ -193,13 +193,15 @@ SlowScore summarise_slow(const SlowErrors& b, const SlowScoreOptions& o) {
   s.hold_ends_nm = mean_of(b.hold_ends);
   s.worst_hold_end_nm = max_of(b.hold_ends);
   s.cold_nm = mean_of(b.cold);
+  s.carry_nm = mean_of(b.carry);
   // Weighted geometric mean of (column + noise), less the noise: a column counts by its ratio between
   // candidates, not by its scale (a cold fold of 500 nm next to moves of 0.3 nm does not drown the moves), and
   // differences below the noise of a block mean count little.
   const double eps = std::max(o.noise_nm, 1e-3);
   double sum = 0, w = 0;
   for (const auto& [x, wt] : {std::pair<double, double>{s.moves_nm, 1.0}, {s.holds_nm, 1.0},
-                              {s.hold_ends_nm, o.hold_end_weight}, {s.cold_nm, o.cold_weight}})
+                              {s.hold_ends_nm, o.hold_end_weight}, {s.cold_nm, o.cold_weight},
+                              {s.carry_nm, o.carry_weight}})
     if (std::isfinite(x)) sum += wt * std::log(x + eps), w += wt;
   s.overall_nm = w > 0 ? std::exp(sum / w) - eps : NAN;
   return s;
@@ -269,6 +271,24 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
   return s;
 }
 
+std::vector<double> carry_over_errors(const models::Model& half_fit, const io::Dataset& train, std::size_t half,
+                                      const std::string& axis, const SlowScoreOptions& o) {
+  if (half >= train.size()) return {};
+  models::StreamOptions so;
+  so.mode = models::PredictionMode::kFreeRun;
+  so.keep_diverging = true;
+  auto m = half_fit.clone();
+  const std::vector<double> p = models::stream_model(*m, train, axis, so).prediction;
+  const auto& y = train.axis(axis).position_nm;
+  const double rate = train.size() > 1 ? train.sample_rate_hz() : 1.0;
+  const std::size_t rows = train.size() - half;
+  const std::size_t block = std::max<std::size_t>(
+      1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate)),
+                               rows / std::max<std::size_t>(1, o.min_blocks)));
+  const auto h = static_cast<std::ptrdiff_t>(half);
+  return block_errors(std::vector<double>(p.begin() + h, p.end()), std::vector<double>(y.begin() + h, y.end()), block);
+}
+
 namespace {
 struct Column {
   const char* name;
@@ -278,7 +298,8 @@ struct Column {
 const Column kColumns[] = {{"moves", &SlowErrors::moves, &SlowScore::moves_nm},
                            {"holds", &SlowErrors::holds, &SlowScore::holds_nm},
                            {"hold ends", &SlowErrors::hold_ends, &SlowScore::hold_ends_nm},
-                           {"cold fold", &SlowErrors::cold, &SlowScore::cold_nm}};
+                           {"cold fold", &SlowErrors::cold, &SlowScore::cold_nm},
+                           {"carry-over", &SlowErrors::carry, &SlowScore::carry_nm}};
 }  // namespace
 
 bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std::string>* worse) {
@@ -466,6 +487,46 @@ SelectionRequest selection_request(const io::Dataset& train, const io::Dataset* 
   return rq;
 }
 
+namespace {
+training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidate& c, const io::Dataset& train,
+                                 const io::Dataset* validation) {
+  training::FitRequest fr;
+  fr.train = &train;
+  fr.validation = validation;
+  fr.axis = rq.axis;
+  fr.options = c.options ? YAML::Clone(c.options) : YAML::Node(YAML::NodeType::Map);
+  fr.time_budget_s = rq.time_budget_s;
+  fr.seed = rq.seed;
+  fr.threads = rq.threads;
+  return fr;
+}
+
+// The carry-over fold of one candidate (SlowScoreOptions::carry_fold): the kind fitted again on the training part's
+// first half (its last fifth the fit's validation when the selection has one; the lasso features stay those chosen
+// on the whole training part), scored on the second half. A fit that fails there leaves the column empty.
+void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const SlowScoreOptions& o, SlowScore& s) {
+  const io::Dataset& train = *rq.train;
+  const std::size_t half = train.size() / 2;
+  if (!o.carry_fold || half < 2 * static_cast<std::size_t>(std::max(1, o.min_blocks))) return;
+  const io::Dataset first = train.slice(0, half);
+  const std::size_t fit_rows = rq.validation ? half * 4 / 5 : half;
+  const io::Dataset fit_part = first.slice(0, fit_rows), val_part = first.slice(fit_rows, half);
+  SlowErrors b = s.blocks;
+  try {
+    const models::ModelPtr m =
+        training::fit_model(c.kind, fit_request(rq, c, fit_part, rq.validation ? &val_part : nullptr));
+    b.carry = carry_over_errors(*m, train, half, rq.axis, o);
+  } catch (const std::exception&) {
+    return;
+  }
+  SlowScore t = summarise_slow(b, o);
+  t.block_s = s.block_s;
+  t.hold_ends_truth_nm = s.hold_ends_truth_nm;
+  t.worst_hold_end_truth_nm = s.worst_hold_end_truth_nm;
+  s = t;
+}
+}  // namespace
+
 Selection select_model(const SelectionRequest& rq) {
   if (!rq.train || !rq.score_data) throw std::invalid_argument("model selection: no training or validation data");
   if (rq.score_data->size() <= rq.score_from)
@@ -499,15 +560,7 @@ Selection select_model(const SelectionRequest& rq) {
     try {
       if (!training::fitter(r.candidate.kind)) throw std::runtime_error("kind cannot be fitted on its own");
       if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
-      training::FitRequest fr;
-      fr.train = rq.train;
-      fr.validation = rq.validation;
-      fr.axis = rq.axis;
-      fr.options = r.candidate.options ? YAML::Clone(r.candidate.options) : YAML::Node(YAML::NodeType::Map);
-      fr.time_budget_s = rq.time_budget_s;
-      fr.seed = rq.seed;
-      fr.threads = rq.threads;
-      m = training::fit_model(r.candidate.kind, fr);
+      m = training::fit_model(r.candidate.kind, fit_request(rq, r.candidate, *rq.train, rq.validation));
       if (!m) throw std::runtime_error("the fit returned no model");
       m->meta.axis = rq.axis;
       m->meta.sample_rate_hz = rq.train->sample_rate_hz();
@@ -515,8 +568,10 @@ Selection select_model(const SelectionRequest& rq) {
       SeriesPrediction p;
       r.score = score_validation_series(*m, *rq.score_data, rq.score_from, rq.axis, p);
       r.refused = sanity_problem(*m, &r.score, sel.scale);
-      if (r.refused.empty())
+      if (r.refused.empty()) {
         r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
+        add_carry_over(rq, r.candidate, sel.slow_options, r.slow);
+      }
     } catch (const std::exception& e) {
       r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
     }
@@ -559,12 +614,14 @@ std::string selection_table(const Selection& s) {
   os << ":\nmoves, holds (voltage unchanged >= " << fmt(o.hold_min_s) << " s), hold ends (last " << fmt(o.hold_end_s)
      << " s of each hold), cold fold\n(the validation part alone, " << o.cold_starts << " starts from rest, scored after "
      << fmt(o.cold_window_s) << " s at most" << (o.cold_start_estimate ? " with the start estimate there" : "")
-     << "); overall = weighted geometric mean of (column + block noise), less the\n"
-        "noise (hold ends x" << fmt(o.hold_end_weight) << ", cold fold x" << fmt(o.cold_weight) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
+     << ")" << (o.carry_fold ? ", carry-over\n(fitted again on the training part's first half, scored on its second half)" : "")
+     << "; overall = weighted geometric mean of (column + block noise), less the\n"
+        "noise (hold ends x" << fmt(o.hold_end_weight) << ", cold fold x" << fmt(o.cold_weight)
+     << (o.carry_fold ? ", carry-over x" + fmt(o.carry_weight) : std::string()) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
         "of it (paired block test on every column). Position range "
      << fmt(s.scale.position_range_nm, 4) << " nm.\n\n";
-  os << "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | overall [nm] | status |\n";
-  os << "|---|---:|---:|---:|---:|---:|---:|---|\n";
+  os << "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | carry-over [nm] | overall [nm] | status |\n";
+  os << "|---|---:|---:|---:|---:|---:|---:|---:|---|\n";
   for (std::size_t k = 0; k < s.table.size(); ++k) {
     const auto& r = s.table[k];
     const auto& w = r.slow;
@@ -574,7 +631,8 @@ std::string selection_table(const Selection& s) {
       else if (k == s.best_overall) status = "lowest overall";
     }
     os << "| " << r.candidate.label << " | " << r.parameters << " | " << cell(w.moves_nm) << " | " << cell(w.holds_nm)
-       << " | " << cell(w.hold_ends_nm) << " | " << cell(w.cold_nm) << " | " << cell(w.overall_nm) << " | " << status
+       << " | " << cell(w.hold_ends_nm) << " | " << cell(w.cold_nm) << " | " << cell(w.carry_nm) << " | "
+       << cell(w.overall_nm) << " | " << status
        << " |\n";
   }
   if (!s.reason.empty()) os << "\nChoice: " << s.reason << "\n";
@@ -587,7 +645,9 @@ YAML::Node selection_yaml(const Selection& s) {
   n["criterion"] = "slow part of the error: |mean(predicted - measured)| of " + fmt(o.block_s) +
                    "-s blocks on moves, holds, hold ends (x" + fmt(o.hold_end_weight) +
                    ") and a cold fold (x" + fmt(o.cold_weight) + ", " + std::to_string(o.cold_starts) + " starts from rest, scored after at most " +
-                   fmt(o.cold_window_s) + " s" + (o.cold_start_estimate ? " with the start estimate there" : "") + "); overall = weighted geometric mean of (column + block noise) less the noise; "
+                   fmt(o.cold_window_s) + " s" + (o.cold_start_estimate ? " with the start estimate there" : "") + ")" +
+                   (o.carry_fold ? " and a carry-over fold (x" + fmt(o.carry_weight) + ", the kind fitted again on the training part's first half, scored on its second half)" : std::string()) +
+                   "; overall = weighted geometric mean of (column + block noise) less the noise; "
                    "lowest overall, then the fewest parameters within the noise of it "
                    "(paired block test on every column), among the candidates passing the gates";
   if (!s.table.empty()) {
@@ -618,6 +678,7 @@ YAML::Node selection_yaml(const Selection& s) {
     put("hold_ends_nm", w.hold_ends_nm);
     put("worst_hold_end_nm", w.worst_hold_end_nm);
     put("cold_fold_nm", w.cold_nm);
+    put("carry_over_nm", w.carry_nm);
     put("overall_nm", w.overall_nm);
     put("hold_ends_vs_truth_nm", w.hold_ends_truth_nm);
     put("worst_hold_end_vs_truth_nm", w.worst_hold_end_truth_nm);
