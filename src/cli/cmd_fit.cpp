@@ -31,8 +31,9 @@ int run(int argc, char** argv) {
       .option("split", "FRACTION", "training fraction of --data when no --validation is given", "0.8")
       .option("axis", "a|b|c", "axis to model", "c")
       .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, kan, run\n"
-                "free on the validation part and scored by 30-s block means on moves, holds, hold ends and a cold\n"
-                "fold; within the noise the fewer parameters win; the table and the reason are printed and stored")
+                "free on the validation part and scored by 30-s block means on moves, holds, hold ends, a cold\n"
+                "fold and a carry-over fold (fitted again on the training part's first half, scored on its second);\n"
+                "within the noise the fewer parameters win; the table and the reason are printed and stored")
       .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm; kan is a default candidate)", "", true)
       .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
