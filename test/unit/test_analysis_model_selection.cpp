@@ -216,7 +216,7 @@ TEST(SlowScore, BlockMeansTakeTheWhiteNoiseOutAndHoldEndsAreTheirLastPart) {
   // overall: moves 0, holds 5, hold ends 10 (weight 2), no cold fold, noise 1 nm: ((0+1)(5+1)(10+1)²)^¼ − 1.
   EXPECT_NEAR(s.overall_nm, std::pow(6.0 * 121.0, 0.25) - 1.0, 1e-12);
   // By ratio, not by scale: a column 1000× larger for everyone does not change the order of two candidates.
-  analysis::SlowErrors a{{2.0}, {}, {}, {500.0}}, b{{4.0}, {}, {}, {450.0}};
+  analysis::SlowErrors a{{2.0}, {}, {}, {500.0}, {}}, b{{4.0}, {}, {}, {450.0}, {}};
   EXPECT_LT(analysis::summarise_slow(a, o).overall_nm, analysis::summarise_slow(b, o).overall_nm);
   EXPECT_TRUE(std::isnan(s.cold_nm));
 }

@@ -103,7 +103,8 @@ struct SlowScoreOptions {
   // it has not seen: its block errors there are the column "carry-over", weighted carry_weight in overall. It
   // measures what the continuation's short tail cannot: whether the kind, fitted on this much of this stage, carries
   // over to motion it was not fitted on (a separate recording of the stage: docs/models.md). Costs one more fit on
-  // half the data per candidate; off when the training part has fewer than 2·min_blocks rows.
+  // half the data per candidate (neural kinds: another time_budget_s); skipped when the training part has fewer than
+  // 4·min_blocks rows, and for every candidate when one candidate's half fit fails (compared on the same columns).
   bool carry_fold = true;
   double carry_weight = 1.0;
   int min_blocks = 32;

@@ -357,7 +357,8 @@ Choice choose_candidate(const std::vector<ChoiceEntry>& en) {
       within_noise(*c.score, *en[s].score, &worse);
       std::vector<std::string> ok;
       for (const auto& col : kColumns)
-        if (!(c.score->blocks.*col.v).empty() && std::find(worse.begin(), worse.end(), col.name) == worse.end())
+        if (!(c.score->blocks.*col.v).empty() && !(en[s].score->blocks.*col.v).empty() &&
+            std::find(worse.begin(), worse.end(), col.name) == worse.end())
           ok.push_back(col.name);
       r << "; " << en[s].label << " (" << en[s].parameters << " parameters)";
       if (!ok.empty()) {
@@ -488,6 +489,15 @@ SelectionRequest selection_request(const io::Dataset& train, const io::Dataset* 
 }
 
 namespace {
+// `s` summarised again from `blocks` (its block length and truth figures kept).
+void rescore(SlowScore& s, const SlowErrors& blocks, const SlowScoreOptions& o) {
+  SlowScore t = summarise_slow(blocks, o);
+  t.block_s = s.block_s;
+  t.hold_ends_truth_nm = s.hold_ends_truth_nm;
+  t.worst_hold_end_truth_nm = s.worst_hold_end_truth_nm;
+  s = t;
+}
+
 training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidate& c, const io::Dataset& train,
                                  const io::Dataset* validation) {
   training::FitRequest fr;
@@ -501,9 +511,10 @@ training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidat
   return fr;
 }
 
-// The carry-over fold of one candidate (SlowScoreOptions::carry_fold): the kind fitted again on the training part's
-// first half (its last fifth the fit's validation when the selection has one; the lasso features stay those chosen
-// on the whole training part), scored on the second half. A fit that fails there leaves the column empty.
+// The carry-over fold of one candidate (SlowScoreOptions::carry_fold): the kind fitted again on rows [0, half) of
+// the training part alone (their last fifth the fit's validation when the selection has one; the lasso candidate's
+// features chosen again on them), scored on the second half. A fit that fails or returns nothing there leaves the
+// column empty (align_carry_over then drops it for every candidate).
 void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const SlowScoreOptions& o, SlowScore& s) {
   const io::Dataset& train = *rq.train;
   const std::size_t half = train.size() / 2;
@@ -513,17 +524,31 @@ void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const S
   const io::Dataset fit_part = first.slice(0, fit_rows), val_part = first.slice(fit_rows, half);
   SlowErrors b = s.blocks;
   try {
+    ModelCandidate half_c = c;
+    if (c.lasso_features) half_c.options = lasso_linear_options(fit_part, rq.axis, {});
     const models::ModelPtr m =
-        training::fit_model(c.kind, fit_request(rq, c, fit_part, rq.validation ? &val_part : nullptr));
+        training::fit_model(c.kind, fit_request(rq, half_c, fit_part, rq.validation ? &val_part : nullptr));
+    if (!m) return;
     b.carry = carry_over_errors(*m, train, half, rq.axis, o);
   } catch (const std::exception&) {
     return;
   }
-  SlowScore t = summarise_slow(b, o);
-  t.block_s = s.block_s;
-  t.hold_ends_truth_nm = s.hold_ends_truth_nm;
-  t.worst_hold_end_truth_nm = s.worst_hold_end_truth_nm;
-  s = t;
+  rescore(s, b, o);
+}
+
+// The carry-over column counts only when every scored candidate has it: a candidate whose half fit failed would
+// otherwise be compared on fewer columns, and the carry-over is often the largest (docs/models.md).
+void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o) {
+  bool all = true;
+  for (const auto& r : table)
+    if (r.refused.empty() && r.slow.valid() && r.slow.blocks.carry.empty()) all = false;
+  if (all) return;
+  for (auto& r : table)
+    if (!r.slow.blocks.carry.empty()) {
+      SlowErrors b = r.slow.blocks;
+      b.carry.clear();
+      rescore(r.slow, b, o);
+    }
 }
 }  // namespace
 
@@ -579,6 +604,7 @@ Selection select_model(const SelectionRequest& rq) {
     if (r.refused.empty()) r.model = std::move(m);
     sel.table.push_back(std::move(r));
   }
+  align_carry_over(sel.table, sel.slow_options);
   std::vector<ChoiceEntry> entries;
   for (const auto& r : sel.table)
     entries.push_back({r.candidate.label, r.parameters, r.refused.empty() && r.slow.valid() ? &r.slow : nullptr});
@@ -603,6 +629,13 @@ namespace {
 std::string cell(double x) { return std::isfinite(x) ? fmt(x, 3) : std::string("–"); }
 }  // namespace
 
+namespace {
+// Whether the carry-over fold scored the candidates (off, a short training part, or a half fit that failed: not).
+bool carry_ran(const Selection& s) {
+  return std::any_of(s.table.begin(), s.table.end(), [](const CandidateResult& r) { return !r.slow.blocks.carry.empty(); });
+}
+}  // namespace
+
 std::string selection_table(const Selection& s) {
   std::ostringstream os;
   const auto& o = s.slow_options;
@@ -614,10 +647,10 @@ std::string selection_table(const Selection& s) {
   os << ":\nmoves, holds (voltage unchanged >= " << fmt(o.hold_min_s) << " s), hold ends (last " << fmt(o.hold_end_s)
      << " s of each hold), cold fold\n(the validation part alone, " << o.cold_starts << " starts from rest, scored after "
      << fmt(o.cold_window_s) << " s at most" << (o.cold_start_estimate ? " with the start estimate there" : "")
-     << ")" << (o.carry_fold ? ", carry-over\n(fitted again on the training part's first half, scored on its second half)" : "")
+     << ")" << (carry_ran(s) ? ", carry-over\n(fitted again on the training part's first half, scored on its second half)" : "")
      << "; overall = weighted geometric mean of (column + block noise), less the\n"
         "noise (hold ends x" << fmt(o.hold_end_weight) << ", cold fold x" << fmt(o.cold_weight)
-     << (o.carry_fold ? ", carry-over x" + fmt(o.carry_weight) : std::string()) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
+     << (carry_ran(s) ? ", carry-over x" + fmt(o.carry_weight) : std::string()) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
         "of it (paired block test on every column). Position range "
      << fmt(s.scale.position_range_nm, 4) << " nm.\n\n";
   os << "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | carry-over [nm] | overall [nm] | status |\n";
@@ -646,7 +679,7 @@ YAML::Node selection_yaml(const Selection& s) {
                    "-s blocks on moves, holds, hold ends (x" + fmt(o.hold_end_weight) +
                    ") and a cold fold (x" + fmt(o.cold_weight) + ", " + std::to_string(o.cold_starts) + " starts from rest, scored after at most " +
                    fmt(o.cold_window_s) + " s" + (o.cold_start_estimate ? " with the start estimate there" : "") + ")" +
-                   (o.carry_fold ? " and a carry-over fold (x" + fmt(o.carry_weight) + ", the kind fitted again on the training part's first half, scored on its second half)" : std::string()) +
+                   (carry_ran(s) ? " and a carry-over fold (x" + fmt(o.carry_weight) + ", the kind fitted again on the training part's first half, scored on its second half)" : std::string()) +
                    "; overall = weighted geometric mean of (column + block noise) less the noise; "
                    "lowest overall, then the fewest parameters within the noise of it "
                    "(paired block test on every column), among the candidates passing the gates";
