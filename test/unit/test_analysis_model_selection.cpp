@@ -6,6 +6,7 @@
 #include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/sim/stage.h"
+#include "piezo_compensation/training/fitters.h"
 
 using namespace piezo;
 
@@ -368,6 +369,46 @@ TEST(SlowScore, TheCarryOverFoldScoresTheSecondHalfOfTheTrainingPart) {
   std::vector<std::string> worse;
   EXPECT_FALSE(analysis::within_noise(analysis::summarise_slow(good, w), analysis::summarise_slow(bad, w), &worse));
   EXPECT_EQ(worse, std::vector<std::string>{"carry-over"});
+}
+
+// select_model's carry-over fold sees only the training part's first half: a stage whose gain doubles halfway
+// through the training part. The column equals the half fit made here by hand (rows [0, 4/5 of the half) fitted,
+// the rest of the half its validation), run over the whole training part and scored on its second half; a fit that
+// had seen the second half would follow the doubled gain there.
+TEST(SlowScore, TheCarryOverFoldFitsTheFirstHalfOnly) {
+  io::Dataset all;
+  auto& a = all.add_axis("c");
+  for (int i = 0; i < 5000; ++i) {
+    const double t = 0.1 * i, v = 5.0 * std::sin(2 * M_PI * t / 40.0);
+    all.time_s.push_back(t);
+    a.voltage_v.push_back(v);
+    a.position_nm.push_back((i < 2000 ? 10.0 : 20.0) * v);
+  }
+  const io::Dataset train = all.slice(0, 4000), val = all.slice(4000, 5000);
+  analysis::SelectionRequest rq = analysis::selection_request(train, &val, all, 4000, "c");
+  rq.candidates = {{"pi", "pi", YAML::Node(), false}};
+  const analysis::Selection sel = analysis::select_model(rq);
+  ASSERT_EQ(sel.table.size(), 1u);
+  const auto& got = sel.table[0].slow.blocks.carry;
+  ASSERT_FALSE(got.empty());
+  const io::Dataset fit_part = train.slice(0, 1600), half_val = train.slice(1600, 2000);
+  training::FitRequest fr;
+  fr.train = &fit_part;
+  fr.validation = &half_val;
+  fr.options = YAML::Node(YAML::NodeType::Map);
+  fr.seed = rq.seed;
+  const models::ModelPtr half_fit = training::fit_model("pi", fr);
+  const std::vector<double> want = analysis::carry_over_errors(*half_fit, train, 2000, "c", sel.slow_options);
+  ASSERT_EQ(got.size(), want.size());
+  for (std::size_t b = 0; b < got.size(); ++b) EXPECT_NEAR(got[b], want[b], 1e-9 * (1 + want[b]));
+  // The half fit keeps the first half's 10 nm/V: its blocks are those of 10·V against 20·V (2000 rows in 32nds).
+  std::vector<double> p10, y;
+  for (std::size_t i = 2000; i < 4000; ++i) p10.push_back(10.0 * a.voltage_v[i]), y.push_back(a.position_nm[i]);
+  const std::vector<double> first_gain = analysis::block_errors(p10, y, 2000 / 32);
+  ASSERT_EQ(first_gain.size(), got.size());
+  double mean = 0;
+  for (double e : first_gain) mean += e / static_cast<double>(first_gain.size());
+  EXPECT_NEAR(sel.table[0].slow.carry_nm, mean, 0.02 * mean);
 }
 
 // End to end on creep-protocol data with settings no other test uses (issue 26's done-when "auto's worst hold end
