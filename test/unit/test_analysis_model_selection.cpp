@@ -272,18 +272,25 @@ class ResetModel : public models::Model {
  private:
   long k_ = 0;
 };
-}  // namespace
 
-TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPartAndIsScoredAfterAWindow) {
-  // 10 Hz, 600 s; the voltage keeps moving (no holds). The position is what the probe predicts when reset at row
-  // 3000: 0 before, (t − 300 s)² after.
+// 10 Hz, 600 s; the voltage keeps moving (no holds); the position of row i is position(i).
+template <class F>
+io::Dataset probe_recording(F position) {
   io::Dataset d;
   auto& a = d.add_axis("c");
   for (int i = 0; i < 6000; ++i) {
     d.time_s.push_back(0.1 * i);
     a.voltage_v.push_back(std::sin(0.01 * i));
-    a.position_nm.push_back(i < 3000 ? 0.0 : 0.01 * double(i - 3000) * double(i - 3000));
+    a.position_nm.push_back(position(i));
   }
+  return d;
+}
+}  // namespace
+
+TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPartAndIsScoredAfterAWindow) {
+  // The position is what the probe predicts when reset at row 3000: 0 before, (t − 300 s)² after.
+  const io::Dataset d =
+      probe_recording([](int i) { return i < 3000 ? 0.0 : 0.01 * double(i - 3000) * double(i - 3000); });
   const ResetModel m;
   // Warm: reset at row 0, far off in every scored block; cold (one start): reset at row 3000, exact; its blocks
   // start after the 30-s window (cold_window_s).
@@ -333,13 +340,7 @@ TEST(SlowScore, TheColdFoldStartsFromRestAtTheHeldOutPartAndIsScoredAfterAWindow
 // part and is scored in blocks over its second half only. The probe predicts (t since reset)²: against a position
 // of 0 everywhere its block means are known in closed form; in the overall the column counts carry_weight.
 TEST(SlowScore, TheCarryOverFoldScoresTheSecondHalfOfTheTrainingPart) {
-  io::Dataset d;
-  auto& a = d.add_axis("c");
-  for (int i = 0; i < 6000; ++i) {
-    d.time_s.push_back(0.1 * i);
-    a.voltage_v.push_back(std::sin(0.01 * i));
-    a.position_nm.push_back(0.0);
-  }
+  const io::Dataset d = probe_recording([](int) { return 0.0; });
   const ResetModel m;
   analysis::SlowScoreOptions o;
   o.min_blocks = 8;

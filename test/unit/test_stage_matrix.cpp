@@ -111,8 +111,7 @@ std::string matrix_header() {
 // The separate recording of a stage family: length simulated, first part dropped (the history then starts
 // mid-motion, at a state the model cannot know), and the start-estimate window; sized to the stage's rate and
 // its walk's trend correlation time (lowvolt 0.6 s, stack150 0.3 s, MM3E 120 s: the window is 2.5–3.3 of them, so
-// the voltage sweeps most of its range in it) while keeping the test fast. The MM3E window was 30 s (a quarter of
-// one correlation time, 11 % of the range swept) until session 18; docs/models.md gives the figures by window.
+// the voltage sweeps most of its range in it) while keeping the test fast (docs/models.md: the error by window).
 struct SeparateSpec {
   double duration_s, cut_s, anchor_s;
 };

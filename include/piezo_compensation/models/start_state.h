@@ -108,8 +108,8 @@ void prepare_start(Model& model, const io::Dataset& data, const std::string& axi
 // least-squares line in the applied voltage and the RMS scatter about it, over a pass of the data after a warm-up
 // pass (so that no state is still settling from the reset). The σ adds half the gap between two warm-ups started at
 // rest at either end of the data's voltage range: a state that one training length does not settle (a mode much
-// slower than the recording) keeps a wide prior. Empty for a run that does not stay finite (e.g. a NaN voltage). Empty when the model has no linear states
-// or its run does not stay finite. The fitters store it in every model file (training::fit_model).
+// slower than the recording) keeps a wide prior. Empty when the model has no linear states or its run does not stay
+// finite (e.g. a NaN voltage). The fitters store it in every model file (training::fit_model).
 std::vector<LinearStatePrior> learn_state_prior(const Model& model, const io::Dataset& train, const std::string& axis);
 
 // Rows of the first window_s seconds (at least 1). Throws like estimate_start for a bad window.

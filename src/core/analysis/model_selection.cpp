@@ -208,6 +208,21 @@ SlowScore summarise_slow(const SlowErrors& b, const SlowScoreOptions& o) {
 }
 
 namespace {
+// Rows per block: block_s at the data's rate, at most a 1/min_blocks share of the `scored` rows, at least one (the
+// slow score's blocks, the carry-over fold's and the block noise select_model estimates).
+std::size_t block_rows(const SlowScoreOptions& o, double rate_hz, std::size_t scored) {
+  return std::max<std::size_t>(1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate_hz)),
+                                                        scored / std::max<std::size_t>(1, o.min_blocks)));
+}
+
+// How every column runs a model: free, a diverging prediction kept finite.
+models::StreamOptions free_run() {
+  models::StreamOptions so;
+  so.mode = models::PredictionMode::kFreeRun;
+  so.keep_diverging = true;
+  return so;
+}
+
 // The held-out part as recordings of their own, as a model meets a new one: reset at rest at a start, scored
 // after a window of cold_window_s (at most a fifth of the part), to the part's end; with cold_start_estimate the
 // window also fixes the start estimate (models::StreamOptions::anchor_s). Several starts (cold_starts, spread
@@ -215,9 +230,7 @@ namespace {
 // on the 50-µm stages: docs/models.md).
 std::vector<double> cold_fold(const models::Model& model, const io::Dataset& tail, const std::string& axis,
                               const SlowScoreOptions& o, std::size_t block) {
-  models::StreamOptions so;
-  so.mode = models::PredictionMode::kFreeRun;
-  so.keep_diverging = true;
+  models::StreamOptions so = free_run();
   const double span_s = tail.size() > 1 ? tail.time_s.back() - tail.time_s.front() : 0.0;
   const double window_s = std::min(o.cold_window_s, span_s / 5.0);
   if (o.cold_start_estimate) so.anchor_s = window_s;
@@ -244,13 +257,9 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
   const auto& ax = data.axis(axis);
   const double rate = data.size() > 1 ? data.sample_rate_hz() : 1.0;
   const std::size_t scored = data.size() > score_from ? data.size() - score_from : 0;
-  const std::size_t block = std::max<std::size_t>(
-      1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate)),
-                                     scored / std::max<std::size_t>(1, o.min_blocks)));
+  const std::size_t block = block_rows(o, rate, scored);
   const std::size_t hold_end = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(o.hold_end_s * rate)));
-  models::StreamOptions so;
-  so.mode = models::PredictionMode::kFreeRun;
-  so.keep_diverging = true;
+  const models::StreamOptions so = free_run();
   std::vector<double> warm;
   if (warm_free_run) {
     warm = *warm_free_run;
@@ -274,17 +283,10 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
 std::vector<double> carry_over_errors(const models::Model& half_fit, const io::Dataset& train, std::size_t half,
                                       const std::string& axis, const SlowScoreOptions& o) {
   if (half >= train.size()) return {};
-  models::StreamOptions so;
-  so.mode = models::PredictionMode::kFreeRun;
-  so.keep_diverging = true;
   auto m = half_fit.clone();
-  const std::vector<double> p = models::stream_model(*m, train, axis, so).prediction;
+  const std::vector<double> p = models::stream_model(*m, train, axis, free_run()).prediction;
   const auto& y = train.axis(axis).position_nm;
-  const double rate = train.size() > 1 ? train.sample_rate_hz() : 1.0;
-  const std::size_t rows = train.size() - half;
-  const std::size_t block = std::max<std::size_t>(
-      1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate)),
-                               rows / std::max<std::size_t>(1, o.min_blocks)));
+  const std::size_t block = block_rows(o, train.size() > 1 ? train.sample_rate_hz() : 1.0, train.size() - half);
   const auto h = static_cast<std::ptrdiff_t>(half);
   return block_errors(std::vector<double>(p.begin() + h, p.end()), std::vector<double>(y.begin() + h, y.end()), block);
 }
@@ -565,8 +567,7 @@ Selection select_model(const SelectionRequest& rq) {
       const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
       const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
       const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
-      const double rows = std::max(1.0, std::min(std::round(rq.slow.block_s * rate), 
-                                                  std::floor(double(tail.size()) / std::max(1, rq.slow.min_blocks))));
+      const double rows = static_cast<double>(block_rows(rq.slow, rate, tail.size()));
       sel.block_noise_nm = std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
       if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
     } catch (const std::exception&) {
@@ -627,9 +628,7 @@ Selection select_model(const SelectionRequest& rq) {
 
 namespace {
 std::string cell(double x) { return std::isfinite(x) ? fmt(x, 3) : std::string("–"); }
-}  // namespace
 
-namespace {
 // Whether the carry-over fold scored the candidates (off, a short training part, or a half fit that failed: not).
 bool carry_ran(const Selection& s) {
   return std::any_of(s.table.begin(), s.table.end(), [](const CandidateResult& r) { return !r.slow.blocks.carry.empty(); });
