@@ -372,6 +372,35 @@ TEST(SlowScore, TheCarryOverFoldScoresTheSecondHalfOfTheTrainingPart) {
   EXPECT_EQ(worse, std::vector<std::string>{"carry-over"});
 }
 
+// align_carry_over: while every scored candidate has the carry-over column it stays; once one lacks it (its half
+// fit failed), every candidate is summarised without it, so the one without cannot win on fewer columns. A refused
+// candidate does not count.
+TEST(SlowScore, TheCarryOverColumnCountsOnlyWhenEveryCandidateHasIt) {
+  analysis::SlowScoreOptions o;
+  o.noise_nm = 1e-9;
+  auto candidate = [&](std::vector<double> moves, std::vector<double> carry, const char* refused = "") {
+    analysis::CandidateResult r;
+    r.slow = analysis::summarise_slow({std::move(moves), {}, {}, {}, std::move(carry)}, o);
+    r.refused = refused;
+    return r;
+  };
+  std::vector<analysis::CandidateResult> t = {candidate({2, 2}, {100, 100}), candidate({3, 3}, {10, 10}),
+                                              candidate({1, 1}, {}, "refused: a gate")};
+  const double with_carry = t[0].slow.overall_nm;
+  analysis::align_carry_over(t, o);
+  EXPECT_EQ(t[0].slow.overall_nm, with_carry);  // the refused one does not count: the column stays
+  EXPECT_EQ(t[0].slow.blocks.carry.size(), 2u);
+  EXPECT_GT(t[0].slow.overall_nm, t[1].slow.overall_nm);  // the second carries over: it leads
+  t.push_back(candidate({1, 1}, {}));  // scored, no carry-over: compared on moves alone, it would lead by far
+  analysis::align_carry_over(t, o);
+  for (const auto& r : t) {
+    EXPECT_TRUE(r.slow.blocks.carry.empty());
+    EXPECT_TRUE(std::isnan(r.slow.carry_nm));
+  }
+  EXPECT_NEAR(t[0].slow.overall_nm, 2.0, 1e-6);
+  EXPECT_NEAR(t[1].slow.overall_nm, 3.0, 1e-6);
+}
+
 // select_model's carry-over fold sees only the training part's first half: a stage whose gain doubles halfway
 // through the training part. The column equals the half fit made here by hand (rows [0, 4/5 of the half) fitted,
 // the rest of the half its validation), run over the whole training part and scored on its second half; a fit that

@@ -221,6 +221,10 @@ struct Selection {
   double block_noise_nm = NAN;  // estimated noise of one block mean (σ of a reading / √samples per block)
   SlowScoreOptions slow_options;
 };
+// The carry-over column counts only when every scored candidate (not refused, a valid slow score) has it: when one
+// lacks it (its half fit failed), it is dropped from every candidate and their scores summarised again, so no
+// candidate is compared on fewer columns than another (the carry-over is often the largest; select_model calls it).
+void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o);
 // Fits every candidate, scores it free-run on the validation part (the gates: score_validation), refuses the ones
 // failing a gate, scores the rest on the slow part of the error (slow_score) and chooses by choose_candidate.
 // Throws FitRejected (listing each candidate's reason) when none passes.

@@ -538,8 +538,8 @@ void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const S
   rescore(s, b, o);
 }
 
-// The carry-over column counts only when every scored candidate has it: a candidate whose half fit failed would
-// otherwise be compared on fewer columns, and the carry-over is often the largest (docs/models.md).
+}  // namespace
+
 void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o) {
   bool all = true;
   for (const auto& r : table)
@@ -552,7 +552,6 @@ void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOption
       rescore(r.slow, b, o);
     }
 }
-}  // namespace
 
 Selection select_model(const SelectionRequest& rq) {
   if (!rq.train || !rq.score_data) throw std::invalid_argument("model selection: no training or validation data");
