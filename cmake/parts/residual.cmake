@@ -1,6 +1,7 @@
 # analysis/residual*: the residual loop (issue 8), its augmented model kind, tests.
 piezo_unit_test(test_residual_stats test/unit/test_residual_stats.cpp)
 piezo_unit_test(test_residual_acceptance test/unit/test_residual_acceptance.cpp)
+piezo_unit_test(test_residual_validation test/unit/test_residual_validation.cpp)
 piezo_unit_test(test_residual_augmented test/unit/test_residual_augmented.cpp)
 piezo_unit_test(test_residual_loop test/unit/test_residual_loop.cpp)
 piezo_unit_test(test_residual_loop_signals test/unit/test_residual_loop_signals.cpp)

@@ -14,7 +14,9 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <csignal>
 #include <cstring>
+#include <filesystem>
 #include <fstream>
 #include <mutex>
 #include <sstream>
@@ -75,6 +77,17 @@ bool kernel_lists_filter(canid_t id, canid_t mask) {
   return false;
 }
 
+// Ends every candump process (/proc/<pid>/comm; no procps needed in the VM).
+void end_candumps() {
+  for (const auto& e : std::filesystem::directory_iterator("/proc")) {
+    const std::string name = e.path().filename().string();
+    if (name.find_first_not_of("0123456789") != std::string::npos) continue;
+    std::ifstream comm(e.path() / "comm");
+    std::string c;
+    if (std::getline(comm, c) && c == "candump") ::kill(static_cast<pid_t>(std::stol(name)), SIGTERM);
+  }
+}
+
 // Starts candump in the background with the given filters and waits until the kernel has its first filter, rather
 // than for a fixed time (a loaded host starts a process slowly; frames sent before the filter is set are missed).
 bool start_candump(const std::string& args, const std::string& log, canid_t first_id, canid_t first_mask) {
@@ -82,7 +95,8 @@ bool start_candump(const std::string& args, const std::string& log, canid_t firs
     ADD_FAILURE() << "/proc/net/can/rcvlist_fil missing: cannot tell when candump listens";
     return false;
   }
-  // a candump of an earlier test may still be exiting
+  // a candump of an earlier test may still be exiting, or waiting for frames a failed test never sent: end it
+  end_candumps();
   if (!wait_for([&] { return !kernel_lists_filter(first_id, first_mask); })) {
     ADD_FAILURE() << "another socket keeps the filter " << std::hex << first_id << ":" << first_mask;
     return false;
@@ -263,10 +277,15 @@ TEST(Vcan, CandumpSeesTheCommandsTheDriverWrites) {
   // The device's baseline: axis c reports 10 V (100000 counts = A0 86 01 00).
   ASSERT_EQ(sh("cansend vcan0 192#A086010001000000"), 0);
   ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }));
-  // Clamped to 80 V, slew-limited from 10 V; max_unconfirmed_v (10 V past the baseline) stops it after 3 frames.
+  // Clamped to 80 V, slew-limited from 10 V; max_unconfirmed_v (10 V past the baseline) stops it after 5 frames.
+  // The driver's clock is the test's, 1 ms a try: 2 V a frame at 2000 V/s, whatever the host's clock does. With
+  // steady_clock read twice a try (command, then tick) the test relied on the second read being later than the
+  // first: once, in the VM under load, it was not, every step was the 5-V frame cap and the ramp met the 10-V cap
+  // after 2 frames (CI of 6b682cb).
+  double t = now_s();
   ASSERT_TRUE(wait_for([&] {
-    driver.command(2, 200.0, now_s());
-    driver.tick(now_s());
+    t += 1e-3;
+    driver.command(2, 200.0, t);
     return driver.axis_status(2).frames_sent >= 3;
   })) << driver.axis_status(2).frames_sent << " frames sent";
   ASSERT_TRUE(wait_for([&] {

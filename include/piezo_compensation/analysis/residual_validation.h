@@ -26,7 +26,10 @@ class Validator {
   Val validate(std::vector<models::EffectTerm> terms) const;
   // Validates `fixed` plus the family's best variant against `now` (fixed alone) and fills the score's validation
   // fields; with choose_form a gain's form (on the output or the voltage, linear or quadratic) is chosen here.
+  // Its low-pass time constants are refined on the fit part only: the validation rows judge them.
   void score(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, const Val& now, bool choose_form) const;
+  // An accepted effect's time constants refined again over all of TRAIN (more rows: τ not chosen on the noise).
+  void finalise_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed) const;
   // What the acceptance rules know of the round with `now` as the model without a new effect.
   AcceptanceRound round(const Val& now) const;
   // |error| per paired block (one value, the mean, when there are under four blocks).
@@ -37,8 +40,8 @@ class Validator {
 
  private:
   void choose_gain_form(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, Val& v) const;
-  bool refine_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed) const;
-  double train_ms(const std::vector<models::EffectTerm>& fixed, const Candidate& cand) const;
+  bool refine_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, std::size_t rows) const;
+  double train_ms(const std::vector<models::EffectTerm>& fixed, const Candidate& cand, std::size_t rows) const;
   void fill_sizes(FamilyScore& s, const Val& v, const Val& now) const;
   void log_score(const FamilyScore& s) const;
 

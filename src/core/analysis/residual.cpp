@@ -267,6 +267,7 @@ bool Loop::step(int step) {
 }
 
 void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranking, std::vector<FamilyScore> competitors) {
+  validator_.finalise_time_constants(winner, terms_);
   effect_first_.push_back(terms_.size());
   for (const auto& t : winner.best.terms) terms_.push_back(t);
   fit_terms(c_, terms_, level_, 0, n_);

@@ -85,6 +85,7 @@ bool Backfitter::choose_again(FamilyScore& winner, std::vector<EffectTerm>& term
   FamilyScore again = score_family(traits_of(winner.family).id, c_, others, off_o, r_o, p_o, o_again, rng_);
   if (!again.available) return false;
   v_.score(again, others, v_.validate(others), last);
+  v_.finalise_time_constants(again, others);
   if (again.best.parameters == winner.best.parameters && again.best.labels == winner.best.labels) return false;
   if (o_.log) o_.log("  " + winner.family + " chosen again on the refitted base's residual");
   const EffectTerm& was = terms[first];

@@ -97,37 +97,44 @@ void Validator::choose_gain_form(FamilyScore& s, const std::vector<EffectTerm>& 
   s.best.labels["form"] = s.best.terms[0].type == "gain" ? "linear" : "quadratic";
 }
 
-double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate& cand) const {
+double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate& cand, std::size_t rows) const {
   std::vector<EffectTerm> trial = fixed;
   for (const auto& t : cand.terms) trial.push_back(t);
   Level lv;
-  fit_terms(c_, trial, lv, 0, n_);
+  fit_terms(c_, trial, lv, 0, rows);
   const std::vector<double> r = residual_of(c_, trial, lv);
   double ss = 0.0;
-  for (double x : r) ss += x * x;
-  return ss / static_cast<double>(n_);
+  for (std::size_t i = 0; i < rows; ++i) ss += r[i] * r[i];
+  return ss / static_cast<double>(rows);
 }
 
 // The grid's low-pass is a factor ~3 off at worst (a 20-s thermal lag read through 30 s leaves a phase error of
 // ~11° on a 200-s cycle, ~10 nm on a 90-nm swing): each term's time constant is refined by a pattern search in
 // log τ (factor 2, then √2, … down to 1.1; within a factor 4 of the grid's choice) on the RMS of the joint fit
-// over all of TRAIN, more rows than the validation part, so τ is not chosen on its noise.
-bool Validator::refine_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed) const {
+// over rows [0, rows), and never past half the validation part (nor below the grid's choice for that cap): a
+// longer τ is one the validation rows cannot judge. A live-loop snapshot (CI of 6b682cb) had rate_dependent
+// refined 60 → 240 s on a 210-s validation part over all of TRAIN; it won there by 2 % and lost 56 % on TEST,
+// 17.7 → 27.7 nm. For the decision the rows are the fit part only (over all of TRAIN τ was chosen on the rows that
+// then judged it); the accepted effect's τ is refined again over all of TRAIN (finalise_time_constants), more
+// rows, so τ is not chosen on the noise.
+bool Validator::refine_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed, std::size_t rows) const {
   bool refined = false;
   for (std::size_t q = 0; q < s.best.terms.size(); ++q) {
     if (!(s.best.terms[q].time_constant_s > 0.0)) continue;
     const double tau0 = s.best.terms[q].time_constant_s;
-    double best_ms = train_ms(fixed, s.best);
+    const double seen_s = 0.5 * static_cast<double>(n_ - n_fit_) / c_.fs;
+    const double tau_max = std::max(tau0, std::min(4.0 * tau0, seen_s));
+    double best_ms = train_ms(fixed, s.best, rows);
     for (double f = 2.0; f > 1.1; f = std::sqrt(f)) {
       for (bool moved = true; moved;) {
         moved = false;
         for (double k : {f, 1.0 / f}) {
           const double tau = s.best.terms[q].time_constant_s * k;
-          if (tau > 4.0 * tau0 * (1 + 1e-9) || tau < tau0 / 4.0 * (1 - 1e-9)) continue;
+          if (tau > tau_max * (1 + 1e-9) || tau < tau0 / 4.0 * (1 - 1e-9)) continue;
           Candidate alt = s.best;
           alt.terms[q].time_constant_s = tau;
           alt.terms[q].center.clear(), alt.terms[q].scale.clear(), alt.terms[q].weight.clear();
-          const double ms = train_ms(fixed, alt);
+          const double ms = train_ms(fixed, alt, rows);
           if (ms < best_ms * (1.0 - 1e-4)) {
             best_ms = ms;
             s.best = alt;
@@ -186,9 +193,13 @@ void Validator::log_score(const FamilyScore& s) const {
 void Validator::score(FamilyScore& s, const std::vector<EffectTerm>& fixed, const Val& now, bool choose_form) const {
   Val v = score_candidate(*this, fixed, s.best);
   if (is_gain_family(s.family) && choose_form) choose_gain_form(s, fixed, v);
-  if (refine_time_constants(s, fixed)) v = score_candidate(*this, fixed, s.best);
+  if (refine_time_constants(s, fixed, n_fit_)) v = score_candidate(*this, fixed, s.best);
   fill_sizes(s, v, now);
   log_score(s);
+}
+
+void Validator::finalise_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed) const {
+  refine_time_constants(s, fixed, n_);
 }
 
 }  // namespace piezo::analysis::detail
