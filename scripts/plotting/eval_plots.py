@@ -149,23 +149,31 @@ def traces_creep(out):
     for ax, r in zip(axes.flat, pick):
         t = (c["time_s"][r] - c["time_s"][r][0]) / 60
         ax.plot(t, c["measured_nm"][r], color="0.8", lw=0.4, label="measured")
-        k = max(1, int(round(10.0 / dt)))  # 10-s mean of the encoder, as the study's Fig. 10 reads
         x = c["measured_nm"][r]
+        # 10-s mean of the encoder, as the study's Fig. 10 reads; at most the hold (np.convolve "same" returns the
+        # longer of the two: a 2000-row kernel on a 352-row hold at 200 Hz broke the plot)
+        k = min(max(1, int(round(10.0 / dt))), len(x))
         mean10 = np.convolve(x, np.ones(k), mode="same") / np.convolve(np.ones_like(x), np.ones(k), mode="same")
-        ax.plot(t, mean10, color="0.4", lw=0.8, label="measured, 10-s mean")
+        ax.plot(t, mean10, color="0.4", lw=0.8, label=f"measured, {k * dt:.3g}-s mean")
         if np.isfinite(c["truth_nm"][r]).any():
             ax.plot(t, c["truth_nm"][r], "k", lw=1, label="true")
+        lo, hi = np.nanpercentile(c["measured_nm"][r], [0.5, 99.5])
+        pad = max(hi - lo, 20)
         for n in names:
-            ax.plot(t, c[n + ":free_run"][r], lw=0.9, label=f"{n} free-run")
+            y = c[n + ":free_run"][r]
+            off = np.nanmean(y - x)
+            # a model far off the hold is named with its offset rather than drawn off the axes unseen
+            outside = not (lo - pad <= np.nanmean(y) <= hi + pad)
+            ax.plot(t, y, lw=0.9, label=f"{n} free-run" + (f" (off-scale, {off:+.0f} nm)" if outside else ""))
         ax.set_title(f"hold in segment {int(seg[r][0])}")
         ax.set_xlabel("time since hold start [min]")
         ax.set_ylabel("position [nm]")
-        lo, hi = np.nanpercentile(c["measured_nm"][r], [0.5, 99.5])
-        pad = max(hi - lo, 20)
         ax.set_ylim(lo - pad, hi + pad)
         ax.grid(alpha=0.3)
-    axes.flat[0].legend(fontsize=6)
-    fig.suptitle("Fig. 13: recorded and predicted creep (free-run) for 4 holds")
+        ax.legend(fontsize=6)
+    for ax in axes.flat[len(pick):]:
+        ax.set_visible(False)
+    fig.suptitle(f"Fig. 13: recorded and predicted creep (free-run) for {len(pick)} hold{'s' if len(pick) > 1 else ''}")
     fig.tight_layout()
     fig.savefig(os.path.join(out, "traces_creep.png"), dpi=120)
     plt.close(fig)

@@ -43,6 +43,9 @@ int run(int argc, char** argv) {
       .option("seed", "N", "random seed", "1")
       .option("threads", "N", "threads", "2")
       .option("lasso-report", "FILE.md", "write the lasso selection report here (with --features lasso)")
+      .option("no-identification", "", "skip the identification check of a single kind (with validation data: the kind\n"
+              "fitted again on the training part's first half, its error on the second half against the validation's;\n"
+              "over 2x the recording does not identify it)")
       .option("quiet", "", "no progress bar")
       .required("out", "FILE.yaml", "model file to write");
   if (!args.parse(argc, argv)) return 0;
@@ -114,6 +117,7 @@ int run(int argc, char** argv) {
     analysis::Selection sel = analysis::select_model(sr);
     bar.finish();
     std::cout << analysis::selection_table(sel) << "\n";
+    std::cout << sel.identification.describe(sel.table[sel.best].candidate.label, io::data_span(train, axis).duration_s) << "\n";
     model = std::move(sel.model);
   } else {
     if (args.has("features")) {
@@ -147,6 +151,17 @@ int run(int argc, char** argv) {
       const analysis::ValidationScore score = analysis::score_validation(*model, score_data, split_at, axis);
       analysis::check_fit_sanity(*model, &score, scale);
       analysis::store_validation(score, *model);
+      if (!args.flag("no-identification")) {
+        analysis::SelectionRequest sr = analysis::selection_request(train, req.validation, score_data, split_at, axis);
+        sr.time_budget_s = req.time_budget_s;
+        sr.seed = req.seed;
+        sr.threads = req.threads;
+        const bool lasso = args.has("features") && args.str("features") == "lasso";
+        const analysis::ModelCandidate c{kind, kind, options, lasso};
+        const analysis::Identification id = analysis::check_identification(sr, c, *model);
+        if (id.checked()) model->meta.validation["carry_over_ratio"] = id.ratio();
+        std::cout << id.describe(kind, io::data_span(train, axis).duration_s) << "\n";
+      }
     } else {
       analysis::check_fit_sanity(*model, nullptr, scale);
     }

@@ -20,6 +20,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/compensation/ideal_line.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
@@ -397,6 +398,12 @@ void PredictorNode::add_axis(const std::string& name) {
     m = load_model_file(path);
     if (m->meta.axis != name)
       ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
+    const auto carry = m->meta.validation.find("carry_over_ratio");  // `piezo fit`'s identification check
+    if (carry != m->meta.validation.end() && carry->second > analysis::kCarryOverAdvised)
+      ROS_WARN("axis %s: model file %s: its training recording did not identify it (fitted on the first half, %.3gx "
+               "worse on the second than on validation): expect larger errors than its validation figures; refit on a "
+               "longer recording",
+               name.c_str(), path.c_str(), carry->second);
   } catch (const std::exception& e) {
     // Keep the axis movable: uncorrected commands with bounded steps, reported in diagnostics.
     error = e.what();

@@ -1,7 +1,9 @@
 // Sanity gates (one test per gate) and `--model auto` (issue 11 items 3 and 4; the choice rule of issue 26 item 2).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <iostream>
 
 #include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/models/start_state.h"
@@ -439,6 +441,78 @@ TEST(SlowScore, TheCarryOverFoldFitsTheFirstHalfOnly) {
   double mean = 0;
   for (double e : first_gain) mean += e / static_cast<double>(first_gain.size());
   EXPECT_NEAR(sel.table[0].slow.carry_nm, mean, 0.02 * mean);
+}
+
+// The identification check's figure: (carry-over + block noise) / (moves + block noise); over 2 the line says the
+// recording does not identify the kind and what to do; without a carry-over column it is not checked.
+TEST(Identification, TheRatioAndWhatTheLineSays) {
+  analysis::SlowScore s;
+  s.blocks.carry = {38.0, 42.0};
+  s.carry_nm = 40.0;
+  s.moves_nm = 10.0;
+  const analysis::Identification bad = analysis::identification(s, 2.0);
+  EXPECT_NEAR(bad.ratio(), 42.0 / 12.0, 1e-12);
+  EXPECT_FALSE(bad.identified());
+  const std::string line = bad.describe("pi", 40.0);
+  EXPECT_NE(line.find("3.5x"), std::string::npos) << line;
+  EXPECT_NE(line.find("40-s training recording does not identify it"), std::string::npos) << line;
+  EXPECT_NE(line.find("Record longer"), std::string::npos) << line;
+  s.carry_nm = 16.0;  // (16 + 2) / 12 = 1.5
+  const analysis::Identification good = analysis::identification(s, 2.0);
+  EXPECT_TRUE(good.identified());
+  EXPECT_NE(good.describe("pi", 40.0).find("the recording identifies it"), std::string::npos);
+  s.blocks.carry.clear();  // the fold did not run
+  const analysis::Identification none = analysis::identification(s, 2.0);
+  EXPECT_FALSE(none.checked());
+  EXPECT_TRUE(none.identified());
+  EXPECT_NE(none.describe("pi", 40.0).find("not checked"), std::string::npos);
+}
+
+namespace {
+// 500 s at 10 Hz of a 40-s sine on a Prandtl–Ishlinskii stage, y = 10·V + 4·play₁(V) + 6·play₃(V) nm (plays of
+// half-width 1 and 3 V): ±5 V throughout, or ±1.5 V in the first 200 s (the recording's first half never moves the
+// 3-V play: it cannot identify that weight) and ±5 V after.
+io::Dataset play_recording(bool narrow_first_half) {
+  io::Dataset all;
+  auto& a = all.add_axis("c");
+  double p1 = 0.0, p3 = 0.0;
+  for (int i = 0; i < 5000; ++i) {
+    const double t = 0.1 * i, v = (narrow_first_half && i < 2000 ? 1.5 : 5.0) * std::sin(2 * M_PI * t / 40.0);
+    p1 = std::clamp(p1, v - 1.0, v + 1.0);
+    p3 = std::clamp(p3, v - 3.0, v + 3.0);
+    all.time_s.push_back(t);
+    a.voltage_v.push_back(v);
+    a.position_nm.push_back(10.0 * v + 4.0 * p1 + 6.0 * p3 + 0.5 * std::sin(1.7 * i));
+  }
+  return all;
+}
+}  // namespace
+
+// check_identification (`piezo fit --model KIND`) and select_model (`--model auto`, stored as carry_over_ratio)
+// agree: a recording that sweeps ±5 V throughout identifies the PI kind; one whose first half sweeps ±1.5 V does
+// not (the half fit has no weight on the 3-V play, and the second half swings through it).
+TEST(Identification, ARecordingWhoseFirstHalfSweepsLessIsFlagged) {
+  for (bool narrow : {false, true}) {
+    const io::Dataset all = play_recording(narrow);
+    const io::Dataset train = all.slice(0, 4000), val = all.slice(4000, 5000);
+    analysis::SelectionRequest rq = analysis::selection_request(train, &val, all, 4000, "c");
+    rq.candidates = {{"pi", "pi", YAML::Node(), false}};
+    const analysis::Selection sel = analysis::select_model(rq);
+    ASSERT_TRUE(sel.identification.checked());
+    ASSERT_EQ(sel.model->meta.validation.count("carry_over_ratio"), 1u);
+    EXPECT_DOUBLE_EQ(sel.model->meta.validation.at("carry_over_ratio"), sel.identification.ratio());
+    const analysis::Identification id = analysis::check_identification(rq, rq.candidates[0], *sel.table[0].model);
+    ASSERT_TRUE(id.checked());
+    EXPECT_NEAR(id.ratio(), sel.identification.ratio(), 1e-9 * sel.identification.ratio());
+    std::cout << (narrow ? "narrow first half: " : "full sweep: ") << id.describe("pi", 400.0) << "\n";
+    if (narrow) {
+      EXPECT_GT(id.ratio(), 4.0);
+      EXPECT_FALSE(id.identified());
+    } else {
+      EXPECT_LT(id.ratio(), 1.5);
+      EXPECT_TRUE(id.identified());
+    }
+  }
 }
 
 // End to end on creep-protocol data with settings no other test uses (issue 26's done-when "auto's worst hold end

@@ -211,6 +211,33 @@ struct CandidateResult {
   std::shared_ptr<const models::Model> model;
 };
 
+// Whether the training recording identifies a kind (issue 26, a model that holds on the next recording): the
+// carry-over fold's slow error (the kind fitted again on the training part's first half, run free into its second
+// half) against the full fit's on the validation part's moves, each with the block noise added,
+//   ratio = (carry-over + noise) / (moves + noise).
+// Over kCarryOverAdvised, half the recording does not predict its other half: the recording is too short or too
+// narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part
+// says (on the stage matrix's 40-s low-voltage trainings the ratio is 2–21 and a model's error on another
+// recording, its history known, up to 14× the validation's; with 200 s of training it carries over: docs/models.md).
+constexpr double kCarryOverAdvised = 2.0;
+struct Identification {
+  double carry_nm = NAN, moves_nm = NAN, noise_nm = 0.0;
+  double ratio() const { return (carry_nm + noise_nm) / (moves_nm + noise_nm); }
+  bool checked() const { return std::isfinite(ratio()); }
+  bool identified() const { return !checked() || ratio() <= kCarryOverAdvised; }
+  // One line: the two figures, the ratio and, over kCarryOverAdvised, what it means and what to do.
+  std::string describe(const std::string& label, double train_s) const;
+};
+// From a candidate's slow score (its carry-over column; not checked when the fold did not run).
+Identification identification(const SlowScore& score, double block_noise_nm);
+// The noise of a block mean on the request's validation part (σ of a reading / √rows per block); NaN when the part is
+// too short for a noise figure.
+double estimate_block_noise(const SelectionRequest& request);
+// For one kind fitted outside select_model (`piezo fit --model KIND`): `fitted`'s slow score on the validation part
+// and the carry-over fold (one more fit of the kind, on the training part's first half).
+Identification check_identification(const SelectionRequest& request, const ModelCandidate& candidate,
+                                    const models::Model& fitted);
+
 struct Selection {
   models::ModelPtr model;  // the winner, validation figures stored; null when every candidate was refused
   std::size_t best = 0;    // index into table: the chosen candidate
@@ -220,6 +247,7 @@ struct Selection {
   std::string reason;      // one line: why the chosen candidate
   double block_noise_nm = NAN;  // estimated noise of one block mean (σ of a reading / √samples per block)
   SlowScoreOptions slow_options;
+  Identification identification;  // of the chosen candidate (its ratio stored as validation carry_over_ratio)
 };
 // The carry-over column counts only when every scored candidate (not refused, a valid slow score) has it: when one
 // lacks it (its half fit failed), it is dropped from every candidate and their scores summarised again, so no

@@ -540,6 +540,56 @@ void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const S
 
 }  // namespace
 
+double estimate_block_noise(const SelectionRequest& rq) {
+  if (rq.slow.noise_nm > 0.0) return rq.slow.noise_nm;
+  // The noise of a block mean, from the validation part's readings (σ/√samples per block).
+  try {
+    const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
+    const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
+    const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
+    const double rows = static_cast<double>(block_rows(rq.slow, rate, tail.size()));
+    return std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
+  } catch (const std::exception&) {
+    return NAN;  // too few samples for a noise figure
+  }
+}
+
+Identification identification(const SlowScore& s, double block_noise_nm) {
+  Identification id;
+  if (s.blocks.carry.empty()) return id;
+  id.carry_nm = s.carry_nm;
+  id.moves_nm = s.moves_nm;
+  id.noise_nm = std::isfinite(block_noise_nm) && block_noise_nm > 0.0 ? block_noise_nm : 0.0;
+  return id;
+}
+
+Identification check_identification(const SelectionRequest& rq, const ModelCandidate& c, const models::Model& fitted) {
+  if (!rq.train || !rq.score_data || rq.score_data->size() <= rq.score_from) return {};
+  SlowScoreOptions o = rq.slow;
+  o.carry_fold = true;
+  const double noise = estimate_block_noise(rq);
+  if (std::isfinite(noise) && noise > 0.0) o.noise_nm = noise;
+  SlowScore s = slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
+  add_carry_over(rq, c, o, s);
+  return identification(s, noise);
+}
+
+std::string Identification::describe(const std::string& label, double train_s) const {
+  if (!checked()) return "identification of " + label + ": not checked (the training part is too short for the carry-over fold)";
+  std::ostringstream os;
+  os << "identification of " << label << ": fitted on the training part's first half it is " << fmt(carry_nm, 3)
+     << " nm off (block means) on the second half, the whole fit " << fmt(moves_nm, 3)
+     << " nm on the validation part's moves (block noise " << fmt(noise_nm, 2) << " nm): " << fmt(ratio(), 3) << "x";
+  if (identified()) {
+    os << " (<= " << fmt(kCarryOverAdvised) << ": the recording identifies it)";
+  } else {
+    os << ". Over " << fmt(kCarryOverAdvised) << "x the " << fmt(train_s, 3)
+       << "-s training recording does not identify it: a separate recording is likely to be worse than the validation "
+          "says. Record longer, sweeping the range the stage will be used over";
+  }
+  return os.str();
+}
+
 void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o) {
   bool all = true;
   for (const auto& r : table)
@@ -560,21 +610,8 @@ Selection select_model(const SelectionRequest& rq) {
   Selection sel;
   sel.scale = data_scale(*rq.train, rq.axis);
   sel.slow_options = rq.slow;
-  if (!(rq.slow.noise_nm > 0.0)) {
-    // The noise of a block mean, from the validation part's readings (σ/√samples per block).
-    try {
-      const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
-      const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
-      const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
-      const double rows = static_cast<double>(block_rows(rq.slow, rate, tail.size()));
-      sel.block_noise_nm = std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
-      if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
-    } catch (const std::exception&) {
-      // too few samples for a noise figure: the default stays
-    }
-  } else {
-    sel.block_noise_nm = rq.slow.noise_nm;
-  }
+  sel.block_noise_nm = estimate_block_noise(rq);
+  if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
   const std::vector<ModelCandidate> cands = rq.candidates.empty() ? default_candidates() : rq.candidates;
   for (std::size_t k = 0; k < cands.size(); ++k) {
     CandidateResult r;
@@ -621,6 +658,8 @@ Selection select_model(const SelectionRequest& rq) {
   sel.reason = ch.reason;
   sel.model = sel.table[sel.best].model->clone();
   store_validation(sel.table[sel.best].score, *sel.model);
+  sel.identification = identification(sel.table[sel.best].slow, sel.block_noise_nm);
+  if (sel.identification.checked()) sel.model->meta.validation["carry_over_ratio"] = sel.identification.ratio();
   sel.model->meta.selection = selection_yaml(sel);
   return sel;
 }
