@@ -292,9 +292,11 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
     best = std::min(best, sep[k]);
     const double ratio = sep[k] / continuation_mae(r);
     const bool ok = ratio <= kSeparateRatio;
-    char buf[160];
-    std::snprintf(buf, sizeof buf, " %.4g (%.2f×)%s; whole %.4g (%.2f×); rest %.4g |", sep[k], ratio,
-                  ok ? "" : " **>1.5×**", e.whole, e.whole / continuation_mae(r), e.rest);
+    // and the identification check `piezo fit` prints (docs/models.md, "Does the recording identify the model?")
+    const double id = analysis::identification(r.slow, sel.block_noise_nm).ratio();
+    char buf[200];
+    std::snprintf(buf, sizeof buf, " %.4g (%.2f×)%s; whole %.4g (%.2f×); rest %.4g; identification %.3g× |", sep[k],
+                  ratio, ok ? "" : " **>1.5×**", e.whole, e.whole / continuation_mae(r), e.rest, id);
     md += buf;
     if (!ok)
       check.fail(name + "/" + r.candidate.label + " separate",
