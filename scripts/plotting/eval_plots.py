@@ -163,7 +163,7 @@ def traces_creep(out):
             y = c[n + ":free_run"][r]
             off = np.nanmean(y - x)
             # a model far off the hold is named with its offset rather than drawn off the axes unseen
-            outside = not (lo - pad <= np.nanmean(y) <= hi + pad)
+            outside = np.isfinite(off) and not (lo - pad <= np.nanmean(y) <= hi + pad)
             ax.plot(t, y, lw=0.9, label=f"{n} free-run" + (f" (off-scale, {off:+.0f} nm)" if outside else ""))
         ax.set_title(f"hold in segment {int(seg[r][0])}")
         ax.set_xlabel("time since hold start [min]")

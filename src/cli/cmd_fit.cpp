@@ -18,6 +18,45 @@
 namespace piezo::cli {
 namespace {
 
+// --features: a named set, or lasso (chosen on the training part; its report written with --lasso-report).
+YAML::Node feature_option(const Args& args, const training::FitRequest& req) {
+  const std::string set = args.str("features");
+  if (set != "lasso") {
+    features::check_feature_set_name(set);  // validates the name
+    return YAML::Node(set);
+  }
+  std::string report;
+  std::size_t kept = 0;
+  const YAML::Node o = analysis::lasso_linear_options(*req.train, req.axis, req.progress, &report, &kept);
+  if (args.has("lasso-report")) {
+    std::ofstream f(args.str("lasso-report"));
+    if (!f) throw std::runtime_error(args.str("lasso-report") + ": cannot open for writing");
+    f << report;
+  }
+  const features::DataSpan span = io::data_span(*req.train, req.axis);
+  std::cerr << "\nlasso kept " << kept << " of " << features::candidate_features(&span).size()
+            << " candidate features the data can identify (λ_1se)\n";
+  return o["features"];
+}
+
+// The identification check of a single kind (`--model auto` has it from select_model): printed, and its ratio stored
+// as validation carry_over_ratio. A tuned fit is not checked: the half fit would run the kind's defaults.
+void identify(const analysis::ModelCandidate& c, const training::FitRequest& req, const io::Dataset& score_data,
+              std::size_t split_at, models::Model& model) {
+  analysis::Identification id;
+  if (req.tune_trials > 0) {
+    id.unchecked = "a tuned fit (--tune): the half fit would not be tuned alike";
+  } else {
+    analysis::SelectionRequest sr = analysis::selection_request(*req.train, req.validation, score_data, split_at, req.axis);
+    sr.time_budget_s = req.time_budget_s;
+    sr.seed = req.seed;
+    sr.threads = req.threads;
+    id = analysis::check_identification(sr, c, model);
+  }
+  if (id.checked()) model.meta.validation["carry_over_ratio"] = id.ratio();
+  std::cout << id.describe(c.label, io::data_span(*req.train, req.axis).duration_s) << "\n";
+}
+
 int run(int argc, char** argv) {
   std::string kinds;
   for (const auto& k : models::model_kind_names()) kinds += (kinds.empty() ? "" : ", ") + k;
@@ -120,26 +159,7 @@ int run(int argc, char** argv) {
     std::cout << sel.identification.describe(sel.table[sel.best].candidate.label, io::data_span(train, axis).duration_s) << "\n";
     model = std::move(sel.model);
   } else {
-    if (args.has("features")) {
-      const std::string set = args.str("features");
-      if (set == "lasso") {
-        std::string report;
-        std::size_t kept = 0;
-        const YAML::Node o = analysis::lasso_linear_options(train, axis, req.progress, &report, &kept);
-        if (args.has("lasso-report")) {
-          std::ofstream f(args.str("lasso-report"));
-          if (!f) throw std::runtime_error(args.str("lasso-report") + ": cannot open for writing");
-          f << report;
-        }
-        const features::DataSpan span = io::data_span(train, axis);
-        std::cerr << "\nlasso kept " << kept << " of " << features::candidate_features(&span).size()
-                  << " candidate features the data can identify (λ_1se)\n";
-        options["features"] = o["features"];
-      } else {
-        features::check_feature_set_name(set);  // validates the name
-        options["features"] = set;
-      }
-    }
+    if (args.has("features")) options["features"] = feature_option(args, req);
     req.options = options;
     model = training::fit_model(kind, req);
     if (!model) throw std::runtime_error("fit: kind '" + kind + "' returned no model");
@@ -152,15 +172,8 @@ int run(int argc, char** argv) {
       analysis::check_fit_sanity(*model, &score, scale);
       analysis::store_validation(score, *model);
       if (!args.flag("no-identification")) {
-        analysis::SelectionRequest sr = analysis::selection_request(train, req.validation, score_data, split_at, axis);
-        sr.time_budget_s = req.time_budget_s;
-        sr.seed = req.seed;
-        sr.threads = req.threads;
         const bool lasso = args.has("features") && args.str("features") == "lasso";
-        const analysis::ModelCandidate c{kind, kind, options, lasso};
-        const analysis::Identification id = analysis::check_identification(sr, c, *model);
-        if (id.checked()) model->meta.validation["carry_over_ratio"] = id.ratio();
-        std::cout << id.describe(kind, io::data_span(train, axis).duration_s) << "\n";
+        identify(analysis::ModelCandidate{kind, kind, options, lasso}, req, score_data, split_at, *model);
       }
     } else {
       analysis::check_fit_sanity(*model, nullptr, scale);

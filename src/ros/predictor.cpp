@@ -53,6 +53,12 @@ models::ModelPtr load_model_file(const std::string& path) {
     throw std::runtime_error(what.find(path) == std::string::npos ? path + ": " + what : what);
   }
   if (!m) throw std::runtime_error(path + ": model file gave no model");
+  // `piezo fit`'s identification check (docs/predictor.md): at start-up and at every ~reload_model
+  const auto carry = m->meta.validation.find("carry_over_ratio");
+  if (carry != m->meta.validation.end() && carry->second > analysis::kCarryOverAdvised)
+    ROS_WARN("model file %s: its training recording did not identify it (fitted on the first half, %.3gx worse on the "
+             "second than on validation): expect larger errors than its validation figures; refit on a longer recording",
+             path.c_str(), carry->second);
   try {
     compensation::InputFeeder check(*m, m->meta.axis, {});  // inputs the predictor can feed, right clock
   } catch (const std::exception& e) {
@@ -398,12 +404,6 @@ void PredictorNode::add_axis(const std::string& name) {
     m = load_model_file(path);
     if (m->meta.axis != name)
       ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
-    const auto carry = m->meta.validation.find("carry_over_ratio");  // `piezo fit`'s identification check
-    if (carry != m->meta.validation.end() && carry->second > analysis::kCarryOverAdvised)
-      ROS_WARN("axis %s: model file %s: its training recording did not identify it (fitted on the first half, %.3gx "
-               "worse on the second than on validation): expect larger errors than its validation figures; refit on a "
-               "longer recording",
-               name.c_str(), path.c_str(), carry->second);
   } catch (const std::exception& e) {
     // Keep the axis movable: uncorrected commands with bounded steps, reported in diagnostics.
     error = e.what();

@@ -452,20 +452,25 @@ TEST(Identification, TheRatioAndWhatTheLineSays) {
   s.moves_nm = 10.0;
   const analysis::Identification bad = analysis::identification(s, 2.0);
   EXPECT_NEAR(bad.ratio(), 42.0 / 12.0, 1e-12);
-  EXPECT_FALSE(bad.identified());
+  EXPECT_TRUE(bad.flagged());
   const std::string line = bad.describe("pi", 40.0);
   EXPECT_NE(line.find("3.5x"), std::string::npos) << line;
   EXPECT_NE(line.find("40-s training recording does not identify it"), std::string::npos) << line;
   EXPECT_NE(line.find("Record longer"), std::string::npos) << line;
   s.carry_nm = 16.0;  // (16 + 2) / 12 = 1.5
   const analysis::Identification good = analysis::identification(s, 2.0);
-  EXPECT_TRUE(good.identified());
+  EXPECT_FALSE(good.flagged());
   EXPECT_NE(good.describe("pi", 40.0).find("the recording identifies it"), std::string::npos);
   s.blocks.carry.clear();  // the fold did not run
   const analysis::Identification none = analysis::identification(s, 2.0);
   EXPECT_FALSE(none.checked());
-  EXPECT_TRUE(none.identified());
-  EXPECT_NE(none.describe("pi", 40.0).find("not checked"), std::string::npos);
+  EXPECT_FALSE(none.flagged());
+  EXPECT_NE(none.describe("pi", 40.0).find("not checked: no carry-over figure"), std::string::npos);
+  s.blocks.carry = {38.0};  // a carry-over figure, but no moves in the validation part
+  s.moves_nm = NAN;
+  const analysis::Identification no_moves = analysis::identification(s, 2.0);
+  EXPECT_FALSE(no_moves.checked());
+  EXPECT_NE(no_moves.describe("pi", 40.0).find("no moves"), std::string::npos);
 }
 
 namespace {
@@ -507,10 +512,10 @@ TEST(Identification, ARecordingWhoseFirstHalfSweepsLessIsFlagged) {
     std::cout << (narrow ? "narrow first half: " : "full sweep: ") << id.describe("pi", 400.0) << "\n";
     if (narrow) {
       EXPECT_GT(id.ratio(), 4.0);
-      EXPECT_FALSE(id.identified());
+      EXPECT_TRUE(id.flagged());
     } else {
       EXPECT_LT(id.ratio(), 1.5);
-      EXPECT_TRUE(id.identified());
+      EXPECT_FALSE(id.flagged());
     }
   }
 }

@@ -293,10 +293,11 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
     const double ratio = sep[k] / continuation_mae(r);
     const bool ok = ratio <= kSeparateRatio;
     // and the identification check `piezo fit` prints (docs/models.md, "Does the recording identify the model?")
-    const double id = analysis::identification(r.slow, sel.block_noise_nm).ratio();
+    const analysis::Identification id = analysis::identification(r.slow, sel.block_noise_nm);
+    const std::string id_text = id.checked() ? figure(id.ratio()) + "×" : std::string("–");
     char buf[200];
-    std::snprintf(buf, sizeof buf, " %.4g (%.2f×)%s; whole %.4g (%.2f×); rest %.4g; identification %.3g× |", sep[k],
-                  ratio, ok ? "" : " **>1.5×**", e.whole, e.whole / continuation_mae(r), e.rest, id);
+    std::snprintf(buf, sizeof buf, " %.4g (%.2f×)%s; whole %.4g (%.2f×); rest %.4g; identification %s |", sep[k],
+                  ratio, ok ? "" : " **>1.5×**", e.whole, e.whole / continuation_mae(r), e.rest, id_text.c_str());
     md += buf;
     if (!ok)
       check.fail(name + "/" + r.candidate.label + " separate",

@@ -16,11 +16,11 @@
 #include <cstdio>
 #include <csignal>
 #include <cstring>
-#include <filesystem>
 #include <fstream>
 #include <mutex>
 #include <sstream>
 #include <thread>
+#include <vector>
 
 #include "piezo_compensation/can/device_core.h"
 #include "piezo_compensation/can/driver_core.h"
@@ -77,15 +77,21 @@ bool kernel_lists_filter(canid_t id, canid_t mask) {
   return false;
 }
 
-// Ends every candump process (/proc/<pid>/comm; no procps needed in the VM).
+// The candumps this binary started (their pids, from the shell that started each).
+std::vector<pid_t>& started_candumps() {
+  static std::vector<pid_t> pids;
+  return pids;
+}
+
+// Ends the candumps this binary started that still run (a failed test's waits for frames that never came); only a
+// pid whose /proc/<pid>/comm is still candump is signalled.
 void end_candumps() {
-  for (const auto& e : std::filesystem::directory_iterator("/proc")) {
-    const std::string name = e.path().filename().string();
-    if (name.find_first_not_of("0123456789") != std::string::npos) continue;
-    std::ifstream comm(e.path() / "comm");
+  for (pid_t pid : started_candumps()) {
+    std::ifstream comm("/proc/" + std::to_string(pid) + "/comm");
     std::string c;
-    if (std::getline(comm, c) && c == "candump") ::kill(static_cast<pid_t>(std::stol(name)), SIGTERM);
+    if (std::getline(comm, c) && c == "candump") ::kill(pid, SIGTERM);
   }
+  started_candumps().clear();
 }
 
 // Starts candump in the background with the given filters and waits until the kernel has its first filter, rather
@@ -101,7 +107,10 @@ bool start_candump(const std::string& args, const std::string& log, canid_t firs
     ADD_FAILURE() << "another socket keeps the filter " << std::hex << first_id << ":" << first_mask;
     return false;
   }
-  if (sh("(candump " + args + " > " + log + " &)") != 0) return false;
+  if (sh("(candump " + args + " > " + log + " & echo $! > " + log + ".pid)") != 0) return false;
+  std::ifstream pid_file(log + ".pid");
+  long pid = 0;
+  if (pid_file >> pid && pid > 0) started_candumps().push_back(static_cast<pid_t>(pid));
   return wait_for([&] { return kernel_lists_filter(first_id, first_mask); });
 }
 

@@ -217,24 +217,29 @@ struct CandidateResult {
 //   ratio = (carry-over + noise) / (moves + noise).
 // Over kCarryOverAdvised, half the recording does not predict its other half: the recording is too short or too
 // narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part
-// says (on the stage matrix's 40-s low-voltage trainings the ratio is 2–21 and a model's error on another
-// recording, its history known, up to 14× the validation's; with 200 s of training it carries over: docs/models.md).
+// says (on the stage matrix's 40-s low-voltage trainings the ratio has a median of 3.6, up to 21, and a model's
+// error on another recording, its history known, is up to 14× the validation's; with 200 s of training it carries
+// over: docs/models.md).
 constexpr double kCarryOverAdvised = 2.0;
 struct Identification {
   double carry_nm = NAN, moves_nm = NAN, noise_nm = 0.0;
+  std::string unchecked;  // why there is no ratio (empty when there is one)
   double ratio() const { return (carry_nm + noise_nm) / (moves_nm + noise_nm); }
   bool checked() const { return std::isfinite(ratio()); }
-  bool identified() const { return !checked() || ratio() <= kCarryOverAdvised; }
-  // One line: the two figures, the ratio and, over kCarryOverAdvised, what it means and what to do.
+  bool flagged() const { return checked() && ratio() > kCarryOverAdvised; }
+  // One line: the two figures, the ratio and, over kCarryOverAdvised, what it means and what to do; or why it was
+  // not checked.
   std::string describe(const std::string& label, double train_s) const;
 };
-// From a candidate's slow score (its carry-over column; not checked when the fold did not run).
+// From a candidate's slow score (its carry-over column; not checked when the fold did not run or the validation
+// part has no moves).
 Identification identification(const SlowScore& score, double block_noise_nm);
 // The noise of a block mean on the request's validation part (σ of a reading / √rows per block); NaN when the part is
-// too short for a noise figure.
+// too short for a noise figure or missing.
 double estimate_block_noise(const SelectionRequest& request);
 // For one kind fitted outside select_model (`piezo fit --model KIND`): `fitted`'s slow score on the validation part
-// and the carry-over fold (one more fit of the kind, on the training part's first half).
+// and the carry-over fold (one more fit of the kind, with the candidate's options, on the training part's first
+// half). Never throws: a failure is the `unchecked` reason.
 Identification check_identification(const SelectionRequest& request, const ModelCandidate& candidate,
                                     const models::Model& fitted);
 

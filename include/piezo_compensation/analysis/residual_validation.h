@@ -28,7 +28,8 @@ class Validator {
   // fields; with choose_form a gain's form (on the output or the voltage, linear or quadratic) is chosen here.
   // Its low-pass time constants are refined on the fit part only: the validation rows judge them.
   void score(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, const Val& now, bool choose_form) const;
-  // An accepted effect's time constants refined again over all of TRAIN (more rows: τ not chosen on the noise).
+  // An accepted effect's time constants refined again over all of TRAIN (more rows: τ not chosen on the noise),
+  // within a factor √2 of the validated ones and never past half the validation part.
   void finalise_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed) const;
   // What the acceptance rules know of the round with `now` as the model without a new effect.
   AcceptanceRound round(const Val& now) const;
@@ -40,7 +41,8 @@ class Validator {
 
  private:
   void choose_gain_form(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, Val& v) const;
-  bool refine_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, std::size_t rows) const;
+  bool refine_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, std::size_t rows,
+                             double span) const;
   double train_ms(const std::vector<models::EffectTerm>& fixed, const Candidate& cand, std::size_t rows) const;
   void fill_sizes(FamilyScore& s, const Val& v, const Val& now) const;
   void log_score(const FamilyScore& s) const;

@@ -527,7 +527,10 @@ void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const S
   SlowErrors b = s.blocks;
   try {
     ModelCandidate half_c = c;
-    if (c.lasso_features) half_c.options = lasso_linear_options(fit_part, rq.axis, {});
+    if (c.lasso_features) {  // the features chosen again on the half; the candidate's other options kept
+      half_c.options = c.options && c.options.IsMap() ? YAML::Clone(c.options) : YAML::Node(YAML::NodeType::Map);
+      half_c.options["features"] = lasso_linear_options(fit_part, rq.axis, {})["features"];
+    }
     const models::ModelPtr m =
         training::fit_model(c.kind, fit_request(rq, half_c, fit_part, rq.validation ? &val_part : nullptr));
     if (!m) return;
@@ -542,6 +545,7 @@ void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const S
 
 double estimate_block_noise(const SelectionRequest& rq) {
   if (rq.slow.noise_nm > 0.0) return rq.slow.noise_nm;
+  if (!rq.score_data || rq.score_data->size() <= rq.score_from) return NAN;
   // The noise of a block mean, from the validation part's readings (σ/√samples per block).
   try {
     const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
@@ -556,31 +560,44 @@ double estimate_block_noise(const SelectionRequest& rq) {
 
 Identification identification(const SlowScore& s, double block_noise_nm) {
   Identification id;
-  if (s.blocks.carry.empty()) return id;
+  if (s.blocks.carry.empty()) {
+    id.unchecked = "no carry-over figure (a training part under 2 x 32 blocks, or a half fit that failed)";
+    return id;
+  }
   id.carry_nm = s.carry_nm;
   id.moves_nm = s.moves_nm;
   id.noise_nm = std::isfinite(block_noise_nm) && block_noise_nm > 0.0 ? block_noise_nm : 0.0;
+  if (!id.checked()) id.unchecked = "no moves in the validation part to compare with";
   return id;
 }
 
 Identification check_identification(const SelectionRequest& rq, const ModelCandidate& c, const models::Model& fitted) {
-  if (!rq.train || !rq.score_data || rq.score_data->size() <= rq.score_from) return {};
-  SlowScoreOptions o = rq.slow;
-  o.carry_fold = true;
-  const double noise = estimate_block_noise(rq);
-  if (std::isfinite(noise) && noise > 0.0) o.noise_nm = noise;
-  SlowScore s = slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
-  add_carry_over(rq, c, o, s);
-  return identification(s, noise);
+  Identification id;
+  if (!rq.train || !rq.score_data || rq.score_data->size() <= rq.score_from) {
+    id.unchecked = "no validation part";
+    return id;
+  }
+  try {
+    SlowScoreOptions o = rq.slow;
+    o.carry_fold = true;
+    const double noise = estimate_block_noise(rq);
+    if (std::isfinite(noise) && noise > 0.0) o.noise_nm = noise;
+    SlowScore s = slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
+    add_carry_over(rq, c, o, s);
+    return identification(s, noise);
+  } catch (const std::exception& e) {
+    id.unchecked = std::string("the check failed: ") + e.what();
+    return id;
+  }
 }
 
 std::string Identification::describe(const std::string& label, double train_s) const {
-  if (!checked()) return "identification of " + label + ": not checked (the training part is too short for the carry-over fold)";
+  if (!checked()) return "identification of " + label + ": not checked: " + (unchecked.empty() ? "no ratio" : unchecked);
   std::ostringstream os;
   os << "identification of " << label << ": fitted on the training part's first half it is " << fmt(carry_nm, 3)
      << " nm off (block means) on the second half, the whole fit " << fmt(moves_nm, 3)
      << " nm on the validation part's moves (block noise " << fmt(noise_nm, 2) << " nm): " << fmt(ratio(), 3) << "x";
-  if (identified()) {
+  if (!flagged()) {
     os << " (<= " << fmt(kCarryOverAdvised) << ": the recording identifies it)";
   } else {
     os << ". Over " << fmt(kCarryOverAdvised) << "x the " << fmt(train_s, 3)

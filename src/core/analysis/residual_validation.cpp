@@ -110,27 +110,29 @@ double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate
 
 // The grid's low-pass is a factor ~3 off at worst (a 20-s thermal lag read through 30 s leaves a phase error of
 // ~11° on a 200-s cycle, ~10 nm on a 90-nm swing): each term's time constant is refined by a pattern search in
-// log τ (factor 2, then √2, … down to 1.1; within a factor 4 of the grid's choice) on the RMS of the joint fit
-// over rows [0, rows), and never past half the validation part (nor below the grid's choice for that cap): a
-// longer τ is one the validation rows cannot judge. A live-loop snapshot (CI of 6b682cb) had rate_dependent
-// refined 60 → 240 s on a 210-s validation part over all of TRAIN; it won there by 2 % and lost 56 % on TEST,
-// 17.7 → 27.7 nm. For the decision the rows are the fit part only (over all of TRAIN τ was chosen on the rows that
-// then judged it); the accepted effect's τ is refined again over all of TRAIN (finalise_time_constants), more
-// rows, so τ is not chosen on the noise.
-bool Validator::refine_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed, std::size_t rows) const {
+// log τ (factor 2, then √2, … down to 1.1; within a factor `span` of where it starts) on the RMS of the joint fit
+// over rows [0, rows), and never past half the validation part (nor below the start for that cap): a longer τ is
+// one the validation rows cannot judge. A live-loop snapshot (CI of 6b682cb) had rate_dependent refined 60 → 240 s
+// on a 210-s validation part over all of TRAIN; it won there by 2 % and lost 56 % on TEST, 17.7 → 27.7 nm. For the
+// decision (score) the rows are the fit part only, from the grid's choice within a factor 4 (over all of TRAIN τ was
+// chosen on the rows that then judged it); the accepted effect's τ is refined again over all of TRAIN
+// (finalise_time_constants: more rows, so τ is not chosen on the noise), from the validated τ within a factor √2
+// only, so the model's τ stays near the one the validation judged.
+bool Validator::refine_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed, std::size_t rows,
+                                      double span) const {
   bool refined = false;
   for (std::size_t q = 0; q < s.best.terms.size(); ++q) {
     if (!(s.best.terms[q].time_constant_s > 0.0)) continue;
     const double tau0 = s.best.terms[q].time_constant_s;
     const double seen_s = 0.5 * static_cast<double>(n_ - n_fit_) / c_.fs;
-    const double tau_max = std::max(tau0, std::min(4.0 * tau0, seen_s));
+    const double tau_max = std::max(tau0, std::min(span * tau0, seen_s));
     double best_ms = train_ms(fixed, s.best, rows);
-    for (double f = 2.0; f > 1.1; f = std::sqrt(f)) {
+    for (double f = std::min(2.0, span); f > 1.1; f = std::sqrt(f)) {
       for (bool moved = true; moved;) {
         moved = false;
         for (double k : {f, 1.0 / f}) {
           const double tau = s.best.terms[q].time_constant_s * k;
-          if (tau > tau_max * (1 + 1e-9) || tau < tau0 / 4.0 * (1 - 1e-9)) continue;
+          if (tau > tau_max * (1 + 1e-9) || tau < tau0 / span * (1 - 1e-9)) continue;
           Candidate alt = s.best;
           alt.terms[q].time_constant_s = tau;
           alt.terms[q].center.clear(), alt.terms[q].scale.clear(), alt.terms[q].weight.clear();
@@ -193,13 +195,20 @@ void Validator::log_score(const FamilyScore& s) const {
 void Validator::score(FamilyScore& s, const std::vector<EffectTerm>& fixed, const Val& now, bool choose_form) const {
   Val v = score_candidate(*this, fixed, s.best);
   if (is_gain_family(s.family) && choose_form) choose_gain_form(s, fixed, v);
-  if (refine_time_constants(s, fixed, n_fit_)) v = score_candidate(*this, fixed, s.best);
+  if (refine_time_constants(s, fixed, n_fit_, 4.0)) v = score_candidate(*this, fixed, s.best);
   fill_sizes(s, v, now);
   log_score(s);
 }
 
 void Validator::finalise_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed) const {
-  refine_time_constants(s, fixed, n_);
+  const Candidate validated = s.best;
+  if (!refine_time_constants(s, fixed, n_, std::sqrt(2.0)) || !log_) return;
+  std::ostringstream os;
+  os << "  " << s.family << ": time constant refined over all of TRAIN:";
+  for (std::size_t q = 0; q < s.best.terms.size(); ++q)
+    if (s.best.terms[q].time_constant_s != validated.terms[q].time_constant_s)
+      os << " " << validated.terms[q].time_constant_s << " -> " << s.best.terms[q].time_constant_s << " s";
+  log_(os.str());
 }
 
 }  // namespace piezo::analysis::detail
