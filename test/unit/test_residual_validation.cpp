@@ -94,3 +94,25 @@ TEST(ResidualValidation, TheAcceptedTimeConstantMovesAtMostRootTwoOverAllOfTrain
   EXPECT_GT(final_tau, 1.05 * decided);
   EXPECT_LE(final_tau, std::sqrt(2.0) * decided * (1 + 1e-9));
 }
+
+// The grid itself: with a cap (Context::max_time_constant_s, half the validation part, set by the loop) no variant
+// of missing_memory's grid (10 … 3000 s) has a longer time constant, and the best one is chosen among the rest; with
+// none over the cap the family is unavailable with the reason.
+TEST(ResidualValidation, NoGridVariantHasATimeConstantTheValidationCannotJudge) {
+  Slow d(1200);
+  const std::vector<double> residual = d.c.measured, position = d.c.measured;
+  piezo::analysis::ResidualOptions o;
+  o.permutations = 0;
+  std::mt19937_64 rng(1);
+  const pd::Level level;
+  const auto full = pd::score_family(piezo::analysis::Family::kMissingMemory, d.c, {}, level, residual, position, o, rng);
+  d.c.max_time_constant_s = 150.0;
+  const auto capped = pd::score_family(piezo::analysis::Family::kMissingMemory, d.c, {}, level, residual, position, o, rng);
+  ASSERT_TRUE(capped.available);
+  EXPECT_LT(capped.variants, full.variants);
+  for (const auto& t : capped.best.terms) EXPECT_LE(t.time_constant_s, 150.0);
+  d.c.max_time_constant_s = 5.0;  // under the grid's shortest (10 s)
+  const auto none = pd::score_family(piezo::analysis::Family::kMissingMemory, d.c, {}, level, residual, position, o, rng);
+  EXPECT_FALSE(none.available);
+  EXPECT_NE(none.note.find("longer than half the validation part"), std::string::npos) << none.note;
+}

@@ -51,6 +51,18 @@ FamilyScore score_family(Family family, const Context& c, const std::vector<Effe
   const std::size_t n = residual.size();
   const std::size_t stride = std::max<std::size_t>(1, (n + o.max_score_samples - 1) / o.max_score_samples);
   FamilyCandidates fc = candidates(family, c, residual, position, stride);
+  if (c.max_time_constant_s > 0.0) {  // no time constant the validation part cannot judge
+    const std::size_t all = fc.variants.size();
+    fc.variants.erase(std::remove_if(fc.variants.begin(), fc.variants.end(),
+                                     [&](const Candidate& v) {
+                                       return std::any_of(v.terms.begin(), v.terms.end(), [&](const EffectTerm& t) {
+                                         return t.time_constant_s > c.max_time_constant_s * (1 + 1e-9);
+                                       });
+                                     }),
+                      fc.variants.end());
+    if (all > 0 && fc.variants.empty() && fc.note.empty())
+      fc.note = "every time constant longer than half the validation part";
+  }
   fs.variants = fc.variants.size();
   fs.note = fc.note;
   if (fc.variants.empty()) {
