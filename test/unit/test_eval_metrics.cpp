@@ -152,3 +152,32 @@ TEST(Evaluation, SegmentListsAndSegmentScoring) {
   EXPECT_EQ(hysteresis_mask(d, 0, {1, 2}), (std::vector<char>{0, 0, 0, 1, 1, 0, 0, 1}));
   EXPECT_EQ(hysteresis_mask(d, 3.5, {}), (std::vector<char>{0, 0, 0, 0, 1, 0, 0, 1}));
 }
+
+// The model file's identification check (`piezo fit`: validation carry_over_ratio) is carried into the report: the
+// figure in report.json (null without it), and a line in report.md that says, over 2, what it means.
+TEST(EvalReport, SaysWhetherTheModelsTrainingRecordingIdentifiedIt) {
+  auto gen = truth_model();
+  const io::Dataset d = study_like(gen, 7);
+  auto plain = truth_model(), flagged = truth_model(), fine = truth_model();
+  flagged.meta.validation["carry_over_ratio"] = 4.6;
+  fine.meta.validation["carry_over_ratio"] = 1.2;
+  const std::vector<ModelEvaluation> evs = {evaluate_model(plain, "plain", d, nullptr, {}),
+                                            evaluate_model(flagged, "short_recording", d, nullptr, {}),
+                                            evaluate_model(fine, "long_recording", d, nullptr, {})};
+  const std::string dir = ::testing::TempDir() + "piezo_eval_identification";
+  std::filesystem::create_directories(dir);
+  EvalContext ctx;
+  ctx.test_path = "test.csv";
+  write_eval_report(dir, ctx, evs, d, nullptr);
+  std::ifstream md(dir + "/report.md");
+  const std::string text((std::istreambuf_iterator<char>(md)), {});
+  EXPECT_NE(text.find("- short_recording: identification at fit 4.60x (over 2.0: its training recording did not "
+                      "identify it"),
+            std::string::npos)
+      << text;
+  EXPECT_NE(text.find("- long_recording: identification at fit 1.20x\n"), std::string::npos) << text;
+  EXPECT_EQ(text.find("- plain: identification"), std::string::npos);
+  const YAML::Node js = YAML::LoadFile(dir + "/report.json");
+  EXPECT_TRUE(js["models"][0]["carry_over_ratio"].IsNull());
+  EXPECT_DOUBLE_EQ(js["models"][1]["carry_over_ratio"].as<double>(), 4.6);
+}

@@ -5,6 +5,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/util/json_writer.h"
 
 namespace piezo::analysis {
@@ -68,6 +69,20 @@ std::string start_lines(const EvalContext& ctx, const std::vector<ModelEvaluatio
   return s;
 }
 
+// The training recording's identification check each model file carries (`piezo fit`; docs/models.md).
+std::string identification_lines(const std::vector<ModelEvaluation>& evals) {
+  std::string s;
+  for (const auto& e : evals) {
+    if (!std::isfinite(e.carry_over_ratio)) continue;
+    s += "- " + e.name + ": identification at fit " + f2(e.carry_over_ratio) + "x" +
+         (e.carry_over_ratio > kCarryOverAdvised
+              ? " (over " + f1(kCarryOverAdvised) + ": its training recording did not identify it; larger errors on "
+                "new data than its validation figures may come from that)\n"
+              : "\n");
+  }
+  return s;
+}
+
 std::ofstream open_out(const std::string& path) {
   std::ofstream f(path);
   if (!f) throw std::runtime_error(path + ": cannot open for writing");
@@ -88,7 +103,7 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
      << (ctx.anchor_s > 0 ? std::string(ctx.anchor_history ? "- initial state and offset: estimated" : "- initial offset: "
                                 "anchored") + " on the first " + f1(ctx.anchor_s) + " s of measured position (scored after them)\n"
                           : std::string("- initial state: at rest at the first voltage and measured position (no anchor)\n"));
-  os << start_lines(ctx, evals);
+  os << start_lines(ctx, evals) << identification_lines(evals);
   auto seglist = [](const std::vector<int>& v) {
     std::string s;
     for (int k : v) s += (s.empty() ? "" : ",") + std::to_string(k);
@@ -190,6 +205,7 @@ void write_eval_report(const std::string& dir, const EvalContext& ctx, const std
     for (const auto& e : evals) {
       j.begin_object();
       j.kv("name", e.name).kv("kind", e.kind).kv("num_parameters", e.num_parameters).kv("uses_positions", e.uses_positions);
+      j.kv("carry_over_ratio", e.carry_over_ratio);  // from the model file (null when it has none)
       if (ctx.anchor_s > 0) json_start(j, e.test.start);
       j.key("hysteresis");
       json_set(j, e.hysteresis);

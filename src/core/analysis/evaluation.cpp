@@ -166,6 +166,8 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   ev.kind = model.kind();
   ev.num_parameters = model.num_parameters();
   ev.uses_positions = model.uses_position_history();
+  if (const auto c = model.meta.validation.find("carry_over_ratio"); c != model.meta.validation.end())
+    ev.carry_over_ratio = c->second;
   ev.test = predict_series(model, test, opt.axis, opt.anchor_s, opt.anchor_history);
   auto after_anchor = [](std::vector<char> m, std::size_t first) {
     for (std::size_t i = 0; i < first && i < m.size(); ++i) m[i] = 0;
