@@ -54,11 +54,8 @@ models::ModelPtr load_model_file(const std::string& path) {
   }
   if (!m) throw std::runtime_error(path + ": model file gave no model");
   // `piezo fit`'s identification check (docs/predictor.md): at start-up and at every ~reload_model
-  const auto carry = m->meta.validation.find("carry_over_ratio");
-  if (carry != m->meta.validation.end() && carry->second > analysis::kCarryOverAdvised)
-    ROS_WARN("model file %s: its training recording did not identify it (fitted on the first half, %.3gx worse on the "
-             "second than on validation): expect larger errors than its validation figures; refit on a longer recording",
-             path.c_str(), carry->second);
+  const std::string unidentified = analysis::unidentified_model_warning(*m, path);
+  if (!unidentified.empty()) ROS_WARN("%s", unidentified.c_str());
   try {
     compensation::InputFeeder check(*m, m->meta.axis, {});  // inputs the predictor can feed, right clock
   } catch (const std::exception& e) {

@@ -473,6 +473,29 @@ TEST(Identification, TheRatioAndWhatTheLineSays) {
   EXPECT_NE(no_moves.describe("pi", 40.0).find("no moves"), std::string::npos);
 }
 
+// The loader's warning (the predictor logs it): over 2 it names the file and the ratio; within, or without the
+// figure, nothing.
+TEST(Identification, ALoaderWarnsOnlyForAFlaggedModelFile) {
+  io::Dataset all;
+  auto& a = all.add_axis("c");
+  for (int i = 0; i < 400; ++i) {
+    all.time_s.push_back(0.1 * i);
+    a.voltage_v.push_back(std::sin(0.05 * i));
+    a.position_nm.push_back(10.0 * a.voltage_v.back());
+  }
+  training::FitRequest fr;
+  fr.train = &all;
+  fr.options = YAML::Node(YAML::NodeType::Map);
+  const models::ModelPtr m = training::fit_model("pi", fr);
+  EXPECT_EQ(analysis::unidentified_model_warning(*m, "m.yaml"), "");
+  m->meta.validation["carry_over_ratio"] = 1.9;
+  EXPECT_EQ(analysis::unidentified_model_warning(*m, "m.yaml"), "");
+  m->meta.validation["carry_over_ratio"] = 4.6;
+  const std::string w = analysis::unidentified_model_warning(*m, "m.yaml");
+  EXPECT_NE(w.find("model file m.yaml: its training recording did not identify it"), std::string::npos) << w;
+  EXPECT_NE(w.find("4.6x worse"), std::string::npos) << w;
+}
+
 namespace {
 // 500 s at 10 Hz of a 40-s sine on a Prandtl–Ishlinskii stage, y = 10·V + 4·play₁(V) + 6·play₃(V) nm (plays of
 // half-width 1 and 3 V): ±5 V throughout, or ±1.5 V in the first 200 s (the recording's first half never moves the

@@ -243,6 +243,11 @@ double estimate_block_noise(const SelectionRequest& request);
 Identification check_identification(const SelectionRequest& request, const ModelCandidate& candidate,
                                     const models::Model& fitted);
 
+// The warning a loader gives for a model file whose stored identification check (validation carry_over_ratio) is
+// over kCarryOverAdvised, naming the file and the ratio; empty when it has none or it is within (the predictor logs
+// it at start-up and at ~reload_model).
+std::string unidentified_model_warning(const models::Model& model, const std::string& path);
+
 struct Selection {
   models::ModelPtr model;  // the winner, validation figures stored; null when every candidate was refused
   std::size_t best = 0;    // index into table: the chosen candidate

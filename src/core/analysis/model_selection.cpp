@@ -607,6 +607,14 @@ std::string Identification::describe(const std::string& label, double train_s) c
   return os.str();
 }
 
+std::string unidentified_model_warning(const models::Model& model, const std::string& path) {
+  const auto c = model.meta.validation.find("carry_over_ratio");
+  if (c == model.meta.validation.end() || !(c->second > kCarryOverAdvised)) return {};
+  return "model file " + path + ": its training recording did not identify it (fitted on the first half, " +
+         fmt(c->second, 3) + "x worse on the second than on validation): expect larger errors than its validation "
+         "figures; refit on a longer recording";
+}
+
 void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o) {
   bool all = true;
   for (const auto& r : table)
