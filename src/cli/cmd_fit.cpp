@@ -39,6 +39,16 @@ YAML::Node feature_option(const Args& args, const training::FitRequest& req) {
   return o["features"];
 }
 
+// The selection request of `req` (auto's and the identification check's): its data, budget, seed and threads.
+analysis::SelectionRequest selection_request_of(const training::FitRequest& req, const io::Dataset& score_data,
+                                                std::size_t split_at) {
+  analysis::SelectionRequest sr = analysis::selection_request(*req.train, req.validation, score_data, split_at, req.axis);
+  sr.time_budget_s = req.time_budget_s;
+  sr.seed = req.seed;
+  sr.threads = req.threads;
+  return sr;
+}
+
 // The identification check of a single kind (`--model auto` has it from select_model): printed, and its ratio stored
 // as validation carry_over_ratio. A tuned fit is not checked: the half fit would run the kind's defaults.
 void identify(const analysis::ModelCandidate& c, const training::FitRequest& req, const io::Dataset& score_data,
@@ -47,11 +57,7 @@ void identify(const analysis::ModelCandidate& c, const training::FitRequest& req
   if (req.tune_trials > 0) {
     id.unchecked = "a tuned fit (--tune): the half fit would not be tuned alike";
   } else {
-    analysis::SelectionRequest sr = analysis::selection_request(*req.train, req.validation, score_data, split_at, req.axis);
-    sr.time_budget_s = req.time_budget_s;
-    sr.seed = req.seed;
-    sr.threads = req.threads;
-    id = analysis::check_identification(sr, c, model);
+    id = analysis::check_identification(selection_request_of(req, score_data, split_at), c, model);
   }
   if (id.checked()) model.meta.validation["carry_over_ratio"] = id.ratio();
   std::cout << id.describe(c.label, io::data_span(*req.train, req.axis).duration_s) << "\n";
@@ -146,11 +152,8 @@ int run(int argc, char** argv) {
   const io::Dataset& score_data = split_at ? all : val;
   models::ModelPtr model;
   if (auto_kind) {
-    analysis::SelectionRequest sr = analysis::selection_request(train, req.validation, score_data, split_at, axis);
+    analysis::SelectionRequest sr = selection_request_of(req, score_data, split_at);
     sr.candidates = analysis::default_candidates(args.list("auto-extra"));
-    sr.time_budget_s = req.time_budget_s;
-    sr.seed = req.seed;
-    sr.threads = req.threads;
     sr.progress = req.progress;
     if (!req.validation) throw UsageError("fit: --model auto needs validation data (--split < 1 or --validation)");
     analysis::Selection sel = analysis::select_model(sr);

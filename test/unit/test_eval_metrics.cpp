@@ -99,18 +99,26 @@ TEST(Evaluation, FreeRunFeedsBackPredictionsOneStepFeedsMeasurements) {
   }
 }
 
+namespace {
+// Writes the report of `evs` on `d` into `dir` (created); returns its report.md.
+std::string write_report(const std::string& dir, const EvalContext& ctx, const std::vector<ModelEvaluation>& evs,
+                         const io::Dataset& d) {
+  std::filesystem::create_directories(dir);
+  write_eval_report(dir, ctx, evs, d, nullptr);
+  std::ifstream md(dir + "/report.md");
+  return std::string((std::istreambuf_iterator<char>(md)), {});
+}
+}  // namespace
+
 TEST(EvalReport, WritesMarkdownJsonAndTraces) {
   auto gen = truth_model();
   const io::Dataset d = study_like(gen, 7);
   auto model = truth_model();
   std::vector<ModelEvaluation> evs = {evaluate_model(model, "pi_lti", d, nullptr, {})};
   const std::string dir = ::testing::TempDir() + "piezo_eval_report";
-  std::filesystem::create_directories(dir);
   EvalContext ctx;
   ctx.test_path = "test.csv";
-  write_eval_report(dir, ctx, evs, d, nullptr);
-  std::ifstream md(dir + "/report.md");
-  const std::string text((std::istreambuf_iterator<char>(md)), {});
+  const std::string text = write_report(dir, ctx, evs, d);
   EXPECT_NE(text.find("Table 3"), std::string::npos);
   EXPECT_NE(text.find("16.6 nm"), std::string::npos);
   const YAML::Node js = YAML::LoadFile(dir + "/report.json");  // JSON is valid YAML
@@ -165,12 +173,9 @@ TEST(EvalReport, SaysWhetherTheModelsTrainingRecordingIdentifiedIt) {
                                             evaluate_model(flagged, "short_recording", d, nullptr, {}),
                                             evaluate_model(fine, "long_recording", d, nullptr, {})};
   const std::string dir = ::testing::TempDir() + "piezo_eval_identification";
-  std::filesystem::create_directories(dir);
   EvalContext ctx;
   ctx.test_path = "test.csv";
-  write_eval_report(dir, ctx, evs, d, nullptr);
-  std::ifstream md(dir + "/report.md");
-  const std::string text((std::istreambuf_iterator<char>(md)), {});
+  const std::string text = write_report(dir, ctx, evs, d);
   EXPECT_NE(text.find("- short_recording: identification at fit 4.60x (over 2.0: its training recording did not "
                       "identify it"),
             std::string::npos)

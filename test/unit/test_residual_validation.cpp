@@ -67,8 +67,7 @@ TEST(ResidualValidation, ATimeConstantTheValidationSeesIsRefined) {
 }
 
 // With 300 s of validation the refinement stops at half of it (150 s): a longer τ is one the validation rows
-// cannot judge (a live-loop snapshot's rate_dependent term went 60 → 240 s on a 210-s validation part, won there
-// by 2 % and lost 56 % on TEST). Refined again over all rows for the model, it stays there.
+// cannot judge. Refined again over all rows for the model, it stays there.
 TEST(ResidualValidation, RefinementStopsAtHalfTheValidationPart) {
   const Slow d(1200);
   const double tau = d.refined_tau(900);

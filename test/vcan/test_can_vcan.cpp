@@ -287,10 +287,8 @@ TEST(Vcan, CandumpSeesTheCommandsTheDriverWrites) {
   ASSERT_EQ(sh("cansend vcan0 192#A086010001000000"), 0);
   ASSERT_TRUE(wait_for([&] { return driver.axis_status(2).has_baseline; }));
   // Clamped to 80 V, slew-limited from 10 V; max_unconfirmed_v (10 V past the baseline) stops it after 5 frames.
-  // The driver's clock is the test's, 1 ms a try: 2 V a frame at 2000 V/s, whatever the host's clock does. With
-  // steady_clock read twice a try (command, then tick) the test relied on the second read being later than the
-  // first: once, in the VM under load, it was not, every step was the 5-V frame cap and the ramp met the 10-V cap
-  // after 2 frames (CI of 6b682cb).
+  // The driver's clock is the test's, 1 ms a try: 2 V a frame at 2000 V/s, whatever the host's clock does (a clock
+  // that does not advance between two reads makes every step the 5-V frame cap: 2 frames, then the 10-V cap).
   double t = now_s();
   ASSERT_TRUE(wait_for([&] {
     t += 1e-3;

@@ -217,9 +217,7 @@ struct CandidateResult {
 //   ratio = (carry-over + noise) / (moves + noise).
 // Over kCarryOverAdvised, half the recording does not predict its other half: the recording is too short or too
 // narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part
-// says (on the stage matrix's 40-s low-voltage trainings the ratio has a median of 3.6, up to 21, and a model's
-// error on another recording, its history known, is up to 14× the validation's; with 200 s of training it carries
-// over: docs/models.md).
+// says (measured on the stage matrix: docs/models.md, "Does the recording identify the model?").
 constexpr double kCarryOverAdvised = 2.0;
 struct Identification {
   double carry_nm = NAN, moves_nm = NAN, noise_nm = 0.0;

@@ -31,8 +31,8 @@ struct Context {
   std::vector<double> transient_taus_s;
   std::vector<std::vector<double>> transient;
   double noise_sigma_nm = 0.0;  // reading noise σ estimated from TRAIN (analysis/noise_floor.h)
-  // Longest low-pass time constant a variant may have: half the validation part (0 = no limit). A longer one is a
-  // time constant the validation rows cannot judge (residual_validation.cpp, refine_time_constants).
+  // Longest low-pass time constant a variant may have (0 = no limit): the loop sets Validator::max_time_constant_s,
+  // half the validation part; a longer one is a time constant the validation rows cannot judge.
   double max_time_constant_s = 0.0;
 };
 

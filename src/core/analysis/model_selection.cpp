@@ -561,7 +561,7 @@ double estimate_block_noise(const SelectionRequest& rq) {
 Identification identification(const SlowScore& s, double block_noise_nm) {
   Identification id;
   if (s.blocks.carry.empty()) {
-    id.unchecked = "no carry-over figure (a training part under 2 x 32 blocks, or a half fit that failed)";
+    id.unchecked = "no carry-over figure (a training part too short for the fold, or a half fit that failed)";
     return id;
   }
   id.carry_nm = s.carry_nm;

@@ -148,7 +148,7 @@ class Loop {
         n_fit_(static_cast<std::size_t>(std::lround(static_cast<double>(n_) * (1.0 - o.validation_fraction)))),
         validator_(c_, n_fit_, o.acceptance, o.log), rng_(o.seed), backfitter_(c_, validator_, o, train, rng_),
         base_(base.clone()), truth_test_(truth_or_empty(test, o.axis)), meas_test_(test.axis(o.axis).position_nm) {
-    c_.max_time_constant_s = 0.5 * static_cast<double>(n_ - n_fit_) / c_.fs;
+    c_.max_time_constant_s = validator_.max_time_constant_s();
   }
 
   ResidualResult run();

@@ -111,21 +111,18 @@ double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate
 // The grid's low-pass is a factor ~3 off at worst (a 20-s thermal lag read through 30 s leaves a phase error of
 // ~11° on a 200-s cycle, ~10 nm on a 90-nm swing): each term's time constant is refined by a pattern search in
 // log τ (factor 2, then √2, … down to 1.1; within a factor `span` of where it starts) on the RMS of the joint fit
-// over rows [0, rows), and never past half the validation part (nor below the start for that cap): a longer τ is
-// one the validation rows cannot judge. A live-loop snapshot (CI of 6b682cb) had rate_dependent refined 60 → 240 s
-// on a 210-s validation part over all of TRAIN; it won there by 2 % and lost 56 % on TEST, 17.7 → 27.7 nm. For the
-// decision (score) the rows are the fit part only, from the grid's choice within a factor 4 (over all of TRAIN τ was
-// chosen on the rows that then judged it); the accepted effect's τ is refined again over all of TRAIN
-// (finalise_time_constants: more rows, so τ is not chosen on the noise), from the validated τ within a factor √2
-// only, so the model's τ stays near the one the validation judged.
+// over rows [0, rows), and never past max_time_constant_s (nor below the start for that cap): a longer τ is one the
+// validation rows cannot judge. For the decision (score) the rows are the fit part only, from the grid's choice
+// within a factor 4, so τ is not chosen on the rows that then judge it; the accepted effect's τ is refined again
+// over all of TRAIN (finalise_time_constants: more rows, so τ is not chosen on the noise), from the validated τ
+// within a factor √2 only, so the model's τ stays near the one the validation judged (docs/closing-the-loop.md).
 bool Validator::refine_time_constants(FamilyScore& s, const std::vector<EffectTerm>& fixed, std::size_t rows,
                                       double span) const {
   bool refined = false;
   for (std::size_t q = 0; q < s.best.terms.size(); ++q) {
     if (!(s.best.terms[q].time_constant_s > 0.0)) continue;
     const double tau0 = s.best.terms[q].time_constant_s;
-    const double seen_s = 0.5 * static_cast<double>(n_ - n_fit_) / c_.fs;
-    const double tau_max = std::max(tau0, std::min(span * tau0, seen_s));
+    const double tau_max = std::max(tau0, std::min(span * tau0, max_time_constant_s()));
     double best_ms = train_ms(fixed, s.best, rows);
     for (double f = std::min(2.0, span); f > 1.1; f = std::sqrt(f)) {
       for (bool moved = true; moved;) {
