@@ -47,54 +47,51 @@ std::string start_gap(const char* figure, const char* whole) {
   return std::string(figure) + "; whole history " + whole + "×: the start estimate leaves the gap (issue 26 item 1)";
 }
 const std::map<std::string, std::string> kKnownFailing = {
-    {"lowvolt_pi/linear (lasso features) separate", not_carried_over("418.9, 1.532× 273.4", "1.503")},
-    {"lowvolt_pi/pi separate", not_carried_over("106.2, 2.48× 42.84", "2.794")},
-    {"lowvolt_pi/pi_creep_fractional separate", start_gap("160.7, 1.592× 101", "1.191")},
-    {"lowvolt_pi/pi_creep_log separate", start_gap("164.2, 1.543× 106.4", "1.214")},
-    {"lowvolt_pi/pi_creep_lti separate", start_gap("160, 1.612× 99.25", "1.182")},
-    {"lowvolt_pi/pi_creep_prony separate", start_gap("160, 1.612× 99.25", "1.182")},
-    {"lowvolt_pi/kan separate", not_carried_over("232.9, 2.738× 85.04", "2.909")},
-    {"lowvolt_pi/dense separate", not_carried_over("167.5, 1.634× 102.5", "1.545")},
-    {"lowvolt_pi/lstm separate", not_carried_over("3443, 1.714× 2009", "2.336")},
-    {"lowvolt_pi/auto separate", "auto chose preisach: 53.8 nm on the separate recording, 1.17× the best kind (preisach_creep_prony 46.02 nm); the carry-over fold ranks them the other way round (157 against 218 nm)"},
-    {"lowvolt_pi_creep/pi separate", not_carried_over("816.6, 5.016× 162.8", "4.13")},
-    {"lowvolt_pi_creep/pi_creep_fractional separate", start_gap("249.7, 2.293× 108.9", "1.054")},
-    {"lowvolt_pi_creep/pi_creep_log separate", start_gap("251.3, 1.628× 154.4", "0.8193")},
-    {"lowvolt_pi_creep/pi_creep_lti separate", start_gap("361.2, 1.746× 206.8", "0.8443")},
-    {"lowvolt_pi_creep/pi_creep_prony separate", start_gap("346.2, 1.921× 180.2", "0.8749")},
-    {"lowvolt_pi_creep/preisach separate", not_carried_over("536.4, 3.241× 165.5", "5.094")},
-    {"lowvolt_pi_creep/preisach_creep_prony separate", start_gap("345.9, 3.904× 88.6", "1.487")},
-    {"lowvolt_pi_creep/kan separate", not_carried_over("601.5, 9.386× 64.08", "14.52")},
+    {"lowvolt_pi/linear (lasso features) separate", not_carried_over("418.9, 1.53× 273.4", "1.503")},
+    {"lowvolt_pi/pi separate", not_carried_over("142.3, 3.32× 42.84", "2.794")},
+    {"lowvolt_pi/pi_creep_fractional separate", start_gap("160.7, 1.59× 101", "1.191")},
+    {"lowvolt_pi/pi_creep_log separate", start_gap("166.2, 1.56× 106.4", "1.214")},
+    {"lowvolt_pi/pi_creep_lti separate", start_gap("160.5, 1.62× 99.25", "1.182")},
+    {"lowvolt_pi/pi_creep_prony separate", start_gap("160.5, 1.62× 99.25", "1.182")},
+    {"lowvolt_pi/kan separate", not_carried_over("201.3, 2.37× 85.04", "2.909")},
+    {"lowvolt_pi/dense separate", not_carried_over("172.9, 1.69× 102.5", "1.545")},
+    {"lowvolt_pi/lstm separate", not_carried_over("3443, 1.71× 2009", "2.336")},
+    {"lowvolt_pi_creep/pi separate", not_carried_over("548.1, 3.37× 162.8", "4.13")},
+    {"lowvolt_pi_creep/pi_creep_fractional separate", start_gap("174.5, 1.60× 108.9", "1.054")},
+    {"lowvolt_pi_creep/pi_creep_lti separate", start_gap("332.9, 1.61× 206.8", "0.8443")},
+    {"lowvolt_pi_creep/pi_creep_prony separate", start_gap("317.8, 1.76× 180.2", "0.8749")},
+    {"lowvolt_pi_creep/preisach separate", not_carried_over("506.5, 3.06× 165.5", "5.094")},
+    {"lowvolt_pi_creep/preisach_creep_prony separate", start_gap("331.8, 3.74× 88.6", "1.487")},
+    {"lowvolt_pi_creep/kan separate", not_carried_over("601.5, 9.39× 64.08", "14.52")},
     {"lowvolt_pi_creep/dense separate", not_carried_over("555.8, 2.34× 237.5", "2.658")},
-    {"lowvolt_pi_creep/lstm separate", not_carried_over("3523, 1.678× 2099", "2.449")},
-    {"lowvolt_pi_creep/auto separate", "auto chose preisach_creep_prony: 345.9 nm on the separate recording, 1.39× the best kind (pi_creep_fractional 249.7 nm); best on the carry-over fold (423 nm against 698)"},
+    {"lowvolt_pi_creep/lstm separate", not_carried_over("3460, 1.65× 2099", "2.449")},
+    {"lowvolt_pi_creep/auto separate", "auto chose preisach_creep_prony: 331.8 nm on the separate recording, 1.90× the best kind (pi_creep_fractional 174.5 nm); best on the carry-over fold (423 nm against 698)"},
     {"lowvolt_pi_creep/auto", "auto chose preisach_creep_prony: 88.6 nm on the 10-s tail, best kind kan 64.08 nm; the carry-over fold rejects the KAN (1250 nm against 423), which is 2.41× the best kind on the separate recording: the choice is for the next recording"},
-    {"lowvolt_preisach/linear (lasso features) separate", not_carried_over("1122, 2.202× 509.5", "2.385")},
-    {"lowvolt_preisach/pi_creep_lti separate", not_carried_over("1220, 1.576× 773.8", "2.044")},
-    {"lowvolt_preisach/pi_creep_prony separate", not_carried_over("1343, 1.673× 803.1", "1.841")},
-    {"lowvolt_preisach/kan separate", not_carried_over("1306, 3.743× 348.9", "4.204")},
-    {"lowvolt_preisach/lstm separate", not_carried_over("4237, 2.594× 1633", "3.597")},
-    {"lowvolt_preisach_creep/linear (lasso features) separate", not_carried_over("1035, 1.572× 658.6", "1.854")},
-    {"lowvolt_preisach_creep/lstm separate", not_carried_over("3578, 2.035× 1758", "3.672")},
-    {"stack150_pi/dense separate", start_gap("59.39, 2.247× 26.43", "1.207")},
-    {"stack150_pi_creep/preisach separate", start_gap("139.1, 1.517× 91.66", "1.157")},
-    {"stack150_pi_creep/preisach_creep_prony separate", not_carried_over("27.58, 1.701× 16.21", "1.733")},
-    {"stack150_pi_creep/dense separate", not_carried_over("79.94, 3.017× 26.5", "2.004")},
+    {"lowvolt_preisach/linear (lasso features) separate", not_carried_over("1122, 2.20× 509.5", "2.385")},
+    {"lowvolt_preisach/pi_creep_lti separate", not_carried_over("1225, 1.58× 773.8", "2.044")},
+    {"lowvolt_preisach/pi_creep_prony separate", not_carried_over("1343, 1.67× 803.1", "1.841")},
+    {"lowvolt_preisach/kan separate", not_carried_over("561.5, 1.61× 348.9", "4.204")},
+    {"lowvolt_preisach/lstm separate", not_carried_over("4237, 2.59× 1633", "3.597")},
+    {"lowvolt_preisach_creep/linear (lasso features) separate", not_carried_over("1035, 1.57× 658.6", "1.854")},
+    {"lowvolt_preisach_creep/lstm separate", not_carried_over("3577, 2.03× 1758", "3.672")},
+    {"stack150_pi/dense separate", start_gap("58.84, 2.23× 26.43", "1.207")},
+    {"stack150_pi_creep/preisach separate", start_gap("139.1, 1.52× 91.66", "1.157")},
+    {"stack150_pi_creep/preisach_creep_prony separate", not_carried_over("27.58, 1.70× 16.21", "1.733")},
+    {"stack150_pi_creep/dense separate", not_carried_over("79.94, 3.02× 26.5", "2.004")},
     {"stack150_pi_creep/auto separate", "auto chose pi_creep_lti: 18.66 nm on the separate recording, 1.26× the best kind (pi_creep_prony 14.77 nm), the lowest overall on the training recording (20.4 nm against 22.5: moves 16.6 against 21.2)"},
+    {"stack150_preisach/preisach_creep_prony separate", not_carried_over("56.26, 2.74× 20.54", "1.913")},
     {"stack150_preisach/auto", "auto chose preisach: 23.07 nm on the 5-s tail, best kind preisach_creep_prony 20.54 nm; the carry-over fold prefers preisach (28.1 against 36.2 nm), the best kind on the separate recording (31.29 nm against 56.38): the choice is for the next recording"},
-    {"stack150_preisach/preisach_creep_prony separate", not_carried_over("56.38, 2.745× 20.54", "1.913")},
     {"mm3e_pi/lstm separate", start_gap("32.83, 1.61× 20.34", "1.25")},
-    {"mm3e_pi_creep/pi separate", "169.4, 6.01× 28.16; whole history 0.93×, from rest 35.63 nm: a kind without creep fits the 300-s window's drift by a pre-history (24.63 nm with a 30-s window; issue 26 item 1)"},
-    {"mm3e_pi_creep/kan separate", start_gap("40.98, 2.33× 17.58", "1.01")},
-    {"mm3e_pi_creep/dense separate", start_gap("44.12, 2.57× 17.19", "1.03")},
+    {"mm3e_pi_creep/dense separate", start_gap("30.81, 1.79× 17.19", "1.03")},
     {"mm3e_pi_creep/lstm separate", not_carried_over("58.93, 2.64× 22.36", "1.71")},
-    {"mm3e_preisach/linear (lasso features) separate", not_carried_over("44.33, 2.06× 21.48", "1.78")},
-    {"mm3e_preisach/dense separate", not_carried_over("51, 2.68× 19.03", "2.30")},
+    {"mm3e_preisach/linear (lasso features) separate", not_carried_over("44.32, 2.06× 21.48", "1.78")},
+    {"mm3e_preisach/dense separate", not_carried_over("38.62, 2.03× 19.03", "2.30")},
     {"mm3e_preisach/lstm separate", start_gap("32.93, 1.63× 20.21", "1.22")},
-    {"mm3e_preisach_creep/pi separate", not_carried_over("58.94, 2.13× 27.67", "2.19")},
+    {"mm3e_preisach_creep/linear (lasso features) separate", not_carried_over("34.98, 1.52× 23.02", "1.56")},
+    {"mm3e_preisach_creep/pi separate", not_carried_over("58.97, 2.13× 27.67", "2.19")},
     {"mm3e_preisach_creep/pi_creep_fractional separate", not_carried_over("58.68, 1.52× 38.52", "1.53")},
-    {"mm3e_preisach_creep/kan separate", start_gap("31.95, 1.72× 18.57", "1.09")},
-    {"mm3e_preisach_creep/dense separate", not_carried_over("47.63, 2.24× 21.27", "2.43")},
+    {"mm3e_preisach_creep/kan separate", start_gap("30.2, 1.63× 18.57", "1.09")},
+    {"mm3e_preisach_creep/dense separate", not_carried_over("56.82, 2.67× 21.27", "2.43")},
     {"mm3e_preisach_creep/lstm separate", not_carried_over("66.53, 2.48× 26.83", "1.71")},
 };
 
@@ -120,7 +117,12 @@ SeparateSpec separate_spec(const std::string& family) {
   if (family == "stack150") return {8.0, 2.0, 1.0};
   return {3600.0, 900.0, 300.0};
 }
-constexpr std::uint64_t kSeparateSeed = 22;
+// The separate recording's seed: 22. PIEZO_STAGE_MATRIX_SEPARATE_SEED=N measures another seed's recordings (the
+// known-failing list is seed 22's, so cells then fail or are reported as passing; docs/models.md's seeds 23, 24).
+std::uint64_t separate_seed() {
+  const char* s = std::getenv("PIEZO_STAGE_MATRIX_SEPARATE_SEED");
+  return s && *s ? std::stoull(s) : 22;
+}
 constexpr double kSeparateRatio = 1.5;  // separate-recording error / continuation error, per kind
 constexpr double kAutoMargin = 1.10;    // auto's error / the best kind's, on either recording
 
@@ -134,7 +136,7 @@ struct SeparateRecording {
 };
 SeparateRecording separate_recording(const sim::StageConfig& stage, const SeparateSpec& s) {
   SeparateRecording r;
-  r.whole = sim::simulate_stage(stage, kSeparateSeed, s.duration_s);
+  r.whole = sim::simulate_stage(stage, separate_seed(), s.duration_s);
   const auto& v = r.whole.axis("c").voltage_v;
   std::size_t cut = static_cast<std::size_t>(std::lround(s.cut_s * r.whole.sample_rate_hz()));
   while (cut + 1 < v.size() && (v[cut] == v[cut - 1] || v[cut + 1] == v[cut])) ++cut;
@@ -359,7 +361,7 @@ TEST_P(StageMatrix, EveryKindHolds) {
   std::printf("Separate recording (seed %llu, %.0f s simulated, from %.2f s on, start estimate over %.3g s, scored "
               "after it; %.1f s to run every kind): free-run MAE [nm] (× the continuation's); whole: the same model over the "
               "whole recording, its history known (the bound); rest: from rest without the estimate:\n\n%s%s\n",
-              static_cast<unsigned long long>(kSeparateSeed), spec.duration_s, rec.cut_at_s, spec.anchor_s, run_s,
+              static_cast<unsigned long long>(separate_seed()), spec.duration_s, rec.cut_at_s, spec.anchor_s, run_s,
               separate_header().c_str(), sep.c_str());
   check.report_passing(name);
 }

@@ -1,7 +1,8 @@
 // The start-up state estimate: a model started on a recording whose history it has not seen. The first window_s
 // seconds (applied voltage and measured position) choose the model's state at the recording's start among a few
-// synthetic pre-histories — rest, or arriving at the first voltage from above or below after a turning point, or
-// the window's own motion played backwards, then held there for several ages — and a constant offset. Each candidate's window is fitted by an offset weighted
+// synthetic pre-histories — rest, or arriving at the first voltage from above or below after a turning point or
+// after a decaying staircase of them, or the window's own motion played backwards, then held there for several
+// ages — and a constant offset. Each candidate's window is fitted by an offset weighted
 // against the candidates' spread (rows where the unknown history still moves the prediction count little), and
 // among the candidates that fit about as well as the best, the one that needs the least offset is chosen: an
 // offset that a plausible state explains is left to the state, which the voltage sweeps into agreement later.
@@ -41,6 +42,8 @@ struct StartOptions {
   std::size_t max_history_samples = 20000;
   // Also try the window's own motion played backwards as pre-histories (StartHistory::replay_v).
   bool replay_window = true;
+  // Also try decaying staircases of turning points (StartHistory::shrink): the nested memory of several swings.
+  bool staircases = true;
   // Fit the chosen candidate's linear states (Model::linear_state_count: creep modes) on the window as well.
   bool fit_linear_states = true;
 };
@@ -55,6 +58,9 @@ struct StartHistory {
   // Non-empty: after the ramp to turn_v, these voltages one per row (they end at start_v), instead of the ramp to
   // start_v: the window's own motion played backwards as a pre-history of the same statistics.
   std::vector<double> replay_v;
+  // > 0: replay_v is a decaying staircase instead: from turn_v, swings around start_v, each this fraction of the last
+  // (a nested memory of several turning points, which one turning point cannot leave).
+  double shrink = 0.0;
   // Then each linear state k moved by linear_shift_nm[k] (Model::shift_linear_state; empty: none).
   std::vector<double> linear_shift_nm;
   std::string describe() const;  // "rest" or e.g. "from 42 V down, held 300 s"

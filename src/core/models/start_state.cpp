@@ -62,8 +62,45 @@ double ramp_rate_v_per_s(const std::vector<double>& v, std::size_t k, double dt_
   return moving ? std::max(sum / static_cast<double>(moving), 1e-3 * span_v) : span_v / 10.0;
 }
 
+// Decaying staircases: rested at the far end, to a turning point (half, three quarters or all of the way to the
+// range's end), then swings around v0, each `shrink` of the last, until one is under 2 % of the range, held 0 or
+// 100 s: the nested memory of several swings (what a real history leaves), which one turning point cannot.
+template <class Rows>
+void add_staircases(double v0, double lo, double hi, double dt, const Rows& rows, std::size_t max_rows,
+                    std::vector<StartHistory>* out) {
+  for (int side : {+1, -1}) {
+    const double end = side > 0 ? hi : lo;
+    if (std::abs(end - v0) < 1e-6 * (hi - lo)) continue;
+    for (double f : {0.5, 0.75, 1.0})
+      for (double shrink : {0.2, 0.35, 0.5, 0.7, 0.85}) {
+        StartHistory h;
+        h.rest = false;
+        h.reset_v = side > 0 ? lo : hi;
+        h.turn_v = v0 + f * (end - v0);
+        h.start_v = v0;
+        h.dt_s = dt;
+        h.ramp_to_turn_rows = rows(h.turn_v - h.reset_v);
+        h.shrink = shrink;
+        double from = h.turn_v, swing = h.turn_v - v0;
+        while (from != v0) {
+          swing *= -shrink;
+          const double to = std::abs(swing) < 0.02 * (hi - lo) ? v0 : std::clamp(v0 + swing, lo, hi);
+          const std::size_t n = rows(to - from);
+          for (std::size_t j = 1; j <= n; ++j)
+            h.replay_v.push_back(from + (to - from) * static_cast<double>(j) / static_cast<double>(n));
+          from = to;
+        }
+        for (double age_s : {0.0, 100.0}) {
+          h.hold_rows = static_cast<std::size_t>(std::lround(age_s / dt));
+          if (h.ramp_to_turn_rows + h.replay_v.size() + h.hold_rows > max_rows) break;
+          out->push_back(h);
+        }
+      }
+  }
+}
+
 // Rest, then from each side's turning points (a quarter to all of the way to the range's end), held for each age
-// that fits the synthetic-history budget; then the window played backwards (below).
+// that fits the synthetic-history budget; then the decaying staircases and the window played backwards (below).
 std::vector<StartHistory> candidates(const io::Dataset& data, const std::string& axis, std::size_t k,
                                      const StartOptions& o) {
   const std::vector<double>& v = data.axis(axis).voltage_v;
@@ -103,6 +140,7 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
         }
       }
   }
+  if (o.staircases) add_staircases(v0, lo, hi, dt, rows, o.max_history_samples, &out);
   // The window's own motion backwards, from its last voltage to v0, after a rest at either end of the range or at
   // that last voltage: a pre-history with the window's statistics (its turning points, its rate), which the ramps
   // above do not have (a recurrent model's state, small turning points near v0).
@@ -212,6 +250,9 @@ Weighted weighted_offset(const double* y, const double* p, const std::vector<dou
 
 std::string StartHistory::describe() const {
   if (rest) return "rest at " + fmt(start_v, 4) + " V";
+  if (shrink > 0)
+    return "rested at " + fmt(reset_v, 4) + " V, from " + fmt(turn_v, 4) + " V in swings around " + fmt(start_v, 4) +
+           " V shrinking by " + fmt(shrink, 3) + ", held " + fmt(static_cast<double>(hold_rows) * dt_s, 4) + " s";
   if (!replay_v.empty())
     return "rested at " + fmt(reset_v, 4) + " V, the window backwards from " + fmt(turn_v, 4) + " V to " +
            fmt(start_v, 4) + " V, held " + fmt(static_cast<double>(hold_rows) * dt_s, 4) + " s";
@@ -304,7 +345,7 @@ std::vector<std::vector<double>> candidate_windows(const Model& model, const io:
   if (!a.empty()) InputResolver(data, m->aux_inputs(), axis).fill(0, a.data());
   for (const StartHistory& h : cands) {
     const bool same_path = prev && !prev->rest && !h.rest && prev->turn_v == h.turn_v && prev->reset_v == h.reset_v &&
-                           prev->replay_v.size() == h.replay_v.size() && h.hold_rows >= prev->hold_rows;
+                           prev->replay_v == h.replay_v && h.hold_rows >= prev->hold_rows;
     if (same_path)
       run_rows(*m, h.start_v, h.start_v, h.hold_rows - prev->hold_rows, a.empty() ? nullptr : a.data());
     else
