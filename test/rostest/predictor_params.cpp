@@ -2,6 +2,11 @@
 // resolved parameter (issue 15); a misspelt private parameter is listed, not ignored silently.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
+#include <rosgraph_msgs/Log.h>
+
+#include <cstdio>
+#include <fstream>
+#include <sstream>
 
 #include <stdexcept>
 #include <string>
@@ -79,6 +84,43 @@ TEST(PredictorParams, UnknownPrivateParametersAreListed) {
   r.number("watch_k", 2.0, 1.0, 1000.0);
   r.known("model_file");
   EXPECT_EQ(r.unknown(), std::vector<std::string>{"watch_treshold"});
+}
+
+// A model file whose training recording did not identify it (`piezo fit` stored validation: carry_over_ratio over
+// 2) is loaded, but with one WARN naming the file (at start-up and at ~reload_model, both through load_model_file);
+// a file under the limit loads without one. The WARN is read back from /rosout.
+TEST(PredictorParams, AnUnidentifiedModelFileIsWarnedAboutWhenLoaded) {
+  std::ifstream in(std::string(PIEZO_SOURCE_DIR) + "/test/rostest/pi_creep_model_c.yaml");
+  std::stringstream text;
+  text << in.rdbuf();
+  const std::string shipped = text.str(), empty_validation = "validation:\n  {}\n";
+  ASSERT_NE(shipped.find(empty_validation), std::string::npos);
+  auto write = [&](const std::string& path, const char* ratio) {
+    std::string t = shipped;
+    t.replace(t.find(empty_validation), empty_validation.size(), std::string("validation:\n  carry_over_ratio: ") + ratio + "\n");
+    std::ofstream(path) << t;
+  };
+  const std::string dir = testing::TempDir(), identified = dir + "identified_model.yaml",
+                    unidentified = dir + "unidentified_model.yaml";
+  write(identified, "1.3");
+  write(unidentified, "5.5");
+  std::vector<rosgraph_msgs::Log> seen;
+  ros::NodeHandle nh;
+  ros::Subscriber sub = nh.subscribe<rosgraph_msgs::Log>("/rosout", 100, [&](const rosgraph_msgs::Log::ConstPtr& m) {
+    if (m->msg.find("model file ") != std::string::npos) seen.push_back(*m);
+  });
+  for (int i = 0; i < 50 && sub.getNumPublishers() == 0; ++i) ros::WallDuration(0.05).sleep();
+  EXPECT_NE(piezo::predictor::load_model_file(identified), nullptr);
+  EXPECT_NE(piezo::predictor::load_model_file(unidentified), nullptr);  // loaded: a warning, not a refusal
+  for (int i = 0; i < 100 && seen.empty(); ++i) ros::spinOnce(), ros::WallDuration(0.05).sleep();
+  ros::spinOnce();
+  ASSERT_EQ(seen.size(), 1u) << "no WARN (or more than one) on /rosout";
+  EXPECT_EQ(seen[0].level, rosgraph_msgs::Log::WARN);
+  EXPECT_NE(seen[0].msg.find(unidentified), std::string::npos) << seen[0].msg;
+  EXPECT_NE(seen[0].msg.find("5.5x"), std::string::npos) << seen[0].msg;
+  EXPECT_NE(seen[0].msg.find("refit on a longer recording"), std::string::npos) << seen[0].msg;
+  std::remove(identified.c_str());
+  std::remove(unidentified.c_str());
 }
 
 int main(int argc, char** argv) {

@@ -535,11 +535,12 @@ TEST(StartStateTable, FittedOnOneSeedStartedMidMotionOnAnother) {
     measure_stage("mm3e_foreign_hold_stage", "file:config/models/mm3e_foreign_c.yaml", 0, 1200.0, 2400.0, 30.0, 3.0, seed);
 }
 
-// The window played backwards as a pre-history (StartOptions::replay_window): an LSTM (on voltage-history features)
-// carries a hidden state that rest and ramps never reach; the window's own motion reaches one close to where the
-// stage's motion leaves it. The stage matrix's stack150_pi separate recording (seed 22, cut at
-// 2 s, window 1 s), the LSTM fitted as the matrix fits it.
-TEST(StartStateTable, ALstmStartsFromTheWindowPlayedBackwards) {
+// A recurrent model's hidden state is reached by a synthetic pre-history, not by rest: an LSTM (on voltage-history
+// features) on the stage matrix's stack150_pi separate recording (seed 22, cut at 2 s, window 1 s), fitted as the
+// matrix fits it. Session 17: the ramps alone 2705 nm after the window, with the window played backwards
+// (StartOptions::replay_window) 133 nm; since session 20 (the staircases, the rest at the range's middle) 90.8 nm
+// with or without the played-back window, from rest (offset only) 1531.5 nm.
+TEST(StartStateTable, ALstmStartsFromASyntheticHistoryNotFromRest) {
   const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/stack150_pi.yaml");
   const io::Dataset all = sim::simulate_stage(stage, 21, 0.0);
   const io::Dataset train = all.slice(0, all.size() * 4 / 5), val = all.slice(all.size() * 4 / 5, all.size());
@@ -554,10 +555,11 @@ TEST(StartStateTable, ALstmStartsFromTheWindowPlayedBackwards) {
   const auto& v = whole.axis("c").voltage_v;
   while (cut + 1 < v.size() && (v[cut] == v[cut - 1] || v[cut + 1] == v[cut])) ++cut;
   const io::Dataset rec = whole.slice(cut, whole.size());
-  auto mae_after = [&](bool replay) {
+  auto mae_after = [&](bool replay, bool history = true) {
     models::StartOptions o;
     o.window_s = 1.0;
     o.replay_window = replay;
+    o.search_history = history;
     const models::StartEstimate e = models::estimate_start(*m, rec, "c", o);
     models::ModelPtr c = m->clone();
     models::prepare_start(*c, rec, "c", e.history);
@@ -570,10 +572,11 @@ TEST(StartStateTable, ALstmStartsFromTheWindowPlayedBackwards) {
     std::printf("%s\n", e.describe().c_str());
     return sum / static_cast<double>(rec.size() - e.window_rows);
   };
-  const double with = mae_after(true), without = mae_after(false);
+  const double with = mae_after(true), without = mae_after(false), rest = mae_after(false, false);
   std::printf("lstm on stack150_pi's separate recording, MAE after the window: %.1f nm with the window played backwards, "
-              "%.1f nm without\n", with, without);
-  EXPECT_LT(with, 0.25 * without);
+              "%.1f nm without, %.1f nm from rest (offset only)\n", with, without, rest);
+  EXPECT_LT(with, 0.25 * rest);
+  EXPECT_LE(with, without * 1.05);  // the played-back window is one more candidate: it may not make the start worse
 }
 
 // Is the start σ honest? The estimator starts from the estimate's offset and σ (ErrorFilter::reset), so σ should

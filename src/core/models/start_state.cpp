@@ -124,7 +124,7 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
     // Rested long (where the slow creep modes sit) at the far end, at the first voltage (a short excursion) or at
     // the turning side's end.
     for (double f : {0.25, 0.5, 0.75, 1.0})
-      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo}) {
+      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo, 0.5 * (lo + hi)}) {
         StartHistory h;
         h.rest = false;
         h.reset_v = reset_v;
