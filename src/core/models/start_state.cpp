@@ -121,10 +121,13 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
   for (int side : {+1, -1}) {
     const double end = side > 0 ? hi : lo;
     if (std::abs(end - v0) < 1e-6 * (hi - lo)) continue;
-    // Rested long (where the slow creep modes sit) at the far end, at the first voltage (a short excursion) or at
-    // the turning side's end.
+    // Rested long (where the slow creep modes sit) at the far end, at the first voltage (a short excursion), at
+    // the turning side's end, or at the range's middle (the stand-in for the mean voltage of operation, near which
+    // a slow state sits; skipped where it is the first voltage, as without a training range).
+    const double mid = 0.5 * (lo + hi);
     for (double f : {0.25, 0.5, 0.75, 1.0})
-      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo, 0.5 * (lo + hi)}) {
+      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo, mid}) {
+        if (reset_v == mid && std::abs(mid - v0) < 1e-6 * (hi - lo)) continue;
         StartHistory h;
         h.rest = false;
         h.reset_v = reset_v;
