@@ -13,6 +13,8 @@
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/models/start_state.h"
+#include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/training/fitters.h"
 
 using namespace piezo;
@@ -151,6 +153,32 @@ void BM_CompensatorSampleWithTrim_ForeignModel(benchmark::State& state) {
   state.counters["trim_nm"] = c.hold_trim().trim_nm();
 }
 BENCHMARK(BM_CompensatorSampleWithTrim_ForeignModel)->Unit(benchmark::kMicrosecond);
+
+// The start-up state estimate (models/start_state.h) the compensator runs once, inline, when its window is full
+// (the predictor's ~start_estimate_s): the shipped foreign-stage model (Preisach + Prony creep, 10 creep states) on
+// that stage's recording (seed 202) cut 20 min in, mid-motion, with a window of 30 s and 300 s at 11 Hz. Every
+// candidate history is streamed through the window; the counter gives how many.
+void BM_StartEstimate_ForeignModel(benchmark::State& state) {
+  static const models::ModelPtr m =
+      models::load_model(std::string(PIEZO_SOURCE_DIR) + "/config/models/mm3e_foreign_c.yaml");
+  static const io::Dataset rec = [] {
+    const io::Dataset d = sim::simulate_stage(
+        sim::load_stage(std::string(PIEZO_SOURCE_DIR) + "/config/stages/mm3e_foreign_hold_stage.yaml"), 202, 1800.0);
+    return d.slice(1200 * 11, d.size());
+  }();
+  models::StartOptions o;
+  o.window_s = static_cast<double>(state.range(0));
+  o.voltage_min_v = -80.0;
+  o.voltage_max_v = 80.0;
+  std::size_t candidates = 0;
+  for (auto _ : state) {
+    const models::StartEstimate e = models::estimate_start(*m, rec, "c", o);
+    candidates = e.candidates;
+    benchmark::DoNotOptimize(e.offset_nm);
+  }
+  state.counters["candidates"] = static_cast<double>(candidates);
+}
+BENCHMARK(BM_StartEstimate_ForeignModel)->Arg(30)->Arg(300)->Unit(benchmark::kMillisecond);
 
 }  // namespace
 
