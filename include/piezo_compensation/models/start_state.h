@@ -44,6 +44,9 @@ struct StartOptions {
   bool replay_window = true;
   // Also try decaying staircases of turning points (StartHistory::shrink): the nested memory of several swings.
   bool staircases = true;
+  // Also rest the single-turn ramps at the range's middle (where operation keeps a slow state: near its gain × the
+  // mean voltage), besides the range's ends and the first voltage.
+  bool rest_at_middle = true;
   // Fit the chosen candidate's linear states (Model::linear_state_count: creep modes) on the window as well.
   bool fit_linear_states = true;
 };

@@ -124,10 +124,11 @@ std::vector<StartHistory> candidates(const io::Dataset& data, const std::string&
     // Rested long (where the slow creep modes sit) at the far end, at the first voltage (a short excursion), at
     // the turning side's end, or at the range's middle (the stand-in for the mean voltage of operation, near which
     // a slow state sits; skipped where it is the first voltage, as without a training range).
+    std::vector<double> rests = {side > 0 ? lo : hi, v0, side > 0 ? hi : lo};
     const double mid = 0.5 * (lo + hi);
+    if (o.rest_at_middle && std::abs(mid - v0) >= 1e-6 * (hi - lo)) rests.push_back(mid);
     for (double f : {0.25, 0.5, 0.75, 1.0})
-      for (double reset_v : {side > 0 ? lo : hi, v0, side > 0 ? hi : lo, mid}) {
-        if (reset_v == mid && std::abs(mid - v0) < 1e-6 * (hi - lo)) continue;
+      for (double reset_v : rests) {
         StartHistory h;
         h.rest = false;
         h.reset_v = reset_v;
