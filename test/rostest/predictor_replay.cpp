@@ -1,12 +1,14 @@
 // Bag replay (rosbag play --clock, use_sim_time): the predictor's predictions on the demo bag must equal the
 // predictions made offline by the same code path from the same messages, and agree with the predictions the
 // live predictor recorded into the bag during the demo (once the live run's earlier start has washed out).
+#include <diagnostic_msgs/DiagnosticArray.h>
 #include <gtest/gtest.h>
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
 #include <topic_tools/shape_shifter.h>
 
 #include <algorithm>
+#include <cstdio>
 #include <map>
 #include <set>
 
@@ -36,6 +38,20 @@ TEST(PredictorReplay, PredictionsMatchOfflineAndRecorded) {
   const auto predictor_inputs = pnh.param<std::vector<std::string>>("predictor_inputs", {});
   const auto remapped = pnh.param<std::vector<std::string>>("remapped_topics", {});
   const std::string remap_prefix = pnh.param<std::string>("remap_prefix", "");
+  // The predictor's pairing counters (its diagnostics): a sample it paired differently from the bag's order (a
+  // reading late or lost on a loaded host) makes its prediction differ from the offline one; a failure says so.
+  std::map<std::string, std::string> pairing;
+  auto diag = nh.subscribe<diagnostic_msgs::DiagnosticArray>("/diagnostics", 50,
+      [&](const diagnostic_msgs::DiagnosticArray::ConstPtr& a) {
+        for (const auto& st : a->status)
+          for (const auto& kv : st.values)
+            if (kv.key.find("lost ") == 0 || kv.key.find("late ") == 0) pairing[kv.key] = kv.value;
+      });
+  auto pairing_text = [&] {
+    std::string t;
+    for (const auto& [k, v] : pairing) t += (t.empty() ? "" : ", ") + k + " " + v;
+    return t.empty() ? std::string("no pairing diagnostics heard") : "the predictor's " + t;
+  };
   std::map<double, piezo_compensation::Prediction> live;
   auto sub = nh.subscribe<piezo_compensation::Prediction>("/mm1/c/prediction", 5000,
       [&](const piezo_compensation::Prediction::ConstPtr& p) { live[p->header.stamp.toSec()] = *p; });
@@ -118,8 +134,11 @@ TEST(PredictorReplay, PredictionsMatchOfflineAndRecorded) {
     EXPECT_FALSE(p.compensation_active);
   }
   EXPECT_GE(compared, expected.size() * 99 / 100);
-  EXPECT_LT(worst_m, 1e-12) << "replayed prediction differs from the offline one by " << worst_m * 1e9 << " nm";
-  EXPECT_LT(worst_drift_m, 1e-12) << "replayed drift differs by " << worst_drift_m * 1e9 << " nm";
+  std::printf("%zu predictions compared; %s\n", compared, pairing_text().c_str());
+  EXPECT_LT(worst_m, 1e-12) << "replayed prediction differs from the offline one by " << worst_m * 1e9 << " nm ("
+                            << pairing_text() << ")";
+  EXPECT_LT(worst_drift_m, 1e-12) << "replayed drift differs by " << worst_drift_m * 1e9 << " nm (" << pairing_text()
+                                  << ")";
 
   // The live run started before the bag did; compare its recorded predictions over the second half.
   ASSERT_FALSE(recorded.empty()) << bag_path << ": no recorded predictions";
