@@ -7,6 +7,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
+#include <functional>
 #include <iomanip>
 #include <iostream>
 #include <limits>
@@ -178,30 +179,37 @@ double mae_vs_truth_after(models::PiCreepModel m, const io::Dataset& rec, const 
   return sum / static_cast<double>(n);
 }
 
-io::Dataset creep_recording() {
-  models::PiCreepModel truth = creep_truth();
-  truth.reset(12.0, 0.0);
-  for (int i = 0; i < 22000; ++i) truth.commit({12.0, nullptr}, 0.0);  // 2000 s at 12 V
+// A recording of `truth` (in its state as given) driven by voltage(i) for pre + n samples at 11 Hz: the first pre
+// unseen (its history), the rest recorded from t = 0 s with the true position and readings of σ 5 nm (xorshift:
+// deterministic).
+io::Dataset record_after(models::PiCreepModel truth, std::size_t pre, std::size_t n,
+                         const std::function<double(std::size_t)>& voltage) {
   io::Dataset d;
   auto& a = d.add_axis("c");
   std::uint64_t x = 88172645463325252ull;
-  const int pre = 3300, n = 6600;  // 5 min unseen, then 10 min recorded
-  for (int i = 0; i < pre + n; ++i) {
-    const double t = i / 11.0;
-    const double v = creep_motion_v(t);
+  for (std::size_t i = 0; i < pre + n; ++i) {
+    const double v = voltage(i);
     const double y = truth.predict({v, nullptr});
     truth.commit({v, nullptr}, y);
     if (i < pre) continue;
-    x ^= x << 13, x ^= x >> 7, x ^= x << 17;  // xorshift: deterministic readings
+    x ^= x << 13, x ^= x >> 7, x ^= x << 17;
     const double u1 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
     x ^= x << 13, x ^= x >> 7, x ^= x << 17;
     const double u2 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
-    d.time_s.push_back(t - pre / 11.0);
+    d.time_s.push_back(static_cast<double>(i - pre) / 11.0);
     a.voltage_v.push_back(v);
     a.true_position_nm.push_back(y);
     a.position_nm.push_back(y + 5.0 * std::sqrt(-2 * std::log(u1)) * std::cos(2 * M_PI * u2));
   }
   return d;
+}
+
+io::Dataset creep_recording() {
+  models::PiCreepModel truth = creep_truth();
+  truth.reset(12.0, 0.0);
+  for (int i = 0; i < 22000; ++i) truth.commit({12.0, nullptr}, 0.0);  // 2000 s at 12 V
+  // 5 min unseen, then 10 min recorded
+  return record_after(truth, 3300, 6600, [](std::size_t i) { return creep_motion_v(static_cast<double>(i) / 11.0); });
 }
 
 TEST(StartState, CreepStatesAreFittedOnTheWindow) {
@@ -271,23 +279,7 @@ io::Dataset nested_memory_recording() {
   for (int i = 0; i < 3300; ++i) v.push_back(50.0 - 50.0 * std::sin(M_PI * i / 3300.0));          // down to 0 V
   for (int i = 0; i < 3300; ++i) v.push_back(50.0 * std::sin(M_PI * i / 3300.0 - M_PI / 2) + 50.0);  // up to 100 V
   truth.reset(0.0, 0.0);
-  io::Dataset d;
-  auto& ax = d.add_axis("c");
-  std::uint64_t x = 88172645463325252ull;
-  for (std::size_t i = 0; i < v.size(); ++i) {
-    const double y = truth.predict({v[i], nullptr});
-    truth.commit({v[i], nullptr}, y);
-    if (i < pre) continue;
-    x ^= x << 13, x ^= x >> 7, x ^= x << 17;  // xorshift: deterministic readings
-    const double u1 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
-    x ^= x << 13, x ^= x >> 7, x ^= x << 17;
-    const double u2 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
-    d.time_s.push_back(static_cast<double>(i - pre) / 11.0);
-    ax.voltage_v.push_back(v[i]);
-    ax.true_position_nm.push_back(y);
-    ax.position_nm.push_back(y + 5.0 * std::sqrt(-2 * std::log(u1)) * std::cos(2 * M_PI * u2));
-  }
-  return d;
+  return record_after(truth, pre, v.size() - pre, [&v](std::size_t i) { return v[i]; });
 }
 
 TEST(StartState, ANestedMemoryIsReachedByADecayingStaircase) {
@@ -303,8 +295,6 @@ TEST(StartState, ANestedMemoryIsReachedByADecayingStaircase) {
   const double a = mae_vs_truth_after(m, rec, with), b = mae_vs_truth_after(m, rec, without);
   std::printf("with the staircases: %s\nwithout: %s\nMAE vs truth after the window: %.2f nm with, %.2f nm without\n",
               with.describe().c_str(), without.describe().c_str(), a, b);
-  // Measured: 16.2 nm with (a staircase from 87.5 V shrinking by 0.2, offset 21.5 nm), 48.4 nm without (from
-  // 62.5 V down, offset 55.8 nm); both fit the window to the noise.
   EXPECT_GT(with.candidates, without.candidates);
   EXPECT_GT(with.history.shrink, 0.0) << with.describe();
   EXPECT_NE(with.describe().find("in swings around 50 V"), std::string::npos) << with.describe();
@@ -323,24 +313,9 @@ TEST(StartState, ARestAtTheRangesMiddlePlacesASlowState) {
   models::PiCreepModel truth = m;
   auto motion = [](double t) { return 50.0 + 40.0 * std::sin(2 * M_PI * t / 97.0) * std::sin(2 * M_PI * t / 431.0); };
   truth.reset(motion(0.0), 0.0);
-  const int pre = 118800, n = 6600;  // 3 h unseen, then 10 min recorded
-  io::Dataset rec;
-  auto& ax = rec.add_axis("c");
-  std::uint64_t x = 88172645463325252ull;
-  for (int i = 0; i < pre + n; ++i) {
-    const double v = motion(i / 11.0);
-    const double y = truth.predict({v, nullptr});
-    truth.commit({v, nullptr}, y);
-    if (i < pre) continue;
-    x ^= x << 13, x ^= x >> 7, x ^= x << 17;  // xorshift: deterministic readings
-    const double u1 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
-    x ^= x << 13, x ^= x >> 7, x ^= x << 17;
-    const double u2 = (static_cast<double>(x >> 11) + 0.5) / 9007199254740992.0;
-    rec.time_s.push_back((i - pre) / 11.0);
-    ax.voltage_v.push_back(v);
-    ax.true_position_nm.push_back(y);
-    ax.position_nm.push_back(y + 5.0 * std::sqrt(-2 * std::log(u1)) * std::cos(2 * M_PI * u2));
-  }
+  // 3 h unseen, then 10 min recorded
+  const io::Dataset rec =
+      record_after(truth, 118800, 6600, [&motion](std::size_t i) { return motion(static_cast<double>(i) / 11.0); });
   models::StartOptions o;
   o.window_s = 30.0;
   o.fit_linear_states = false;
@@ -350,8 +325,6 @@ TEST(StartState, ARestAtTheRangesMiddlePlacesASlowState) {
   const double a = mae_vs_truth_after(m, rec, with), b = mae_vs_truth_after(m, rec, without);
   std::printf("with the middle rest: %s\nwithout: %s\nMAE vs truth after the window: %.2f nm with, %.2f nm without\n",
               with.describe().c_str(), without.describe().c_str(), a, b);
-  // Measured: 1.11 nm with (rested at 50 V, offset −2.0 nm), 7.59 nm without (the window played backwards after a
-  // 1000-s rest at 26.9 V, offset 6.6 nm); both fit the window to 6.4–6.5 nm RMS at 5 nm readings.
   EXPECT_DOUBLE_EQ(with.history.reset_v, 50.0) << with.describe();
   EXPECT_GT(with.candidates, without.candidates);
   EXPECT_LT(a, 0.5 * b);
@@ -583,9 +556,8 @@ TEST(StartStateTable, FittedOnOneSeedStartedMidMotionOnAnother) {
 
 // A recurrent model's hidden state is reached by a synthetic pre-history, not by rest: an LSTM (on voltage-history
 // features) on the stage matrix's stack150_pi separate recording (seed 22, cut at 2 s, window 1 s), fitted as the
-// matrix fits it. Session 17: the ramps alone 2705 nm after the window, with the window played backwards
-// (StartOptions::replay_window) 133 nm; since session 20 (the staircases, the rest at the range's middle) 90.8 nm
-// with or without the played-back window, from rest (offset only) 1531.5 nm.
+// matrix fits it; the window played backwards (StartOptions::replay_window) is one more candidate, which may not
+// make the start worse (figures in docs/models.md, "Start-up state estimate").
 TEST(StartStateTable, ALstmStartsFromASyntheticHistoryNotFromRest) {
   const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/stack150_pi.yaml");
   const io::Dataset all = sim::simulate_stage(stage, 21, 0.0);
