@@ -59,6 +59,7 @@ TEST(FeatureStream, EveryTypeMatchesItsDefinition) {
   f = def("position_mean"), f.window_s = 0.5, spec.features.push_back(f);                  // D_{t-5..t-1}
   f = def("aux"), f.signal = "temp", f.lag_s = 0.2, spec.features.push_back(f);
   spec.features.push_back(def("voltage_sq"));
+  f = def("play_hinge"), f.threshold_v = 3.0, f.knot_v = 2.0, spec.features.push_back(f);
   ASSERT_EQ(spec.aux_signals(), std::vector<std::string>{"temp"});
   ASSERT_TRUE(spec.uses_positions());
 
@@ -67,7 +68,7 @@ TEST(FeatureStream, EveryTypeMatchesItsDefinition) {
   fs.reset(s.v[0], s.d[0]);
   std::vector<double> x(fs.size());
   const double a_lp = std::exp(-0.1 / 2.0), a_pl = std::exp(-0.1 / 1.5);
-  double lp = s.v[0], play = s.v[0], pl_in = s.v[0], pl = s.v[0];
+  double lp = s.v[0], play = s.v[0], pl_in = s.v[0], pl = s.v[0], hinge_play = s.v[0];
   for (long t = 0; t < static_cast<long>(s.v.size()); ++t) {
     double aux_now = s.aux[t];
     features::ModelInput in{s.v[t], &aux_now};
@@ -93,6 +94,8 @@ TEST(FeatureStream, EveryTypeMatchesItsDefinition) {
     EXPECT_NEAR(x[9], m / 5, 1e-9);
     EXPECT_DOUBLE_EQ(x[10], s.aux[std::max(0L, t - 2)]);
     EXPECT_DOUBLE_EQ(x[11], v * v);
+    hinge_play = std::max(v - 3.0, std::min(v + 3.0, hinge_play));
+    EXPECT_NEAR(x[12], std::max(hinge_play - 2.0, 0.0), 1e-12);
     fs.commit(in, s.d[t]);
   }
 }
@@ -159,11 +162,15 @@ TEST(FeatureStream, RestStateIsStationaryAndStandardisationApplies) {
 
 TEST(FeatureSpecYaml, RoundTripAndClearErrors) {
   FeatureSpec spec = features::study_features();
+  FeatureDef hinge = def("play_hinge");
+  hinge.threshold_v = 4.5, hinge.knot_v = -12.5;
+  spec.features.push_back(hinge);
   spec.mean.assign(spec.size(), 0.5);
   spec.scale.assign(spec.size(), 3.0);
   const FeatureSpec back = FeatureSpec::from_yaml(YAML::Load(YAML::Dump(spec.to_yaml())));
   ASSERT_EQ(back.size(), spec.size());
   for (std::size_t j = 0; j < spec.size(); ++j) EXPECT_EQ(back.features[j].name(), spec.features[j].name());
+  EXPECT_EQ(back.features.back().knot_v, -12.5);
   EXPECT_EQ(back.mean, spec.mean);
   EXPECT_EQ(back.scale, spec.scale);
 
@@ -227,6 +234,14 @@ TEST(FeatureSpecs, CandidatesOnShortDataKeepOnlyWhatItCanIdentify) {
     has_voltage |= f.type == "voltage";
   }
   EXPECT_TRUE(has_voltage);
-  span.duration_s = 1e7;  // a long recording keeps them all
-  EXPECT_EQ(features::candidate_features(&span).size(), all.size());
+  span.duration_s = 1e7;  // a long recording keeps them all, and adds the hinges placed on its voltage span
+  const FeatureSpec placed = features::candidate_features(&span);
+  ASSERT_EQ(placed.size(), all.size() + 12);
+  for (std::size_t j = all.size(); j < placed.size(); ++j) {
+    const auto& h = placed.features[j];
+    EXPECT_EQ(h.type, "play_hinge");
+    EXPECT_GT(h.knot_v, 0.0);
+    EXPECT_LT(h.knot_v, 100.0);
+    EXPECT_LE(h.threshold_v, 30.0);
+  }
 }

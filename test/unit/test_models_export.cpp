@@ -92,6 +92,9 @@ void expect_equal_to_cpp(Model& m, bool has_inverse) {
 TEST(CExport, LinearWithEveryFeatureTypeMatchesCpp) {
   features::FeatureSpec spec = features::candidate_features();
   for (const auto& f : features::study_features().features) spec.features.push_back(f);
+  features::FeatureDef hinge;
+  hinge.type = "play_hinge", hinge.threshold_v = 0.4, hinge.knot_v = 0.3;
+  spec.features.push_back(hinge);
   spec.mean.clear();
   for (std::size_t j = 0; j < spec.size(); ++j) spec.mean.push_back(0.1 * j), spec.scale.push_back(1.0 + j);
   Eigen::VectorXd w = Eigen::VectorXd::LinSpaced(spec.size(), -2, 3);

@@ -23,6 +23,8 @@ struct FeatureDef {
   // "play"              play (backlash) operator of V with threshold_v
   // "stop"              stop (elastic-perfectly-plastic) operator of V with threshold_v
   // "play_lowpass"      low-pass (time_constant_s) of the play operator output (threshold_v): creep of hysteresis
+  // "play_hinge"        max(play(V, threshold_v) − knot_v, 0): a ramp hysteron of the Preisach plane (centre knot_v,
+  //                     half-width threshold_v); weighted sums over knots give any piecewise-linear map of a play output
   // "lagged_position"   D_{t-L}, L = lag_s in samples (L ≥ 1)
   // "position_mean"     mean of D_{t-w} … D_{t-1}      (past samples only; the study's mean included D_t)
   // "aux"               auxiliary signal `signal` (optionally lagged by lag_s and low-passed by time_constant_s)
@@ -31,6 +33,7 @@ struct FeatureDef {
   double decay = 0.0;            // α per sample for exp_sum, 0 < α < 1
   double time_constant_s = 0.0;
   double threshold_v = 0.0;
+  double knot_v = 0.0;           // play_hinge knot [V]
   double lag_s = 0.0;
   std::string signal;            // for "aux"
 

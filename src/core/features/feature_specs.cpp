@@ -90,7 +90,19 @@ FeatureSpec identifiable_on(const FeatureSpec& spec, const DataSpan& span) {
 }
 
 FeatureSpec candidate_features(const DataSpan* span) {
-  if (span) return identifiable_on(candidate_features(), *span);
+  if (span) {
+    FeatureSpec s = identifiable_on(candidate_features(), *span);
+    const double width_v = span->voltage_max_v - span->voltage_min_v;
+    if (std::isfinite(width_v) && width_v > 0)
+      for (double r : {0.05, 0.15, 0.30})
+        for (double k : {0.2, 0.4, 0.6, 0.8}) {
+          FeatureDef h = def("play_hinge");
+          h.threshold_v = r * width_v;
+          h.knot_v = span->voltage_min_v + k * width_v;
+          s.features.push_back(h);
+        }
+    return s;
+  }
   FeatureSpec s;
   for (double steps : {1.0, 2.0, 5.0, 10.0, 20.0}) {
     FeatureDef f = def("lagged_position");

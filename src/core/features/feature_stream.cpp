@@ -12,7 +12,7 @@ namespace piezo::features {
 // Named (not anonymous): FeatureStream::Impl holds these types, and in a unity build an anonymous one warns.
 namespace stream_detail {
 
-enum class Type { kVoltageSq, kVoltage, kStep, kStepSum, kExpSum, kLowpass, kPlay, kStop, kPlayLowpass, kLag, kMean, kAux };
+enum class Type { kVoltageSq, kVoltage, kStep, kStepSum, kExpSum, kLowpass, kPlay, kStop, kPlayLowpass, kPlayHinge, kLag, kMean, kAux };
 
 Type parse_type(const std::string& t, std::size_t index) {
   if (t == "voltage") return Type::kVoltage;
@@ -24,12 +24,13 @@ Type parse_type(const std::string& t, std::size_t index) {
   if (t == "play") return Type::kPlay;
   if (t == "stop") return Type::kStop;
   if (t == "play_lowpass") return Type::kPlayLowpass;
+  if (t == "play_hinge") return Type::kPlayHinge;
   if (t == "lagged_position") return Type::kLag;
   if (t == "position_mean") return Type::kMean;
   if (t == "aux") return Type::kAux;
   throw std::runtime_error("features[" + std::to_string(index) + "].type: unknown feature type '" + t +
                            "' (known: voltage, voltage_sq, voltage_step, step_sum, exp_sum, lowpass, play, stop, play_lowpass, "
-                           "lagged_position, position_mean, aux)");
+                           "play_hinge, lagged_position, position_mean, aux)");
 }
 
 std::string fmt(double v) {
@@ -63,6 +64,7 @@ struct Compiled {
   double alpha = 0, alpha_w = 0;
   double a = 0;            // low-pass pole exp(-dt/τ); 0 = no low-pass
   double r = 0;            // threshold [V]
+  double knot = 0;         // play_hinge knot [V]
   int aux_index = -1;
 };
 
@@ -80,6 +82,7 @@ std::string FeatureDef::name() const {
   if (type == "stop") return "stop(V, " + fmt(threshold_v) + " V)";
   if (type == "play_lowpass")
     return "lowpass(play(V, " + fmt(threshold_v) + " V), " + fmt(time_constant_s) + " s)";
+  if (type == "play_hinge") return "max(play(V, " + fmt(threshold_v) + " V) - " + fmt(knot_v) + " V, 0)";
   if (type == "lagged_position") return "D(t-" + fmt(lag_s) + " s)";
   if (type == "position_mean") return "mean(D, past " + fmt(window_s) + " s)";
   if (type == "aux") {
@@ -101,6 +104,7 @@ YAML::Node FeatureSpec::to_yaml() const {
     if (f.decay != 0) e["decay"] = f.decay;
     if (f.time_constant_s != 0) e["time_constant_s"] = f.time_constant_s;
     if (f.threshold_v != 0) e["threshold_v"] = f.threshold_v;
+    if (f.type == "play_hinge") e["knot_v"] = f.knot_v;
     if (f.lag_s != 0) e["lag_s"] = f.lag_s;
     if (!f.signal.empty()) e["signal"] = f.signal;
     list.push_back(e);
@@ -160,6 +164,7 @@ FeatureSpec FeatureSpec::from_yaml(const YAML::Node& node) {
     f.decay = num_key(e, "decay", i);
     f.time_constant_s = num_key(e, "time_constant_s", i);
     f.threshold_v = num_key(e, "threshold_v", i);
+    f.knot_v = num_key(e, "knot_v", i);
     f.lag_s = num_key(e, "lag_s", i);
     if (e["signal"]) f.signal = e["signal"].as<std::string>();
     spec.features.push_back(f);
@@ -214,6 +219,7 @@ struct FeatureStream::Impl {
       case Type::kPlay: return play(v, f.r, state[i]);
       case Type::kStop: return v - play(v, f.r, state[i]);
       case Type::kPlayLowpass: return f.a * state2[i] + (1 - f.a) * play(v, f.r, state[i]);
+      case Type::kPlayHinge: return std::max(play(v, f.r, state[i]) - f.knot, 0.0);
       case Type::kLag: return pos.get(f.w);
       case Type::kMean: return state[i] / static_cast<double>(f.w);
       case Type::kAux: {
@@ -272,6 +278,11 @@ FeatureStream::FeatureStream(const FeatureSpec& spec, double sample_rate_hz) : i
         if (!(d.threshold_v >= 0)) throw std::runtime_error(where + ".threshold_v: must be >= 0");
         f.r = d.threshold_v;
         break;
+      case Type::kPlayHinge:
+        if (!(d.threshold_v >= 0)) throw std::runtime_error(where + ".threshold_v: must be >= 0");
+        f.r = d.threshold_v;
+        f.knot = d.knot_v;
+        break;
       case Type::kPlayLowpass:
         if (!(d.threshold_v >= 0)) throw std::runtime_error(where + ".threshold_v: must be >= 0");
         f.r = d.threshold_v;
@@ -326,7 +337,8 @@ void FeatureStream::reset(double voltage_v, double position_nm) {
       case Type::kExpSum: s = voltage_v * (1 - f.alpha_w) / (1 - f.alpha); break;  // at rest forever at V
       case Type::kLowpass: s = voltage_v; break;
       case Type::kPlay:
-      case Type::kStop: s = voltage_v; break;
+      case Type::kStop:
+      case Type::kPlayHinge: s = voltage_v; break;
       case Type::kPlayLowpass: s = voltage_v; s2 = voltage_v; break;
       case Type::kMean: s = position_nm * static_cast<double>(f.w); break;
       default: break;
@@ -355,7 +367,8 @@ void FeatureStream::commit(const ModelInput& in, double position_nm) {
       case Type::kExpSum: m.state[i] = f.alpha * m.state[i] + v - f.alpha_w * m.volts.get(f.w); break;
       case Type::kLowpass: m.state[i] = f.a * m.state[i] + (1 - f.a) * v; break;
       case Type::kPlay:
-      case Type::kStop: m.state[i] = play(v, f.r, m.state[i]); break;
+      case Type::kStop:
+      case Type::kPlayHinge: m.state[i] = play(v, f.r, m.state[i]); break;
       case Type::kPlayLowpass:
         m.state[i] = play(v, f.r, m.state[i]);
         m.state2[i] = f.a * m.state2[i] + (1 - f.a) * m.state[i];

@@ -84,7 +84,7 @@ static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
     double s = 0.0, s2 = 0.0;
     switch (PFX_type[i]) {
       case 3: s = voltage_v * (1.0 - PFX_alpha_w[i]) / (1.0 - PFX_alpha[i]); break;
-      case 4: case 5: case 6: s = voltage_v; break;
+      case 4: case 5: case 6: case 11: s = voltage_v; break;
       case 7: s = voltage_v; s2 = voltage_v; break;
       case 9: s = position_nm * (double)PFX_w[i]; break;
       default: break;
@@ -106,6 +106,7 @@ static double PFX_feature(const PFX_state* st, int i, double v) {
     case 8: return PFX_pget(st, PFX_w[i]);
     case 9: return st->s[i] / (double)PFX_w[i];
     case 10: return v * v;
+    case 11: { double p = PFX_play(v, PFX_r[i], st->s[i]) - PFX_knot[i]; return p > 0.0 ? p : 0.0; }
     default: return 0.0;
   }
 }
@@ -123,7 +124,7 @@ static void PFX_commit(PFX_state* st, double v, double position_nm) {
     switch (PFX_type[i]) {
       case 3: st->s[i] = PFX_alpha[i] * st->s[i] + v - PFX_alpha_w[i] * PFX_vget(st, PFX_w[i]); break;
       case 4: st->s[i] = PFX_a[i] * st->s[i] + (1.0 - PFX_a[i]) * v; break;
-      case 5: case 6: st->s[i] = PFX_play(v, PFX_r[i], st->s[i]); break;
+      case 5: case 6: case 11: st->s[i] = PFX_play(v, PFX_r[i], st->s[i]); break;
       case 7: st->s[i] = PFX_play(v, PFX_r[i], st->s[i]); st->s2[i] = PFX_a[i] * st->s2[i] + (1.0 - PFX_a[i]) * st->s[i]; break;
       case 9: st->s[i] += position_nm - PFX_pget(st, PFX_w[i]); break;
       default: break;
@@ -352,8 +353,9 @@ static double PFX_step(PFX_state* st, double voltage_v, double measured_nm, cons
 
 int type_code(const std::string& t) {
   static const char* names[] = {"voltage", "voltage_step", "step_sum", "exp_sum", "lowpass",
-                                "play", "stop", "play_lowpass", "lagged_position", "position_mean", "voltage_sq"};
-  for (int i = 0; i < 11; ++i)
+                                "play", "stop", "play_lowpass", "lagged_position", "position_mean", "voltage_sq",
+                                "play_hinge"};
+  for (int i = 0; i < 12; ++i)
     if (t == names[i]) return i;
   throw std::runtime_error("C export: feature type '" + t + "' is not supported (aux signals cannot be exported)");
 }
@@ -368,7 +370,7 @@ std::string export_c99_linear(const Model& model, const std::string& prefix) {
   const double rate = m->sample_rate_hz();
   const std::size_t n = spec.size();
   std::vector<std::string> type, w;
-  std::vector<double> alpha, alpha_w, a, r, mean, scale;
+  std::vector<double> alpha, alpha_w, a, r, knot, mean, scale;
   long vcap = 1, pcap = 1;
   for (const auto& f : spec.features) {
     type.push_back(std::to_string(type_code(f.type)));
@@ -382,6 +384,7 @@ std::string export_c99_linear(const Model& model, const std::string& prefix) {
     alpha_w.push_back(f.type == "exp_sum" ? std::pow(f.decay, double(win)) : 0.0);
     a.push_back(f.time_constant_s > 0 ? std::exp(-(1.0 / rate) / f.time_constant_s) : 0.0);
     r.push_back(f.threshold_v);
+    knot.push_back(f.knot_v);
   }
   for (std::size_t j = 0; j < n; ++j) {
     mean.push_back(spec.mean.empty() ? 0.0 : spec.mean[j]);
@@ -397,7 +400,8 @@ std::string export_c99_linear(const Model& model, const std::string& prefix) {
   os << "static const double PFX_bias_nm = " << num(m->bias_nm()) << ";\n";
   os << table("int", "PFX_type", type) << table("int", "PFX_w", w) << table("double", "PFX_alpha", nums(alpha))
      << table("double", "PFX_alpha_w", nums(alpha_w)) << table("double", "PFX_a", nums(a))
-     << table("double", "PFX_r", nums(r)) << table("double", "PFX_mean", nums(mean))
+     << table("double", "PFX_r", nums(r)) << table("double", "PFX_knot", nums(knot))
+     << table("double", "PFX_mean", nums(mean))
      << table("double", "PFX_scale", nums(scale)) << table("double", "PFX_weight", nums(weights));
   os << kLinearCode;
   if (m->is_affine_in_voltage()) os << kAffineInverse;

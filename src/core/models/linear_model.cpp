@@ -37,7 +37,7 @@ double LinearModel::predict(const ModelInput& in) const {
 bool LinearModel::is_affine_in_voltage() const {
   for (std::size_t j = 0; j < stream_.size(); ++j) {
     const std::string& t = stream_.spec().features[j].type;
-    if ((t == "play" || t == "stop" || t == "play_lowpass" || t == "voltage_sq") && w_[j] != 0) return false;
+    if ((t == "play" || t == "stop" || t == "play_lowpass" || t == "play_hinge" || t == "voltage_sq") && w_[j] != 0) return false;
   }
   return true;
 }
