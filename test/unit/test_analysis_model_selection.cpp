@@ -615,7 +615,7 @@ TEST(LassoLinear, PlayHingesCarryAPreisachLoopToTheNextRecording) {
   };
   const features::FeatureSpec with = features::candidate_features(&span);
   const features::FeatureSpec without = features::identifiable_on(features::candidate_features(), span);
-  ASSERT_EQ(with.size(), without.size() + 12);
+  ASSERT_EQ(with.size(), without.size() + 13);
   struct Result {
     double continuation, next;
   };

@@ -188,6 +188,7 @@ TEST(FeatureSpecYaml, RoundTripAndClearErrors) {
   EXPECT_NE(err("features: [{type: voltage}]\nmean: [1, 2]\nscale: [1, 2]").find("mean/scale"), std::string::npos);
   EXPECT_NE(err("features: [{type: voltage}]\nmean: [1]\nscale: [0]").find("scale[0]"), std::string::npos);
   EXPECT_NE(err("nothing: 1").find("features: missing"), std::string::npos);
+  EXPECT_NE(err("features: [{type: play_hinge, threshold_v: 2}]").find("features[0].knot_v: missing"), std::string::npos);
   // Values that only fail at a given rate name feature, key and rate.
   FeatureSpec bad;
   FeatureDef lag = def("lagged_position");
@@ -198,6 +199,16 @@ TEST(FeatureSpecYaml, RoundTripAndClearErrors) {
     FAIL() << "lag of 0 samples accepted";
   } catch (const std::runtime_error& e) {
     EXPECT_NE(std::string(e.what()).find("features[0] (lagged_position).lag_s"), std::string::npos) << e.what();
+  }
+  FeatureSpec nan_knot;
+  FeatureDef h = def("play_hinge");
+  h.threshold_v = 1.0, h.knot_v = std::nan("");
+  nan_knot.features.push_back(h);
+  try {
+    FeatureStream fs(nan_knot, 11.0);
+    FAIL() << "a NaN knot accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("features[0] (play_hinge).knot_v"), std::string::npos) << e.what();
   }
 }
 
@@ -234,14 +245,21 @@ TEST(FeatureSpecs, CandidatesOnShortDataKeepOnlyWhatItCanIdentify) {
     has_voltage |= f.type == "voltage";
   }
   EXPECT_TRUE(has_voltage);
-  span.duration_s = 1e7;  // a long recording keeps them all, and adds the hinges placed on its voltage span
+  span.duration_s = 1e7;  // a long recording keeps them all, and adds plays and hinges placed on its voltage span:
+  span.voltage_min_v = -80, span.voltage_max_v = 20;  // plays 5, 15, 30 V wide; knots their outputs reach (10 of 12)
   const FeatureSpec placed = features::candidate_features(&span);
-  ASSERT_EQ(placed.size(), all.size() + 12);
-  for (std::size_t j = all.size(); j < placed.size(); ++j) {
-    const auto& h = placed.features[j];
+  ASSERT_EQ(placed.size(), all.size() + 13);
+  for (std::size_t j = 0; j < 3; ++j) {
+    EXPECT_EQ(placed.features[all.size() + j].type, "play");
+    const double widths_v[] = {5, 15, 30};
+    EXPECT_NEAR(placed.features[all.size() + j].threshold_v, widths_v[j], 1e-9);
+  }
+  const std::vector<std::pair<double, double>> hinges = {{5, -60}, {5, -40}, {5, -20}, {5, 0},   {15, -60},
+                                                         {15, -40}, {15, -20}, {15, 0}, {30, -40}, {30, -20}};
+  for (std::size_t j = 0; j < hinges.size(); ++j) {
+    const auto& h = placed.features[all.size() + 3 + j];
     EXPECT_EQ(h.type, "play_hinge");
-    EXPECT_GT(h.knot_v, 0.0);
-    EXPECT_LT(h.knot_v, 100.0);
-    EXPECT_LE(h.threshold_v, 30.0);
+    EXPECT_NEAR(h.threshold_v, hinges[j].first, 1e-9) << j;
+    EXPECT_NEAR(h.knot_v, hinges[j].second, 1e-9) << j;
   }
 }

@@ -55,6 +55,21 @@ TEST(LinearModel, OlsRecoversTheWeightsThatMadeTheData) {
   EXPECT_NEAR(fitted->meta.sample_rate_hz, 11.0, 1e-9);
 }
 
+// A play hinge bends the voltage-to-position map: a linear model weighting one is not affine in V (the
+// feedforward inverse then searches instead of solving), one with a zero weight on it is.
+TEST(LinearModel, AWeightedPlayHingeIsNotAffineInTheVoltage) {
+  features::FeatureSpec spec;
+  features::FeatureDef v, h;
+  v.type = "voltage";
+  h.type = "play_hinge", h.threshold_v = 2.0, h.knot_v = 5.0;
+  spec.features = {v, h};
+  Eigen::VectorXd w(2);
+  w << 10.0, 4.0;
+  EXPECT_FALSE(LinearModel(spec, 11.0, w, 0.0).is_affine_in_voltage());
+  w(1) = 0.0;
+  EXPECT_TRUE(LinearModel(spec, 11.0, w, 0.0).is_affine_in_voltage());
+}
+
 TEST(LinearModel, StudyFeaturesAreAffineAndUsePositions) {
   const auto v = testdata::random_walk_v(5000, 4);
   Eigen::VectorXd w(3);

@@ -66,15 +66,16 @@ YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axi
 
 // The slow part of the error (issue 26): the scores `--model auto` chooses by. The error of 30-s block means
 // (predicted − measured), whose white reading noise averages away (σ/√n per block: ≈ 1.2 nm for 21 nm readings at
-// 11 Hz), in four columns:
+// 11 Hz), in five columns:
 //  - moves: the blocks outside holds; holds: the blocks inside holds (a hold: the voltage unchanged, within
 //    hold_tolerance_v, for at least hold_min_s; found from the voltage, no phase markers needed);
 //  - hold ends: per hold, the mean error of its last hold_end_s (where the user parks the tip);
 //  - cold fold: the held-out part run on its own, as a separate recording would start: the model reset at rest
 //    at a start, its blocks after a window of cold_window_s; cold_starts such runs, started over the first half of
-//    the part.
+//    the part;
+//  - carry-over: the kind fitted again on the training part's first half, scored on its second (carry_fold).
 // overall: the weighted geometric mean of (column + noise_nm) over the columns present, less noise_nm (hold ends
-// count hold_end_weight, the cold fold cold_weight, the others 1): a column counts by its ratio between
+// count hold_end_weight, the cold fold cold_weight, the carry-over carry_weight, moves and holds 1): a column counts by its ratio between
 // candidates, not by its scale (a cold fold of 500 nm from the unknown start state does not drown moves of 0.3 nm), and a difference under the noise
 // of a block mean counts little.
 // On a short validation part (under min_blocks blocks) the block shrinks to 1/min_blocks of it (at least one
@@ -85,8 +86,8 @@ struct SlowScoreOptions {
   double hold_min_s = 60.0;
   double hold_tolerance_v = 1e-6;
   double hold_end_s = 30.0;
-  // Hold ends weigh as much as the other four columns together (1 + 1 + 0.25 + 1): half of the overall where
-  // there are holds, the parked tip the choice is for. At 2 the carry-over fold overturned them on a creep-protocol
+  // Hold ends weigh as much as the other four columns together (1 + 1 + 0.25 + 1): half of the overall where all
+  // five columns are present (more without the carry-over fold), the parked tip the choice is for. At 2 the carry-over fold overturned them on a creep-protocol
   // stage (docs/models.md, (a′): a kind with 1.87× the best worst hold end against the truth chosen).
   double hold_end_weight = 3.25;
   // The cold fold: cold_starts runs from rest, started at 0, 1/8, 2/8, … of the held-out part (their blocks

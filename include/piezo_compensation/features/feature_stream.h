@@ -23,8 +23,8 @@ struct FeatureDef {
   // "play"              play (backlash) operator of V with threshold_v
   // "stop"              stop (elastic-perfectly-plastic) operator of V with threshold_v
   // "play_lowpass"      low-pass (time_constant_s) of the play operator output (threshold_v): creep of hysteresis
-  // "play_hinge"        max(play(V, threshold_v) − knot_v, 0): a ramp hysteron of the Preisach plane (centre knot_v,
-  //                     half-width threshold_v); weighted sums over knots give any piecewise-linear map of a play output
+  // "play_hinge"        max(play(V, threshold_v) − knot_v, 0): an open ramp of a play output above knot_v; weighted
+  //                     sums over knots give any piecewise-linear map of it (the preisach kinds' pieces)
   // "lagged_position"   D_{t-L}, L = lag_s in samples (L ≥ 1)
   // "position_mean"     mean of D_{t-w} … D_{t-1}      (past samples only; the study's mean included D_t)
   // "aux"               auxiliary signal `signal` (optionally lagged by lag_s and low-passed by time_constant_s)

@@ -82,7 +82,8 @@ std::string FeatureDef::name() const {
   if (type == "stop") return "stop(V, " + fmt(threshold_v) + " V)";
   if (type == "play_lowpass")
     return "lowpass(play(V, " + fmt(threshold_v) + " V), " + fmt(time_constant_s) + " s)";
-  if (type == "play_hinge") return "max(play(V, " + fmt(threshold_v) + " V) - " + fmt(knot_v) + " V, 0)";
+  if (type == "play_hinge")
+    return "max(play(V, " + fmt(threshold_v) + " V) " + (knot_v < 0 ? "+ " + fmt(-knot_v) : "- " + fmt(knot_v)) + " V, 0)";
   if (type == "lagged_position") return "D(t-" + fmt(lag_s) + " s)";
   if (type == "position_mean") return "mean(D, past " + fmt(window_s) + " s)";
   if (type == "aux") {
@@ -165,6 +166,8 @@ FeatureSpec FeatureSpec::from_yaml(const YAML::Node& node) {
     f.time_constant_s = num_key(e, "time_constant_s", i);
     f.threshold_v = num_key(e, "threshold_v", i);
     f.knot_v = num_key(e, "knot_v", i);
+    if (f.type == "play_hinge" && !e["knot_v"])
+      throw std::runtime_error("features[" + std::to_string(i) + "].knot_v: missing (a play_hinge needs its knot)");
     f.lag_s = num_key(e, "lag_s", i);
     if (e["signal"]) f.signal = e["signal"].as<std::string>();
     spec.features.push_back(f);
@@ -280,6 +283,7 @@ FeatureStream::FeatureStream(const FeatureSpec& spec, double sample_rate_hz) : i
         break;
       case Type::kPlayHinge:
         if (!(d.threshold_v >= 0)) throw std::runtime_error(where + ".threshold_v: must be >= 0");
+        if (!std::isfinite(d.knot_v)) throw std::runtime_error(where + ".knot_v: must be a finite voltage");
         f.r = d.threshold_v;
         f.knot = d.knot_v;
         break;
