@@ -633,8 +633,8 @@ TEST(LassoLinear, PlayHingesCarryAPreisachLoopToTheNextRecording) {
 
 // Hold ends weigh as much as the other four columns together (hold_end_weight 3.25 = 1 + 1 + 0.25 + 1): the
 // parked tip the choice is for. The shape of docs/models.md's (a′), a creep-protocol stage no test is tuned on: a
-// kind with the better moves, holds and hold ends (its worst hold end 2.75 nm against the truth, the other's 5.16)
-// whose half fit carries over worse (18.6 against 4 nm). At the earlier weight 2 the carry-over fold chose the other.
+// kind better on moves, holds and hold ends whose half fit carries over worse keeps the choice; at weight 2 the
+// carry-over column outvotes the hold ends and the other kind is chosen.
 TEST(SlowScore, HoldEndsWeighAsMuchAsTheOtherColumnsTogether) {
   auto score = [](double moves, double holds, std::vector<double> ends, double cold, double carry, double weight) {
     analysis::SlowErrors e;

@@ -179,6 +179,26 @@ double mae_vs_truth_after(models::PiCreepModel m, const io::Dataset& rec, const 
   return sum / static_cast<double>(n);
 }
 
+// `m`'s start estimate on `rec` with options `o`, and with `option` switched off; each one's MAE against the truth
+// after its window, printed under `what`.
+struct OptionEffect {
+  models::StartEstimate with, without;
+  double with_nm, without_nm;
+};
+OptionEffect with_and_without(const models::PiCreepModel& m, const io::Dataset& rec, models::StartOptions o,
+                              bool models::StartOptions::*option, const char* what) {
+  OptionEffect r;
+  o.*option = true;
+  r.with = models::estimate_start(m, rec, "c", o);
+  o.*option = false;
+  r.without = models::estimate_start(m, rec, "c", o);
+  r.with_nm = mae_vs_truth_after(m, rec, r.with);
+  r.without_nm = mae_vs_truth_after(m, rec, r.without);
+  std::printf("with %s: %s\nwithout: %s\nMAE vs truth after the window: %.2f nm with, %.2f nm without\n", what,
+              r.with.describe().c_str(), r.without.describe().c_str(), r.with_nm, r.without_nm);
+  return r;
+}
+
 // A recording of `truth` (in its state as given) driven by voltage(i) for pre + n samples at 11 Hz: the first pre
 // unseen (its history), the rest recorded from t = 0 s with the true position and readings of σ 5 nm (xorshift:
 // deterministic).
@@ -226,23 +246,19 @@ TEST(StartState, CreepStatesAreFittedOnTheWindow) {
   const io::Dataset rec = creep_recording();
   models::StartOptions o;
   o.window_s = 30.0;
-  const models::StartEstimate with = models::estimate_start(m, rec, "c", o);
-  o.fit_linear_states = false;
-  const models::StartEstimate without = models::estimate_start(m, rec, "c", o);
-  std::printf("with the creep states: %s\nwithout: %s\n", with.describe().c_str(), without.describe().c_str());
-  EXPECT_EQ(with.linear_states, 3u);
-  EXPECT_EQ(with.history.linear_shift_nm.size(), 3u);
-  EXPECT_EQ(without.linear_states, 0u);
-  EXPECT_TRUE(without.history.linear_shift_nm.empty());
-  const double a = mae_vs_truth_after(m, rec, with), b = mae_vs_truth_after(m, rec, without);
-  std::printf("MAE vs truth after the window: %.2f nm with the creep states, %.2f nm without\n", a, b);
-  EXPECT_LT(a, 0.7 * b);
-  EXPECT_TRUE(std::isfinite(with.offset_sigma_nm) && with.offset_sigma_nm > 0);
+  const OptionEffect e = with_and_without(m, rec, o, &models::StartOptions::fit_linear_states, "the creep states");
+  EXPECT_EQ(e.with.linear_states, 3u);
+  EXPECT_EQ(e.with.history.linear_shift_nm.size(), 3u);
+  EXPECT_EQ(e.without.linear_states, 0u);
+  EXPECT_TRUE(e.without.history.linear_shift_nm.empty());
+  EXPECT_LT(e.with_nm, 0.7 * e.without_nm);
+  EXPECT_TRUE(std::isfinite(e.with.offset_sigma_nm) && e.with.offset_sigma_nm > 0);
   // A fitted model knows its training data's voltage range: the synthetic histories stay in it (above, without
   // it, they span the window's voltage span on both sides of the first voltage: "rested at 85.69 V").
   models::PiCreepModel ranged = m;
   ranged.meta.train_voltage_min_v = -20.0;
   ranged.meta.train_voltage_max_v = 62.0;
+  o.fit_linear_states = false;
   const models::StartEstimate r = models::estimate_start(ranged, rec, "c", o);
   ASSERT_FALSE(r.history.rest) << r.describe();
   for (double v : {r.history.reset_v, r.history.turn_v}) {
@@ -289,16 +305,11 @@ TEST(StartState, ANestedMemoryIsReachedByADecayingStaircase) {
   const io::Dataset rec = nested_memory_recording();
   models::StartOptions o;
   o.window_s = 60.0;
-  const models::StartEstimate with = models::estimate_start(m, rec, "c", o);
-  o.staircases = false;
-  const models::StartEstimate without = models::estimate_start(m, rec, "c", o);
-  const double a = mae_vs_truth_after(m, rec, with), b = mae_vs_truth_after(m, rec, without);
-  std::printf("with the staircases: %s\nwithout: %s\nMAE vs truth after the window: %.2f nm with, %.2f nm without\n",
-              with.describe().c_str(), without.describe().c_str(), a, b);
-  EXPECT_GT(with.candidates, without.candidates);
-  EXPECT_GT(with.history.shrink, 0.0) << with.describe();
-  EXPECT_NE(with.describe().find("in swings around 50 V"), std::string::npos) << with.describe();
-  EXPECT_LT(a, 0.5 * b);
+  const OptionEffect e = with_and_without(m, rec, o, &models::StartOptions::staircases, "the staircases");
+  EXPECT_GT(e.with.candidates, e.without.candidates);
+  EXPECT_GT(e.with.history.shrink, 0.0) << e.with.describe();
+  EXPECT_NE(e.with.describe().find("in swings around 50 V"), std::string::npos) << e.with.describe();
+  EXPECT_LT(e.with_nm, 0.5 * e.without_nm);
 }
 
 // A slow creep state sits where operation keeps it — near its gain × the mean voltage — which a long rest at an end
@@ -319,15 +330,10 @@ TEST(StartState, ARestAtTheRangesMiddlePlacesASlowState) {
   models::StartOptions o;
   o.window_s = 30.0;
   o.fit_linear_states = false;
-  const models::StartEstimate with = models::estimate_start(m, rec, "c", o);
-  o.rest_at_middle = false;
-  const models::StartEstimate without = models::estimate_start(m, rec, "c", o);
-  const double a = mae_vs_truth_after(m, rec, with), b = mae_vs_truth_after(m, rec, without);
-  std::printf("with the middle rest: %s\nwithout: %s\nMAE vs truth after the window: %.2f nm with, %.2f nm without\n",
-              with.describe().c_str(), without.describe().c_str(), a, b);
-  EXPECT_DOUBLE_EQ(with.history.reset_v, 50.0) << with.describe();
-  EXPECT_GT(with.candidates, without.candidates);
-  EXPECT_LT(a, 0.5 * b);
+  const OptionEffect e = with_and_without(m, rec, o, &models::StartOptions::rest_at_middle, "the middle rest");
+  EXPECT_DOUBLE_EQ(e.with.history.reset_v, 50.0) << e.with.describe();
+  EXPECT_GT(e.with.candidates, e.without.candidates);
+  EXPECT_LT(e.with_nm, 0.5 * e.without_nm);
 }
 
 // The estimate says how much of the voltage range its window swept: the hysteresis memory of wider swings is not in

@@ -87,8 +87,8 @@ struct SlowScoreOptions {
   double hold_tolerance_v = 1e-6;
   double hold_end_s = 30.0;
   // Hold ends weigh as much as the other four columns together (1 + 1 + 0.25 + 1): half of the overall where all
-  // five columns are present (more without the carry-over fold), the parked tip the choice is for. At 2 the carry-over fold overturned them on a creep-protocol
-  // stage (docs/models.md, (a′): a kind with 1.87× the best worst hold end against the truth chosen).
+  // five columns are present (more without the carry-over fold), the parked tip the choice is for; the carry-over
+  // fold, a fit on half the recording, must not outvote them (docs/models.md, "Re-measured with the play hinges").
   double hold_end_weight = 3.25;
   // The cold fold: cold_starts runs from rest, started at 0, 1/8, 2/8, … of the held-out part (their blocks
   // pooled), each scored after cold_window_s (at most a fifth of the part), weighted cold_weight in overall.

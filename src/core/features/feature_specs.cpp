@@ -96,21 +96,21 @@ FeatureSpec candidate_features(const DataSpan* span) {
     // Plays 5/15/30 % of the span wide (the physics set's are in volts, 2–40 V, whatever the stage's range), and
     // their hinges: knots at 20/40/60/80 % of the span, those a play output reaches and bends at (its range, once
     // the voltage has swept the span, is [min + r, max − r]): 10 of the 12.
-    if (std::isfinite(width_v) && width_v > 0)
-      for (double r : {0.05, 0.15, 0.30}) {
-        FeatureDef p = def("play");
-        p.threshold_v = r * width_v;
-        s.features.push_back(p);
+    if (!(std::isfinite(width_v) && width_v > 0)) return s;
+    constexpr double kWidths[] = {0.05, 0.15, 0.30};
+    for (double r : kWidths) {
+      FeatureDef p = def("play");
+      p.threshold_v = r * width_v;
+      s.features.push_back(p);
+    }
+    for (double r : kWidths)
+      for (double k : {0.2, 0.4, 0.6, 0.8}) {
+        if (!(k > r && k < 1.0 - r)) continue;
+        FeatureDef h = def("play_hinge");
+        h.threshold_v = r * width_v;
+        h.knot_v = span->voltage_min_v + k * width_v;
+        s.features.push_back(h);
       }
-    if (std::isfinite(width_v) && width_v > 0)
-      for (double r : {0.05, 0.15, 0.30})
-        for (double k : {0.2, 0.4, 0.6, 0.8}) {
-          if (!(k > r && k < 1.0 - r)) continue;
-          FeatureDef h = def("play_hinge");
-          h.threshold_v = r * width_v;
-          h.knot_v = span->voltage_min_v + k * width_v;
-          s.features.push_back(h);
-        }
     return s;
   }
   FeatureSpec s;
