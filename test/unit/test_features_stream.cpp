@@ -189,6 +189,8 @@ TEST(FeatureSpecYaml, RoundTripAndClearErrors) {
   EXPECT_NE(err("features: [{type: voltage}]\nmean: [1]\nscale: [0]").find("scale[0]"), std::string::npos);
   EXPECT_NE(err("nothing: 1").find("features: missing"), std::string::npos);
   EXPECT_NE(err("features: [{type: play_hinge, threshold_v: 2}]").find("features[0].knot_v: missing"), std::string::npos);
+  EXPECT_NE(err("features: [{type: voltage}, {type: play_hinge, threshold_v: 2, knot: 1}]").find("features[1].knot: unknown key"),
+            std::string::npos);
   // Values that only fail when the stream is built (at a given rate) name feature and key.
   auto stream_err = [](const FeatureDef& f) {
     FeatureSpec one;

@@ -158,6 +158,14 @@ FeatureSpec FeatureSpec::from_yaml(const YAML::Node& node) {
     const YAML::Node e = list[i];
     if (!e.IsMap()) throw std::runtime_error("features[" + std::to_string(i) + "]: expected a mapping");
     FeatureDef f;
+    // The keys a feature entry may have: a misspelt one (e.g. `knot` for `knot_v`) is an error, not a default.
+    static const char* const kKeys[] = {"type", "window_s", "decay", "time_constant_s", "threshold_v", "knot_v", "lag_s", "signal"};
+    for (const auto& kv : e) {
+      const std::string key = kv.first.as<std::string>();
+      if (std::none_of(std::begin(kKeys), std::end(kKeys), [&](const char* k) { return key == k; }))
+        throw std::runtime_error("features[" + std::to_string(i) + "]." + key + ": unknown key (valid: type, window_s, "
+                                 "decay, time_constant_s, threshold_v, knot_v, lag_s, signal)");
+    }
     if (!e["type"]) throw std::runtime_error("features[" + std::to_string(i) + "].type: missing key");
     f.type = e["type"].as<std::string>();
     parse_type(f.type, i);
