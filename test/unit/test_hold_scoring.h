@@ -1,5 +1,5 @@
-// Shared by the creep-model tests: time slices of a recording, the free-run error inside the holds against the true
-// position (MAE, and the worst end-of-hold error), and model-file text round trips.
+// Shared by the creep-model tests: time slices of a recording and the free-run error inside the holds against the
+// true position (MAE, and the worst end-of-hold error); model-file text round trips in test_model_text.h.
 #pragma once
 
 #include <algorithm>
@@ -9,6 +9,7 @@
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
 #include "piezo_compensation/models/model_file.h"
+#include "test_model_text.h"
 
 #include <string>
 #include <gtest/gtest.h>
@@ -72,26 +73,6 @@ HoldScore score_holds(const models::Model& fitted, const io::Dataset& d, std::si
     ++s.holds;
   }
   return s;
-}
-
-// Model-file text of m, and the error loading it with `from` replaced by `to` ("loaded" if none).
-std::string model_file_text(const models::Model& m) {
-  YAML::Emitter em;
-  em << models::model_to_file_yaml(m);
-  return em.c_str();
-}
-models::ModelPtr model_from_text(const std::string& t) { return models::model_from_file_yaml(YAML::Load(t), "test"); }
-std::string load_error_after(std::string text, const std::string& from, const std::string& to) {
-  const auto at = text.find(from);
-  EXPECT_NE(at, std::string::npos) << from;
-  if (at == std::string::npos) return std::string();
-  text.replace(at, from.size(), to);
-  try {
-    model_from_text(text);
-  } catch (const std::exception& e) {
-    return std::string(e.what());
-  }
-  return std::string("loaded");
 }
 
 }  // namespace

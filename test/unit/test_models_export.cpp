@@ -118,6 +118,9 @@ TEST(CExport, PiAndCreepKindsMatchCpp) {
       cp.on_hysteresis = on_h;
       PiCreepModel m({0, 10, 20, 35}, {5, 1, 0.5, 0.25}, 2.0, cp, 11.0);
       expect_equal_to_cpp(m, true);
+      // with an input map (the memory-free play in pieces)
+      PiCreepModel mapped({0, 10, 20, 35}, {3, 5, 8, 6, 1, 0.5, 0.25}, 2.0, cp, 11.0, {{-30, 0, 30}, {}, {}, {}}, true);
+      expect_equal_to_cpp(mapped, true);
     }
 }
 

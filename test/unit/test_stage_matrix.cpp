@@ -147,6 +147,7 @@ SeparateRecording separate_recording(const sim::StageConfig& stage, const Separa
 // the whole recording from the simulator's own start (its history known), its offset fixed on the same window.
 struct SeparateMae {
   double estimate = INFINITY, rest = INFINITY, whole = INFINITY;
+  double swept = 0;  // the fraction of the model's training voltage range the start window swept
 };
 SeparateMae separate_mae(const models::Model& model, const SeparateRecording& rec, double anchor_s) {
   const io::Dataset& d = rec.part;
@@ -159,6 +160,7 @@ SeparateMae separate_mae(const models::Model& model, const SeparateRecording& re
   const models::StreamResult r = models::stream_model(*m, d, "c", o);
   const std::vector<char> mask = models::scored_mask(r, d.size());
   out.estimate = analysis::error_stats(r.prediction, y, mask).mae_nm;
+  out.swept = r.start.swept_fraction();
   o.anchor_s = 0.0;
   m = model.clone();
   out.rest = analysis::error_stats(models::stream_model(*m, d, "c", o).prediction, y, mask).mae_nm;
@@ -273,12 +275,14 @@ std::string continuation_row(const std::string& name, const StageFit& f, CellChe
 }
 
 // The separate-recording row: every kind's MAE there and its ratio to the continuation; auto = its choice.
+// `notes`: the start window's sweep and which of auto's candidates are within kAutoMargin of the best kind on both
+// recordings (none: no choice can pass both auto cells with these fits).
 std::string separate_row(const std::string& name, const StageFit& f, const SeparateRecording& rec, double anchor_s,
-                         CellCheck& check) {
+                         CellCheck& check, std::string& notes) {
   const auto& sel = f.sel;
   std::string md = "| " + name + " |";
   std::vector<double> sep(sel.table.size(), INFINITY);
-  double best = INFINITY;
+  double best = INFINITY, swept = 0;
   for (std::size_t k = 0; k < sel.table.size(); ++k) {
     const auto& r = sel.table[k];
     if (!r.model) {
@@ -288,6 +292,7 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
     const SeparateMae e = separate_mae(*r.model, rec, anchor_s);
     sep[k] = e.estimate;
     best = std::min(best, sep[k]);
+    swept = std::max(swept, e.swept);
     const double ratio = sep[k] / continuation_mae(r);
     const bool ok = ratio <= kSeparateRatio;
     // and the identification check `piezo fit` prints (docs/models.md, "Does the recording identify the model?")
@@ -302,6 +307,15 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
                  figure(sep[k]) + " nm on the separate recording, " + figure(ratio) + "× the continuation's " +
                      figure(continuation_mae(r)) + " nm; whole history " + figure(e.whole / continuation_mae(r)) + "×");
   }
+  double best_cont = INFINITY;
+  for (const auto& r : sel.table)
+    if (r.refused.empty()) best_cont = std::min(best_cont, continuation_mae(r));
+  std::string both;
+  for (std::size_t k = 0; k < std::min(analysis::default_candidates().size(), sel.table.size()); ++k)
+    if (continuation_mae(sel.table[k]) <= kAutoMargin * best_cont && sep[k] <= kAutoMargin * best)
+      both += (both.empty() ? "" : ", ") + sel.table[k].candidate.label;
+  notes = "start window swept " + std::to_string(std::lround(100.0 * swept)) + " % of the training voltage range; auto's candidates within " +
+          figure(100.0 * (kAutoMargin - 1.0)) + " % of the best kind on both recordings: " + (both.empty() ? "none" : both);
   const std::size_t chosen = auto_choice(sel);
   const double a = sep[chosen];
   char buf[120];
@@ -352,13 +366,15 @@ TEST_P(StageMatrix, EveryKindHolds) {
   const SeparateSpec spec = separate_spec(name.substr(0, name.find('_')));
   const SeparateRecording rec = separate_recording(stage, spec);
   const auto t0 = std::chrono::steady_clock::now();
-  const std::string sep = separate_row(name, f, rec, spec.anchor_s, check);
+  std::string notes;
+  const std::string sep = separate_row(name, f, rec, spec.anchor_s, check, notes);
   const double run_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   std::printf("Separate recording (seed %llu, %.0f s simulated, from %.2f s on, start estimate over %.3g s, scored "
               "after it; %.1f s to run every kind): free-run MAE [nm] (× the continuation's); whole: the same model over the "
               "whole recording, its history known (the bound); rest: from rest without the estimate:\n\n%s%s\n",
               static_cast<unsigned long long>(separate_seed()), spec.duration_s, rec.cut_at_s, spec.anchor_s, run_s,
               separate_header().c_str(), sep.c_str());
+  std::printf("%s: %s\n", name.c_str(), notes.c_str());
   check.report_passing(name);
 }
 

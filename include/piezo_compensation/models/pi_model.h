@@ -7,6 +7,9 @@
 //   y = b + Σ_i Σ_k w_ik · piece_k(play_{r_i}(V)) + creep,
 // a discrete Preisach plane of ramp hysterons (centre = knot, half-width = r_i) that can be asymmetric, which the
 // symmetric play operators cannot. Equal weights along a play give PI back. Still monotone in V, so invertible.
+// The PI kinds may cut the memory-free play (r_0 = 0) alone into pieces: an input map, a monotone piecewise-linear
+// function of V in front of the symmetric plays (the "modified PI" of asymmetric hysteresis; the fit chooses it by
+// validation, training/fit_pi.cpp), stored as `input_map: {knots_v: [...]}`.
 #pragma once
 
 #include <Eigen/Dense>
@@ -22,9 +25,11 @@ namespace piezo::models {
 class PiCreepModel : public Model {
  public:
   // knots_v: empty for the PI kinds; for the preisach kinds one (possibly empty) knot list per play operator, and
-  // then one weight per piece (Σ_i (knots_i + 1) weights, play by play).
+  // then one weight per piece (Σ_i (knots_i + 1) weights, play by play). input_map: a PI kind whose knots_v has
+  // knots on the first play only (the input map); the kind stays PI.
   PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights_nm_per_v, double bias_nm,
-               CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v = {});
+               CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v = {},
+               bool input_map = false);
 
   std::string kind() const override { return creep_kind_name(creep_.kind, preisach()); }
   void reset(double voltage_v, double position_nm) override;
@@ -46,8 +51,10 @@ class PiCreepModel : public Model {
   double inverse(double target_nm) const;
 
   const std::vector<double>& thresholds_v() const { return r_; }
-  const std::vector<double>& weights() const { return w_; }  // per piece for the preisach kinds
-  bool preisach() const { return !knots_.empty(); }
+  const std::vector<double>& weights() const { return w_; }  // per piece when there are knots
+  bool preisach() const { return !knots_.empty() && !input_map_; }  // the preisach kinds
+  bool has_input_map() const { return input_map_; }                 // a PI kind with an input map
+  // One knot list per play operator (empty: one weight per play); for an input map, knots on the first play only.
   const std::vector<std::vector<double>>& knots_v() const { return knots_; }
   // Hysteresis output Σ w·pieces for input v from play states p; writes the advanced states to p_next if given.
   double hysteresis(double v, const std::vector<double>& p, std::vector<double>* p_next = nullptr) const;
@@ -63,6 +70,7 @@ class PiCreepModel : public Model {
  private:
   std::vector<double> r_, w_;
   std::vector<std::vector<double>> knots_;
+  bool input_map_ = false;
   std::vector<std::size_t> first_;  // index in w_ of each play's first piece
   double b_;
   CreepParams creep_;

@@ -41,7 +41,8 @@ constexpr double kMaxFreeRunGain = 10.0;
 // start values; fix_taus: true keeps them), t1_s / alpha (fix instead of searching), warm_start (taus_s, t1_s or alpha
 // a start refined near it), decades, modes_per_decade, tau_min_s, tau_max_s (clamped to [2 samples, training
 // duration]), creep_input (auto|voltage|hysteresis), hold_weight (auto|off|factor),
-// min_slope_fraction, refit_with_validation (false; pi, pi_creep_prony, preisach kinds). Kinds pi, pi_creep_log,
+// min_slope_fraction, refit_with_validation (false; pi, pi_creep_prony, preisach kinds), input_map (off|on|auto: the PI
+// kinds' memory-free play cut into min(n_play, 12) pieces, a monotone map of V; auto: by validation; default off). Kinds pi, pi_creep_log,
 // pi_creep_lti, pi_creep_fractional, pi_creep_prony; with preisach also "preisach" (kNone) and
 // "preisach_creep_prony" (kProny), which take knots_per_span (≤ 65, default min(n_play, 12)) and piece_smoothing
 // (0.1).

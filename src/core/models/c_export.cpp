@@ -414,19 +414,21 @@ std::string export_c99_pi(const Model& model, const std::string& prefix) {
   const auto* m = dynamic_cast<const PiCreepModel*>(&model);
   if (!m) throw std::runtime_error("C export: model of kind '" + model.kind() + "' is not a PI model");
   std::ostringstream os;
-  os << header_open(prefix, model, std::string(m->preisach() ? "discrete Preisach (play pieces)" : "Prandtl-Ishlinskii") +
+  os << header_open(prefix, model, std::string(m->preisach()         ? "discrete Preisach (play pieces)"
+                                               : m->has_input_map() ? "Prandtl-Ishlinskii (with an input map)"
+                                                                    : "Prandtl-Ishlinskii") +
                                        " hysteresis" +
                                        std::string(m->creep().kind == CreepKind::kNone ? "" : " with creep modes"));
   const std::size_t nm = m->mode_taus_s().size();
   os << "#define PFX_NP " << m->thresholds_v().size() << "\n#define PFX_NMODE " << std::max<std::size_t>(1, nm)
      << "\n#define PFX_NMODE_USED " << nm << "\n#define PFX_CREEP_ON_H " << (m->creep().on_hysteresis ? 1 : 0) << "\n";
   os << "static const double PFX_bias_nm = " << num(m->bias_nm()) << ";\n";
-  // Knot tables (the preisach kinds; zero knots everywhere for PI: one weight per play).
+  // Knot tables (the preisach kinds and a PI input map; zero knots everywhere for plain PI: one weight per play).
   std::vector<std::string> nk, k0, w0;
   std::vector<double> knots;
   std::size_t at_w = 0;
   for (std::size_t i = 0; i < m->thresholds_v().size(); ++i) {
-    const std::size_t n = m->preisach() ? m->knots_v()[i].size() : 0;
+    const std::size_t n = m->knots_v().empty() ? 0 : m->knots_v()[i].size();
     nk.push_back(std::to_string(n));
     k0.push_back(std::to_string(knots.size()));
     w0.push_back(std::to_string(at_w));

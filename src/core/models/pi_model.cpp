@@ -16,22 +16,26 @@ using features::play;
 }  // namespace
 
 PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights, double bias_nm,
-                           CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v)
-    : r_(std::move(thresholds_v)), w_(std::move(weights)), knots_(std::move(knots_v)), b_(bias_nm),
-      creep_(std::move(creep)), rate_hz_(sample_rate_hz) {
+                           CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v,
+                           bool input_map)
+    : r_(std::move(thresholds_v)), w_(std::move(weights)), knots_(std::move(knots_v)), input_map_(input_map),
+      b_(bias_nm), creep_(std::move(creep)), rate_hz_(sample_rate_hz) {
   if (r_.empty()) throw std::runtime_error("PI model: no play operators");
   if (r_.size() > static_cast<std::size_t>(kMaxPlayOperators))
     throw std::runtime_error("PI model: " + std::to_string(r_.size()) + " play operators (at most " +
                              std::to_string(kMaxPlayOperators) + ")");
   if (preisach()) creep_kind_name(creep_.kind, true);  // throws for a creep law the preisach kinds do not have
-  if (preisach() && knots_.size() != r_.size())
+  if (!knots_.empty() && knots_.size() != r_.size())
     throw std::runtime_error("preisach model: " + std::to_string(knots_.size()) + " knot lists for " +
                              std::to_string(r_.size()) + " thresholds");
+  if (input_map_ && (knots_.empty() || knots_[0].empty() ||
+                     std::any_of(knots_.begin() + 1, knots_.end(), [](const auto& k) { return !k.empty(); })))
+    throw std::runtime_error("PI model: an input map has knots on the first play operator and on no other");
   std::size_t pieces = 0;
   for (std::size_t i = 0; i < r_.size(); ++i) {
     first_.push_back(pieces);
     const std::vector<double> none;
-    const std::vector<double>& k = preisach() ? knots_[i] : none;
+    const std::vector<double>& k = knots_.empty() ? none : knots_[i];
     if (k.size() > static_cast<std::size_t>(kMaxKnotsPerPlay))
       throw std::runtime_error("preisach model: " + std::to_string(k.size()) + " knots on one play operator (at most " +
                                std::to_string(kMaxKnotsPerPlay) + ")");
@@ -45,7 +49,7 @@ PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double>
                              std::to_string(kMaxPieces) + ")");
   if (pieces != w_.size())
     throw std::runtime_error("PI model: " + std::to_string(w_.size()) + " weights for " + std::to_string(pieces) +
-                             (preisach() ? " pieces" : " thresholds"));
+                             (knots_.empty() ? " thresholds" : " pieces"));
   for (std::size_t i = 0; i < r_.size(); ++i) {
     if (!(r_[i] >= 0) || !std::isfinite(r_[i])) throw std::runtime_error("PI model: thresholds must be >= 0");
     if (i > 0 && !(r_[i] > r_[i - 1])) throw std::runtime_error("PI model: thresholds must increase");
@@ -67,7 +71,7 @@ double PiCreepModel::hysteresis(double v, const std::vector<double>& p, std::vec
   for (std::size_t i = 0; i < r_.size(); ++i) {
     const double q = play(v, r_[i], p[i]);
     if (p_next) (*p_next)[i] = q;
-    h += preisach() ? features::play_pieces_dot(q, knots_[i].data(), knots_[i].size(), &w_[first_[i]]) : w_[i] * q;
+    h += knots_.empty() ? w_[i] * q : features::play_pieces_dot(q, knots_[i].data(), knots_[i].size(), &w_[first_[i]]);
   }
   return h;
 }
@@ -110,7 +114,7 @@ double PiCreepModel::inverse(double target) const {
   for (std::size_t i = 0; i < r_.size(); ++i) {
     k.push_back(p_[i] - r_[i]);
     if (r_[i] > 0) k.push_back(p_[i] + r_[i]);
-    if (preisach())
+    if (!knots_.empty())
       for (double c : knots_[i]) {
         if (c >= p_[i]) k.push_back(c + r_[i]);
         if (c <= p_[i]) k.push_back(c - r_[i]);
@@ -145,7 +149,11 @@ YAML::Node PiCreepModel::to_yaml() const {
   n["thresholds_v"] = yaml_list(r_);
   n["weights_nm_per_v"] = yaml_list(w_);
   n["bias_nm"] = b_;
-  if (preisach()) {
+  if (input_map_) {
+    YAML::Node im;
+    im["knots_v"] = yaml_list(knots_[0]);
+    n["input_map"] = im;
+  } else if (preisach()) {
     // Flat, with a count per play operator: [[...], []] would read as a list of lists everywhere else.
     std::vector<double> counts, flat;
     for (const auto& k : knots_) {
@@ -210,11 +218,25 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
   bool preisach = false;
   const CreepKind expected =
       node["kind"] ? creep_kind_from_name(yaml_string(node, "kind"), &preisach) : CreepKind::kNone;
+  const bool input_map = bool(node["input_map"]);
+  if (input_map && (preisach || node["preisach"]))
+    throw std::runtime_error("model.input_map: only the PI kinds have one (the preisach kinds cut every play)");
   if (node["kind"] && preisach != bool(node["preisach"]))
     throw std::runtime_error(std::string("model.preisach: kind ") + yaml_string(node, "kind") +
                              (preisach ? " needs" : " has no") + " a preisach mapping (knot_counts, knots_v)");
   std::vector<std::vector<double>> knots;
   std::size_t pieces = r.size();
+  if (input_map) {
+    const YAML::Node im = node["input_map"];
+    if (!im.IsMap()) throw std::runtime_error("model.input_map: expected a mapping with knots_v");
+    check_keys(im, {"knots_v"}, "model.input_map");
+    const auto k = yaml_numbers(im, "knots_v", -1, "model.input_map");
+    if (k.empty() || k.size() > static_cast<std::size_t>(kMaxKnotsPerPlay))
+      throw std::runtime_error("model.input_map.knots_v: expected 1.." + std::to_string(kMaxKnotsPerPlay) + " knots");
+    knots.assign(r.size(), {});
+    if (!knots.empty()) knots[0] = k;
+    pieces = r.size() + k.size();
+  }
   if (node["preisach"]) {
     const YAML::Node pn = node["preisach"];
     if (!pn.IsMap()) throw std::runtime_error("model.preisach: expected a mapping");
@@ -294,7 +316,7 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
                               : expected == CreepKind::kLti     ? std::string("taus_s, gains_nm_per_v")
                               : expected == CreepKind::kProny   ? std::string("mode_gains, tau_min_s, ...")
                                                                 : std::string("alpha, b_nm_per_v, ...")));
-  return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots);
+  return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots, input_map);
 }
 
 // ---- classical inverse -------------------------------------------------------------------------

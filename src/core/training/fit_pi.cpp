@@ -501,10 +501,11 @@ struct Basis {
     }
     return out;
   }
-  double smoothing = 0;  // weight of the penalty on neighbouring pieces' differences (solve)
+  double smoothing = 0;    // weight of the penalty on neighbouring pieces' differences (solve)
+  bool input_map = false;  // a PI kind's input map: knots on the first play only
   std::unique_ptr<PiCreepModel> model(const std::vector<double>& w, double b, const CreepParams& cp,
                                       double rate) const {
-    return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots);
+    return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots, input_map);
   }
 };
 
@@ -862,12 +863,23 @@ std::vector<double> thresholds_for(const std::vector<double>& v, int n) {
 // The preisach kinds' knots: play i moves within [v_min + r_i, v_max − r_i] once the data has swept the span, cut
 // there into about K·(its width / the span) equal intervals (at least one), so the ramp hysterons tile the Preisach
 // triangle evenly; knots at the inner interval ends only, so the outer pieces stay identified and extrapolate.
-Basis basis_for(const std::vector<double>& v, std::vector<double> r, bool preisach, int knots_per_span) {
+// A PI kind's input map (input_map): the first play (r_0 = 0, the voltage itself) cut the same way, the others not.
+Basis basis_for(const std::vector<double>& v, std::vector<double> r, bool preisach, int knots_per_span,
+                bool input_map = false) {
   Basis hb;
   hb.r = std::move(r);
-  if (!preisach) return hb;
+  if (!preisach && !input_map) return hb;
   const auto [mn, mx] = std::minmax_element(v.begin(), v.end());
   const double span = std::max(1e-6, *mx - *mn);
+  if (input_map) {
+    std::vector<double> k;
+    for (int j = 1; j < knots_per_span; ++j) k.push_back(*mn + span * j / knots_per_span);
+    hb.knots.assign(hb.r.size(), {});
+    hb.knots[0] = k;
+    hb.input_map = !k.empty();
+    if (k.empty()) hb.knots.clear();
+    return hb;
+  }
   for (double ri : hb.r) {
     const double lo = *mn + ri, hi = *mx - ri;
     const int m = std::max(1, static_cast<int>(std::lround(knots_per_span * (hi - lo) / span)));
@@ -887,6 +899,7 @@ struct PiFitOptions {
   int alternations = 6, final_alternations = 6;
   std::string creep_input;           // voltage, hysteresis or auto
   int knots_per_span = 0;            // 0: the number of play operators, at most 12
+  std::string input_map = "off";     // PI kinds: off, on, or auto (by validation)
   double piece_smoothing = 0.1;
   bool thresholds_given = false, n_play_given = false;
   std::vector<double> thresholds_v;
@@ -959,6 +972,13 @@ PiFitOptions parse_pi_options(const YAML::Node& o, CreepKind kind, bool preisach
   p.knots_per_span = option_int(o, "knots_per_span", 0);
   if (p.knots_per_span < 0 || p.knots_per_span > kMaxKnotsPerPlay + 1)
     throw std::runtime_error("option 'knots_per_span': expected 1.." + std::to_string(kMaxKnotsPerPlay + 1));
+  // Off by default: it lowers the PI kinds' errors on asymmetric and Preisach stages but, chosen by validation on
+  // a 40-s recording, raises them on another recording of the same stage (docs/models.md, "Input map").
+  p.input_map = option_str(o, "input_map", "off");
+  if (p.input_map != "auto" && p.input_map != "on" && p.input_map != "off")
+    throw std::runtime_error("option 'input_map': expected auto, on or off, got '" + p.input_map + "'");
+  if (preisach && given(o, "input_map"))
+    throw std::runtime_error("option 'input_map': only for the PI kinds (the preisach kinds cut every play)");
   // Measured on the PI-hysteresis and Preisach creep-protocol stages (docs/models.md): 0.1 beats 0 on both.
   p.piece_smoothing = option_num(o, "piece_smoothing", 0.1);
   if (!(p.piece_smoothing >= 0 && p.piece_smoothing <= 1e6))
@@ -1040,7 +1060,7 @@ class PiCreepFit {
     if (req_.progress) req_.progress(std::min<double>(evals_, total_), total_, what);
   }
   CreepParams initial_creep() const;
-  Basis basis_n(std::vector<double> thresholds) const;
+  Basis basis_n(std::vector<double> thresholds, bool input_map = false) const;
   // One fit for given thresholds, creep input, sample weights and alternations. `alt` (training data only): where
   // its alternation stopped, and where it continues from when it stopped earlier with the same weights.
   std::unique_ptr<PiCreepModel> fit_with(const FitData& d, const Basis& r, bool on_h, int alternations,
@@ -1099,7 +1119,7 @@ PiCreepFit::PiCreepFit(const FitRequest& req, CreepKind kind, bool preisach)
   const double per_search = kind == CreepKind::kNone || kind == CreepKind::kProny ? 1
                             : kind == CreepKind::kLti                           ? 21.0 * opt_.n_pairs
                                                                                 : 17;
-  total_ = (per_search * 3 + 6 * (per_search + 2)) * (val_ ? 2 : 1) + 8;
+  total_ = (per_search * 3 + 6 * (per_search + 2)) * (val_ ? 2 : 1) + (preisach ? 8 : 15);
 }
 
 CreepParams PiCreepFit::initial_creep() const {
@@ -1134,10 +1154,10 @@ CreepParams PiCreepFit::initial_creep() const {
   return cp0;
 }
 
-Basis PiCreepFit::basis_n(std::vector<double> thresholds) const {
+Basis PiCreepFit::basis_n(std::vector<double> thresholds, bool input_map) const {
   const int n = static_cast<int>(thresholds.size());
   Basis b = basis_for(ax_.voltage_v, std::move(thresholds), preisach_,
-                      opt_.knots_per_span > 0 ? opt_.knots_per_span : std::min(n, 12));
+                      opt_.knots_per_span > 0 ? opt_.knots_per_span : std::min(n, 12), input_map && !preisach_);
   b.smoothing = opt_.piece_smoothing;
   return b;
 }
@@ -1297,11 +1317,27 @@ void PiCreepFit::search_lti_taus(CreepParams& cp, const SseFn& sse_of, bool refi
 }
 
 // Thresholds: given, or n_play given, or chosen by the validation error of PI + a prony spectrum on the voltage
-// (one linear solve per candidate; the choice is not blurred by creep a plain PI cannot follow): the fewest within
-// 0.2 % of the best.
+// (one linear solve per candidate; the choice is not blurred by creep a plain PI cannot follow); for the PI kinds,
+// with and without the input map (option input_map: auto). The fewest pieces within 0.2 % of the best.
 Basis PiCreepFit::choose_play_count() {
-  if (opt_.thresholds_given) return basis_n(opt_.thresholds_v);
-  if (opt_.n_play_given || !val_) return basis_n(thresholds_for(ax_.voltage_v, opt_.n_play));
+  // The input map's candidates: the PI kinds with a validation part try both (auto); given on or off, that one.
+  std::vector<bool> maps{opt_.input_map == "on"};
+  if (opt_.input_map == "auto" && !preisach_ && val_) maps = {false, true};
+  std::vector<std::vector<double>> counts;
+  if (opt_.thresholds_given) counts.push_back(opt_.thresholds_v);
+  else if (opt_.n_play_given || !val_) counts.push_back(thresholds_for(ax_.voltage_v, opt_.n_play));
+  else
+    // The preisach kinds have ~n·K/2 pieces: up to 20 play operators (K ≤ 12: 138 pieces).
+    for (int n : {4, 6, 8, 12, 16, 20, 24, 32}) {
+      if (static_cast<std::size_t>(n) * 20 > ax_.voltage_v.size() || (preisach_ && n > 20)) break;
+      if (!preisach_ && n == 20) continue;
+      counts.push_back(thresholds_for(ax_.voltage_v, n));
+    }
+  if (counts.empty()) counts.push_back(thresholds_for(ax_.voltage_v, 4));
+  std::vector<Basis> bases;
+  for (const auto& c : counts)
+    for (bool map : maps) bases.push_back(basis_n(c, map));
+  if (bases.size() == 1) return bases.front();
   CreepParams proxy;
   if (kind_ != CreepKind::kNone) {
     proxy.kind = CreepKind::kProny;
@@ -1309,28 +1345,22 @@ Basis PiCreepFit::choose_play_count() {
     proxy.tau_max_s = tau_hi_;
     proxy.modes_per_decade = 1;
   }
-  std::vector<std::pair<int, double>> tried;
-  // The preisach kinds have ~n·K/2 pieces: up to 20 play operators (K ≤ 12: 138 pieces).
-  for (int n : {4, 6, 8, 12, 16, 20, 24, 32}) {
-    if (static_cast<std::size_t>(n) * 20 > ax_.voltage_v.size() || (preisach_ && n > 20)) break;
-    if (!preisach_ && n == 20) continue;
-    const Basis rn = basis_n(thresholds_for(ax_.voltage_v, n));
-    const EvalResult e = evaluate(d_, rn, proxy, min_w0_);
+  std::vector<double> score;
+  for (const Basis& b : bases) {
+    const EvalResult e = evaluate(d_, b, proxy, min_w0_);
     report("PI thresholds");
     CreepParams c = proxy;
     c.set_coefficients(e.theta);
-    tried.emplace_back(n, validation_score(*rn.model(e.w, e.b, c, rate_), ax_, *val_, val_hold_).all);
+    score.push_back(validation_score(*b.model(e.w, e.b, c, rate_), ax_, *val_, val_hold_).all);
   }
-  if (tried.empty()) tried.emplace_back(4, 0.0);
-  double best = INFINITY;
-  for (const auto& t : tried) best = std::min(best, t.second);
-  int chosen_n = 0;
-  for (const auto& t : tried)
-    if (t.second <= 1.002 * best) {
-      chosen_n = t.first;
-      break;
-    }
-  return basis_n(thresholds_for(ax_.voltage_v, chosen_n));
+  // The fewest pieces within 0.2 % of the best (without the map first on a tie).
+  const double best = *std::min_element(score.begin(), score.end());
+  std::size_t chosen = 0;
+  for (std::size_t k = 0; k < bases.size(); ++k)
+    if (score[k] <= 1.002 * best &&
+        (score[chosen] > 1.002 * best || bases[k].pieces() < bases[chosen].pieces()))
+      chosen = k;
+  return bases[chosen];
 }
 
 // Creep input by validation (auto), else as given; `score` is the chosen model's validation score.
@@ -1419,6 +1449,7 @@ models::ModelPtr PiCreepFit::run() {
   m->meta.validation["fit_hold_weight"] = used_factor;
   m->meta.validation["fit_play_operators"] = static_cast<double>(r.r.size());
   if (preisach_) m->meta.validation["fit_preisach_pieces"] = static_cast<double>(r.pieces());
+  else m->meta.validation["fit_input_map_pieces"] = r.input_map ? static_cast<double>(r.knots[0].size() + 1) : 0.0;
   if (kind_ != CreepKind::kNone) m->meta.validation["fit_creep_on_hysteresis"] = m->creep().on_hysteresis ? 1 : 0;
   return m;
 }
