@@ -80,7 +80,7 @@ int run(int argc, char** argv) {
                 "fold and a carry-over fold (fitted again on the training part's first half, scored on its second);\n"
                 "within the noise the fewer parameters win; the table and the reason are printed and stored")
       .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm; kan is a default candidate)", "", true)
-      .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors)")
+      .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors) | voltage_lasso (the same among the candidates that read no position; the neural kinds' default)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
       .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")
       .option("set", "KEY=VALUE", "kind option (YAML value, e.g. method=lasso, thresholds_v=[0,10,20])", "", true)

@@ -69,7 +69,8 @@ Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c,
 
 // The feature spec a fit uses: options["features"] may be a set name ("study", "candidates", "physics",
 // "voltage_history": placed on req.train),
-// "lasso" (lasso with time-block CV over the candidates; the λ_1se survivors), or a full spec mapping.
+// "lasso" (lasso with time-block CV over the candidates placed on req.train; the λ_1se survivors), "voltage_lasso"
+// (the same over the candidates that read no position: the neural kinds' default), or a full spec mapping.
 // Missing = `default_set`. The result is standardised on req.train.
 features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set);
 

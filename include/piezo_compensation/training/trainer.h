@@ -121,7 +121,7 @@ SplitData split_for_validation(const FitRequest& request, double fraction = 0.1)
 namespace piezo::training {
 
 // Everything the neural kinds' fit functions need: the standardised feature spec (the request's `features`
-// option resolved by fit_common.h's resolve_features, default voltage_history placed on the training data), one-step feature matrices and standardised targets of both parts.
+// option resolved by fit_common.h's resolve_features, default voltage_lasso: the lasso's survivors among the voltage-only candidates placed on the training data), one-step feature matrices and standardised targets of both parts.
 struct PreparedData {
   features::FeatureSpec spec;
   double sample_rate_hz = 11.0;

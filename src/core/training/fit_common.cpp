@@ -166,22 +166,25 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
   const features::DataSpan span = io::data_span(*req.train, req.axis);
   const YAML::Node f = req.options ? req.options["features"] : YAML::Node();
   features::FeatureSpec spec;
-  if (!f || (f.IsScalar() && f.as<std::string>().empty())) {
-    spec = features::named_features(default_set, &span);
-  } else if (f.IsScalar()) {
-    const std::string name = f.as<std::string>();
-    if (name == "lasso") {
-      LassoSelection sel = run_lasso(features::candidate_features(&span), *req.train, req.axis, {}, req.progress);
-      spec = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
-      spec.mean.clear();
-      spec.scale.clear();
-    } else {
-      spec = features::named_features(name, &span);
-    }
+  const std::string name = !f ? default_set : f.IsScalar() ? (f.as<std::string>().empty() ? default_set : f.as<std::string>()) : "";
+  if (name == "lasso" || name == "voltage_lasso") {
+    // The lasso's survivors (λ_1se) among the candidates placed on the data; voltage_lasso: among those that read no
+    // position (a free run then needs no fed-back prediction).
+    features::FeatureSpec cands = features::candidate_features(&span);
+    if (name == "voltage_lasso")
+      cands.features.erase(std::remove_if(cands.features.begin(), cands.features.end(),
+                                          [](const features::FeatureDef& d) { return d.reads_position(); }),
+                           cands.features.end());
+    LassoSelection sel = run_lasso(cands, *req.train, req.axis, {}, req.progress);
+    spec = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
+    spec.mean.clear();
+    spec.scale.clear();
+  } else if (!name.empty()) {
+    spec = features::named_features(name, &span);
   } else if (f.IsMap()) {
     spec = features::FeatureSpec::from_yaml(f);
   } else {
-    throw std::runtime_error("option 'features': expected a set name (study, candidates, physics, voltage_history, lasso) or a spec");
+    throw std::runtime_error("option 'features': expected a set name (study, candidates, physics, voltage_history, lasso, voltage_lasso) or a spec");
   }
   if (spec.size() == 0) throw std::runtime_error("option 'features': the feature set is empty");
   return fit_standardisation(spec, *req.train, req.axis);

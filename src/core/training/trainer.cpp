@@ -235,7 +235,7 @@ PreparedData prepare_data(const FitRequest& request, const std::string& kind, co
   const SplitData split = split_for_validation(request, fraction);
   PreparedData p;
   p.sample_rate_hz = split.train.sample_rate_hz();
-  p.spec = resolve_features(request, "voltage_history");
+  p.spec = resolve_features(request, "voltage_lasso");
   if (p.spec.size() == 0) throw std::runtime_error("fit: the feature spec has no features");
   p.target = fit_target_scale(split.train.axis(request.axis).position_nm);
   auto targets = [&](const io::Dataset& d) {
