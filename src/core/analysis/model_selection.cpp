@@ -468,8 +468,9 @@ std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& e
     if (k.rfind("pi_creep_", 0) == 0) c.push_back({k, k, YAML::Node(), false});
   for (const auto& k : models::model_kind_names())
     if (k.rfind("preisach", 0) == 0) c.push_back({k, k, YAML::Node(), false});
-  // The KAN on its voltage-history features, on a fixed step budget (deterministic, bounded time): on short
-  // fast recordings (lowvolt_pi_creep, docs/models.md) it beats every kind above by a third.
+  // The KAN on its default features, on a fixed step budget (deterministic, bounded time). It joined when, on the
+  // fixed voltage_history features, it beat every kind above by a third on lowvolt_pi_creep's continuation; on the
+  // lasso's features (the default since) it is nowhere the best, and stays a candidate (docs/models.md).
   c.push_back({"kan", "kan", YAML::Load("{steps: 800, patience: 0}"), false});
   for (const auto& k : extra_kinds) {
     models::model_kind(k);  // throws listing the known kinds
