@@ -21,6 +21,7 @@ namespace {
 // --features: a named set, or lasso (chosen on the training part; its report written with --lasso-report).
 YAML::Node feature_option(const Args& args, const training::FitRequest& req) {
   const std::string set = args.str("features");
+  if (set == "voltage_lasso") return YAML::Node(set);  // chosen on the training part by the fit (training/fit_common.h)
   if (set != "lasso") {
     features::check_feature_set_name(set);  // validates the name
     return YAML::Node(set);

@@ -4,6 +4,7 @@
 
 #include <cmath>
 #include <random>
+#include <set>
 
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/dense_model.h"
@@ -136,7 +137,34 @@ TEST(DenseModel, MalformedNodesGiveOneClearError) {
   EXPECT_THROW(training::fit_model("dense", req), std::runtime_error);
 }
 
-TEST(DenseModel, DefaultFeaturesArePlacedOnTheDataSpanAndReadNoPositions) {
+// The default: the lasso's survivors among the voltage-only candidates placed on the training data; none kept (a
+// position that does not follow the voltage) is one error naming the cause.
+TEST(DenseModel, DefaultFeaturesAreTheLassosVoltageOnlySurvivors) {
+  io::Dataset data = test_data::hysteretic_dataset(3000, 5);
+  training::FitRequest req;
+  req.train = &data;
+  req.options = YAML::Load("{steps: 20, patience: 0}");
+  const models::ModelPtr m = training::fit_model("dense", req);
+  const YAML::Node f = m->to_yaml()["features"]["features"];
+  ASSERT_TRUE(f && f.size() > 0);
+  std::set<std::string> types;
+  for (const auto& e : f) types.insert(e["type"].as<std::string>());
+  EXPECT_FALSE(types.count("lagged_position") || types.count("position_mean"));
+  EXPECT_TRUE(types.count("voltage") || types.count("play") || types.count("play_hinge")) << f;
+  EXPECT_FALSE(m->uses_position_history());
+  // A disconnected sensor: the reading is noise whatever the voltage.
+  std::mt19937_64 rng(9);
+  std::normal_distribution<double> noise(0.0, 20.0);
+  for (double& y : data.axis("c").position_nm) y = noise(rng);
+  try {
+    training::fit_model("dense", req);
+    ADD_FAILURE() << "fitted a dense model on a position that does not follow the voltage";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("the lasso kept no candidate feature"), std::string::npos) << e.what();
+  }
+}
+
+TEST(DenseModel, VoltageHistoryFeaturesArePlacedOnTheDataSpanAndReadNoPositions) {
   const features::FeatureSpec s = features::voltage_history_features({0.0, 4.0, 40.0, 200.0});
   EXPECT_FALSE(s.uses_positions());
   std::vector<double> thresholds, taus;

@@ -164,7 +164,7 @@ FeatureSpec named_features(const std::string& name, const DataSpan* span) {
     if (!span) throw std::runtime_error("feature set 'voltage_history' is placed on the training data; none given");
     return voltage_history_features(*span);
   }
-  throw std::runtime_error("unknown feature set '" + name + "' (known: study, candidates, physics, voltage_history)");
+  throw std::runtime_error("unknown feature set '" + name + "' (known: study, candidates, physics, voltage_history; a fit also takes lasso and voltage_lasso)");
 }
 
 std::vector<std::string> feature_set_names() { return {"study", "candidates", "physics", "voltage_history"}; }

@@ -179,6 +179,10 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
     spec = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
     spec.mean.clear();
     spec.scale.clear();
+    if (spec.size() == 0)
+      throw std::runtime_error("features (" + name + "): the lasso kept no candidate feature at λ_1se: the measured "
+                               "position of axis " + req.axis + " does not follow the voltage in the training data "
+                               "(a disconnected sensor, or no motion?); a fixed set fits anyway (features=voltage_history)");
   } else if (!name.empty()) {
     spec = features::named_features(name, &span);
   } else if (f.IsMap()) {
