@@ -40,10 +40,18 @@ std::size_t train_samples() {
   return s ? static_cast<std::size_t>(std::atol(s)) : 1030000;  // 26 h at 11 Hz
 }
 
-features::FeatureSpec spec() {
-  // The neural kinds' default set, placed on the voltage sweep below (±70 V) and 26 h at 11 Hz. Identity
-  // standardisation: inference cost does not depend on the values.
-  return features::voltage_history_features({-70.0, 70.0, 26 * 3600.0, 11.0});
+// columns 0: the fixed voltage_history set (10 columns); N > 0: the first N voltage-only candidates (at most all
+// 66): the default (the lasso's voltage-only survivors) kept 8–29 on the recordings measured. Placed on the voltage
+// sweep below (±70 V) and 26 h at 11 Hz. Identity standardisation: inference cost does not depend on the values.
+features::FeatureSpec spec(long columns = 0) {
+  const features::DataSpan span{-70.0, 70.0, 26 * 3600.0, 11.0};
+  if (columns == 0) return features::voltage_history_features(span);
+  features::FeatureSpec s = features::candidate_features(&span);
+  s.features.erase(std::remove_if(s.features.begin(), s.features.end(),
+                                  [](const features::FeatureDef& d) { return d.reads_position(); }),
+                   s.features.end());
+  if (s.features.size() > static_cast<std::size_t>(columns)) s.features.resize(static_cast<std::size_t>(columns));
+  return s;
 }
 
 void run_inference(benchmark::State& state, models::Model& m) {
@@ -60,19 +68,24 @@ void run_inference(benchmark::State& state, models::Model& m) {
   state.SetItemsProcessed(state.iterations());
 }
 
+// Arg: the columns (spec).
 void BM_DenseInferencePerSample(benchmark::State& state) {
-  models::DenseShape s{static_cast<int>(spec().size()), 1, 10, 0.01};
-  models::DenseModel m(spec(), 11.0, s, models::DenseNet(s).initial_params(1), {});
+  const features::FeatureSpec f = spec(state.range(0));
+  models::DenseShape s{static_cast<int>(f.size()), 1, 10, 0.01};
+  models::DenseModel m(f, 11.0, s, models::DenseNet(s).initial_params(1), {});
+  state.counters["columns"] = static_cast<double>(f.size());
   run_inference(state, m);
 }
-BENCHMARK(BM_DenseInferencePerSample);
+BENCHMARK(BM_DenseInferencePerSample)->Arg(0)->Arg(29)->Arg(66);
 
 void BM_LstmInferencePerSample(benchmark::State& state) {
-  models::LstmShape s{static_cast<int>(spec().size()), 1, 29};
-  models::LstmModel m(spec(), 11.0, s, models::LstmNet(s).initial_params(1), {}, 16);
+  const features::FeatureSpec f = spec(state.range(0));
+  models::LstmShape s{static_cast<int>(f.size()), 1, 29};
+  models::LstmModel m(f, 11.0, s, models::LstmNet(s).initial_params(1), {}, 16);
+  state.counters["columns"] = static_cast<double>(f.size());
   run_inference(state, m);
 }
-BENCHMARK(BM_LstmInferencePerSample);
+BENCHMARK(BM_LstmInferencePerSample)->Arg(0)->Arg(29)->Arg(66);
 
 // One truncated-BPTT call as the trainer makes it: a shard of windows (a 32-window batch is split in two
 // shards), 16 warm-up + 32 scored steps, the default architecture; with the gradient (training) or without
@@ -101,14 +114,16 @@ void BM_LstmSequenceLossGrad(benchmark::State& state) {
 BENCHMARK(BM_LstmSequenceLossGrad)->Args({16, 1})->Args({100, 0});
 
 void BM_KanInferencePerSample(benchmark::State& state) {
+  const features::FeatureSpec f = spec(state.range(0));
   models::KanShape s;
-  s.widths = {static_cast<int>(spec().size()), 4, 1};
+  s.widths = {static_cast<int>(f.size()), 4, 1};
   models::KanNet net(s);
   const Eigen::VectorXd p = net.initial_params(1);
-  models::KanModel m(spec(), 11.0, net, p, {});
+  models::KanModel m(f, 11.0, net, p, {});
+  state.counters["columns"] = static_cast<double>(f.size());
   run_inference(state, m);
 }
-BENCHMARK(BM_KanInferencePerSample);
+BENCHMARK(BM_KanInferencePerSample)->Arg(0)->Arg(29)->Arg(64);  // the KAN takes at most 64 inputs
 
 // One full fit through the registry (features, standardisation, training with early stopping on the last
 // 10 %), the study's architecture and epochs, 2 threads.

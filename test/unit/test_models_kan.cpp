@@ -165,3 +165,21 @@ TEST(KanModel, TuningSearchesGridOrderAndWidth) {
   EXPECT_LE(h["order"].as<int>(), 4);
   EXPECT_EQ(m->to_yaml()["training"]["tuning"]["trials"].as<int>(), 2);
 }
+
+// The KAN takes at most KanNet::kMaxWidth inputs: a wider feature set (here 65 plays) is one error naming the count
+// and the remedy, before any training.
+TEST(KanModel, MoreInputsThanItTakesIsOneClearError) {
+  const io::Dataset data = test_data::hysteretic_dataset(800, 35);
+  training::FitRequest req;
+  req.train = &data;
+  YAML::Node list(YAML::NodeType::Sequence);
+  for (int i = 0; i < 65; ++i) list.push_back(YAML::Load("{type: play, threshold_v: " + std::to_string(0.1 * (i + 1)) + "}"));
+  req.options["features"]["features"] = list;
+  req.options["steps"] = 5;
+  try {
+    training::fit_model("kan", req);
+    ADD_FAILURE() << "a KAN with 65 inputs was fitted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("kan: 65 input features, at most 64"), std::string::npos) << e.what();
+  }
+}

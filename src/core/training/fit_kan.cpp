@@ -77,6 +77,10 @@ KanTrial train_kan(const training::PreparedData& data, const KanShape& shape, in
 
 std::unique_ptr<models::KanModel> fit_kan(const FitRequest& request) {
   const training::PreparedData data = training::prepare_data(request, "kan", {"width", "hidden_layers", "grid", "order", "grid_updates", "init"});
+  if (data.spec.size() > static_cast<std::size_t>(models::KanNet::kMaxWidth))
+    throw std::runtime_error("kan: " + std::to_string(data.spec.size()) + " input features, at most " +
+                             std::to_string(models::KanNet::kMaxWidth) +
+                             " (option 'features': a smaller set, e.g. voltage_history)");
   const int width = training::option_int(request.options, "width", 4);
   const int hidden_layers = training::option_int(request.options, "hidden_layers", 1);
   if (hidden_layers < 0 || hidden_layers > 4) throw std::runtime_error("option 'hidden_layers' must be in 0..4");
