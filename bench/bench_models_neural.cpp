@@ -46,10 +46,7 @@ std::size_t train_samples() {
 features::FeatureSpec spec(long columns = 0) {
   const features::DataSpan span{-70.0, 70.0, 26 * 3600.0, 11.0};
   if (columns == 0) return features::voltage_history_features(span);
-  features::FeatureSpec s = features::candidate_features(&span);
-  s.features.erase(std::remove_if(s.features.begin(), s.features.end(),
-                                  [](const features::FeatureDef& d) { return d.reads_position(); }),
-                   s.features.end());
+  features::FeatureSpec s = features::voltage_only(features::candidate_features(&span));
   if (s.features.size() > static_cast<std::size_t>(columns)) s.features.resize(static_cast<std::size_t>(columns));
   return s;
 }

@@ -28,6 +28,9 @@ FeatureSpec candidate_features(const DataSpan* span = nullptr);
 // voltage itself over the recording, and a fit may weight such near-copies hugely against each other: exact on
 // that recording, far off from any other start (docs/models.md, "Separate recording").
 FeatureSpec identifiable_on(const FeatureSpec& spec, const DataSpan& span);
+// `spec` without the features that read the measured position (FeatureDef::reads_position): what a free run can
+// compute from the voltage alone.
+FeatureSpec voltage_only(FeatureSpec spec);
 
 // Only voltage-history features (no positions): the candidates minus lagged positions. One-step = free-run.
 // Includes V² (asymmetry) and low-passed play outputs at 1 s … 8.3 h (creep of the hysteretic displacement).

@@ -167,6 +167,13 @@ FeatureSpec named_features(const std::string& name, const DataSpan* span) {
   throw std::runtime_error("unknown feature set '" + name + "' (known: study, candidates, physics, voltage_history; a fit also takes lasso and voltage_lasso)");
 }
 
+FeatureSpec voltage_only(FeatureSpec spec) {
+  spec.features.erase(std::remove_if(spec.features.begin(), spec.features.end(),
+                                     [](const FeatureDef& d) { return d.reads_position(); }),
+                      spec.features.end());
+  return spec;
+}
+
 std::vector<std::string> feature_set_names() { return {"study", "candidates", "physics", "voltage_history"}; }
 
 void check_feature_set_name(const std::string& name) {

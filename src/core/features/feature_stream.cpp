@@ -162,9 +162,11 @@ FeatureSpec FeatureSpec::from_yaml(const YAML::Node& node) {
     static const char* const kKeys[] = {"type", "window_s", "decay", "time_constant_s", "threshold_v", "knot_v", "lag_s", "signal"};
     for (const auto& kv : e) {
       const std::string key = kv.first.as<std::string>();
-      if (std::none_of(std::begin(kKeys), std::end(kKeys), [&](const char* k) { return key == k; }))
-        throw std::runtime_error("features[" + std::to_string(i) + "]." + key + ": unknown key (valid: type, window_s, "
-                                 "decay, time_constant_s, threshold_v, knot_v, lag_s, signal)");
+      if (std::none_of(std::begin(kKeys), std::end(kKeys), [&](const char* k) { return key == k; })) {
+        std::string valid;
+        for (const char* k : kKeys) valid += (valid.empty() ? "" : ", ") + std::string(k);
+        throw std::runtime_error("features[" + std::to_string(i) + "]." + key + ": unknown key (valid: " + valid + ")");
+      }
     }
     if (!e["type"]) throw std::runtime_error("features[" + std::to_string(i) + "].type: missing key");
     f.type = e["type"].as<std::string>();

@@ -171,10 +171,7 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
     // The lasso's survivors (λ_1se) among the candidates placed on the data; voltage_lasso: among those that read no
     // position (a free run then needs no fed-back prediction).
     features::FeatureSpec cands = features::candidate_features(&span);
-    if (name == "voltage_lasso")
-      cands.features.erase(std::remove_if(cands.features.begin(), cands.features.end(),
-                                          [](const features::FeatureDef& d) { return d.reads_position(); }),
-                           cands.features.end());
+    if (name == "voltage_lasso") cands = features::voltage_only(std::move(cands));
     LassoSelection sel = run_lasso(cands, *req.train, req.axis, {}, req.progress);
     spec = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
     spec.mean.clear();

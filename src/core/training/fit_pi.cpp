@@ -872,12 +872,10 @@ Basis basis_for(const std::vector<double>& v, std::vector<double> r, bool preisa
   const auto [mn, mx] = std::minmax_element(v.begin(), v.end());
   const double span = std::max(1e-6, *mx - *mn);
   if (input_map) {
-    std::vector<double> k;
-    for (int j = 1; j < knots_per_span; ++j) k.push_back(*mn + span * j / knots_per_span);
+    if (knots_per_span < 2) return hb;  // one piece: plain PI
     hb.knots.assign(hb.r.size(), {});
-    hb.knots[0] = k;
-    hb.input_map = !k.empty();
-    if (k.empty()) hb.knots.clear();
+    for (int j = 1; j < knots_per_span; ++j) hb.knots[0].push_back(*mn + span * j / knots_per_span);
+    hb.input_map = true;
     return hb;
   }
   for (double ri : hb.r) {
