@@ -561,9 +561,8 @@ TEST(StartStateTable, FittedOnOneSeedStartedMidMotionOnAnother) {
 }
 
 // A recurrent model's hidden state is reached by a synthetic pre-history, not by rest: an LSTM on the fixed
-// voltage_history features (the neural default until session 22: its hidden state carries the memory the 10 columns
-// lack, so rest is far off; on the lasso's default columns rest is as good, 97 nm) on the stage matrix's stack150_pi
-// separate recording (seed 22, cut at 2 s, window 1 s); the window played backwards (StartOptions::replay_window) is one more candidate, which may not
+// voltage_history features (its hidden state carries the memory those 10 columns lack, so rest is far off) on the
+// stage matrix's stack150_pi separate recording (seed 22, cut at 2 s, window 1 s); the window played backwards (StartOptions::replay_window) is one more candidate, which may not
 // make the start worse (figures in docs/models.md, "Start-up state estimate").
 TEST(StartStateTable, ALstmStartsFromASyntheticHistoryNotFromRest) {
   const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/stack150_pi.yaml");

@@ -468,9 +468,8 @@ std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& e
     if (k.rfind("pi_creep_", 0) == 0) c.push_back({k, k, YAML::Node(), false});
   for (const auto& k : models::model_kind_names())
     if (k.rfind("preisach", 0) == 0) c.push_back({k, k, YAML::Node(), false});
-  // The KAN on its default features, on a fixed step budget (deterministic, bounded time). It joined when, on the
-  // fixed voltage_history features, it beat every kind above by a third on lowvolt_pi_creep's continuation; on the
-  // lasso's features (the default since) it is nowhere the best, and stays a candidate (docs/models.md).
+  // The KAN on its default features, on a fixed step budget (deterministic, bounded time); why it is a candidate:
+  // docs/models.md, "The stage matrix".
   c.push_back({"kan", "kan", YAML::Load("{steps: 800, patience: 0}"), false});
   for (const auto& k : extra_kinds) {
     models::model_kind(k);  // throws listing the known kinds
