@@ -3,6 +3,7 @@
 #include <random>
 
 #include "piezo_compensation/features/feature_specs.h"
+#include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/lasso.h"
 #include "test_models_data.h"
 
@@ -106,4 +107,45 @@ TEST(Lasso, SelectsPlantedFeaturesFromCandidatesOnStreamedData) {
   const std::string report = lasso_report(sel.spec, sel.path);
   EXPECT_NE(report.find(play.name()), std::string::npos);
   EXPECT_NE(report.find("λ_1se"), std::string::npos);
+}
+
+// Several fits on one data set (model selection's dense, KAN and LSTM all read voltage_lasso) resolve each lasso
+// set once; another slice (the carry-over fold's half) is another entry, so a fold never takes a selection made on
+// rows it holds out; without a cache every fit runs its own lasso, with the same result.
+TEST(Lasso, ACacheResolvesEachSetOncePerDataSet) {
+  const auto v = testdata::random_walk_v(6000, 11);
+  io::Dataset d;
+  io::AxisSeries& c = d.add_axis("c");
+  for (std::size_t i = 0; i < v.size(); ++i) d.time_s.push_back(i / 11.0);
+  c.voltage_v = v;
+  std::mt19937_64 rng(2);
+  std::normal_distribution<double> noise(0, 5);
+  for (double x : v) c.position_nm.push_back(30 * x + 0.02 * x * std::abs(x) + noise(rng));
+  LassoFeatureCache cache;
+  FitRequest rq;
+  rq.train = &d;
+  rq.options = YAML::Load("{features: voltage_lasso}");
+  const features::FeatureSpec plain = resolve_features(rq, "study");
+  rq.lasso_cache = &cache;
+  const features::FeatureSpec first = resolve_features(rq, "study");
+  const features::FeatureSpec again = resolve_features(rq, "study");
+  EXPECT_EQ(cache.lassos_run(), 1u);
+  ASSERT_EQ(first.size(), plain.size());
+  ASSERT_EQ(again.size(), plain.size());
+  for (std::size_t j = 0; j < plain.size(); ++j) {
+    EXPECT_EQ(first.features[j].name(), plain.features[j].name());
+    EXPECT_EQ(again.features[j].name(), plain.features[j].name());
+    EXPECT_EQ(again.mean[j], plain.mean[j]);
+    EXPECT_EQ(again.scale[j], plain.scale[j]);
+  }
+  const io::Dataset half = d.slice(0, d.size() / 2);
+  rq.train = &half;
+  resolve_features(rq, "study");
+  EXPECT_EQ(cache.lassos_run(), 2u) << "a slice is other data: its own lasso";
+  rq.options = YAML::Load("{features: lasso}");
+  resolve_features(rq, "study");
+  EXPECT_EQ(cache.lassos_run(), 3u) << "another set on the same data: its own lasso";
+  rq.options = YAML::Load("{features: voltage_history}");
+  resolve_features(rq, "study");
+  EXPECT_EQ(cache.lassos_run(), 3u) << "a fixed set runs no lasso";
 }

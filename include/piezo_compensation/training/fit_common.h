@@ -6,6 +6,8 @@
 #include <Eigen/Dense>
 
 #include <functional>
+#include <map>
+#include <mutex>
 #include <string>
 #include <vector>
 
@@ -72,7 +74,26 @@ Eigen::VectorXd solve_normal(const Eigen::MatrixXd& G, const Eigen::VectorXd& c,
 // "lasso" (lasso with time-block CV over the candidates placed on req.train; the λ_1se survivors), "voltage_lasso"
 // (the same over the candidates that read no position: the neural kinds' default), or a full spec mapping.
 // Missing = `default_set`. The result is standardised on req.train.
+// With req.lasso_cache, a lasso set already resolved on the same data (same set, axis and data fingerprint) is
+// taken from it instead of running the lasso again.
 features::FeatureSpec resolve_features(const FitRequest& req, const std::string& default_set);
+
+// The lasso's survivors per (set, axis, training data), before standardisation: several fits on one data set
+// (dense, KAN and LSTM all default to voltage_lasso; model selection fits them on the training part and again on
+// its first half) run each lasso once. Keyed by the data's fingerprint (its values, not its address), so another
+// slice is another entry and a fold never sees a selection made on rows it holds out.
+class LassoFeatureCache {
+ public:
+  // The spec resolved for `key`, or the result of resolve() stored under it (resolve's exceptions pass, nothing
+  // is stored then).
+  features::FeatureSpec get(const std::string& key, const std::function<features::FeatureSpec()>& resolve);
+  std::size_t lassos_run() const { return runs_; }  // how many times resolve() was called
+
+ private:
+  std::mutex mutex_;
+  std::map<std::string, features::FeatureSpec> specs_;
+  std::size_t runs_ = 0;
+};
 
 // Meta common to all kinds: axis, rate, fingerprint and source of the training data, creation time.
 models::ModelMeta make_meta(const FitRequest& req);

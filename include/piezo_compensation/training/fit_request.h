@@ -11,6 +11,8 @@
 
 namespace piezo::training {
 
+class LassoFeatureCache;  // fit_common.h
+
 // Progress of a long fit: done/total in the fit's own unit (epochs, trials, λ values), for the progress bar.
 using ProgressFn = std::function<void(double done, double total, const std::string& what)>;
 
@@ -24,6 +26,9 @@ struct FitRequest {
   std::uint64_t seed = 1;
   int threads = 2;
   ProgressFn progress;                       // may be empty
+  // Optional: the lasso feature sets ("lasso", "voltage_lasso") of fits on the same data, resolved once for all of
+  // them (model selection's candidates); null: each fit runs its own lasso. Not owned.
+  LassoFeatureCache* lasso_cache = nullptr;
 };
 
 }  // namespace piezo::training

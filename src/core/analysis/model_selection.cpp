@@ -501,8 +501,9 @@ void rescore(SlowScore& s, const SlowErrors& blocks, const SlowScoreOptions& o) 
 }
 
 training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidate& c, const io::Dataset& train,
-                                 const io::Dataset* validation) {
+                                 const io::Dataset* validation, training::LassoFeatureCache* lasso_cache) {
   training::FitRequest fr;
+  fr.lasso_cache = lasso_cache;
   fr.train = &train;
   fr.validation = validation;
   fr.axis = rq.axis;
@@ -517,7 +518,8 @@ training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidat
 // the training part alone (their last fifth the fit's validation when the selection has one; the lasso candidate's
 // features chosen again on them), scored on the second half. A fit that fails or returns nothing there leaves the
 // column empty (align_carry_over then drops it for every candidate).
-void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const SlowScoreOptions& o, SlowScore& s) {
+void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const SlowScoreOptions& o, SlowScore& s,
+                    training::LassoFeatureCache* lasso_cache) {
   const io::Dataset& train = *rq.train;
   const std::size_t half = train.size() / 2;
   if (!o.carry_fold || half < 2 * static_cast<std::size_t>(std::max(1, o.min_blocks))) return;
@@ -532,7 +534,7 @@ void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const S
       half_c.options["features"] = lasso_linear_options(fit_part, rq.axis, {})["features"];
     }
     const models::ModelPtr m =
-        training::fit_model(c.kind, fit_request(rq, half_c, fit_part, rq.validation ? &val_part : nullptr));
+        training::fit_model(c.kind, fit_request(rq, half_c, fit_part, rq.validation ? &val_part : nullptr, lasso_cache));
     if (!m) return;
     b.carry = carry_over_errors(*m, train, half, rq.axis, o);
   } catch (const std::exception&) {
@@ -583,7 +585,7 @@ Identification check_identification(const SelectionRequest& rq, const ModelCandi
     const double noise = estimate_block_noise(rq);
     if (std::isfinite(noise) && noise > 0.0) o.noise_nm = noise;
     SlowScore s = slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
-    add_carry_over(rq, c, o, s);
+    add_carry_over(rq, c, o, s, nullptr);
     return identification(s, noise);
   } catch (const std::exception& e) {
     id.unchecked = std::string("the check failed: ") + e.what();
@@ -638,6 +640,8 @@ Selection select_model(const SelectionRequest& rq) {
   sel.block_noise_nm = estimate_block_noise(rq);
   if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
   const std::vector<ModelCandidate> cands = rq.candidates.empty() ? default_candidates() : rq.candidates;
+  // The neural candidates' voltage_lasso is resolved once on the training part and once on its half (the fold's own).
+  training::LassoFeatureCache lasso_cache;
   for (std::size_t k = 0; k < cands.size(); ++k) {
     CandidateResult r;
     r.candidate = cands[k];
@@ -647,7 +651,7 @@ Selection select_model(const SelectionRequest& rq) {
     try {
       if (!training::fitter(r.candidate.kind)) throw std::runtime_error("kind cannot be fitted on its own");
       if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
-      m = training::fit_model(r.candidate.kind, fit_request(rq, r.candidate, *rq.train, rq.validation));
+      m = training::fit_model(r.candidate.kind, fit_request(rq, r.candidate, *rq.train, rq.validation, &lasso_cache));
       if (!m) throw std::runtime_error("the fit returned no model");
       m->meta.axis = rq.axis;
       m->meta.sample_rate_hz = rq.train->sample_rate_hz();
@@ -657,7 +661,7 @@ Selection select_model(const SelectionRequest& rq) {
       r.refused = sanity_problem(*m, &r.score, sel.scale);
       if (r.refused.empty()) {
         r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
-        add_carry_over(rq, r.candidate, sel.slow_options, r.slow);
+        add_carry_over(rq, r.candidate, sel.slow_options, r.slow, &lasso_cache);
       }
     } catch (const std::exception& e) {
       r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();

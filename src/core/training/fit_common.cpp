@@ -170,12 +170,17 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
   if (name == "lasso" || name == "voltage_lasso") {
     // The lasso's survivors (λ_1se) among the candidates placed on the data; voltage_lasso: among those that read no
     // position (a free run then needs no fed-back prediction).
-    features::FeatureSpec cands = features::candidate_features(&span);
-    if (name == "voltage_lasso") cands = features::voltage_only(std::move(cands));
-    LassoSelection sel = run_lasso(cands, *req.train, req.axis, {}, req.progress);
-    spec = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
-    spec.mean.clear();
-    spec.scale.clear();
+    const auto run = [&] {
+      features::FeatureSpec cands = features::candidate_features(&span);
+      if (name == "voltage_lasso") cands = features::voltage_only(std::move(cands));
+      LassoSelection sel = run_lasso(cands, *req.train, req.axis, {}, req.progress);
+      features::FeatureSpec chosen = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
+      chosen.mean.clear();
+      chosen.scale.clear();
+      return chosen;
+    };
+    spec = req.lasso_cache ? req.lasso_cache->get(name + "|" + req.axis + "|" + util::fingerprint(*req.train), run)
+                           : run();
     if (spec.size() == 0)
       throw std::runtime_error("features (" + name + "): the lasso kept no candidate feature at λ_1se: the measured "
                                "position of axis " + req.axis + " does not follow the voltage in the training data "
@@ -189,6 +194,15 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
   }
   if (spec.size() == 0) throw std::runtime_error("option 'features': the feature set is empty");
   return fit_standardisation(spec, *req.train, req.axis);
+}
+
+features::FeatureSpec LassoFeatureCache::get(const std::string& key,
+                                             const std::function<features::FeatureSpec()>& resolve) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto it = specs_.find(key);
+  if (it != specs_.end()) return it->second;
+  ++runs_;
+  return specs_.emplace(key, resolve()).first->second;
 }
 
 std::string utc_now_iso8601() {
