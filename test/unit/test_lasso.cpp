@@ -24,6 +24,15 @@ GramStats stats(const Eigen::MatrixXd& X, const Eigen::VectorXd& y, Eigen::Index
   g.sxx = Xb.transpose() * Xb;
   return g;
 }
+
+// Axis c of a data set at 11 Hz driven by testdata's random walk (positions left to the test).
+io::Dataset walk_dataset(std::size_t n, std::uint64_t seed) {
+  io::Dataset d;
+  io::AxisSeries& c = d.add_axis("c");
+  c.voltage_v = testdata::random_walk_v(n, seed);
+  for (std::size_t i = 0; i < n; ++i) d.time_s.push_back(i / 11.0);
+  return d;
+}
 }  // namespace
 
 TEST(Lasso, SoftThresholdOnOrthogonalDesign) {
@@ -79,11 +88,9 @@ TEST(Lasso, SelectsPlantedFeaturesFromCandidatesOnStreamedData) {
   lp.type = "lowpass";
   lp.time_constant_s = 36;
   planted.features = {play, lp};
-  const auto v = testdata::random_walk_v(30000, 7);
-  io::Dataset d;
-  io::AxisSeries& c = d.add_axis("c");
-  for (std::size_t i = 0; i < v.size(); ++i) d.time_s.push_back(i / 11.0);
-  c.voltage_v = v;
+  io::Dataset d = walk_dataset(30000, 7);
+  io::AxisSeries& c = d.axis("c");
+  const std::vector<double>& v = c.voltage_v;
   std::mt19937_64 rng(1);
   std::normal_distribution<double> noise(0, 5);
   c.position_nm.assign(v.size(), 0.0);
@@ -113,14 +120,11 @@ TEST(Lasso, SelectsPlantedFeaturesFromCandidatesOnStreamedData) {
 // set once; another slice (the carry-over fold's half) is another entry, so a fold never takes a selection made on
 // rows it holds out; without a cache every fit runs its own lasso, with the same result.
 TEST(Lasso, ACacheResolvesEachSetOncePerDataSet) {
-  const auto v = testdata::random_walk_v(6000, 11);
-  io::Dataset d;
-  io::AxisSeries& c = d.add_axis("c");
-  for (std::size_t i = 0; i < v.size(); ++i) d.time_s.push_back(i / 11.0);
-  c.voltage_v = v;
+  io::Dataset d = walk_dataset(6000, 11);
+  io::AxisSeries& c = d.axis("c");
   std::mt19937_64 rng(2);
   std::normal_distribution<double> noise(0, 5);
-  for (double x : v) c.position_nm.push_back(30 * x + 0.02 * x * std::abs(x) + noise(rng));
+  for (double x : c.voltage_v) c.position_nm.push_back(30 * x + 0.02 * x * std::abs(x) + noise(rng));
   LassoFeatureCache cache;
   FitRequest rq;
   rq.train = &d;
