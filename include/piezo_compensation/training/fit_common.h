@@ -87,10 +87,13 @@ class LassoFeatureCache {
   // The spec resolved for `key`, or the result of resolve() stored under it (resolve's exceptions pass, nothing
   // is stored then).
   features::FeatureSpec get(const std::string& key, const std::function<features::FeatureSpec()>& resolve);
-  std::size_t lassos_run() const { return runs_; }  // how many times resolve() was called
+  std::size_t lassos_run() const {  // how many times resolve() was called
+    std::lock_guard<std::mutex> lock(mutex_);
+    return runs_;
+  }
 
  private:
-  std::mutex mutex_;
+  mutable std::mutex mutex_;
   std::map<std::string, features::FeatureSpec> specs_;
   std::size_t runs_ = 0;
 };
