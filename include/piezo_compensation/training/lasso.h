@@ -53,4 +53,10 @@ struct LassoSelection {
 LassoSelection run_lasso(const features::FeatureSpec& candidates, const io::Dataset& data, const std::string& axis,
                          const LassoOptions& opt = {}, const ProgressFn& progress = {});
 
+// The features a lasso fit keeps: run_lasso's survivors at λ_1se, unstandardised (mean and scale cleared, for the
+// fit that uses them to standardise on its own data); `report` (optional): lasso_report of the selection.
+features::FeatureSpec lasso_survivors(const features::FeatureSpec& candidates, const io::Dataset& data,
+                                      const std::string& axis, const ProgressFn& progress = {},
+                                      std::string* report = nullptr);
+
 }  // namespace piezo::training

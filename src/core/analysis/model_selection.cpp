@@ -449,12 +449,9 @@ void check_fit_sanity(const models::Model& model, const ValidationScore* score, 
 YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const training::ProgressFn& progress,
                                 std::string* report, std::size_t* kept) {
   const features::DataSpan span = io::data_span(train, axis);
-  const auto sel = training::run_lasso(features::candidate_features(&span), train, axis, {}, progress);
-  features::FeatureSpec chosen = training::select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
-  if (report) *report = training::lasso_report(sel.spec, sel.path);
+  const features::FeatureSpec chosen = training::lasso_survivors(features::candidate_features(&span), train, axis,
+                                                                  progress, report);
   if (kept) *kept = chosen.size();
-  chosen.mean.clear();
-  chosen.scale.clear();
   YAML::Node o(YAML::NodeType::Map);
   o["features"] = chosen.to_yaml();
   return o;

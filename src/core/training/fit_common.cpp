@@ -173,11 +173,7 @@ features::FeatureSpec resolve_features(const FitRequest& req, const std::string&
     const auto run = [&] {
       features::FeatureSpec cands = features::candidate_features(&span);
       if (name == "voltage_lasso") cands = features::voltage_only(std::move(cands));
-      LassoSelection sel = run_lasso(cands, *req.train, req.axis, {}, req.progress);
-      features::FeatureSpec chosen = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
-      chosen.mean.clear();
-      chosen.scale.clear();
-      return chosen;
+      return lasso_survivors(cands, *req.train, req.axis, req.progress);
     };
     spec = req.lasso_cache ? req.lasso_cache->get(name + "|" + req.axis + "|" + util::fingerprint(*req.train), run)
                            : run();

@@ -166,4 +166,14 @@ LassoSelection run_lasso(const features::FeatureSpec& candidates, const io::Data
   return sel;
 }
 
+features::FeatureSpec lasso_survivors(const features::FeatureSpec& candidates, const io::Dataset& data,
+                                      const std::string& axis, const ProgressFn& progress, std::string* report) {
+  const LassoSelection sel = run_lasso(candidates, data, axis, {}, progress);
+  features::FeatureSpec chosen = select_features(sel.spec, sel.path.coefs[sel.path.index_1se]);
+  if (report) *report = lasso_report(sel.spec, sel.path);
+  chosen.mean.clear();
+  chosen.scale.clear();
+  return chosen;
+}
+
 }  // namespace piezo::training
