@@ -148,6 +148,47 @@ TEST(StartState, AtRestNoWorseThanOffsetOnly) {
   EXPECT_LE(est.score.mae_meas, 1.05 * plain.score.mae_meas + 0.5);
 }
 
+// (b2) One estimate, one offset, in either prediction mode: `piezo eval --anchor-s` streams one-step and copies
+// it as the free run of a model that reads no position, and took the one-step offset as the plain window mean,
+// which the rows the estimate weights little (where the unknown history still moves the prediction) pulled away:
+// the low-voltage PI stage's 12-play fit on seed 22 from its start, 2-s window: offset 1830 nm against the
+// estimate's -116 nm, MAE after the window 2044 against 130 nm. A model that reads the position: its one-step
+// offset is the window mean under the estimate's row weights.
+TEST(StartState, OneStepAndFreeRunShareTheEstimatesOffset) {
+  const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/lowvolt_pi.yaml");
+  const io::Dataset all = sim::simulate_stage(stage, 21, 0.0);
+  const std::size_t n_train = all.size() * 4 / 5;
+  const io::Dataset train = all.slice(0, n_train), val = all.slice(n_train, all.size());
+  training::FitRequest req;
+  req.train = &train;
+  req.validation = &val;
+  req.options = YAML::Load("{n_play: 12, input_map: 'off'}");
+  const models::ModelPtr m = training::fit_model("pi", req);
+  ASSERT_FALSE(m->uses_position_history());
+  const io::Dataset rec = sim::simulate_stage(stage, 22, 20.0);
+  models::StreamOptions so;
+  so.anchor_s = 2.0;
+  models::ModelPtr a = m->clone(), b = m->clone();
+  const models::StreamResult free = models::stream_model(*a, rec, "c", so);
+  so.mode = models::PredictionMode::kOneStep;
+  const models::StreamResult one = models::stream_model(*b, rec, "c", so);
+  ASSERT_GT(free.start.candidates, 10u);
+  ASSERT_EQ(free.start.window_weight.size(), free.first_scored);
+  EXPECT_EQ(one.anchor_offset_nm, free.anchor_offset_nm);
+  for (std::size_t i = 0; i < rec.size(); i += 97) ASSERT_EQ(one.prediction[i], free.prediction[i]) << "row " << i;
+  // The plain mean would differ here by far more than the noise (the case this test keeps fixed).
+  const models::WindowFit plain = models::window_offset(rec.axis("c").position_nm.data(),
+                                                        [&] {
+                                                          std::vector<double> p = free.prediction;
+                                                          for (double& x : p) x -= free.anchor_offset_nm;
+                                                          return p;
+                                                        }().data(),
+                                                        free.first_scored);
+  std::cout << "estimate's offset " << free.anchor_offset_nm << " nm, plain window mean " << plain.offset_nm << " nm\n";
+  EXPECT_GT(std::abs(plain.offset_nm - free.anchor_offset_nm), 200.0);
+  EXPECT_LT(score_after(one.prediction, rec, one.first_scored).mae_true, 300.0);
+}
+
 // (d) The creep modes' states are fitted on the window (Model::linear_state_count), not only chosen among the
 // synthetic histories: a stage that rested 2000 s at 12 V (a voltage no candidate rests at) and then moved for
 // 5 min before the recording starts. The truth is the model itself (σ 5 nm readings), so only the state is unknown;

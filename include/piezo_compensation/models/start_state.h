@@ -87,6 +87,10 @@ struct StartEstimate {
   // weights and the residuals' correlation; rest's), the one with the smallest |offset|, rest first on a tie.
   double spread_end_nm = 0.0;         // the candidates' spread at the window's last row (0 for offset only)
   std::size_t window_rows = 0;        // rows in the window (scoring starts at this row)
+  // The row weights of the window fit, 1/(σ² + (spread/2)²) per window row (empty for offset only: equal weights).
+  // A stream of the same start in another mode (one-step, with the measured position fed back) takes its offset
+  // as the mean of measured − predicted under these weights (models/model_stream.h).
+  std::vector<double> window_weight;
   // The linear-state fit (StartOptions::fit_linear_states): states fitted (0: the kind has none, or every candidate
   // puts them at one place) and the largest |shift| [nm] of one state's share of the prediction.
   std::size_t linear_states = 0;

@@ -132,14 +132,27 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
   stream_rows(model, data, axis, o, &r.prediction);
   if (anchor) {
     const std::size_t k = r.first_scored;
-    // A free run from the estimate is the estimate's own stream: its offset stands. Otherwise (one-step, or a warm
-    // start without the estimate) the offset of this stream over the window; the rest of the report is the estimate's.
+    // A free run from the estimate is the estimate's own stream: its offset stands, and so does a one-step stream's
+    // of a model that reads no position (the same computation). A one-step stream of a model that reads the
+    // position: the mean of measured − predicted over the window under the estimate's row weights (the rows where
+    // the unknown history still moves the prediction count little, as in the estimate). A warm start without the
+    // estimate: the plain mean over the window. The rest of the report is the estimate's.
     r.start.window_rows = k;
-    if (r.start.candidates == 0 || o.mode != PredictionMode::kFreeRun) {
-      const WindowFit f = window_offset(data.axis(axis).position_nm.data(), r.prediction.data(), k);
+    const double* y = data.axis(axis).position_nm.data();
+    if (r.start.candidates == 0) {
+      const WindowFit f = window_offset(y, r.prediction.data(), k);
       r.start.offset_nm = f.offset_nm;
       r.start.offset_sigma_nm = f.sigma_nm;
       r.start.rms_nm = f.rms_nm;
+    } else if (o.mode != PredictionMode::kFreeRun && model.uses_position_history()) {
+      const std::vector<double>& w = r.start.window_weight;
+      if (w.size() == k) {
+        double sw = 0, swr = 0;
+        for (std::size_t i = 0; i < k; ++i) sw += w[i], swr += w[i] * (y[i] - r.prediction[i]);
+        r.start.offset_nm = swr / sw;
+      } else {
+        r.start.offset_nm = window_offset(y, r.prediction.data(), k).offset_nm;
+      }
     }
     if (r.start.candidates == 0) r.start.rms_rest_nm = r.start.rms_nm, r.start.candidate = "warm (continued history)";
     r.anchor_offset_nm = r.start.offset_nm;

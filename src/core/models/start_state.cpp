@@ -545,6 +545,7 @@ StartEstimate estimate_start(const Model& model, const io::Dataset& data, const 
     e = choose_start(preds, y, k, &chosen, &w);
     e.history = cands[chosen];
     if (o.fit_linear_states) fit_linear_states(model, data, axis, window, cands, preds, states, chosen, w, &e);
+    e.window_weight = std::move(w);
   } else {  // offset only: rest, the plain mean over the window
     const WindowFit f = window_offset(y, preds[0].data(), k);
     e.history = cands[0];
