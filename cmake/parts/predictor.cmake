@@ -47,3 +47,5 @@ if(CATKIN_ENABLE_TESTING)
   piezo_test_budget(cli_track_smoke)
 endif()
 piezo_slow_tests(test_hold_trim)  # simulates 8 h of the foreign stage and runs the shipped Preisach model over it
+# Resuming a model on the run before's recorded history (compensation/resume.h, the predictor's ~resume_from).
+piezo_unit_test(test_compensation_resume test/unit/test_compensation_resume.cpp)

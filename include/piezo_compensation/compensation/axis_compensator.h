@@ -93,6 +93,12 @@ class AxisCompensator {
   // or, with `warm`, keeps the state it has (the caller streamed it over the recent samples).
   void replace_model(models::ModelPtr model, const IdealLine& line, bool warm = false);
 
+  // Start from a resumed model (compensation/resume.h: the state its recorded history left, held to now) instead of
+  // at rest at the first sample: call before the first sample; that sample then predicts from this state. No start
+  // estimate is made (start_estimate_status() says why: `status`). Throws std::logic_error once started.
+  void start_resumed(models::ModelPtr model, double last_applied_v, double predicted_nm, const std::string& status);
+  bool resumed() const { return resumed_; }
+
   const models::Model& model() const { return *model_; }
   const IdealLine& ideal_line() const { return line_; }
   bool started() const { return started_; }
@@ -127,6 +133,7 @@ class AxisCompensator {
   std::optional<models::StartEstimate> start_estimate_;
   std::string start_status_;
   bool start_done_ = false;
+  bool resumed_ = false;
 
   models::ModelPtr model_;
   const models::AugmentedModel* augmented_ = nullptr;   // model_ when it is augmented (for its base's part)

@@ -252,6 +252,24 @@ CommandUpdate AxisCompensator::command(bool compensate) {
   return c;
 }
 
+void AxisCompensator::start_resumed(models::ModelPtr model, double last_applied_v, double predicted_nm,
+                                    const std::string& status) {
+  if (started_) throw std::logic_error("AxisCompensator: start_resumed after the first sample");
+  if (!model) throw std::invalid_argument("AxisCompensator: no model");
+  if (!std::isfinite(last_applied_v) || !std::isfinite(predicted_nm))
+    throw std::invalid_argument("AxisCompensator: start_resumed with a non-finite voltage or position");
+  check_model(*model);
+  model_ = std::move(model);
+  set_inputs_for(*model_);
+  set_estimator_for(*model_);
+  started_ = true;
+  resumed_ = true;
+  last_applied_v_ = last_applied_v;
+  last_predicted_nm_ = predicted_nm;
+  start_done_ = true;
+  start_status_ = "no start estimate: " + status;
+}
+
 void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& line, bool warm) {
   if (!model) throw std::invalid_argument("AxisCompensator: no model");
   check_model(*model);

@@ -1,0 +1,99 @@
+#include "piezo_compensation/compensation/resume.h"
+
+#include <algorithm>
+#include <cmath>
+#include <sstream>
+
+#include "piezo_compensation/models/model_stream.h"
+
+namespace piezo::compensation {
+
+namespace {
+
+std::string fmt(double x, int digits) {
+  std::ostringstream s;
+  s.precision(digits);
+  s << x;
+  return s.str();
+}
+
+template <class T>
+void repeat_last(std::vector<T>& v, std::size_t m) {
+  if (!v.empty()) v.assign(m, v.back());
+}
+
+// m rows of `last` (one row) held: every column repeated, time from t0 on at step dt.
+io::Dataset held_rows(const io::Dataset& last, std::size_t m, double t0, double dt) {
+  io::Dataset d = last;
+  d.time_s.resize(m);
+  for (std::size_t i = 0; i < m; ++i) d.time_s[i] = t0 + dt * static_cast<double>(i);
+  for (auto& a : d.axes) repeat_last(a.voltage_v, m), repeat_last(a.position_nm, m), repeat_last(a.true_position_nm, m);
+  for (auto& x : d.aux) repeat_last(x.values, m);
+  repeat_last(d.segment, m);
+  repeat_last(d.phase, m);
+  return d;
+}
+
+Resume refused(std::string why) {
+  Resume r;
+  r.status = "not resumed: " + std::move(why);
+  return r;
+}
+
+}  // namespace
+
+Resume resume_model(const models::Model& model, const io::Dataset& history, const std::string& axis, double now_s,
+                    double now_v, const ResumeOptions& o) {
+  const std::string src = history.source_or_data();
+  if (history.size() < 2) return refused(src + " holds fewer than 2 rows");
+  if (!history.has_axis(axis)) return refused(src + " has no axis " + axis);
+  const io::AxisSeries& ax = history.axis(axis);
+  const std::size_t n = history.size();
+  const double last_v = ax.voltage_v[n - 1], end_s = history.time_s[n - 1];
+  const double gap_s = now_s - end_s;
+  if (!std::isfinite(now_s) || !std::isfinite(now_v)) return refused("the time or voltage now is not finite");
+  if (!(gap_s >= 0.0))
+    return refused("now (" + fmt(now_s, 12) + " s) is before the end of " + src + " (" + fmt(end_s, 12) +
+                   " s): another clock, or not the run before");
+  if (gap_s > o.max_gap_s)
+    return refused(fmt(gap_s, 4) + " s since the end of " + src + ", more than " + fmt(o.max_gap_s, 4) + " s");
+  if (!(std::abs(now_v - last_v) <= o.voltage_tolerance_v))
+    return refused(axis + " is at " + fmt(now_v, 6) + " V, " + src + " ended at " + fmt(last_v, 6) + " V (more than " +
+                   fmt(o.voltage_tolerance_v, 3) + " V apart: the stage moved while nothing recorded it)");
+  const double dt = io::median_step_s(history.time_s);
+  if (!(dt > 0.0)) return refused(src + " has no sample period");
+  models::ModelPtr m = model.clone();
+  double last_nm = 0.0;
+  try {
+    models::StreamOptions so;  // reset at rest at the first row, free run
+    std::vector<double> p = models::stream_model(*m, history, axis, so).prediction;
+    last_nm = p.back();
+    // The hold: the samples between the history's last row and now (now's own sample is the caller's next), in
+    // chunks through the same path (state continued), at most 10^5 rows in memory at a time.
+    const double steps = std::round(gap_s / dt);
+    const std::size_t rows = steps > 1.0 ? static_cast<std::size_t>(steps) - 1 : 0;
+    const io::Dataset last = history.slice(n - 1, n);
+    so.reset = false;
+    for (std::size_t done = 0; done < rows;) {
+      const std::size_t k = std::min<std::size_t>(rows - done, 100000);
+      const io::Dataset hold = held_rows(last, k, end_s + dt * static_cast<double>(done + 1), dt);
+      last_nm = models::stream_model(*m, hold, axis, so).prediction.back();
+      done += k;
+    }
+  } catch (const std::exception& e) {
+    return refused(std::string("the model's run over ") + src + " failed: " + e.what());
+  }
+  Resume r;
+  r.resumed = true;
+  r.history_s = end_s - history.time_s[0];
+  r.history_rows = n;
+  r.gap_s = gap_s;
+  r.last_voltage_v = last_v;
+  r.predicted_nm = last_nm;
+  r.status = "resumed on " + fmt(r.history_s, 5) + " s of recorded history (" + std::to_string(n) + " rows of " + src +
+             "), held " + fmt(gap_s, 4) + " s at " + fmt(last_v, 5) + " V since";
+  r.model = std::move(m);
+  return r;
+}
+
+}  // namespace piezo::compensation
