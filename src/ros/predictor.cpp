@@ -1,6 +1,7 @@
 #include "piezo_compensation/ros/predictor.h"
 
 #include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/ros/params.h"
 
 #include <diagnostic_msgs/DiagnosticArray.h>
@@ -145,6 +146,9 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s", t.slew_nm_per_s, 1e-6, 1e6);
   t.stale_after_s = r.number("encoder_stale_after_s", t.stale_after_s, 1e-3, 3600.0);
   s.axis.start_estimate_s = r.number("start_estimate_s", s.axis.start_estimate_s, 0.0, 3600.0);
+  s.resume_from = r.text("resume_from", s.resume_from);
+  s.resume.max_gap_s = r.number("resume_max_gap_s", s.resume.max_gap_s, 0.0, 30.0 * 86400.0);
+  s.resume.voltage_tolerance_v = r.number("resume_voltage_tolerance_v", s.resume.voltage_tolerance_v, 0.0, 1000.0);
   r.warn_unknown("piezo_predictor");
   return s;
 }
@@ -263,6 +267,7 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
     measured_nm_ = sample.position_nm;
     have_measured_ = true;
   }
+  if (resume_source_ && resume_status_.empty() && !comp_->started()) resume_at(sample);
   const compensation::SampleUpdate u =
       comp_->on_sample(applied, valid ? sample.position_nm : std::nan(""), valid, inputs);
   predicted_nm_ = u.predicted_nm;
@@ -291,6 +296,25 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   fill_command(out, u, applied, compensate, now);
   fill_drift(out, now);
   return out;
+}
+
+// The model resumes on the run before's history (~resume_from), held to this sample's stamp at its voltage; if it
+// cannot (the file, or the history is not this stage's run before), it starts at rest as without, and says why.
+void PredictorAxis::resume_at(const io::PairedSample& sample) {
+  std::string why;
+  const io::Dataset* history = resume_source_(why);
+  if (!model_error_.empty()) {
+    resume_status_ = "not resumed: no model (" + model_error_ + ")";
+  } else if (!history) {
+    resume_status_ = "not resumed: " + why;
+  } else {
+    compensation::Resume r = compensation::resume_model(comp_->model(), *history, axis_, sample.stamp_s,
+                                                        sample.voltage_v, s_.resume);
+    resume_status_ = r.status;
+    if (r.resumed) comp_->start_resumed(std::move(r.model), r.last_voltage_v, r.predicted_nm, r.status);
+  }
+  if (comp_->resumed()) ROS_INFO("axis %s: %s", axis_.c_str(), resume_status_.c_str());
+  else ROS_WARN("axis %s: %s; the model starts at rest", axis_.c_str(), resume_status_.c_str());
 }
 
 // The command part of a sample's output: the corrected voltage (and, when compensating, the command), the intended
@@ -409,6 +433,8 @@ void PredictorNode::add_axis(const std::string& name) {
   }
   a->logic = std::make_unique<PredictorAxis>(name, path, std::move(m), s_, error);
   a->logic->set_live_inputs(&live_);
+  if (!s_.resume_from.empty())
+    a->logic->set_resume_source([this](std::string& why) { return resume_history(why); });
   const auto& line = a->logic->compensator().ideal_line();
   ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
            a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
@@ -427,6 +453,22 @@ void PredictorNode::add_axis(const std::string& name) {
     on_intended(*ap, m);
   });
   axes_.push_back(std::move(a));
+}
+
+const io::Dataset* PredictorNode::resume_history(std::string& why) {
+  if (!resume_read_) {
+    resume_read_ = true;
+    const std::string& path = s_.resume_from;
+    try {
+      // a ~snapshot bag as the reload's warm-up reads it (across lost samples, as the running model ran), or a CSV
+      const bool bag = path.size() > 4 && path.compare(path.size() - 4, 4, ".bag") == 0;
+      resume_history_ = bag ? ros_io::read_bag(path) : ros_io::read_data(path);
+    } catch (const std::exception& e) {
+      resume_error_ = std::string("~resume_from: ") + e.what();
+    }
+  }
+  why = resume_error_;
+  return resume_history_ ? &*resume_history_ : nullptr;
 }
 
 void PredictorNode::subscribe_aux() {
@@ -897,6 +939,8 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   // the estimator and the hold trim: what the fused estimate is made of and what the trim is doing
   const compensation::AxisCompensator& cc = l.compensator();
   st.add("estimator", cc.estimator_status());
+  if (!s_.resume_from.empty())
+    st.add("resume", l.resume_status().empty() ? std::string("waiting for the first sample") : l.resume_status());
   if (s_.axis.start_estimate_s > 0)
     st.add("start estimate", cc.start_estimate_status().empty() ? std::string("waiting for the first ~start_estimate_s")
                                                                 : cc.start_estimate_status());

@@ -12,8 +12,21 @@
 #include <iostream>
 #include <sstream>
 
+#include <filesystem>
+
+#include "piezo_compensation/compensation/axis_compensator.h"
+#include "piezo_compensation/compensation/resume.h"
+#include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "predictor_test_driver.h"
+
+namespace {
+std::string resume_model_path() {
+  std::string p;
+  ros::param::get("/mm2/predictor/model_file", p);
+  return p;
+}
+}  // namespace
 
 TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   tf2_ros::Buffer tf;
@@ -109,6 +122,30 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   EXPECT_NE(reload.response.message.find("c: warm, on the buffered "), std::string::npos) << reload.response.message;
   EXPECT_NE(reload.response.message.find(warm.str()), std::string::npos)
       << "expected '" << warm.str() << "' in: " << reload.response.message;
+
+  // ~resume_from: mm2 resumes at its first sample on that bag, held at its last voltage until then: its first
+  // prediction is what resume_model and the compensator give offline for that stamp, not a start at rest (which
+  // predicts the first reading itself).
+  std::string resume_path;
+  ASSERT_TRUE(ros::param::get("/mm2/predictor/resume_from", resume_path));
+  std::filesystem::copy_file(path, resume_path, std::filesystem::copy_options::overwrite_existing);
+  piezo::test::FakeDriver drv2("/mm2/c");
+  ASSERT_TRUE(drv2.wait_connected()) << "mm2 predictor topics not connected";
+  drv2.expect_commands = false;  // no intent on mm2
+  drv2.applied_v = d.axis("c").voltage_v.back();
+  ASSERT_TRUE(drv2.cycle()) << "no prediction from the resumed predictor";
+  const auto first = drv2.predictions.back();
+  const piezo::models::ModelPtr model = piezo::models::load_model(resume_model_path());
+  const piezo::compensation::Resume r = piezo::compensation::resume_model(
+      *model, piezo::ros_io::read_bag(resume_path), "c", first.header.stamp.toSec(), drv2.applied_v);
+  ASSERT_TRUE(r.resumed) << r.status;
+  std::cout << "[predictor_live] " << r.status << "\n";
+  piezo::compensation::AxisCompensator offline(model->clone(), piezo::compensation::IdealLine{14.0, 0.0}, {});
+  offline.start_resumed(r.model->clone(), r.last_voltage_v, r.predicted_nm, r.status);
+  const double expected_nm = offline.on_sample(drv2.applied_v, first.measured_position * 1e9, true).predicted_nm;
+  EXPECT_NEAR(first.predicted_position * 1e9, expected_nm, 1e-6);
+  EXPECT_GT(std::abs(first.predicted_position - first.measured_position) * 1e9, 1.0)
+      << "a start at rest predicts the first reading itself";
 }
 
 int main(int argc, char** argv) {

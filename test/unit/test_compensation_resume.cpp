@@ -85,7 +85,7 @@ TEST(Resume, TheResumedStateIsTheContinuedRun) {
   EXPECT_LT(worst, 1e-6);
   EXPECT_TRUE(resumed.resumed());
   EXPECT_EQ(resumed.start_estimate(), nullptr);
-  EXPECT_NE(resumed.start_estimate_status().find("resumed on"), std::string::npos);
+  EXPECT_NE(resumed.start_estimate_status().find("no start estimate: resumed on"), std::string::npos);
   EXPECT_LT(resumed_mae, 0.5 * cold_mae);
   EXPECT_THROW(resumed.start_resumed(r.model->clone(), 0.0, 0.0, "again"), std::logic_error);
 }

@@ -89,6 +89,38 @@ TEST(EvalStream, AnchorFixesTheOffsetFromTheFirstSecondsAndScoresAfterThem) {
   EXPECT_THROW(pm::stream_model(*m, d, "c", o), piezo::io::DataError);
 }
 
+// One estimate, one offset (models/model_stream.h): the one-step stream of a model that reads the position takes
+// the window mean under the estimate's row weights; with the offset-only anchor (no weights) the plain mean.
+TEST(EvalStream, AOneStepOffsetOfAModelThatReadsThePositionIsTheEstimatesWeightedMean) {
+  piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kNone, 0.1, 5);
+  for (double& x : d.axis("c").position_nm) x += 250.0;
+  LastPositionModel m;
+  pm::StreamOptions o;
+  o.anchor_s = 60.0;
+  o.mode = pm::PredictionMode::kOneStep;
+  const auto r = pm::stream_model(*m.clone(), d, "c", o);
+  ASSERT_GT(r.start.candidates, 1u);
+  const std::vector<double>& w = r.start.window_weight;
+  ASSERT_EQ(w.size(), r.first_scored);
+  const auto& y = d.axis("c").position_nm;
+  double sw = 0, swr = 0, plain = 0;
+  bool unequal = false;
+  for (std::size_t i = 0; i < w.size(); ++i) {
+    const double raw = r.prediction[i] - r.anchor_offset_nm;
+    sw += w[i], swr += w[i] * (y[i] - raw), plain += (y[i] - raw) / static_cast<double>(w.size());
+    unequal = unequal || w[i] != w[0];
+  }
+  EXPECT_NEAR(r.anchor_offset_nm, swr / sw, 1e-9);
+  EXPECT_TRUE(unequal) << "equal weights cannot tell the weighted mean from the plain one";
+  o.anchor_history = false;
+  const auto plain_run = pm::stream_model(*m.clone(), d, "c", o);
+  double mean = 0;
+  for (std::size_t i = 0; i < plain_run.first_scored; ++i)
+    mean += (y[i] - (plain_run.prediction[i] - plain_run.anchor_offset_nm)) / static_cast<double>(plain_run.first_scored);
+  EXPECT_TRUE(plain_run.start.window_weight.empty());
+  EXPECT_NEAR(plain_run.anchor_offset_nm, mean, 1e-9);
+}
+
 TEST(EvalStream, OtherAxisPositionIsTheLastReadingBeforeThisSample) {
   const piezo::io::Dataset d = piezo::test::synthetic(piezo::test::Planted::kNone, 0.02, 4);
   pm::InputResolver r(d, {"a_position_nm", "a_voltage_v", "time_s", "temperature_c"}, "c");

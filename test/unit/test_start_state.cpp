@@ -151,7 +151,7 @@ TEST(StartState, AtRestNoWorseThanOffsetOnly) {
 // (b2) One estimate, one offset, in either prediction mode: `piezo eval --anchor-s` streams one-step and copies
 // it as the free run of a model that reads no position, and took the one-step offset as the plain window mean,
 // which the rows the estimate weights little (where the unknown history still moves the prediction) pulled away:
-// the low-voltage PI stage's 12-play fit on seed 22 from its start, 2-s window: offset 1830 nm against the
+// the low-voltage PI stage's 12-play fit (on seed 21) run on seed 22 from its start, 2-s window: offset 1830 nm against the
 // estimate's -116 nm, MAE after the window 2044 against 130 nm. A model that reads the position: its one-step
 // offset is the window mean under the estimate's row weights.
 TEST(StartState, OneStepAndFreeRunShareTheEstimatesOffset) {

@@ -95,7 +95,8 @@ class AxisCompensator {
 
   // Start from a resumed model (compensation/resume.h: the state its recorded history left, held to now) instead of
   // at rest at the first sample: call before the first sample; that sample then predicts from this state. No start
-  // estimate is made (start_estimate_status() says why: `status`). Throws std::logic_error once started.
+  // estimate is made (with start_estimate_s > 0, start_estimate_status() says why: `status`). Throws
+  // std::logic_error once started.
   void start_resumed(models::ModelPtr model, double last_applied_v, double predicted_nm, const std::string& status);
   bool resumed() const { return resumed_; }
 

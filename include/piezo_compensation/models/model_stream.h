@@ -82,7 +82,9 @@ struct StreamResult {
   double anchor_offset_nm = 0.0;   // 0 without an anchor
   std::size_t first_scored = 0;    // first row after the anchor window (0 without one)
   bool anchored = false;
-  StartEstimate start;             // the anchor's start estimate (offset and σ of this stream's mode)
+  // The anchor's start estimate. Its offset is this stream's (the one-step stream of a model that reads the position:
+  // the window mean under the estimate's row weights, and their weighted RMS; its σ the estimate's).
+  StartEstimate start;
 };
 
 // Per row: predict with the row's voltage and inputs, then commit the measured position (one-step) or the

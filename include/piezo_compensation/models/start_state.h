@@ -89,7 +89,7 @@ struct StartEstimate {
   std::size_t window_rows = 0;        // rows in the window (scoring starts at this row)
   // The row weights of the window fit, 1/(σ² + (spread/2)²) per window row (empty for offset only: equal weights).
   // A stream of the same start in another mode (one-step, with the measured position fed back) takes its offset
-  // as the mean of measured − predicted under these weights (models/model_stream.h).
+  // as the mean of measured − predicted under these weights (stream_model, models/model_stream.h).
   std::vector<double> window_weight;
   // The linear-state fit (StartOptions::fit_linear_states): states fitted (0: the kind has none, or every candidate
   // puts them at one place) and the largest |shift| [nm] of one state's share of the prediction.

@@ -13,6 +13,7 @@
 #include <cmath>
 #include <condition_variable>
 #include <deque>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -31,6 +32,7 @@
 #include "piezo_compensation/compensation/drift_forecast.h"
 #include "piezo_compensation/compensation/live_inputs.h"
 #include "piezo_compensation/compensation/residual_watch.h"
+#include "piezo_compensation/compensation/resume.h"
 #include "piezo_compensation/compensation/snapshot_buffer.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 
@@ -91,6 +93,10 @@ struct PredictorSettings {
   double snapshot_duration_s = 1800.0;            // ~snapshot keeps this much (0 = no snapshot service)
   int snapshot_max_messages = 1000000;            // per stream: the buffer's memory bound
   std::string snapshot_dir;                       // "" = $ROS_HOME/piezo_snapshots (~/.ros/piezo_snapshots)
+  // ~resume_from: a ~snapshot bag of the run before; each axis' model resumes on it at its first sample
+  // (compensation/resume.h) instead of starting at rest. "" = off.
+  std::string resume_from;
+  compensation::ResumeOptions resume;             // ~resume_max_gap_s, ~resume_voltage_tolerance_v
   compensation::AxisCompensatorConfig axis;
 };
 
@@ -153,6 +159,12 @@ class PredictorAxis {
   const compensation::ResidualWatch* watch() const { return watch_.get(); }
 
   void set_forecast(const compensation::DriftForecast& f);
+  // The recorded history the model resumes on at this axis' first sample (~resume_from), read when first asked for:
+  // `history` returns it, or null with `why` set when it cannot be read. Unset: the model starts at rest.
+  using ResumeSource = std::function<const io::Dataset*(std::string& why)>;
+  void set_resume_source(ResumeSource history) { resume_source_ = std::move(history); }
+  // "" until the first sample with a resume source; then what was done ("resumed on …") or why not.
+  const std::string& resume_status() const { return resume_status_; }
   // `warm`: the model was streamed over the recent samples and keeps that state (else it starts at rest).
   void reload(const std::string& model_name, models::ModelPtr model, bool warm = false);
   void set_hold_trim(bool on) { comp_->set_hold_trim(on); }
@@ -201,6 +213,9 @@ class PredictorAxis {
   std::string last_status_, model_error_;
   std::size_t encoder_messages_ = 0, rejected_ = 0;
   bool start_logged_ = false;  // the start-up state estimate's line was logged
+  ResumeSource resume_source_;
+  std::string resume_status_;
+  void resume_at(const io::PairedSample& sample);  // the first sample with a resume source
 };
 
 class PredictorNode {
@@ -242,6 +257,12 @@ class PredictorNode {
   std::vector<ros::Subscriber> aux_subs_;
   ros::ServiceServer srv_compensation_, srv_hold_trim_, srv_reload_, srv_snapshot_;
   std::unique_ptr<compensation::SnapshotBuffer> snapshot_;  // null: ~snapshot_duration_s 0
+  // ~resume_from, read at the first axis' first sample (a ~snapshot of the run before may be written after the
+  // node started); every axis resumes on the one read.
+  const io::Dataset* resume_history(std::string& why);
+  std::optional<io::Dataset> resume_history_;
+  std::string resume_error_;
+  bool resume_read_ = false;
   ros::Publisher markers_pub_;
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_;
   // Handles on /tf and /diagnostics (the broadcaster's and the updater's publications, shared in this process),

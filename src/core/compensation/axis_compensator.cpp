@@ -190,6 +190,7 @@ void AxisCompensator::start_from_window(double applied_v) {
     return;
   }
   start_status_ = start_estimate_->describe();
+  start_estimate_->window_weight = {};  // only a one-step stream of the window reads them (models/model_stream.h)
   models::prepare_start(*model_, window_, kStartAxis, start_estimate_->history);
   models::InputResolver inputs(window_, model_->aux_inputs(), kStartAxis);
   const io::AxisSeries& ax = window_.axes[0];
@@ -267,7 +268,7 @@ void AxisCompensator::start_resumed(models::ModelPtr model, double last_applied_
   last_applied_v_ = last_applied_v;
   last_predicted_nm_ = predicted_nm;
   start_done_ = true;
-  start_status_ = "no start estimate: " + status;
+  if (config_.start_estimate_s > 0.0) start_status_ = "no start estimate: " + status;
 }
 
 void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& line, bool warm) {

@@ -146,12 +146,17 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
       r.start.rms_nm = f.rms_nm;
     } else if (o.mode != PredictionMode::kFreeRun && model.uses_position_history()) {
       const std::vector<double>& w = r.start.window_weight;
-      if (w.size() == k) {
-        double sw = 0, swr = 0;
+      if (w.size() == k) {  // the weighted mean and RMS; the σ stays the estimate's
+        double sw = 0, swr = 0, swrr = 0;
         for (std::size_t i = 0; i < k; ++i) sw += w[i], swr += w[i] * (y[i] - r.prediction[i]);
         r.start.offset_nm = swr / sw;
-      } else {
-        r.start.offset_nm = window_offset(y, r.prediction.data(), k).offset_nm;
+        for (std::size_t i = 0; i < k; ++i) swrr += w[i] * std::pow(y[i] - r.prediction[i] - r.start.offset_nm, 2);
+        r.start.rms_nm = std::sqrt(swrr / sw);
+      } else {  // offset only (no weights): the plain mean, as for a warm start
+        const WindowFit f = window_offset(y, r.prediction.data(), k);
+        r.start.offset_nm = f.offset_nm;
+        r.start.offset_sigma_nm = f.sigma_nm;
+        r.start.rms_nm = f.rms_nm;
       }
     }
     if (r.start.candidates == 0) r.start.rms_rest_nm = r.start.rms_nm, r.start.candidate = "warm (continued history)";
