@@ -1,5 +1,7 @@
 #include "piezo_compensation/ros/predictor.h"
 
+#include <filesystem>
+
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/ros/params.h"
@@ -149,6 +151,11 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   s.resume_from = r.text("resume_from", s.resume_from);
   s.resume.max_gap_s = r.number("resume_max_gap_s", s.resume.max_gap_s, 0.0, 30.0 * 86400.0);
   s.resume.voltage_tolerance_v = r.number("resume_voltage_tolerance_v", s.resume.voltage_tolerance_v, 0.0, 1000.0);
+  s.resume_save_to = r.text("resume_save_to", s.resume_save_to);
+  s.resume_save_period_s = r.number("resume_save_period_s", s.resume_save_period_s, 0.0, 86400.0);
+  if (!s.resume_save_to.empty() && !(s.snapshot_duration_s > 0.0))
+    throw std::invalid_argument("parameter " + r.resolved("resume_save_to") + " needs " +
+                                r.resolved("snapshot_duration_s") + " > 0 (it saves the snapshot buffer)");
   r.warn_unknown("piezo_predictor");
   return s;
 }
@@ -412,6 +419,18 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
     setup_snapshot();
     srv_snapshot_ = pnh_.advertiseService("snapshot", &PredictorNode::on_snapshot, this);
   }
+  // Resuming from the file this run saves to: the history is read now, before this run's saves replace it; else at
+  // the first sample (a ~snapshot of the run before may be written after the node started).
+  std::error_code exists_ec;
+  if (!s_.resume_from.empty() && std::filesystem::exists(s_.resume_from, exists_ec) &&
+      std::filesystem::weakly_canonical(s_.resume_from, exists_ec) ==
+          std::filesystem::weakly_canonical(s_.resume_save_to, exists_ec)) {
+    std::string why;
+    resume_history(why);
+  }
+  if (!s_.resume_save_to.empty() && s_.resume_save_period_s > 0.0)
+    resume_save_timer_ = nh_.createTimer(ros::Duration(s_.resume_save_period_s),
+                                         [this](const ros::TimerEvent&) { save_resume("periodic"); });
   setup_diagnostics_and_watch();
   if (s_.drift_async) worker_ = std::thread([this] { forecast_worker(); });
 }
@@ -453,6 +472,21 @@ void PredictorNode::add_axis(const std::string& name) {
     on_intended(*ap, m);
   });
   axes_.push_back(std::move(a));
+}
+
+// The whole buffer (not cut to a gap-free stretch, as ~snapshot's bag is: the resume runs across lost samples as the
+// running model did), written as .part and renamed, so a reader never sees half a file.
+void PredictorNode::save_resume(const char* when) {
+  if (!snapshot_) return;
+  try {
+    const compensation::Snapshot snap = snapshot_->take();
+    const std::filesystem::path dir = std::filesystem::path(s_.resume_save_to).parent_path();
+    if (!dir.empty()) std::filesystem::create_directories(dir);
+    write_snapshot_bag(s_.resume_save_to, nh_.getNamespace(), snap, s_.frame_prefix + "base");
+    ROS_DEBUG("resume history saved (%s): %s, %.1f s", when, s_.resume_save_to.c_str(), snap.end_s - snap.begin_s);
+  } catch (const std::exception& e) {
+    ROS_WARN_THROTTLE(60.0, "~resume_save_to: nothing saved (%s): %s", when, e.what());
+  }
 }
 
 const io::Dataset* PredictorNode::resume_history(std::string& why) {
@@ -683,6 +717,7 @@ void PredictorNode::setup_diagnostics_and_watch() {
 }
 
 PredictorNode::~PredictorNode() {
+  if (!s_.resume_save_to.empty()) save_resume("at shutdown");
   {
     std::lock_guard<std::mutex> lk(mutex_);
     stop_ = true;

@@ -12,12 +12,14 @@
 #include <iostream>
 #include <sstream>
 
+#include <cstdlib>
 #include <filesystem>
 
 #include "piezo_compensation/compensation/axis_compensator.h"
 #include "piezo_compensation/compensation/resume.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/ros/predictor.h"
 #include "predictor_test_driver.h"
 
 namespace {
@@ -146,6 +148,52 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   EXPECT_NEAR(first.predicted_position * 1e9, expected_nm, 1e-6);
   EXPECT_GT(std::abs(first.predicted_position - first.measured_position) * 1e9, 1.0)
       << "a start at rest predicts the first reading itself";
+
+  // ~resume_save_to with a 0.2-s period: mm2's own buffer appears there while it runs, for the next start
+  std::string saved;
+  ASSERT_TRUE(ros::param::get("/mm2/predictor/resume_save_to", saved));
+  const std::size_t before = drv2.samples_sent;
+  for (int i = 0; i < 10; ++i) ASSERT_TRUE(drv2.cycle()) << "no prediction from the resumed predictor";
+  std::size_t rows = 0;
+  piezo::test::wall_wait([&] {
+    try {
+      rows = std::filesystem::exists(saved) ? piezo::ros_io::read_bag(saved).size() : 0;
+    } catch (const std::exception&) {
+      rows = 0;
+    }
+    return rows >= before + 10 || !(drv2.cycle());
+  }, piezo::test::kPatienceS, 0.05);
+  EXPECT_GE(rows, before + 10) << saved;
+}
+
+// Without a period the history is written when the node shuts down (here: a PredictorNode in this process,
+// destroyed), and not before; a node that heard no sample leaves the file as it was.
+TEST(PredictorLive, SavesItsHistoryAtShutdownForTheNextStart) {
+  const std::string dir = std::getenv("ROS_HOME") ? std::getenv("ROS_HOME") : "/tmp";
+  const std::string path = dir + "/predictor_live_shutdown.bag";
+  std::filesystem::remove(path);
+  ros::param::set("/mm3/predictor/model_file", resume_model_path());
+  ros::param::set("/mm3/predictor/axes", std::vector<std::string>{"c"});
+  ros::param::set("/mm3/predictor/tf_period_s", 0.0);
+  ros::param::set("/mm3/predictor/resume_save_to", path);
+  ros::param::set("/mm3/predictor/resume_save_period_s", 0.0);
+  {
+    piezo::predictor::PredictorNode idle(ros::NodeHandle("/mm3"), ros::NodeHandle("/mm3/predictor"));
+  }
+  EXPECT_FALSE(std::filesystem::exists(path)) << "no sample heard: nothing to save";
+  {
+    piezo::predictor::PredictorNode node(ros::NodeHandle("/mm3"), ros::NodeHandle("/mm3/predictor"));
+    piezo::test::FakeDriver drv("/mm3/c");
+    ASSERT_TRUE(drv.wait_connected());
+    drv.expect_commands = false;
+    drv.applied_v = 12.0;
+    for (int i = 0; i < 6; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction for sample " << i;
+    EXPECT_FALSE(std::filesystem::exists(path)) << "resume_save_period_s 0: only at shutdown";
+  }
+  ASSERT_TRUE(std::filesystem::exists(path));
+  const piezo::io::Dataset d = piezo::ros_io::read_bag(path);
+  EXPECT_EQ(d.size(), 6u);
+  EXPECT_NEAR(d.axis("c").voltage_v.back(), 12.0, 1e-12);
 }
 
 int main(int argc, char** argv) {

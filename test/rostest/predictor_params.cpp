@@ -39,6 +39,10 @@ TEST(PredictorParams, WrongTypeAndOutOfRangeAreNamed) {
       {"voltage_max_v", XmlRpc::XmlRpcValue(5000.0)},
       {"fallback_max_step_v", XmlRpc::XmlRpcValue(0.0)},
       {"hardware_id", XmlRpc::XmlRpcValue(3)},
+      {"resume_from", XmlRpc::XmlRpcValue(1.0)},
+      {"resume_max_gap_s", XmlRpc::XmlRpcValue(-1.0)},
+      {"resume_voltage_tolerance_v", XmlRpc::XmlRpcValue("0.05")},
+      {"resume_save_period_s", XmlRpc::XmlRpcValue(1e9)},
   };
   int k = 0;
   for (const auto& [param, value] : cases) {
@@ -53,13 +57,32 @@ TEST(PredictorParams, WrongTypeAndOutOfRangeAreNamed) {
       EXPECT_NE(std::string(e.what()).find(ns + "/" + param), std::string::npos) << param << ": " << e.what();
     }
   }
+  // ~resume_save_to saves the snapshot buffer: without one (~snapshot_duration_s 0) it is refused, naming it.
+  {
+    ros::NodeHandle pnh("/predictor_bad_params/resume_without_buffer");
+    pnh.setParam("model_file", "/nonexistent/model.yaml");
+    pnh.setParam("snapshot_duration_s", 0.0);
+    pnh.setParam("resume_save_to", "/tmp/x.bag");
+    try {
+      read_settings(pnh);
+      ADD_FAILURE() << "resume_save_to without a snapshot buffer: accepted";
+    } catch (const std::invalid_argument& e) {
+      EXPECT_NE(std::string(e.what()).find("/predictor_bad_params/resume_without_buffer/resume_save_to"), std::string::npos)
+          << e.what();
+    }
+  }
   // Good values of the same names are accepted, so the failures above are the values, not the setup.
   ros::NodeHandle good("/predictor_bad_params/good");
   good.setParam("model_file", "/nonexistent/model.yaml");
   good.setParam("axes", std::vector<std::string>{"c"});
   good.setParam("drift_horizons_s", std::vector<double>{1.0, 60.0});
   good.setParam("ideal_line_hold_s", 30);
+  good.setParam("resume_from", "/tmp/run_before.bag");
+  good.setParam("resume_save_to", "/tmp/run_before.bag");
+  good.setParam("resume_save_period_s", 0.0);
   const auto s = read_settings(good);
+  EXPECT_EQ(s.resume_from, "/tmp/run_before.bag");
+  EXPECT_EQ(s.resume_save_period_s, 0.0);
   EXPECT_EQ(s.axes, std::vector<std::string>{"c"});
   EXPECT_EQ(s.drift_horizons_s.size(), 2u);
   EXPECT_DOUBLE_EQ(s.ideal_line_hold_s, 30.0);

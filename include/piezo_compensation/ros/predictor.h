@@ -97,6 +97,10 @@ struct PredictorSettings {
   // (compensation/resume.h) instead of starting at rest. "" = off.
   std::string resume_from;
   compensation::ResumeOptions resume;             // ~resume_max_gap_s, ~resume_voltage_tolerance_v
+  // ~resume_save_to: the snapshot buffer written here every ~resume_save_period_s (ROS time; 0 = only at shutdown)
+  // and when the node shuts down, for the next start's ~resume_from. "" = off.
+  std::string resume_save_to;
+  double resume_save_period_s = 60.0;
   compensation::AxisCompensatorConfig axis;
 };
 
@@ -257,10 +261,13 @@ class PredictorNode {
   std::vector<ros::Subscriber> aux_subs_;
   ros::ServiceServer srv_compensation_, srv_hold_trim_, srv_reload_, srv_snapshot_;
   std::unique_ptr<compensation::SnapshotBuffer> snapshot_;  // null: ~snapshot_duration_s 0
-  // ~resume_from, read at the first axis' first sample (a ~snapshot of the run before may be written after the
-  // node started); every axis resumes on the one read.
+  // ~resume_from, read when the node starts if it is ~resume_save_to's file (before this run's saves replace it), else
+  // at the first axis' first sample (a ~snapshot of the run before may be written after the node started); every
+  // axis resumes on the one read.
   const io::Dataset* resume_history(std::string& why);
   std::optional<io::Dataset> resume_history_;
+  void save_resume(const char* when);  // ~resume_save_to; logs, never throws
+  ros::Timer resume_save_timer_;
   std::string resume_error_;
   bool resume_read_ = false;
   ros::Publisher markers_pub_;
