@@ -153,6 +153,9 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   s.resume.voltage_tolerance_v = r.number("resume_voltage_tolerance_v", s.resume.voltage_tolerance_v, 0.0, 1000.0);
   s.resume_save_to = r.text("resume_save_to", s.resume_save_to);
   s.resume_save_period_s = r.number("resume_save_period_s", s.resume_save_period_s, 0.0, 86400.0);
+  if (s.resume_save_period_s > 0.0 && s.resume_save_period_s < 0.1)
+    throw std::invalid_argument("parameter " + r.resolved("resume_save_period_s") +
+                                " must be 0 (only at shutdown) or at least 0.1 s (each save writes the whole buffer)");
   if (!s.resume_save_to.empty() && !(s.snapshot_duration_s > 0.0))
     throw std::invalid_argument("parameter " + r.resolved("resume_save_to") + " needs " +
                                 r.resolved("snapshot_duration_s") + " > 0 (it saves the snapshot buffer)");
@@ -315,8 +318,10 @@ void PredictorAxis::resume_at(const io::PairedSample& sample) {
   } else if (!history) {
     resume_status_ = "not resumed: " + why;
   } else {
-    compensation::Resume r = compensation::resume_model(comp_->model(), *history, axis_, sample.stamp_s,
-                                                        sample.voltage_v, s_.resume);
+    compensation::ResumeOptions o = s_.resume;
+    o.mode = s_.axis.position_feedback ? models::PredictionMode::kOneStep : models::PredictionMode::kFreeRun;
+    compensation::Resume r =
+        compensation::resume_model(comp_->model(), *history, axis_, sample.stamp_s, sample.voltage_v, o);
     resume_status_ = r.status;
     if (r.resumed) comp_->start_resumed(std::move(r.model), r.last_voltage_v, r.predicted_nm, r.status);
   }
@@ -421,12 +426,11 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
   }
   // Resuming from the file this run saves to: the history is read now, before this run's saves replace it; else at
   // the first sample (a ~snapshot of the run before may be written after the node started).
-  std::error_code exists_ec;
-  if (!s_.resume_from.empty() && std::filesystem::exists(s_.resume_from, exists_ec) &&
-      std::filesystem::weakly_canonical(s_.resume_from, exists_ec) ==
-          std::filesystem::weakly_canonical(s_.resume_save_to, exists_ec)) {
+  std::error_code ec;
+  if (!s_.resume_from.empty() &&
+      std::filesystem::weakly_canonical(s_.resume_from, ec) == std::filesystem::weakly_canonical(s_.resume_save_to, ec)) {
     std::string why;
-    resume_history(why);
+    resume_history(why);  // a file not there yet is "no history" for this run, not this run's own first save
   }
   if (!s_.resume_save_to.empty() && s_.resume_save_period_s > 0.0)
     resume_save_timer_ = nh_.createTimer(ros::Duration(s_.resume_save_period_s),
@@ -494,9 +498,14 @@ const io::Dataset* PredictorNode::resume_history(std::string& why) {
     resume_read_ = true;
     const std::string& path = s_.resume_from;
     try {
-      // a ~snapshot bag as the reload's warm-up reads it (across lost samples, as the running model ran), or a CSV
-      const bool bag = path.size() > 4 && path.compare(path.size() - 4, 4, ".bag") == 0;
-      resume_history_ = bag ? ros_io::read_bag(path) : ros_io::read_data(path);
+      // a ~snapshot bag of this manipulator (its namespace), read as the reload's warm-up reads it (across lost
+      // samples, as the running model ran); its rows are on the ROS clock of the live samples
+      ros_io::BagOptions bo;
+      bo.ns = nh_.getNamespace();
+      io::Dataset d = ros_io::read_bag(path, bo);
+      if (d.time_clock != "ros")
+        throw io::DataError(path + ": its time column is not ROS time (a ~snapshot bag is)");
+      resume_history_ = std::move(d);
     } catch (const std::exception& e) {
       resume_error_ = std::string("~resume_from: ") + e.what();
     }

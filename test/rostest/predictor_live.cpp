@@ -130,7 +130,10 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   // predicts the first reading itself).
   std::string resume_path;
   ASSERT_TRUE(ros::param::get("/mm2/predictor/resume_from", resume_path));
-  std::filesystem::copy_file(path, resume_path, std::filesystem::copy_options::overwrite_existing);
+  // mm1's bag as mm2's (the node reads only its own namespace: a bag of /mm1 is refused by /mm2)
+  piezo::ros_io::BagOptions as_mm2;
+  as_mm2.ns = "/mm2";
+  piezo::ros_io::write_bag(resume_path, d, as_mm2);
   piezo::test::FakeDriver drv2("/mm2/c");
   ASSERT_TRUE(drv2.wait_connected()) << "mm2 predictor topics not connected";
   drv2.expect_commands = false;  // no intent on mm2
@@ -139,7 +142,7 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   const auto first = drv2.predictions.back();
   const piezo::models::ModelPtr model = piezo::models::load_model(resume_model_path());
   const piezo::compensation::Resume r = piezo::compensation::resume_model(
-      *model, piezo::ros_io::read_bag(resume_path), "c", first.header.stamp.toSec(), drv2.applied_v);
+      *model, piezo::ros_io::read_bag(resume_path, as_mm2), "c", first.header.stamp.toSec(), drv2.applied_v);
   ASSERT_TRUE(r.resumed) << r.status;
   std::cout << "[predictor_live] " << r.status << "\n";
   piezo::compensation::AxisCompensator offline(model->clone(), piezo::compensation::IdealLine{14.0, 0.0}, {});

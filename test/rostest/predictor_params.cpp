@@ -43,6 +43,8 @@ TEST(PredictorParams, WrongTypeAndOutOfRangeAreNamed) {
       {"resume_max_gap_s", XmlRpc::XmlRpcValue(-1.0)},
       {"resume_voltage_tolerance_v", XmlRpc::XmlRpcValue("0.05")},
       {"resume_save_period_s", XmlRpc::XmlRpcValue(1e9)},
+      {"resume_save_period_s", XmlRpc::XmlRpcValue(0.01)},  // each save writes the whole buffer
+      {"resume_save_to", XmlRpc::XmlRpcValue(3)},
   };
   int k = 0;
   for (const auto& [param, value] : cases) {

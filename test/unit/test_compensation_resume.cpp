@@ -119,7 +119,8 @@ TEST(Resume, RefusesWhatIsNotTheRunBefore) {
   EXPECT_NE(why(history, NAN, v).find("not finite"), std::string::npos);
   io::Dataset broken = history;
   broken.axis("c").voltage_v[i / 2] = NAN;
-  EXPECT_NE(why(broken, end + 1.0, v).find("failed"), std::string::npos);
+  EXPECT_NE(why(broken, end + 1.0, v).find("non-finite voltage of c at row"), std::string::npos);
+  EXPECT_NE(why(history, end + 0.01, v).find("within half a sample period"), std::string::npos);
   // Within the tolerance it resumes; a long gap is held in chunks (here 3 h at 11 Hz: 118 800 rows).
   const compensation::Resume ok = compensation::resume_model(*m, history, "c", end + 10800.0, v + 0.01);
   EXPECT_TRUE(ok.resumed) << ok.status;

@@ -9,6 +9,7 @@
 
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
+#include "piezo_compensation/models/model_stream.h"
 
 namespace piezo::compensation {
 
@@ -18,6 +19,8 @@ struct ResumeOptions {
   // The voltage now must be within this of the history's last voltage (else the stage moved while nothing
   // recorded it, and the recorded history is not its history): not resumed.
   double voltage_tolerance_v = 0.05;
+  // How the model runs over the history: as it ran live (the compensator's position_feedback: one-step).
+  models::PredictionMode mode = models::PredictionMode::kFreeRun;
 };
 
 struct Resume {
@@ -31,13 +34,14 @@ struct Resume {
   models::ModelPtr model;       // the resumed copy (null when not resumed)
 };
 
-// Streams a copy of `model` over `history` (reset at rest at its first row's voltage and measured position, free run, the
-// one streaming path, its inputs from the history's columns), then holds it at the last row's voltage and inputs over
+// Streams a copy of `model` over `history` (reset at rest at its first row's voltage and measured position, in
+// options.mode (free run unless the model ran one-step live), the one streaming path, its inputs from the history's columns), then holds it at the last row's voltage and inputs over
 // the samples between the last row and now_s (round((now_s − last time) / period) − 1 of them, time_s advancing at
 // the history's median sample period; now's own sample is the caller's next). now_s is on the history's clock
 // (the predictor: ROS time, as ~snapshot stamps its rows). Refused, with the reason in
 // status (Resume::model null), when: the history is empty or lacks the axis or one of the model's inputs; a voltage is not finite;
-// now_s is before the history's end or further than max_gap_s after it; now_v is not within voltage_tolerance_v of
+// now_s is less than half a sample period after the history's end (that sample may be in it) or further than
+// max_gap_s after it; now_v is not within voltage_tolerance_v of
 // the last voltage; or the model's run diverges. `model` itself is not changed. Never throws on bad data.
 Resume resume_model(const models::Model& model, const io::Dataset& history, const std::string& axis, double now_s,
                     double now_v, const ResumeOptions& options = {});

@@ -62,10 +62,17 @@ Resume resume_model(const models::Model& model, const io::Dataset& history, cons
                    fmt(o.voltage_tolerance_v, 3) + " V apart: the stage moved while nothing recorded it)");
   const double dt = io::median_step_s(history.time_s);
   if (!(dt > 0.0)) return refused(src + " has no sample period");
+  if (gap_s < 0.5 * dt)
+    return refused("now (" + fmt(now_s, 12) + " s) is within half a sample period of the end of " + src +
+                   ": that sample may be in it");
+  for (std::size_t i = 0; i < n; ++i)
+    if (!std::isfinite(ax.voltage_v[i]))
+      return refused(src + " holds a non-finite voltage of " + axis + " at row " + std::to_string(i + 1));
   models::ModelPtr m = model.clone();
   double last_nm = 0.0;
   try {
-    models::StreamOptions so;  // reset at rest at the first row, free run
+    models::StreamOptions so;  // reset at rest at the first row
+    so.mode = o.mode;
     std::vector<double> p = models::stream_model(*m, history, axis, so).prediction;
     last_nm = p.back();
     // The hold: the samples between the history's last row and now (now's own sample is the caller's next), in
