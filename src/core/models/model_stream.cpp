@@ -139,25 +139,21 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
     // estimate: the plain mean over the window. The rest of the report is the estimate's.
     r.start.window_rows = k;
     const double* y = data.axis(axis).position_nm.data();
-    if (r.start.candidates == 0) {
+    const std::vector<double>& w = r.start.window_weight;
+    const bool estimated = r.start.candidates > 0;
+    if (estimated && (o.mode == PredictionMode::kFreeRun || !model.uses_position_history())) {
+      // the estimate's own stream: its offset stands
+    } else if (estimated && w.size() == k) {  // the weighted mean and RMS; the σ stays the estimate's
+      double sw = 0, swr = 0, swrr = 0;
+      for (std::size_t i = 0; i < k; ++i) sw += w[i], swr += w[i] * (y[i] - r.prediction[i]);
+      r.start.offset_nm = swr / sw;
+      for (std::size_t i = 0; i < k; ++i) swrr += w[i] * std::pow(y[i] - r.prediction[i] - r.start.offset_nm, 2);
+      r.start.rms_nm = std::sqrt(swrr / sw);
+    } else {  // a warm start, or offset only (no weights): the plain mean
       const WindowFit f = window_offset(y, r.prediction.data(), k);
       r.start.offset_nm = f.offset_nm;
       r.start.offset_sigma_nm = f.sigma_nm;
       r.start.rms_nm = f.rms_nm;
-    } else if (o.mode != PredictionMode::kFreeRun && model.uses_position_history()) {
-      const std::vector<double>& w = r.start.window_weight;
-      if (w.size() == k) {  // the weighted mean and RMS; the σ stays the estimate's
-        double sw = 0, swr = 0, swrr = 0;
-        for (std::size_t i = 0; i < k; ++i) sw += w[i], swr += w[i] * (y[i] - r.prediction[i]);
-        r.start.offset_nm = swr / sw;
-        for (std::size_t i = 0; i < k; ++i) swrr += w[i] * std::pow(y[i] - r.prediction[i] - r.start.offset_nm, 2);
-        r.start.rms_nm = std::sqrt(swrr / sw);
-      } else {  // offset only (no weights): the plain mean, as for a warm start
-        const WindowFit f = window_offset(y, r.prediction.data(), k);
-        r.start.offset_nm = f.offset_nm;
-        r.start.offset_sigma_nm = f.sigma_nm;
-        r.start.rms_nm = f.rms_nm;
-      }
     }
     if (r.start.candidates == 0) r.start.rms_rest_nm = r.start.rms_nm, r.start.candidate = "warm (continued history)";
     r.anchor_offset_nm = r.start.offset_nm;
