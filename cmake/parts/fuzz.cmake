@@ -15,7 +15,7 @@ if(PIEZO_CLANGXX)
        ${CMAKE_CURRENT_SOURCE_DIR}/src/core/features/*.cpp ${CMAKE_CURRENT_SOURCE_DIR}/src/core/models/*.cpp
        ${CMAKE_CURRENT_SOURCE_DIR}/src/core/protocols/*.cpp)
   list(APPEND fuzz_core_sources ${CMAKE_CURRENT_SOURCE_DIR}/src/core/can/protocol.cpp
-       ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/flush_subnormals.cpp)
+       ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/flush_subnormals.cpp ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/format.cpp)
   set(fuzz_objects)
   foreach(src ${fuzz_core_sources} ${CMAKE_CURRENT_SOURCE_DIR}/fuzz/fuzz_readers.cpp)
     file(RELATIVE_PATH rel ${CMAKE_CURRENT_SOURCE_DIR} ${src})

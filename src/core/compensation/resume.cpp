@@ -2,20 +2,15 @@
 
 #include <algorithm>
 #include <cmath>
-#include <sstream>
 
 #include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::compensation {
 
 namespace {
 
-std::string fmt(double x, int digits) {
-  std::ostringstream s;
-  s.precision(digits);
-  s << x;
-  return s.str();
-}
+using util::fmt;
 
 template <class T>
 void repeat_last(std::vector<T>& v, std::size_t m) {

@@ -9,6 +9,7 @@
 #include <Eigen/Dense>
 
 #include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::models {
 
@@ -17,12 +18,7 @@ namespace {
 // good. Measured on the stage matrix's separate recordings, seeds 22–24: 4–16 give the same pass counts within ±5 %.
 constexpr double kStartMargin = 8.0;
 
-std::string fmt(double x, int digits) {
-  std::ostringstream s;
-  s.precision(digits);
-  s << x;
-  return s.str();
-}
+using util::fmt;
 
 // Rows of the window: those with time − t0 < window_s (at least one).
 std::size_t window_rows(const io::Dataset& data, double window_s) {
