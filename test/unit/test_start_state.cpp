@@ -148,12 +148,10 @@ TEST(StartState, AtRestNoWorseThanOffsetOnly) {
   EXPECT_LE(est.score.mae_meas, 1.05 * plain.score.mae_meas + 0.5);
 }
 
-// (b2) One estimate, one offset, in either prediction mode: `piezo eval --anchor-s` streams one-step and copies
-// it as the free run of a model that reads no position, and took the one-step offset as the plain window mean,
-// which the rows the estimate weights little (where the unknown history still moves the prediction) pulled away:
-// the low-voltage PI stage's 12-play fit (on seed 21) run on seed 22 from its start, 2-s window: offset 1830 nm against the
-// estimate's -116 nm, MAE after the window 2044 against 130 nm. A model that reads the position: its one-step
-// offset is the window mean under the estimate's row weights.
+// (b2) One estimate, one offset, in either prediction mode: the one-step stream of a model that reads no position is
+// the free run (`piezo eval --anchor-s` reports it as such), so it keeps the estimate's offset, not the plain window
+// mean, which the rows the estimate weights little pull away (the case: the low-voltage PI stage's 12-play fit on
+// seed 21, run on seed 22 from its start with a 2-s window; docs/models.md, "Start-up state estimate").
 TEST(StartState, OneStepAndFreeRunShareTheEstimatesOffset) {
   const sim::StageConfig stage = sim::load_stage(kSrc + "/config/stages/lowvolt_pi.yaml");
   const io::Dataset all = sim::simulate_stage(stage, 21, 0.0);

@@ -294,8 +294,8 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
     m.method = "model-only: readings not dithered (step > 2 × the noise before it)";
     return m;
   }
-  // Parameters are searched in log space, bounded so the filter stays defined; a rate at the lower bound (e^-25,
-  // 1.4e-11) is one the data do not show, and is 0 (the model file and the log say "0", not 1.39e-11).
+  // Parameters are searched in log space, bounded so the filter stays defined; a rate at the lower bound (e^-25) is
+  // one the data do not show: 0.
   auto unpack = [](const std::array<double, 3>& z, NoiseModel& t) {
     auto rate = [](double x) { return x <= -25.0 ? 0.0 : std::exp(std::min(x, 12.0)); };
     t.q_rest_nm2_per_s = rate(z[0]);
