@@ -472,7 +472,7 @@ struct BagRows {
 
 // rows: the first axis' samples that have a reading (lost readings have no row) and whose sample every other
 // axis has. A sample another axis lost is not filled from a neighbour: its row is left out, so the time column
-// shows the gap as when the first axis lost it, which the offline tools refuse (io::Dataset::sample_period_s);
+// shows the gap as when the first axis lost it, which the offline tools step over as one sample (io::TimeBase);
 // at the ends (one axis started or stopped a sample later) that cuts the rows without a partner.
 void join_rows(const BagMessages& b, const std::string& path, BagRows& rows) {
   const int first = rows.first;
@@ -502,11 +502,12 @@ void join_rows(const BagMessages& b, const std::string& path, BagRows& rows) {
                           " s) of it: the axes were not recorded together");
 }
 
-// Refuses a step of the rows longer than the sample clock (the median step of the first axis' readings; a gap
-// does not move it), naming the axes that lost the samples.
-void refuse_gaps(const BagMessages& b, const BagRows& rows, const std::string& path) {
+// Each step of the rows longer than the sample clock (the median step of the first axis' readings; a gap does not
+// move it) as one line naming where, how many samples and which axes lost them.
+std::vector<std::string> describe_gaps(const BagMessages& b, const BagRows& rows, const std::string& path) {
+  std::vector<std::string> out;
   const std::size_t n = rows.row_of.size();
-  if (n < 2) return;
+  if (n < 2) return out;
   const auto& first = rows.paired[rows.first].samples;
   std::vector<double> reading_s;
   for (std::uint32_t i : rows.candidates) reading_s.push_back(first[i].stamp_s);
@@ -514,7 +515,7 @@ void refuse_gaps(const BagMessages& b, const BagRows& rows, const std::string& p
   for (std::size_t r = 1; clock_s > 0.0 && r < n; ++r) {
     const double step = rows.t(r) - rows.t(r - 1);
     const long missing = std::lround(step / clock_s) - 1;
-    if (missing < 1) continue;  // jitter is sample_period_s's to judge
+    if (missing < 1) continue;  // jitter
     // who lost them: per axis, the steps in between without a reading of it (stamps within half a step)
     const io::PairedSample& before = first[rows.row_of[r - 1]];
     long lacking[3] = {};
@@ -531,10 +532,10 @@ void refuse_gaps(const BagMessages& b, const BagRows& rows, const std::string& p
     std::string sep;
     for (int k = 0; k < 3; ++k)
       if (lacking[k] > 0) os << sep << "axis " << io::kAxisNames[k] << " lost " << lacking[k], sep = ", ";
-    os << "; the offline tools need every axis' sample at every step of the sample clock (" << std::setprecision(6)
-       << clock_s << " s), and the reader fills none";
-    throw io::DataError(os.str());
+    os << "; a model steps over them as one sample, nothing is filled in";
+    out.push_back(os.str());
   }
+  return out;
 }
 
 // Each axis' columns from its paired samples at the rows.
@@ -619,7 +620,7 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options, st
     b.voltage[k] = Series(), b.encoder[k] = Series(), b.truth[k] = Series();  // free what the pairing consumed
   }
   join_rows(b, path, rows);
-  if (options.refuse_gaps) refuse_gaps(b, rows, path);
+  if (options.gaps) *options.gaps = describe_gaps(b, rows, path);
   const std::size_t n = rows.row_of.size();
   io::Dataset d;
   d.source = path;

@@ -6,9 +6,9 @@ namespace {
 bool is_bag(const std::string& path) { return path.size() >= 4 && path.compare(path.size() - 4, 4, ".bag") == 0; }
 }  // namespace
 
-io::Dataset read_data(const std::string& path) {
+io::Dataset read_data(const std::string& path, std::vector<std::string>* notes) {
   BagOptions bag;
-  bag.refuse_gaps = true;
+  bag.gaps = notes;
   io::Dataset d = is_bag(path) ? read_bag(path, bag) : io::read_csv(path);
   d.validate();
   return d;

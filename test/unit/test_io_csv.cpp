@@ -4,6 +4,7 @@
 #include <cstdio>
 #include <fstream>
 #include <string>
+#include <vector>
 
 #include "piezo_compensation/io/dataset.h"
 
@@ -11,6 +12,8 @@ using piezo::io::DataError;
 using piezo::io::Dataset;
 using piezo::io::read_csv;
 using piezo::io::write_csv;
+using piezo::io::time_base;
+using piezo::io::TimeBase;
 
 namespace {
 
@@ -86,22 +89,39 @@ TEST(Csv, MalformedFilesNameFileRowAndColumn) {
   EXPECT_NE(error_of("time_s,c_voltage_v,c_position_nm\n").find("no data rows"), std::string::npos);
 }
 
-TEST(Csv, NonConstantRateIsReported) {
-  const Dataset d = read_csv(write_file("jitter.csv", "time_s,c_voltage_v,c_position_nm\n0,1,2\n0.1,1,2\n0.5,1,2\n"));
-  try {
-    d.sample_rate_hz();
-    FAIL() << "expected DataError";
-  } catch (const DataError& e) {
-    EXPECT_NE(std::string(e.what()).find("sample rate is not constant"), std::string::npos) << e.what();
-  }
-  // A gap late in a long file is named where it is (the mean step it pulls off would flag row 3).
+// A host clock: jittered steps and late rows are accepted as they are (one model step per row at the median step),
+// and the time a model steps over is reported; a step longer than kMaxStepS is one error naming the row.
+TEST(Csv, HostClockJitterAndLateRowsAreSteppedOverAndReported) {
   std::string text = "time_s,c_voltage_v,c_position_nm\n";
-  for (int i = 0; i < 40; ++i) text += std::to_string(0.1 * (i < 30 ? i : i + 3)) + ",1,2\n";
+  std::vector<double> t;
+  for (int i = 0; i < 40; ++i) t.push_back(0.1 * i + (i % 3 == 1 ? 0.012 : 0.0) + (i >= 30 ? 0.3 : 0.0));
+  for (double x : t) text += std::to_string(x) + ",1,2\n";
+  const Dataset d = read_csv(write_file("jitter.csv", text));
+  EXPECT_NEAR(d.sample_period_s(), 0.1, 1e-9);
+  const TimeBase tb = time_base(d.time_s);
+  EXPECT_FALSE(tb.constant);
+  EXPECT_EQ(tb.late_steps, 1u);
+  EXPECT_EQ(tb.longest_row, 30u);
+  EXPECT_NEAR(tb.longest_step_s, 0.4, 1e-9);
+  EXPECT_NEAR(tb.late_s, 0.3, 1e-9);
+  EXPECT_NEAR(tb.clock_lag_s, t.back() - t.front() - 39 * 0.1, 1e-9);
+  EXPECT_GT(tb.jitter_s, 0.005);
+  EXPECT_LT(tb.jitter_s, 0.012);
+  EXPECT_NEAR(tb.mean_step_s, (t.back() - t.front()) / 39.0, 1e-12);
+  // a sample clock is constant
+  std::vector<double> clock;
+  for (int i = 0; i < 20; ++i) clock.push_back(i / 11.0);
+  EXPECT_TRUE(time_base(clock).constant);
+  EXPECT_EQ(time_base(clock).late_steps, 0u);
+
+  // A gap the model cannot step over is named where it is.
+  text = "time_s,c_voltage_v,c_position_nm\n";
+  for (int i = 0; i < 40; ++i) text += std::to_string(0.1 * i + (i >= 30 ? 12.0 : 0.0)) + ",1,2\n";
   try {
     read_csv(write_file("gap.csv", text)).sample_rate_hz();
     FAIL() << "expected DataError";
   } catch (const DataError& e) {
-    EXPECT_NE(std::string(e.what()).find("row 32, column time_s"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("row 32, column time_s: a gap of 12.1 s"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("usual step 0.1 s"), std::string::npos) << e.what();
   }
 }

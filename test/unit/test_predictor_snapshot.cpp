@@ -194,8 +194,9 @@ TEST(SnapshotBag, ReadsAsItIsWithTheOneBagReader) {
   EXPECT_NEAR(d.aux[0].values.back(), s.aux.at("temperature_c").back().value, 1e-12);
 }
 
-// Samples lost beyond the predictor's queues leave a gap on the sample clock, which every offline tool refuses
-// (io::Dataset::sample_period_s). ~snapshot writes a stretch without one — never filled in — and says what it cut.
+// Samples lost beyond the predictor's queues leave a gap on the sample clock, which the offline tools step over as
+// one sample (io::TimeBase). ~snapshot writes a stretch without one — never filled in — so a resumed model runs over
+// a history without a step it did not see, and says what it cut.
 TEST(SnapshotBag, AGapIsCutOutAndTheStretchWrittenReadsAsItIs) {
   const std::string dir = ::testing::TempDir() + "snapshot_gap";
   std::filesystem::remove_all(dir);
@@ -220,11 +221,11 @@ TEST(SnapshotBag, AGapIsCutOutAndTheStretchWrittenReadsAsItIs) {
       EXPECT_EQ(g.missing, k.lost_n);
       EXPECT_NEAR(g.before_s - g.after_s, (k.lost_n + 1) / 11.0, 1e-3);  // on the sample clock: whole periods
     }
-    // the whole window, as it was heard: the offline reader refuses it
+    // the whole window, as it was heard: the offline reader shows the gap as one late step
     const std::string whole = dir + "/whole_" + std::to_string(k.lost_from) + ".bag";
     std::filesystem::create_directories(dir);
     predictor::write_snapshot_bag(whole, "/mm1", s, "base");
-    EXPECT_THROW(ros_io::read_bag(whole).sample_period_s(), io::DataError);
+    EXPECT_EQ(io::time_base(ros_io::read_bag(whole).time_s).late_steps, 1u);
 
     const compensation::SnapshotStretch cut = compensation::gap_free_stretch(s);
     EXPECT_TRUE(cut.snapshot.gaps.empty());

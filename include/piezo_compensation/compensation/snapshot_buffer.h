@@ -79,14 +79,14 @@ struct Snapshot {
   double period_s = 0.0;                                    // the mean sample period
   double max_restamp_s = 0.0;                               // largest |sample clock − receive stamp| of a reading
   std::size_t invalid_readings = 0;  // readings the controller flagged invalid: left out (the reader makes no row)
-  std::vector<SnapshotGap> gaps;     // by after_s; the offline tools refuse a time column with one
+  std::vector<SnapshotGap> gaps;     // by after_s; the offline tools step over one as a single sample
 };
 
 // "2 gaps, 7 samples missing (3 on c after +355.2 s, t = 1700000355.20 s; 4 on a after …)"
 std::string describe_gaps(const Snapshot& s);
 
 // What ~snapshot writes: `s` itself when it has no gap, else one stretch of it without a missing sample on any axis
-// (the offline tools refuse gaps by design, io::Dataset::sample_period_s; gaps are never filled). `message` ("" without
+// (a resumed model then runs over a history without a step it did not see; gaps are never filled). `message` ("" without
 // gaps) says which stretch, how many readings were left out and where the gaps are.
 struct SnapshotStretch {
   Snapshot snapshot;

@@ -34,7 +34,8 @@ struct AuxSignal {
 };
 
 // Reserved column names (see docs/data_formats.md):
-//   time_s                      sample time [s], strictly increasing, constant rate
+//   time_s                      sample time [s], strictly increasing; a host clock's jitter and gaps are accepted
+//                               (TimeBase below: every tool steps a model once per row)
 //   <axis>_voltage_v            applied voltage [V]
 //   <axis>_position_nm          measured position [nm]
 //   <axis>_true_position_nm     simulator ground truth [nm] (never an explanatory signal)
@@ -59,7 +60,8 @@ struct Dataset {
   AxisSeries& add_axis(const std::string& name);          // creates (sized to size()) or returns existing
   const AuxSignal* find_aux(const std::string& name) const;
 
-  // Sample period from the time column; throws DataError if the rate is not constant (±1 % jitter allowed).
+  // The period a model steps at: the median step of the time column (TimeBase::period_s). Throws DataError on
+  // fewer than 2 rows, a time that does not increase, or a step longer than kMaxStepS, naming the row.
   double sample_period_s() const;
   double sample_rate_hz() const { return 1.0 / sample_period_s(); }
 
@@ -82,6 +84,30 @@ struct DataSpan {
 // Throws DataError like sample_period_s() on fewer than 2 rows.
 DataSpan data_span(const Dataset& data, const std::string& axis);
 
+// How the rows of a recording sit in time (docs/data_formats.md, "Time"). Every tool steps a model once per row at
+// period_s, the median step: the controller's loop period (on a sample clock, the mean step). A host clock's jitter and late rows (a missed cycle of
+// the host's loop, a lost sample) are accepted as they are: the model steps over a late row's extra time without
+// seeing it, and that time is reported here (late_s, clock_lag_s). Nothing is interpolated or filled in.
+struct TimeBase {
+  std::size_t rows = 0;
+  double period_s = 0;          // median step; the mean step on a sample clock (constant)
+  double mean_step_s = 0;       // (last − first) / (rows − 1)
+  double jitter_s = 0;          // RMS of (step − period_s) over the steps that are not late
+  std::size_t late_steps = 0;   // steps longer than kLateStepFactor × period_s
+  double late_s = 0;            // Σ (step − period_s) over the late steps
+  double clock_lag_s = 0;       // (last − first) − (rows − 1) × period_s: how far the model's clock falls behind
+  double longest_step_s = 0;
+  std::size_t longest_row = 0;  // index of the row after the longest step
+  // Every step within 1 % of the period: a sample clock (simulated data, the driver's bags without a loss).
+  bool constant = true;
+};
+constexpr double kLateStepFactor = 1.5;
+// The longest step a model steps over as one sample: over a longer one the creep it misses is no longer small
+// against a reading (1 s of a 30-min hold's creep is well under 1 nm; a minute's at its start is not).
+constexpr double kMaxStepS = 10.0;
+// The time base of a time column; rows < 2 gives rows and nothing else. Does not check that time increases.
+TimeBase time_base(const std::vector<double>& time_s);
+
 // The usual step of a time column: the median of its steps (a gap or a late sample does not move it); 0 with
 // fewer than 2 times. Where a gap is named (sample_period_s, the bag reader's refusal).
 double median_step_s(const std::vector<double>& time_s);
@@ -93,8 +119,8 @@ std::string true_position_column(const std::string& axis);  // "<axis>_true_posi
 
 // CSV I/O. read_csv throws DataError with file, row (1-based, header = row 1) and column on:
 // missing time_s, an axis with voltage but no position (or vice versa), no axis at all, a non-numeric
-// or empty cell, NaN/Inf, a short or long row, non-increasing time. A non-constant sample rate (a gap) is
-// refused where the rate is needed: sample_period_s(), which every offline tool calls, names the row.
+// or empty cell, NaN/Inf, a short or long row, non-increasing time. A step longer than kMaxStepS is refused
+// where the rate is needed: sample_period_s(), which every offline tool calls, names the row.
 Dataset read_csv(const std::string& path);
 void write_csv(const std::string& path, const Dataset& data);
 

@@ -20,11 +20,11 @@ namespace piezo::ros_io {
 // period) every other axis has; a sample an axis lost is never filled from a neighbour (docs/data_formats.md).
 struct BagOptions {
   std::string ns;  // manipulator namespace; "" = auto-detect the single one in the bag
-  // false: the rows of samples an axis lost are left out and the time column shows the gap (which
-  // io::Dataset::sample_period_s refuses); the predictor's warm-up runs across it, as the running model did.
-  // true (read_data, i.e. the offline tools): such a gap inside the data is one io::DataError naming the time,
-  // the number of samples and the axes that lost them. Rows at the start or end without a partner are cut either way.
-  bool refuse_gaps = false;
+  // The rows of samples an axis lost are left out and the time column shows the gap; every tool steps a model
+  // over it as one sample (io::TimeBase). Rows at the start or end without a partner are cut.
+  // gaps (optional): one line per gap inside the data naming the time, the number of samples and the axes that
+  // lost them (`piezo info` prints them).
+  std::vector<std::string>* gaps = nullptr;
 };
 
 // row_sequences (optional): each row's sequence number, the sample every axis' row pairs by (io/sequence_pairer.h).
@@ -35,9 +35,9 @@ io::Dataset read_bag(const std::string& path, const BagOptions& options = {},
 void check_bag_file(const std::string& path);
 void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options = {});
 
-// Dispatch on the extension: ".bag" → bag (with refuse_gaps: every reader of it needs a constant rate), anything
-// else → CSV. Throws io::DataError with one clear line.
-io::Dataset read_data(const std::string& path);
+// Dispatch on the extension: ".bag" → bag, anything else → CSV. Throws io::DataError with one clear line.
+// notes (optional): what the reader found and left as it is (a bag's gaps).
+io::Dataset read_data(const std::string& path, std::vector<std::string>* notes = nullptr);
 void write_data(const std::string& path, const io::Dataset& data);
 
 }  // namespace piezo::ros_io

@@ -52,26 +52,49 @@ const AuxSignal* Dataset::find_aux(const std::string& name) const {
 
 double Dataset::sample_period_s() const {
   if (time_s.size() < 2) throw DataError(where(*this) + ": need at least 2 samples to know the sample rate");
-  const double dt = (time_s.back() - time_s.front()) / static_cast<double>(time_s.size() - 1);
-  if (!(dt > 0.0)) throw DataError(where(*this) + ": column time_s: time does not increase");
-  for (std::size_t i = 1; i < time_s.size(); ++i) {
-    const double d = time_s[i] - time_s[i - 1];
-    if (std::fabs(d - dt) > 0.01 * dt + 1e-9) {
-      // A gap pulls the mean step off every step: name the first step that differs from the usual (median) one.
-      const double usual = median_step_s(time_s);
-      std::size_t row = i;
-      for (std::size_t j = 1; j < time_s.size(); ++j)
-        if (std::fabs(time_s[j] - time_s[j - 1] - usual) > 0.01 * std::fabs(usual) + 1e-9) {
-          row = j;
-          break;
-        }
+  for (std::size_t i = 1; i < time_s.size(); ++i)
+    if (!(time_s[i] > time_s[i - 1])) {
       std::ostringstream os;
-      os << where(*this) << ": row " << row + 2 << ", column time_s: sample rate is not constant (step "
-         << time_s[row] - time_s[row - 1] << " s after t = " << time_s[row - 1] << " s, usual step " << usual << " s)";
+      os << where(*this) << ": row " << i + 2 << ", column time_s: time does not increase (" << time_s[i - 1] << " then "
+         << time_s[i] << ")";
       throw DataError(os.str());
     }
+  const TimeBase tb = time_base(time_s);
+  if (tb.longest_step_s > kMaxStepS) {
+    std::ostringstream os;
+    os << where(*this) << ": row " << tb.longest_row + 2 << ", column time_s: a gap of " << tb.longest_step_s
+       << " s after t = " << time_s[tb.longest_row - 1] << " s (usual step " << tb.period_s << " s); a model steps over at most "
+       << kMaxStepS << " s as one sample: split the recording there";
+    throw DataError(os.str());
   }
-  return dt;
+  return tb.period_s;
+}
+
+TimeBase time_base(const std::vector<double>& time_s) {
+  TimeBase tb;
+  tb.rows = time_s.size();
+  if (tb.rows < 2) return tb;
+  tb.period_s = median_step_s(time_s);
+  tb.mean_step_s = (time_s.back() - time_s.front()) / static_cast<double>(tb.rows - 1);
+  double ss = 0;
+  std::size_t on_time = 0;
+  for (std::size_t i = 1; i < tb.rows; ++i) {
+    const double step = time_s[i] - time_s[i - 1], dev = step - tb.period_s;
+    if (std::fabs(dev) > 0.01 * std::fabs(tb.period_s) + 1e-9) tb.constant = false;
+    if (step > tb.longest_step_s) tb.longest_step_s = step, tb.longest_row = i;
+    if (step > kLateStepFactor * tb.period_s) {
+      ++tb.late_steps;
+      tb.late_s += dev;
+    } else {
+      ss += dev * dev;
+      ++on_time;
+    }
+  }
+  tb.jitter_s = on_time ? std::sqrt(ss / static_cast<double>(on_time)) : 0.0;
+  // On a sample clock the mean step is the precise one (a stamp's rounding moves a single step, not the span).
+  if (tb.constant) tb.period_s = tb.mean_step_s;
+  tb.clock_lag_s = (time_s.back() - time_s.front()) - static_cast<double>(tb.rows - 1) * tb.period_s;
+  return tb;
 }
 
 double median_step_s(const std::vector<double>& time_s) {
