@@ -92,7 +92,7 @@ CreepProtocolRun creep_protocol_data() {
   // 200 switching voltages (0.8 V apart) instead of the stage's 40 (4 V): the stage's relays switch in rows of up
   // to 30.6 nm (40 bins, loop width 10 %), a staircase no continuous hysteresis model follows; fitted without creep
   // or noise the `preisach` kind alone is 17.1 nm off at a test hold of seed 7 and 4.1 nm on this seed, and with
-  // 200 bins (rows ≤ 5.9 nm) 4.5 and 1.0 nm (docs/models.md, issue 12). The target is the creep, not that grid.
+  // 200 bins (rows ≤ 5.9 nm) 4.5 and 1.0 nm (docs/models.md, "Creep on physics no kind was written from"). The target is the creep, not that grid.
   axis.preisach_grid_count = 200;
   CreepProtocolRun r;
   r.rate = stage.simulator.sample_rate_hz;
@@ -132,7 +132,7 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
   for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
   // Issue 12: hold MAE and every end of hold ≤ 5 nm (measured 2.70 / 4.15 nm with the converged final fit;
   // pi_creep_prony 41.8 nm). Not on every seed: 7 of the 7 seed/spectrum cases tried hold the MAE, 5 the ends
-  // (seed 7 6.38 / 6.35 nm, the pieces' hysteresis error at a 48.6-V hold; docs/models.md, issue 12).
+  // (seed 7 6.38 / 6.35 nm, the pieces' hysteresis error at a 48.6-V hold; docs/models.md, "Creep on physics no kind was written from").
   EXPECT_LE(s.mae_nm, 5.0);
   EXPECT_LE(s.worst_end_nm, 5.0);
   EXPECT_LE(s.walk_mae_nm, 3.0);  // measured 2.87 nm: holds not bought with the walk

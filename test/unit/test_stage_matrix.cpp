@@ -283,7 +283,7 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
     swept = std::max(swept, e.swept);
     const double ratio = sep[k] / continuation_mae(r);
     const bool ok = ratio <= kSeparateRatio;
-    // and the identification check `piezo fit` prints (docs/models.md, "Does the recording identify the model?")
+    // and the identification check `piezo fit` prints (docs/models.md, "Checking a model")
     const analysis::Identification id = analysis::identification(r.slow, sel.block_noise_nm);
     const std::string id_text = id.checked() ? figure(id.ratio()) + "×" : std::string("–");
     char buf[200];

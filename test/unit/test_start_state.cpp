@@ -376,7 +376,7 @@ TEST(StartState, ARestAtTheRangesMiddlePlacesASlowState) {
 }
 
 // The estimate says how much of the voltage range its window swept: the hysteresis memory of wider swings is not in
-// the window (docs/models.md, "Separate recording": MM3E 30-s windows 2.7x the continuation, 300-s ones 1.07x), and
+// the window (docs/models.md, "The stage matrix": MM3E 30-s windows 2.7x the continuation, 300-s ones 1.07x), and
 // below half the range the line advises a longer window. Without a training range the data's span is the range.
 TEST(StartState, TheReportSaysHowMuchOfTheRangeTheWindowSwept) {
   const io::Dataset rec = creep_recording();

@@ -88,7 +88,7 @@ struct SlowScoreOptions {
   double hold_end_s = 30.0;
   // Hold ends weigh as much as the other four columns together (1 + 1 + 0.25 + 1): half of the overall where all
   // five columns are present (more without the carry-over fold), the parked tip the choice is for; the carry-over
-  // fold, a fit on half the recording, must not outvote them (docs/models.md, "Re-measured with the play hinges").
+  // fold, a fit on half the recording, must not outvote them (docs/models.md, "`--model auto`: the choice rule").
   double hold_end_weight = 3.25;
   // The cold fold: cold_starts runs from rest, started at 0, 1/8, 2/8, … of the held-out part (their blocks
   // pooled), each scored after cold_window_s (at most a fifth of the part), weighted cold_weight in overall.
@@ -221,7 +221,7 @@ struct CandidateResult {
 //   ratio = (carry-over + noise) / (moves + noise).
 // Over kCarryOverAdvised, half the recording does not predict its other half: the recording is too short or too
 // narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part
-// says (measured on the stage matrix: docs/models.md, "Does the recording identify the model?").
+// says (measured on the stage matrix: docs/models.md, "Checking a model").
 constexpr double kCarryOverAdvised = 2.0;
 struct Identification {
   double carry_nm = NAN, moves_nm = NAN, noise_nm = 0.0;

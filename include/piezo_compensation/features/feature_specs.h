@@ -26,7 +26,7 @@ FeatureSpec candidate_features(const DataSpan* span = nullptr);
 // The features of `spec` whose memory a recording of span.duration_s can show: time constants, windows and lags
 // up to a third of it (as the voltage_history set places its slowest low-pass). A slower one is a constant or the
 // voltage itself over the recording, and a fit may weight such near-copies hugely against each other: exact on
-// that recording, far off from any other start (docs/models.md, "Separate recording").
+// that recording, far off from any other start (docs/models.md, "The stage matrix").
 FeatureSpec identifiable_on(const FeatureSpec& spec, const DataSpan& span);
 // `spec` without the features that read the measured position (FeatureDef::reads_position): what a free run can
 // compute from the voltage alone.

@@ -350,7 +350,7 @@ void md_effects(std::ostream& f, const ReportParts& p) {
     f << ".\n";
     for (const auto& c : e.competitors)
       f << "   - competing explanation **" << c.family << "** (" << c.parameters << " parameters, validation −"
-        << 100 * c.validation_gain << " %): not kept, " << c.verdict << ".\n";
+        << 100 * c.validation_gain << " %): not taken, " << c.verdict << ".\n";
   }
 }
 

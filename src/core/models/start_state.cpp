@@ -508,7 +508,7 @@ void apply_state_fit(const StateFit& f, const StateBasis& basis, StartEstimate* 
 }
 
 // The chosen candidate's linear states fitted on the window (StartOptions::fit_linear_states); the candidate itself
-// is chosen by choose_start, without the states (docs/models.md, "Separate recording").
+// is chosen by choose_start, without the states (docs/models.md, "The stage matrix").
 void fit_linear_states(const Model& model, const io::Dataset& data, const std::string& axis, const io::Dataset& window,
                        const std::vector<StartHistory>& cands, const std::vector<std::vector<double>>& preds,
                        const std::vector<std::vector<double>>& states, std::size_t chosen,

@@ -253,7 +253,7 @@ enum class SearchStep { kFull, kKeep, kReuse };
 // How to evaluate the law `cp` (modes `t`, CreepBasis::taus) within a search. LTI: reuse the kept rows when only
 // mode j changed since they were kept, keep them when exactly one mode changed since the last evaluation.
 // Fractional: reuse them when the modes are those they were kept for, keep them when the last evaluation had the
-// same modes. Else a full evaluation. `q`: the Gram's columns (x, y, 1); rows over 256 MB are not kept.
+// same modes. Else a full evaluation. `q`: the Gram's columns (x, y, 1); rows over 256 MB are not stored.
 SearchStep search_step(ModeSearchRows* s, const CreepParams& cp, const std::vector<double>& t, const FitData& d,
                        std::size_t q) {
   if (!s || (cp.kind != CreepKind::kLti && cp.kind != CreepKind::kFractional)) return SearchStep::kFull;
@@ -560,7 +560,7 @@ void creep_columns(const CreepBasis& cb, std::vector<double>& l, double u, doubl
   }
 }
 
-// Where a fractional search being kept stores every row's mode states (null: not kept, or not fractional).
+// Where a fractional search being kept stores every row's mode states (null: not stored, or not fractional).
 double* kept_modes(ModeSearchRows* s, std::size_t N, std::size_t nm) {
   if (!s || !s->fractional) return nullptr;
   s->modes.resize(N * nm);
@@ -971,7 +971,7 @@ PiFitOptions parse_pi_options(const YAML::Node& o, CreepKind kind, bool preisach
   if (p.knots_per_span < 0 || p.knots_per_span > kMaxKnotsPerPlay + 1)
     throw std::runtime_error("option 'knots_per_span': expected 1.." + std::to_string(kMaxKnotsPerPlay + 1));
   // Off by default: it lowers the PI kinds' errors on asymmetric and Preisach stages but, chosen by validation on
-  // a 40-s recording, raises them on another recording of the same stage (docs/models.md, "Input map").
+  // a 40-s recording, raises them on another recording of the same stage (docs/models.md, "Model kinds").
   p.input_map = option_str(o, "input_map", "off");
   if (p.input_map != "auto" && p.input_map != "on" && p.input_map != "off")
     throw std::runtime_error("option 'input_map': expected auto, on or off, got '" + p.input_map + "'");
@@ -1184,7 +1184,7 @@ std::unique_ptr<PiCreepModel> PiCreepFit::fit_with(const FitData& d, const Basis
   if (v_model) *v_model = r.model(best.w, best.b, cp, rate_);
   // The joint fixed point is exact where the hysteresis is representable, but with a misfit it is not the
   // least-squares solution the alternation converges to: on Preisach physics it was better on one seed and worse on
-  // another (docs/models.md, issue 12), so the alternation is the default (creep_on_h_fit: joint, prony only).
+  // another (docs/models.md, "Creep on physics no kind was written from"), so the alternation is the default (creep_on_h_fit: joint, prony only).
   if (iters > 0 && joint) {
     best = iterate_joint_on_h(dd, r, cp, best);
   } else if (iters > 0) {
@@ -1374,7 +1374,7 @@ std::unique_ptr<PiCreepModel> PiCreepFit::choose_creep_input(const Basis& r, Sco
   const Score sv = validation_score(*mv, ax_, *val_, val_hold_, &ev), sh = validation_score(*mh, ax_, *val_, val_hold_, &eh);
   // Creep on V only when validation shows it clearly better: against the noise floor (16.6 nm on the Preisach
   // creep-protocol stage) a 0.26-nm lead of V over 2 h of validation picked it on seed 4242, where against the
-  // truth it left 11.9 nm at the end of a hold and H 3.0 nm (docs/models.md, issue 12). Blocks of 5 min; with
+  // truth it left 11.9 nm at the end of a hold and H 3.0 nm (docs/models.md, "Creep on physics no kind was written from"). Blocks of 5 min; with
   // under 20 min of validation the lower MAE decides, as before (forcing H there cost the stage matrix's short
   // stages up to 88 %: stack150_pi_creep preisach_creep_prony 16.2 → 30.4 nm).
   const bool use_h = !validation_prefers(ev, eh, static_cast<std::size_t>(300.0 * rate_));
