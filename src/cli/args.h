@@ -30,6 +30,12 @@ class Args {
     opts_.push_back({name, meta, help, "", false, {}, false, true});
     return *this;
   }
+  // Files: one or more values after the option (`--data A.csv B.csv`), up to the next option; the option may also
+  // be repeated. Read them with list().
+  Args& files(const std::string& name, const std::string& meta, const std::string& help, bool is_required) {
+    opts_.push_back({name, meta, help, "", true, {}, false, is_required, true});
+    return *this;
+  }
 
   // Returns false when --help was printed (caller returns 0). Throws UsageError on bad options.
   bool parse(int argc, char** argv) {
@@ -62,6 +68,8 @@ class Args {
         }
         if (!o->repeatable && !o->values.empty()) throw UsageError(command_ + ": option " + a + " given twice");
         o->values.push_back(value);
+        while (o->greedy && !has_inline && i + 1 < argc && std::string(argv[i + 1]).rfind("--", 0) != 0)
+          o->values.push_back(argv[++i]);
       }
       o->given = true;
     }
@@ -130,7 +138,8 @@ class Args {
       os << l << std::string(l.size() < 30 ? 30 - l.size() : 1, ' ') << o.help;
       if (o.is_required) os << " (required)";
       if (!o.def.empty()) os << " [default: " << o.def << "]";
-      if (o.repeatable) os << " (repeatable)";
+      if (o.greedy) os << " (one or more)";
+      else if (o.repeatable) os << " (repeatable)";
       os << "\n";
     }
     os << "  --help                      this text\n";
@@ -143,6 +152,7 @@ class Args {
     std::vector<std::string> values;
     bool given = false;
     bool is_required = false;
+    bool greedy = false;
   };
   Opt* find(const std::string& n) {
     for (auto& o : opts_)

@@ -19,8 +19,8 @@ namespace fs = std::filesystem;
 
 // The scoring options, in the report's context and the evaluation's alike.
 void read_options(const Args& args, analysis::EvalContext& ctx, analysis::EvalOptions& eo) {
-  ctx.test_path = args.str("data");
-  ctx.creep_path = args.str("creep");
+  for (const auto& f : args.list("data")) ctx.test_path += (ctx.test_path.empty() ? "" : " ") + f;
+  for (const auto& f : args.list("creep")) ctx.creep_path += (ctx.creep_path.empty() ? "" : " ") + f;
   ctx.warmup_s = args.seconds("warmup-s");
   ctx.anchor_s = args.seconds("anchor-s");
   if (!(ctx.anchor_s >= 0)) throw UsageError("eval: --anchor-s must be ≥ 0");
@@ -42,8 +42,9 @@ int run(int argc, char** argv) {
                     "holds), one-step and free-run, against the measurement and (simulated data) the true position.\n"
                     "usage: piezo eval --models m1.yaml m2.yaml ... --data TEST [--creep CREEP] --out DIR");
   args.option("models", "FILE.yaml", "model files (more may follow as plain arguments)", "", true)
-      .required("data", "FILE", "test data (CSV or bag)")
-      .option("creep", "FILE", "creep data with hold phases (else the holds in --data)")
+      .files("data", "FILE", "test data (CSV or bag); several files are separate recordings, each from its own start", true)
+      .files("creep", "FILE", "creep data with holds (else the holds in --data; without a phase column a hold is the\n"
+             "voltage unchanged for at least 60 s)", false)
       .option("axis", "a|b|c", "axis (default: the models' axis)")
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
               "test data's holds, analysis/noise_floor.h)")
@@ -60,9 +61,11 @@ int run(int argc, char** argv) {
   for (const auto& p : args.positional()) paths.push_back(p);
   if (paths.empty()) throw UsageError("eval: give at least one model file (--models m1.yaml ...)");
 
-  const io::Dataset test = ros_io::read_data(args.str("data"));
+  std::vector<std::string> notes;
+  const io::Dataset test = ros_io::read_recordings(args.list("data"), &notes);
   io::Dataset creep;
-  if (args.has("creep")) creep = ros_io::read_data(args.str("creep"));
+  if (args.has("creep")) creep = ros_io::read_recordings(args.list("creep"), &notes);
+  for (const auto& n : notes) std::cerr << "note: " << n << "\n";
   const fs::path out = args.str("out");
   fs::create_directories(out);
 

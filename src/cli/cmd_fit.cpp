@@ -72,9 +72,11 @@ int run(int argc, char** argv) {
                    "validation metrics stored in the file. A fit that fails a sanity gate (free-run validation error\n"
                    "not finite or above 25 % of the position range, parameters far outside what the data supports)\n"
                    "is refused with one error. Kinds: auto (fit the candidates, choose by the slow part of the free-run error), " + kinds);
-  args.required("data", "FILE", "training data (CSV or bag)")
-      .option("validation", "FILE", "separate validation data (else --split is used)")
-      .option("split", "FRACTION", "training fraction of --data when no --validation is given", "0.8")
+  args.files("data", "FILE", "training data (CSV or bag); several files are separate recordings, each with its own\n"
+             "history and zero (docs/data_formats.md, \"Several recordings\")", true)
+      .files("validation", "FILE", "separate validation data (else --split is used)", false)
+      .option("split", "FRACTION", "training fraction of --data when no --validation is given (several recordings:\n"
+              "the fraction of the recordings, the last ones held out whole)", "0.8")
       .option("axis", "a|b|c", "axis to model", "c")
       .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, kan, run\n"
                 "free on the validation part and scored by 30-s block means on moves, holds, hold ends, a cold\n"
@@ -101,13 +103,23 @@ int run(int argc, char** argv) {
   if (!auto_kind && !training::fitter(kind)) throw UsageError("fit: kind '" + kind + "' cannot be fitted on its own");
   if (auto_kind && args.has("features")) throw UsageError("fit: --features does not apply to --model auto");
 
-  io::Dataset all = ros_io::read_data(args.str("data"));
+  std::vector<std::string> notes;
+  io::Dataset all = ros_io::read_recordings(args.list("data"), &notes);
   all.axis(axis);  // clear error if the axis is missing
   io::Dataset train, val;
   std::size_t split_at = 0;  // > 0: validation is the tail of `all`, scored after running through the training part
   if (args.has("validation")) {
     train = all;
-    val = ros_io::read_data(args.str("validation"));
+    val = ros_io::read_recordings(args.list("validation"), &notes);
+  } else if (all.recording_count() > 1) {
+    // Several recordings: whole ones held out, never a recording cut in two (its zero and state would leak).
+    const double split = args.num("split");
+    const std::size_t r = all.recording_count();
+    const std::size_t keep = static_cast<std::size_t>(std::llround(split * static_cast<double>(r)));
+    if (!(split > 0 && split <= 1) || keep < 1) throw UsageError("fit: --split must leave at least one training recording");
+    train = all.slice(0, all.recording_rows(std::min(keep, r) - 1).second);
+    if (keep < r) val = all.slice(all.recording_rows(keep).first, all.size());
+    train.source = val.source = all.source;
   } else {
     const double split = args.num("split");
     if (!(split > 0 && split <= 1)) throw UsageError("fit: --split must be in (0, 1]");
@@ -118,6 +130,10 @@ int run(int argc, char** argv) {
     train.source = val.source = all.source;
   }
 
+  for (const auto& n : notes) std::cerr << "note: " << n << "\n";
+  if (all.recording_count() > 1)
+    std::cout << "recordings: " << train.recording_count() << " for training, " << (val.empty() ? 0 : val.recording_count())
+              << " for validation, each its own history and zero\n";
   YAML::Node options(YAML::NodeType::Map);
   if (args.has("options")) {
     try {
@@ -192,7 +208,11 @@ int run(int argc, char** argv) {
     std::cout << "estimator: " << noise.describe() << "\n";
   }
   model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
-  if (model->meta.training_source.empty()) model->meta.training_source = args.str("data");
+  if (model->meta.training_source.empty()) {
+    std::string src;
+    for (const auto& f : args.list("data")) src += (src.empty() ? "" : " ") + f;
+    model->meta.training_source = src;
+  }
   models::save_model(args.str("out"), *model);
   std::cout << "wrote " << args.str("out") << ": kind " << model->kind() << ", " << model->num_parameters()
             << " parameters, trained on " << train.size() << " samples";

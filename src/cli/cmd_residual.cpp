@@ -40,8 +40,8 @@ int run(int argc, char** argv) {
             "best significant one, refit, repeat; report TEST error before/after. Gain families (time_gain,\n"
             "cross_axis_gain, aux_gain) scale the motion instead of adding to it. Writes report.md, report.json,\n"
             "predictions.csv, model.yaml (kind augmented) and PNGs to --out.");
-  args.option("train", "FILE", "training data (CSV or bag)")
-      .option("test", "FILE", "test data (CSV or bag)")
+  args.files("train", "FILE", "training data (CSV or bag); several files are separate recordings", false)
+      .files("test", "FILE", "test data (CSV or bag); several files are separate recordings", false)
       .option("data", "FILE", "one data file split by time instead of --train/--test")
       .option("split", "FRACTION", "with --data: the first FRACTION is TRAIN", "0.7")
       .option("axis", "NAME", "axis to model", "c")
@@ -76,8 +76,8 @@ int run(int argc, char** argv) {
     test.source = args.str("data") + " (TEST part)";
   } else {
     if (!args.has("train") || !args.has("test")) throw UsageError("residual: give --train and --test (or --data)");
-    train = ros_io::read_data(args.str("train"));
-    test = ros_io::read_data(args.str("test"));
+    train = ros_io::read_recordings(args.list("train"));
+    test = ros_io::read_recordings(args.list("test"));
   }
   const std::string axis = args.str("axis");
   train.axis(axis);  // clear error if missing
@@ -124,7 +124,7 @@ int run(int argc, char** argv) {
   } else if (fs::exists(model_arg)) {
     base = models::load_model(model_arg);
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");
-    models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : args.str("train"));
+    models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : train.source_or_data());
   } else {
     if (!training::fitter(model_arg)) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());

@@ -42,8 +42,12 @@ void write_csv(const fs::path& path, const compensation::TrackResult& r) {
 std::string hold_table(const compensation::TrackResult& r, const compensation::TrackOptions& o) {
   std::ostringstream s;
   s << "Holds of ≥ " << o.min_hold_s << " s, scored from " << o.settle_skip_s << " s on; end = worst |error| over the last "
-    << o.end_window_s << " s. Errors against the true position [nm].\n\n"
-    << "| hold | start [s] | length [s] | V | model MAE | fused MAE | model end | fused end | mean 1σ | truth within ±2σ |\n"
+    << o.end_window_s << " s. Errors against "
+    << (r.has_truth ? "the true position [nm]; ±2σ: the truth within 2σ."
+                    : "the mean of the next " + num(o.end_window_s, 0) + " s of readings [nm] (no truth column); ±2σ: the next "
+                      "reading within 2·√(σ² + r²), r = " + num(r.reading_sigma_nm, 1) + " nm.")
+    << (r.recordings > 1 ? " " + std::to_string(r.recordings) + " recordings, each from a cold start." : "") << "\n\n"
+    << "| hold | start [s] | length [s] | V | model MAE | fused MAE | model end | fused end | mean 1σ | within ±2σ |\n"
     << "|---|---|---|---|---|---|---|---|---|---|\n";
   for (std::size_t k = 0; k < r.holds.size(); ++k) {
     const auto& h = r.holds[k];
@@ -61,7 +65,7 @@ int run(int argc, char** argv) {
                      "from a cold start at its first row, as the node would: DIR/track.csv (time_s, applied_v,\n"
                      "measured_nm, model_nm, fused_nm, fused_sigma_nm[, true_nm]), DIR/holds.md, DIR/track.json.");
   args.required("model", "FILE.yaml", "model file (with an estimator: block, written by piezo fit)")
-      .required("data", "FILE", "recording (CSV or bag)")
+      .files("data", "FILE", "recording (CSV or bag); several: each tracked from its own cold start", true)
       .option("axis", "a|b|c", "axis (default: the model's)")
       .option("identify-on", "FILE", "identify the estimator's noise model on this recording (the model runs free over\n"
               "it) instead of the model file's block")
@@ -77,8 +81,12 @@ int run(int argc, char** argv) {
   if (!args.parse(argc, argv)) return 0;
   models::ModelPtr model = models::load_model(args.str("model"));
   const std::string axis = args.has("axis") ? args.str("axis") : model->meta.axis;
-  const io::Dataset data = ros_io::read_data(args.str("data"));
-  models::check_model_matches_data(*model, data, args.str("data"));
+  std::vector<std::string> notes;
+  const io::Dataset data = ros_io::read_recordings(args.list("data"), &notes);
+  for (const auto& n : notes) std::cerr << "note: " << n << "\n";
+  std::string data_names;
+  for (const auto& f : args.list("data")) data_names += (data_names.empty() ? "" : " ") + f;
+  models::check_model_matches_data(*model, data, data_names);
   if (args.has("identify-on")) {
     const io::Dataset id = ros_io::read_data(args.str("identify-on"));
     const double from_s = args.num("identify-from-s");
@@ -110,7 +118,7 @@ int run(int argc, char** argv) {
   const std::string table = hold_table(r, o);
   {
     std::ofstream f(out / "holds.md");
-    f << "# piezo track: " << args.str("model") << " on " << args.str("data") << " (axis " << axis << ")\n\n"
+    f << "# piezo track: " << args.str("model") << " on " << data_names << " (axis " << axis << ")\n\n"
       << "Estimator: " << r.estimator << "\n\n"
       << (r.start_estimate.empty() ? "" : "Start: " + r.start_estimate + "\n\n") << table;
   }

@@ -14,6 +14,19 @@ io::Dataset read_data(const std::string& path, std::vector<std::string>* notes) 
   return d;
 }
 
+io::Dataset read_recordings(const std::vector<std::string>& paths, std::vector<std::string>* notes) {
+  if (paths.empty()) throw io::DataError("no data file given");
+  std::vector<io::Dataset> parts;
+  for (const auto& p : paths) {
+    for (const auto& q : paths)
+      if (&q < &p && q == p) throw io::DataError(p + ": given twice");
+    parts.push_back(read_data(p, notes));
+  }
+  io::Dataset d = io::join_recordings(parts, notes);
+  d.validate();
+  return d;
+}
+
 void write_data(const std::string& path, const io::Dataset& data) {
   if (is_bag(path))
     write_bag(path, data);

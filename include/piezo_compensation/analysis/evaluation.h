@@ -20,12 +20,16 @@ struct Hold {
   int segment = -1;
   double duration_s = 0;
 };
-// Runs of phase == Phase::kHold (a new run also starts where the segment changes). Empty without a phase column.
+// Runs of phase == Phase::kHold (a new run also starts where the segment changes). Without a phase column, as
+// `piezo fit` finds them: the voltage of the first axis unchanged (within 1 µV) for at least kVoltageHoldMinS. A hold
+// never spans two recordings.
+constexpr double kVoltageHoldMinS = 60.0;
 std::vector<Hold> find_holds(const io::Dataset& data, double min_duration_s = 0.0);
 
 struct SeriesPrediction {
   std::vector<double> one_step, free_run;
   std::size_t first_scored = 0;                            // first row after the anchor window (0 without)
+  std::vector<char> scored;  // rows after each recording's anchor window (all 1 without an anchor)
   double one_step_offset_nm = 0.0, free_run_offset_nm = 0.0;  // anchor offsets (0 without)
   models::StartEstimate start;  // the anchor's start estimate, free-run offset and σ (candidates = 0 without)
 };

@@ -115,7 +115,8 @@ struct SlowScoreOptions {
   double noise_nm = 0.0;  // noise of a block mean [nm]; 0: select_model estimates it (σ of a reading / √rows)
 };
 
-// Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s.
+// Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s, none
+// across the start of a recording.
 struct VoltageHold {
   std::size_t begin = 0, end = 0;
 };

@@ -22,7 +22,8 @@ struct TrackOptions {
 struct TrackHold {
   double start_s = 0, end_s = 0, voltage_v = 0;
   std::size_t scored = 0;          // samples from settle_skip_s on
-  // against the truth when the data has one, else NaN
+  // Against the truth when the data has one; else against the mean of the next end_window_s of readings (rows whose
+  // next window lies in the hold), and within_2sigma counts the next reading within 2·√(σ² + r²), r the reading σ.
   double fused_mae_nm = NAN, model_mae_nm = NAN;
   double fused_end_nm = NAN, model_end_nm = NAN;  // worst |error| over the last end_window_s
   double within_2sigma = NAN;      // fraction of scored samples with |fused − truth| ≤ 2σ
@@ -38,12 +39,16 @@ struct TrackResult {
   std::string start_estimate;  // the start-up state estimate's line (empty without start_estimate_s)
   bool fusing = false;
   bool has_truth = false;
+  double reading_sigma_nm = NAN;  // the estimator's r (no truth: the next reading's spread about the truth)
+  std::size_t recordings = 1;
   // over every hold's scored samples
   double fused_mae_nm = NAN, model_mae_nm = NAN, worst_fused_end_nm = NAN, worst_model_end_nm = NAN,
          within_2sigma = NAN;
 };
 
-// Throws std::invalid_argument / io::DataError naming what is wrong (axis or input columns missing).
+// Data of several recordings: each tracked on its own from a cold start (a fresh clone of the model), the rows and
+// holds joined in order. Throws std::invalid_argument / io::DataError naming what is wrong (axis or input columns
+// missing).
 TrackResult track_recording(models::ModelPtr model, const io::Dataset& data, const std::string& axis,
                             const TrackOptions& o = {});
 

@@ -33,6 +33,15 @@ struct AuxSignal {
   std::vector<double> values;
 };
 
+// One recording of several in a data set (several files read as one, io::join_recordings): its own history — a model
+// starts at rest, or from the start estimate, at its first row — and its own zero (an incremental encoder is reset
+// before each run), which no tool takes as physics.
+struct RecordingMark {
+  std::string name;       // the file it came from
+  std::size_t begin = 0;  // its first row
+  double time_shift_s = 0.0;  // added to its own times so that the data set's time column keeps increasing
+};
+
 // Reserved column names (see docs/data_formats.md):
 //   time_s                      sample time [s], strictly increasing; a host clock's jitter and gaps are accepted
 //                               (TimeBase below: every tool steps a model once per row)
@@ -51,6 +60,16 @@ struct Dataset {
   std::vector<AuxSignal> aux;        // auxiliary signals, in file order
   std::vector<int> segment;          // empty or size(): protocol segment index per sample
   std::vector<int> phase;            // empty or size(): protocol phase code per sample
+  // Empty: one recording (the whole data set). Else recordings[0].begin == 0 and the begins increase.
+  std::vector<RecordingMark> recordings;
+
+  std::size_t recording_count() const { return recordings.empty() ? 1 : recordings.size(); }
+  // Rows [first, second) of recording k.
+  std::pair<std::size_t, std::size_t> recording_rows(std::size_t k) const;
+  // Whether `row` is the first row of a recording (row 0 always is).
+  bool starts_recording(std::size_t row) const;
+  // The recording of each row (0 for a data set of one recording).
+  std::vector<std::size_t> recording_index() const;
 
   std::size_t size() const { return time_s.size(); }
   bool empty() const { return time_s.empty(); }
@@ -65,14 +84,23 @@ struct Dataset {
   double sample_period_s() const;
   double sample_rate_hz() const { return 1.0 / sample_period_s(); }
 
-  // Rows [begin, end) as a new data set (all columns).
+  // Rows [begin, end) as a new data set (all columns; the recordings that overlap them, cut to them).
   Dataset slice(std::size_t begin, std::size_t end) const;
-  // Appends other's rows (same columns required, time must continue increasing).
+  // Recording k as a data set of its own (its own times, its name as source).
+  Dataset recording(std::size_t k) const;
+  // Appends other's rows to the last recording (same columns required, time must continue increasing; `other`
+  // must be one recording).
   void append(const Dataset& other);
 
   // Checks internal consistency (sizes, finite values, increasing time); throws DataError naming what.
   void validate() const;
 };
+
+// Several data sets as the recordings of one (RecordingMark): the same axes required (a DataError naming the file and
+// the axis otherwise); an aux column, a true position or the segment/phase markers that not every part has are left
+// out, with a line for each in `notes`. Times are shifted so that each recording starts one period after the one
+// before. One part is returned as it is.
+Dataset join_recordings(const std::vector<Dataset>& parts, std::vector<std::string>* notes = nullptr);
 
 // The voltage extremes, length and rate of one axis' recording: what data-placed features (features/
 // feature_specs.h, voltage_history) are placed on and what the fit gates (analysis/model_selection.h) scale by.

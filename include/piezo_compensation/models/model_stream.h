@@ -80,7 +80,11 @@ struct StreamOptions {
 struct StreamResult {
   std::vector<double> prediction;  // per row of `data` [nm], offset included
   double anchor_offset_nm = 0.0;   // 0 without an anchor
-  std::size_t first_scored = 0;    // first row after the anchor window (0 without one)
+  std::size_t first_scored = 0;    // first row after the anchor window (0 without one); the first recording's
+  // Data of several recordings (io::RecordingMark): each streamed on its own from its own reset (and start estimate
+  // and offset with an anchor); per recording, its rows' anchor window [begin, first scored) and its estimate.
+  std::vector<std::pair<std::size_t, std::size_t>> windows;
+  std::vector<StartEstimate> starts;
   bool anchored = false;
   // The anchor's start estimate. Its offset is this stream's (the one-step stream of a model that reads the position:
   // the window mean under the estimate's row weights, and their weighted RMS; its σ the estimate's).
@@ -88,11 +92,12 @@ struct StreamResult {
 };
 
 // Per row: predict with the row's voltage and inputs, then commit the measured position (one-step) or the
-// model's own prediction (free-run). Throws std::runtime_error naming the row on a non-finite prediction (see
+// model's own prediction (free-run). Data of several recordings: each is streamed on its own, from a reset (the
+// first one continues the model's state when !reset), with its own anchor; a warm-up is refused. Throws std::runtime_error naming the row on a non-finite prediction (see
 // keep_diverging), io::DataError on missing columns.
 StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o = {});
 
-// Mask of the rows scored after an anchor: 0 for rows < first_scored (sized data.size()).
+// Mask of the rows scored after an anchor: 0 in each recording's anchor window (sized data.size()).
 std::vector<char> scored_mask(const StreamResult& r, std::size_t n);
 
 }  // namespace piezo::models

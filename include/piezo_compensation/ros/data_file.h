@@ -38,6 +38,9 @@ void write_bag(const std::string& path, const io::Dataset& data, const BagOption
 // Dispatch on the extension: ".bag" → bag, anything else → CSV. Throws io::DataError with one clear line.
 // notes (optional): what the reader found and left as it is (a bag's gaps).
 io::Dataset read_data(const std::string& path, std::vector<std::string>* notes = nullptr);
+// Several files as the recordings of one data set (io::join_recordings): each its own history and zero. One file is
+// read as read_data reads it. notes: each file's notes and what the join left out.
+io::Dataset read_recordings(const std::vector<std::string>& paths, std::vector<std::string>* notes = nullptr);
 void write_data(const std::string& path, const io::Dataset& data);
 
 }  // namespace piezo::ros_io

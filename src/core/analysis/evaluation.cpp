@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
@@ -17,8 +18,15 @@ constexpr int kHold = static_cast<int>(protocols::Phase::kHold);
 
 std::vector<Hold> find_holds(const io::Dataset& d, double min_duration_s) {
   std::vector<Hold> out;
-  if (d.phase.empty()) return out;
   const double dt = d.size() > 1 ? d.sample_period_s() : 0.0;
+  if (d.phase.empty()) {  // as `piezo fit` finds them (analysis/model_selection.h)
+    if (d.axes.empty() || d.size() < 2) return out;
+    SlowScoreOptions o;
+    o.hold_min_s = std::max(min_duration_s, kVoltageHoldMinS);
+    for (const auto& h : voltage_holds(d, d.axes.front().name, 0, o))
+      out.push_back({h.begin, h.end, -1, double(h.end - h.begin) * dt});
+    return out;
+  }
   std::size_t i = 0;
   while (i < d.size()) {
     if (d.phase[i] != kHold) {
@@ -28,7 +36,8 @@ std::vector<Hold> find_holds(const io::Dataset& d, double min_duration_s) {
     Hold h;
     h.begin = i;
     h.segment = d.segment.empty() ? -1 : d.segment[i];
-    while (i < d.size() && d.phase[i] == kHold && (d.segment.empty() || d.segment[i] == h.segment)) ++i;
+    ++i;
+    while (i < d.size() && d.phase[i] == kHold && (d.segment.empty() || d.segment[i] == h.segment) && !d.starts_recording(i)) ++i;
     h.end = i;
     h.duration_s = (h.end - h.begin) * dt;
     if (h.duration_s >= min_duration_s) out.push_back(h);
@@ -54,6 +63,7 @@ SeriesPrediction predict_series(const models::Model& model, const io::Dataset& d
   const models::StreamResult r1 = models::stream_model(*one, d, axis, so);
   p.one_step = r1.prediction;
   p.first_scored = r1.first_scored;
+  p.scored = models::scored_mask(r1, d.size());
   p.one_step_offset_nm = r1.anchor_offset_nm;
   p.start = r1.start;
   if (!model.uses_position_history()) {
@@ -110,8 +120,10 @@ std::vector<char> hysteresis_mask(const io::Dataset& d, double warmup_s, const s
   std::vector<char> m(d.size(), 1);
   for (std::size_t i = 0; i < d.size(); ++i)
     m[i] = (d.phase.empty() || d.phase[i] != kHold) && in_segments(d, i, segments);
-  if (!d.empty())
-    for (std::size_t i = 0; i < d.size() && d.time_s[i] - d.time_s[0] < warmup_s; ++i) m[i] = 0;
+  for (std::size_t k = 0; k < d.recording_count(); ++k) {  // each recording's own warm-up
+    const auto [b, e] = d.recording_rows(k);
+    for (std::size_t i = b; i < e && d.time_s[i] - d.time_s[b] < warmup_s; ++i) m[i] = 0;
+  }
   return m;
 }
 
@@ -169,25 +181,24 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
   if (const auto c = model.meta.validation.find("carry_over_ratio"); c != model.meta.validation.end())
     ev.carry_over_ratio = c->second;
   ev.test = predict_series(model, test, opt.axis, opt.anchor_s, opt.anchor_history);
-  auto after_anchor = [](std::vector<char> m, std::size_t first) {
-    for (std::size_t i = 0; i < first && i < m.size(); ++i) m[i] = 0;
+  auto after_anchor = [](std::vector<char> m, const std::vector<char>& scored) {
+    for (std::size_t i = 0; i < m.size() && i < scored.size(); ++i) m[i] = m[i] && scored[i];
     return m;
   };
   ev.hysteresis = metrics(ev.test, test.axis(opt.axis),
-                          after_anchor(hysteresis_mask(test, opt.warmup_s, opt.test_segments), ev.test.first_scored));
+                          after_anchor(hysteresis_mask(test, opt.warmup_s, opt.test_segments), ev.test.scored));
   const io::Dataset& cd = creep ? *creep : test;
   ev.creep_pred = creep ? predict_series(model, *creep, opt.axis, opt.anchor_s, opt.anchor_history) : ev.test;
   const io::AxisSeries& cax = cd.axis(opt.axis);
-  ev.creep = metrics(ev.creep_pred, cax, after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.first_scored));
+  ev.creep = metrics(ev.creep_pred, cax, after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.scored));
   {
-    std::vector<char> m = hold_mask(cd, opt.creep_segments);
-    for (std::size_t i = 0; i < m.size() && i < ev.creep_pred.first_scored; ++i) m[i] = 0;
+    const std::vector<char> m = after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.scored);
     ev.holds_free_run = hold_errors(ev.creep_pred.free_run, cax.position_nm, cd, m, opt.final_window_s);
     if (cax.has_truth()) ev.holds_free_run_truth = hold_errors(ev.creep_pred.free_run, cax.true_position_nm, cd, m, opt.final_window_s);
   }
   const double rate = cd.size() > 1 ? cd.sample_rate_hz() : 1.0;
   for (const auto& h : find_holds(cd)) {
-    if (!in_segments(cd, h.begin, opt.creep_segments) || h.end <= ev.creep_pred.first_scored) continue;
+    if (!in_segments(cd, h.begin, opt.creep_segments) || !ev.creep_pred.scored[h.end - 1]) continue;
     const std::size_t w = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(opt.final_window_s * rate)));
     const std::size_t b = h.end > h.begin + w ? h.end - w : h.begin;
     FinalDeviation f;

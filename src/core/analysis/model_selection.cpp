@@ -124,7 +124,7 @@ std::vector<VoltageHold> voltage_holds(const io::Dataset& d, const std::string& 
   std::size_t i = from;
   while (i < v.size()) {
     std::size_t j = i + 1;
-    while (j < v.size() && std::fabs(v[j] - v[i]) <= o.hold_tolerance_v) ++j;
+    while (j < v.size() && std::fabs(v[j] - v[i]) <= o.hold_tolerance_v && !d.starts_recording(j)) ++j;
     if (double(j - i) * dt >= o.hold_min_s) out.push_back({i, j});
     i = j;
   }

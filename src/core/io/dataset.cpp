@@ -126,11 +126,119 @@ Dataset Dataset::slice(std::size_t begin, std::size_t end) const {
   for (const auto& x : aux) out.aux.push_back({x.name, cut(x.values)});
   if (!segment.empty()) out.segment.assign(segment.begin() + begin, segment.begin() + end);
   if (!phase.empty()) out.phase.assign(phase.begin() + begin, phase.begin() + end);
+  for (std::size_t k = 0; k < recordings.size(); ++k) {
+    const auto [b, e] = recording_rows(k);
+    if (e <= begin || b >= end) continue;
+    RecordingMark m = recordings[k];
+    m.begin = std::max(b, begin) - begin;
+    out.recordings.push_back(m);
+  }
+  return out;
+}
+
+std::pair<std::size_t, std::size_t> Dataset::recording_rows(std::size_t k) const {
+  if (recordings.empty()) return {0, size()};
+  return {recordings.at(k).begin, k + 1 < recordings.size() ? recordings[k + 1].begin : size()};
+}
+
+bool Dataset::starts_recording(std::size_t row) const {
+  if (row == 0) return true;
+  for (const auto& m : recordings)
+    if (m.begin == row) return true;
+  return false;
+}
+
+std::vector<std::size_t> Dataset::recording_index() const {
+  std::vector<std::size_t> idx(size(), 0);
+  for (std::size_t k = 0; k < recordings.size(); ++k) {
+    const auto [b, e] = recording_rows(k);
+    std::fill(idx.begin() + static_cast<long>(b), idx.begin() + static_cast<long>(e), k);
+  }
+  return idx;
+}
+
+Dataset Dataset::recording(std::size_t k) const {
+  if (k >= recording_count()) throw DataError(where(*this) + ": no recording " + std::to_string(k));
+  const auto [b, e] = recording_rows(k);
+  Dataset out = slice(b, e);
+  if (!recordings.empty()) {
+    out.source = recordings[k].name;
+    for (double& t : out.time_s) t -= recordings[k].time_shift_s;
+    out.recordings.clear();
+  }
+  return out;
+}
+
+Dataset join_recordings(const std::vector<Dataset>& parts, std::vector<std::string>* notes) {
+  if (parts.empty()) throw DataError("no data to join");
+  if (parts.size() == 1) return parts[0];
+  auto note = [&](const std::string& n) {
+    if (notes) notes->push_back(n);
+  };
+  const Dataset& first = parts[0];
+  for (const auto& p : parts) {
+    if (p.empty()) throw DataError(p.source_or_data() + ": no rows");
+    if (p.recording_count() != 1) throw DataError(p.source_or_data() + ": already holds several recordings");
+    for (const auto& a : first.axes)
+      if (!p.has_axis(a.name))
+        throw DataError(p.source_or_data() + ": has no axis " + a.name + " (" + first.source_or_data() + " has)");
+    for (const auto& a : p.axes)
+      if (!first.has_axis(a.name))
+        throw DataError(p.source_or_data() + ": has axis " + a.name + ", which " + first.source_or_data() + " has not");
+  }
+  auto in_all = [&](auto has) { return std::all_of(parts.begin(), parts.end(), has); };
+  Dataset out;
+  out.source = first.source_or_data() + " and " + std::to_string(parts.size() - 1) + " more";
+  out.time_clock = first.time_clock;
+  std::vector<std::string> aux_names;
+  for (const auto& x : first.aux) {
+    if (in_all([&](const Dataset& p) { return p.find_aux(x.name) != nullptr; })) aux_names.push_back(x.name);
+    else note("aux column " + x.name + " left out: not every recording has it");
+  }
+  for (const auto& p : parts)
+    for (const auto& x : p.aux)
+      if (!first.find_aux(x.name)) note("aux column " + x.name + " of " + p.source_or_data() + " left out: not every recording has it");
+  const bool segments = in_all([](const Dataset& p) { return !p.segment.empty(); });
+  const bool phases = in_all([](const Dataset& p) { return !p.phase.empty(); });
+  if (!segments && !first.segment.empty()) note("segment markers left out: not every recording has them");
+  if (!phases && !first.phase.empty()) note("phase markers left out: not every recording has them");
+  for (const auto& a : first.axes) {
+    AxisSeries& s = out.add_axis(a.name);
+    s.voltage_v.clear(), s.position_nm.clear();
+  }
+  for (auto& s : out.axes) {
+    const bool truth = in_all([&](const Dataset& p) { return p.axis(s.name).has_truth(); });
+    if (!truth && first.axis(s.name).has_truth()) note("true position of axis " + s.name + " left out: not every recording has it");
+    for (const auto& p : parts) {
+      const AxisSeries& a = p.axis(s.name);
+      s.voltage_v.insert(s.voltage_v.end(), a.voltage_v.begin(), a.voltage_v.end());
+      s.position_nm.insert(s.position_nm.end(), a.position_nm.begin(), a.position_nm.end());
+      if (truth) s.true_position_nm.insert(s.true_position_nm.end(), a.true_position_nm.begin(), a.true_position_nm.end());
+    }
+  }
+  for (const auto& name : aux_names) {
+    AuxSignal x{name, {}};
+    for (const auto& p : parts) x.values.insert(x.values.end(), p.find_aux(name)->values.begin(), p.find_aux(name)->values.end());
+    out.aux.push_back(std::move(x));
+  }
+  for (const auto& p : parts) {
+    RecordingMark m;
+    m.name = p.source_or_data();
+    m.begin = out.size();
+    const double period = p.size() > 1 ? median_step_s(p.time_s) : (out.empty() ? 1.0 : median_step_s(out.time_s));
+    m.time_shift_s = out.empty() ? 0.0 : out.time_s.back() + period - p.time_s.front();
+    for (double t : p.time_s) out.time_s.push_back(t + m.time_shift_s);
+    if (segments) out.segment.insert(out.segment.end(), p.segment.begin(), p.segment.end());
+    if (phases) out.phase.insert(out.phase.end(), p.phase.begin(), p.phase.end());
+    out.recordings.push_back(m);
+  }
   return out;
 }
 
 void Dataset::append(const Dataset& other) {
   if (other.empty()) return;
+  if (other.recording_count() > 1)
+    throw DataError(where(other) + ": cannot append several recordings as one (io::join_recordings keeps them apart)");
   if (empty() && axes.empty()) {
     const std::string src = source;
     *this = other;
@@ -187,6 +295,11 @@ void Dataset::validate() const {
   for (const auto& x : aux) check(x.values, x.name, false);
   if (!segment.empty() && segment.size() != n) throw DataError(where(*this) + ": column segment has the wrong length");
   if (!phase.empty() && phase.size() != n) throw DataError(where(*this) + ": column phase has the wrong length");
+  for (std::size_t k = 0; k < recordings.size(); ++k)
+    if ((k == 0 && recordings[k].begin != 0) || (k > 0 && !(recordings[k].begin > recordings[k - 1].begin)) ||
+        recordings[k].begin >= std::max<std::size_t>(n, 1))
+      throw DataError(where(*this) + ": recording " + std::to_string(k) + " (" + recordings[k].name +
+                      ") does not start after the one before");
 }
 
 DataSpan data_span(const Dataset& data, const std::string& axis) {

@@ -109,7 +109,30 @@ void stream_rows(Model& model, const io::Dataset& data, const std::string& axis,
 }
 }  // namespace
 
+namespace {
+// Each recording on its own (its own history and zero), the results joined in row order.
+StreamResult stream_recordings(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o) {
+  if (o.warmup) throw std::invalid_argument(data.source_or_data() + ": a warm-up cannot precede several recordings");
+  StreamResult all;
+  all.prediction.reserve(data.size());
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const std::size_t begin = data.recording_rows(k).first;
+    StreamOptions ok = o;
+    ok.reset = o.reset || k > 0;
+    if (o.after_row) ok.after_row = [&](std::size_t row, const Model& m) { o.after_row(begin + row, m); };
+    const StreamResult r = stream_model(model, data.recording(k), axis, ok);
+    all.prediction.insert(all.prediction.end(), r.prediction.begin(), r.prediction.end());
+    all.windows.emplace_back(begin, begin + r.first_scored);
+    all.starts.push_back(r.start);
+    if (k == 0) all.first_scored = r.first_scored, all.start = r.start, all.anchor_offset_nm = r.anchor_offset_nm;
+    all.anchored = all.anchored || r.anchored;
+  }
+  return all;
+}
+}  // namespace
+
 StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o) {
+  if (data.recording_count() > 1) return stream_recordings(model, data, axis, o);
   const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   StreamResult r;
   if (!(o.anchor_s >= 0) || !std::isfinite(o.anchor_s)) throw std::invalid_argument("anchor must be a finite time ≥ 0 s");
@@ -165,7 +188,12 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
 
 std::vector<char> scored_mask(const StreamResult& r, std::size_t n) {
   std::vector<char> m(n, 1);
-  std::fill(m.begin(), m.begin() + static_cast<long>(std::min(n, r.first_scored)), 0);
+  if (r.windows.empty()) {
+    std::fill(m.begin(), m.begin() + static_cast<long>(std::min(n, r.first_scored)), 0);
+    return m;
+  }
+  for (const auto& [b, e] : r.windows)
+    std::fill(m.begin() + static_cast<long>(std::min(n, b)), m.begin() + static_cast<long>(std::min(n, e)), 0);
   return m;
 }
 

@@ -22,6 +22,7 @@ void for_each_sample(const features::FeatureSpec& spec, const io::Dataset& data,
   std::vector<double> x(fs.size());
   fs.reset(ax.voltage_v[begin], ax.position_nm[begin]);
   for (std::size_t i = begin; i < end; ++i) {
+    if (i > begin && data.starts_recording(i)) fs.reset(ax.voltage_v[i], ax.position_nm[i]);  // its own history
     features::ModelInput in{ax.voltage_v[i], aux.at(i)};
     fs.compute(in, x.data());
     fn(i, x.data(), ax.position_nm[i]);

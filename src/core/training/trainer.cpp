@@ -182,6 +182,7 @@ Eigen::MatrixXd feature_matrix(const features::FeatureSpec& spec, const io::Data
   if (n == 0) return x;
   stream.reset(ax.voltage_v[0], ax.position_nm[0]);
   for (std::size_t t = 0; t < n; ++t) {
+    if (t > 0 && data.starts_recording(t)) stream.reset(ax.voltage_v[t], ax.position_nm[t]);  // its own history
     features::ModelInput in{ax.voltage_v[t], aux.at(t)};
     stream.compute(in, x.col(static_cast<Eigen::Index>(t)).data());
     stream.commit(in, ax.position_nm[t]);
