@@ -148,6 +148,46 @@ TEST(PredictorParams, AnUnidentifiedModelFileIsWarnedAboutWhenLoaded) {
   std::remove(unidentified.c_str());
 }
 
+// A model of one axis loaded for another is refused for that axis: load_model_file names both axes, and the node
+// keeps the axis (uncorrected, FALLBACK) with one ERROR naming both; one path for several axes is a deprecation WARN.
+TEST(PredictorParams, AModelOfAnotherAxisIsRefusedForThatAxis) {
+  const std::string c_model = std::string(PIEZO_SOURCE_DIR) + "/test/rostest/pi_creep_model_c.yaml";
+  EXPECT_NE(piezo::predictor::load_model_file(c_model, "c"), nullptr);
+  try {
+    piezo::predictor::load_model_file(c_model, "a");
+    ADD_FAILURE() << "a model of axis c was loaded for axis a";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("model fitted for axis c, loaded for axis a"), std::string::npos) << e.what();
+  }
+  std::vector<rosgraph_msgs::Log> errors, warnings;
+  ros::NodeHandle nh;
+  ros::Subscriber sub = nh.subscribe<rosgraph_msgs::Log>("/rosout", 100, [&](const rosgraph_msgs::Log::ConstPtr& m) {
+    if (m->level == rosgraph_msgs::Log::ERROR) errors.push_back(*m);
+    if (m->level == rosgraph_msgs::Log::WARN && m->msg.find("deprecated") != std::string::npos) warnings.push_back(*m);
+  });
+  for (int i = 0; i < 50 && sub.getNumPublishers() == 0; ++i) ros::WallDuration(0.05).sleep();
+  ros::NodeHandle ns("/mm_axis_check"), pnh("/mm_axis_check/predictor");
+  XmlRpc::XmlRpcValue axes;
+  axes[0] = "a", axes[1] = "c";
+  pnh.setParam("axes", axes);
+  pnh.setParam("model_file", c_model);  // one path for both axes
+  pnh.setParam("snapshot_duration_s", 0.0);
+  pnh.setParam("drift_async", false);
+  {
+    piezo::predictor::PredictorNode node(ns, pnh);
+    for (int i = 0; i < 100 && (errors.empty() || warnings.empty()); ++i) ros::spinOnce(), ros::WallDuration(0.05).sleep();
+    ros::WallDuration(0.2).sleep();
+    ros::spinOnce();
+  }
+  ASSERT_EQ(errors.size(), 1u) << "expected one ERROR for axis a";
+  const std::string& msg = errors[0].msg;
+  EXPECT_NE(msg.find("axis a"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("model fitted for axis c, loaded for axis a"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("fallback"), std::string::npos) << msg;
+  EXPECT_EQ(warnings.size(), 1u) << "expected one deprecation WARN for one path given for two axes";
+  for (const auto& p : {"axes", "model_file", "snapshot_duration_s", "drift_async"}) pnh.deleteParam(p);
+}
+
 int main(int argc, char** argv) {
   testing::InitGoogleTest(&argc, argv);
   ros::init(argc, argv, "predictor_params");
