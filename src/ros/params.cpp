@@ -366,7 +366,7 @@ std::size_t ParamReader::warn_unknown(const std::string& node_name) const {
   const auto names = unknown();
   for (const auto& n : names)
     ROS_WARN_STREAM(node_name << ": unknown parameter " << resolved(n)
-                              << " is ignored (misspelt? the node's parameters are documented in config/)");
+                              << " is ignored (misspelt? the node's parameters: docs/ros_interface.md)");
   return names.size();
 }
 

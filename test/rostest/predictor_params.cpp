@@ -13,6 +13,7 @@
 #include <utility>
 #include <vector>
 
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"
 #include "piezo_compensation/ros/predictor.h"
 
@@ -146,6 +147,24 @@ TEST(PredictorParams, AnUnidentifiedModelFileIsWarnedAboutWhenLoaded) {
   EXPECT_NE(seen[0].msg.find("refit on a longer recording"), std::string::npos) << seen[0].msg;
   std::remove(identified.c_str());
   std::remove(unidentified.c_str());
+}
+
+// The node reads through its interface table: a name the table lacks, a read of another type, or a topic used with
+// another message type is a programming error (std::logic_error), never a silent second definition.
+TEST(PredictorParams, ReadsGoThroughTheInterfaceTable) {
+  const auto& table = piezo::predictor::predictor_interface();
+  ros::NodeHandle pnh("/predictor_table_reads");
+  piezo::params::ParamReader r(pnh, table);
+  EXPECT_DOUBLE_EQ(r.number("watch_k"), table.param("watch_k").number);
+  EXPECT_THROW(r.number("watch_treshold"), std::logic_error);
+  EXPECT_THROW(r.integer("watch_k"), std::logic_error);
+  EXPECT_EQ(table.topic_name<piezo_compensation::Prediction>("<axis>/prediction", "b"), "b/prediction");
+  EXPECT_THROW(table.topic_name<piezo_compensation::VoltageCommand>("<axis>/prediction", "b"), std::logic_error);
+  EXPECT_EQ(table.service_name<std_srvs::SetBool>("~set_hold_trim"), "set_hold_trim");
+  EXPECT_THROW(table.service_name<std_srvs::Trigger>("~set_hold_trim"), std::logic_error);
+  pnh.setParam("watch_k", 0.5);
+  EXPECT_THROW(r.number("watch_k"), std::invalid_argument);  // the table's range [1, 1000]
+  pnh.deleteParam("watch_k");
 }
 
 // A model of one axis loaded for another is refused for that axis: load_model_file names both axes, and the node
