@@ -1,6 +1,7 @@
 #!/usr/bin/python3
 """Table, plots and compensation.json from the demo runs (demo-output/{sawtooth,creep,hold_trim}.{csv,json};
-hold_trim is optional: its section and plot are added when its JSON is there)."""
+hold_trim is optional: its section and plot are added when its JSON is there). `demo_report.py OUT --hold-trim-only`
+prints the hold-trim table alone."""
 import csv
 import json
 import os
@@ -15,6 +16,19 @@ import matplotlib.pyplot as plt  # noqa: E402
 def rows(path):
     with open(path) as f:
         return list(csv.DictReader(f))
+
+
+def print_hold_trim(ht):
+    """The held error against the true position, feedforward only and trimmed."""
+    print("")
+    print("hold trim, axis c on physics the model lacks (a 3 %% gain), %.0f-min hold after a %.0f-s history,"
+          " |true - intended| over the hold's last %.0f min:" % (ht["hold_s"] / 60, ht["history_s"],
+                                                                ht["score_last_s"] / 60))
+    print("                                 feedforward only     trimmed")
+    for i, v in enumerate(ht["hold_v"]):
+        print("  hold %d at %+5.1f V, worst [nm] %13.2f %13.2f" % (i + 1, v, ht["ff_worst_nm"][i],
+                                                                ht["trimmed_worst_nm"][i]))
+        print("                    MAE   [nm] %13.2f %13.2f" % (ht["ff_mae_nm"][i], ht["trimmed_mae_nm"][i]))
 
 
 def main(out):
@@ -55,14 +69,7 @@ def main(out):
         print("(in step: %d of %d uncompensated history samples had the previous intent applied, i.e. a command"
               " one sample late)" % (creep["uncompensated_late_samples"], creep["uncompensated_history_samples"]))
     if ht:
-        print("")
-        print("hold trim, foreign stage (axis c, %.0f-min hold after a %.0f-s history), |true - intended| over the"
-              " hold's last %.0f min:" % (ht["hold_s"] / 60, ht["history_s"], ht["score_last_s"] / 60))
-        print("                                 feedforward only     trimmed")
-        for i, v in enumerate(ht["hold_v"]):
-            print("  hold %d at %+5.1f V, worst [nm] %13.2f %13.2f" % (i + 1, v, ht["ff_worst_nm"][i],
-                                                                    ht["trimmed_worst_nm"][i]))
-            print("                    MAE   [nm] %13.2f %13.2f" % (ht["ff_mae_nm"][i], ht["trimmed_mae_nm"][i]))
+        print_hold_trim(ht)
     print("wrote %s" % os.path.join(out, "compensation.json"))
 
     s = rows(os.path.join(out, "sawtooth.csv"))
@@ -150,7 +157,8 @@ def plot_hold_trim(out, ht):
         ax.axhline(-2.0, color="k", ls=":", lw=0.7)
         ax.axvspan(0, skip_min, color="0.9", zorder=-1)
     axes[0].set_ylabel("true − intended [nm]"), axes[0].legend(loc="upper right", fontsize=8)
-    axes[0].set_title("Hold on foreign physics (axis c): feedforward only vs hold trim; grey: not scored, dotted: ±2 nm")
+    axes[0].set_title("Hold on physics the model lacks (axis c, 3 % gain): feedforward only vs hold trim; "
+                      "grey: not scored, dotted: ±2 nm")
     lim = max(5.0, 1.3 * max(ht["trimmed_worst_nm"]))
     axes[1].set_ylim(-lim, lim), axes[1].set_ylabel("trimmed pass [nm]"), axes[1].legend(loc="upper right", fontsize=8)
     axes[2].set_ylabel("trim [nm]"), axes[2].set_xlabel("time in hold [min]"), axes[2].legend(loc="upper right", fontsize=8)
@@ -159,4 +167,7 @@ def plot_hold_trim(out, ht):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1] if len(sys.argv) > 1 else "demo-output")
+    if len(sys.argv) > 2 and sys.argv[2] == "--hold-trim-only":
+        print_hold_trim(json.load(open(os.path.join(sys.argv[1], "hold_trim.json"))))
+    else:
+        main(sys.argv[1] if len(sys.argv) > 1 else "demo-output")

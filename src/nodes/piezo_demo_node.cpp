@@ -2,16 +2,10 @@
 // uncompensated and once compensated, one intent per encoder sample; the scenario, the pairing of the device's
 // reports (io/sequence_pairer.h) and the scoring are compensation::DemoRun (compensation/demo_scenario.h), this
 // node only moves messages.
-//   ~scenario "sawtooth" | "creep" | "hold_trim" (compensation on in both passes, the predictor's ~set_hold_trim
-//   off then on); ~axis; ~model_file (the predictor's model: the same ideal line);
-//   ~out_prefix: writes <prefix>.csv (every sample) and <prefix>.json (the metrics);
-//   ~hold_s, ~creep_history_s [s], ~creep_seed, ~creep_scenarios (creep protocol; hold_trim: defaults from
-//   compensation::hold_trim_demo_defaults()), ~score_last_s [s] (hold_trim: the hold's scored end); ~ideal_line_hold_s [s];
-//   ~progress_period_s [s, wall]: a progress line with the ETA this often;
-//   ~hold_axes, ~hold_axes_v [V]: other axes given one constant intent each at the start (the monitor screenshots);
-//   ~lockstep: the device samples once per command (sim.launch lockstep:=true command_on_sample:=false): the
-//   next intent goes out once the predictor's prediction of the sample is in, so the demo paces the device; it is
-//   stamped with that sample's stamp (the node then uses no ROS time: the lock-step rostests take it off /clock).
+// Its parameters, topics and services: predictor::demo_interface() (src/ros/demo_interface.cpp, docs/ros_interface.md).
+// With ~lockstep the next intent goes out once the predictor's prediction of the sample is in, so the demo paces
+// the device; it is stamped with that sample's stamp (the node then uses no ROS time: the lock-step rostests take it
+// off /clock).
 #include <ros/callback_queue.h>
 #include <ros/ros.h>
 #include <std_srvs/SetBool.h>
@@ -28,6 +22,7 @@
 #include "piezo_compensation/Prediction.h"
 #include "piezo_compensation/compensation/demo_scenario.h"
 #include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"
 #include "piezo_compensation/ros/predictor.h"
 
@@ -37,29 +32,30 @@ using piezo::compensation::DemoRun;
 
 std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::string& out_prefix,
                                   double& progress_s, std::vector<std::pair<std::string, double>>& holds) {
-  piezo::params::ParamReader r(pnh);
-  const std::string scenario = r.text("scenario", "sawtooth", {"sawtooth", "creep", "hold_trim"});
-  axis = r.text("axis", "c", {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()});
-  out_prefix = r.text("out_prefix", "demo");
-  const std::string model_file = r.text("model_file", "");
+  const piezo::params::NodeInterface& iface = piezo::predictor::demo_interface();
+  piezo::params::ParamReader r(pnh, iface);
+  const std::string scenario = r.text("scenario");
+  axis = r.text("axis");
+  out_prefix = r.text("out_prefix");
+  const std::string model_file = r.text("model_file");
   piezo::compensation::CreepDemoOptions co;
-  if (scenario == "hold_trim") co = piezo::compensation::hold_trim_demo_defaults();
+  if (scenario == "hold_trim") co = piezo::compensation::hold_trim_demo_defaults();  // the table's rule says so
   const std::vector<double> scen_default(co.scenarios.begin(), co.scenarios.end());
-  co.score_last_s = r.number("score_last_s", co.score_last_s, 1e-3, 1e6);
-  co.hold_s = r.number("hold_s", co.hold_s, 1e-3, 1e6);
-  co.history_s = r.number("creep_history_s", co.history_s, 1e-3, 1e6);
-  co.seed = r.integer("creep_seed", co.seed, 0, 1 << 30);
+  co.score_last_s = r.number("score_last_s", co.score_last_s);
+  co.hold_s = r.number("hold_s", co.hold_s);
+  co.history_s = r.number("creep_history_s", co.history_s);
+  co.seed = r.integer("creep_seed", co.seed);
   co.scenarios.clear();
-  for (double s : r.numbers("creep_scenarios", scen_default, 0, 1000, 1, 100)) {
+  for (double s : r.numbers("creep_scenarios", scen_default)) {
     if (s != std::floor(s)) throw std::invalid_argument("parameter " + r.resolved("creep_scenarios") + ": integers only");
     co.scenarios.push_back(static_cast<int>(s));
   }
-  piezo::compensation::IdealLineOptions o;  // the predictor's defaults (config/predictor.yaml)
-  o.hold_s = r.number("ideal_line_hold_s", 60.0, 0.0, 1e6);
-  progress_s = r.number("progress_period_s", 10.0, 0.1, 3600.0);
-  const bool lockstep = r.flag("lockstep", false);
-  const auto hold_axes = r.texts("hold_axes", {}, {piezo::io::kAxisNames.begin(), piezo::io::kAxisNames.end()}, 0, 2);
-  const auto hold_v = r.numbers("hold_axes_v", {}, -1000.0, 1000.0, 0, 2);
+  piezo::compensation::IdealLineOptions o;
+  o.hold_s = r.number("ideal_line_hold_s");
+  progress_s = r.number("progress_period_s");
+  const bool lockstep = r.flag("lockstep");
+  const auto hold_axes = r.texts("hold_axes");
+  const auto hold_v = r.numbers("hold_axes_v");
   if (hold_v.size() != hold_axes.size())
     throw std::invalid_argument("parameter " + r.resolved("hold_axes_v") + ": one voltage per ~hold_axes entry");
   for (std::size_t i = 0; i < hold_axes.size(); ++i) {
@@ -67,7 +63,7 @@ std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::
     holds.emplace_back(hold_axes[i], hold_v[i]);
   }
   r.warn_unknown(pnh.getNamespace());
-  auto model = piezo::predictor::load_model_file(model_file);
+  auto model = piezo::predictor::load_model_file(model_file, axis);
   o.sample_rate_hz = model->meta.sample_rate_hz;
   return std::make_unique<DemoRun>(scenario, co, piezo::compensation::ideal_line_from_model(*model, o),
                                    model->meta.sample_rate_hz, lockstep);
@@ -87,9 +83,13 @@ int main(int argc, char** argv) {
     ROS_INFO("demo %s: %zu samples (%.0f s simulated per mode), ideal line %.4f nm/V + %.2f nm%s", name, run->steps(),
              run->steps() / 2.0 / run->rate_hz(), run->line().gain_nm_per_v, run->line().offset_nm,
              run->lockstep() ? ", lock-step (paced by this node)" : "");
-    auto intended = nh.advertise<piezo_compensation::IntendedMotion>(axis + "/intended", 5);
-    auto sw = nh.serviceClient<std_srvs::SetBool>("predictor/set_compensation");
-    auto sw_trim = nh.serviceClient<std_srvs::SetBool>("predictor/set_hold_trim");
+    const piezo::params::NodeInterface& iface = piezo::predictor::demo_interface();
+    using piezo_compensation::IntendedMotion;
+    auto intended = nh.advertise<IntendedMotion>(iface.topic_name<IntendedMotion>("<axis>/intended", axis), 5);
+    const std::string set_compensation = iface.service_name<std_srvs::SetBool>("predictor/set_compensation"),
+                      set_hold_trim = iface.service_name<std_srvs::SetBool>("predictor/set_hold_trim");
+    auto sw = nh.serviceClient<std_srvs::SetBool>(set_compensation);
+    auto sw_trim = nh.serviceClient<std_srvs::SetBool>(set_hold_trim);
     const auto call = [](ros::ServiceClient& c, bool on) {
       std_srvs::SetBool req;
       req.request.data = on;
@@ -122,16 +122,16 @@ int main(int argc, char** argv) {
     using piezo_compensation::EncoderPosition;
     using piezo_compensation::Prediction;
     const auto hints = ros::TransportHints().tcpNoDelay();
-    auto s1 = nh.subscribe<EncoderPosition>(axis + "/encoder", 50, [&](const EncoderPosition::ConstPtr& m) {
+    auto s1 = nh.subscribe<EncoderPosition>(iface.topic_name<EncoderPosition>("<axis>/encoder", axis), 50, [&](const EncoderPosition::ConstPtr& m) {
       act(run->on_encoder(m->sequence, m->position * 1e9, m->header.stamp.toSec(), m->valid));
     }, ros::VoidConstPtr(), hints);
-    auto s2 = nh.subscribe<EncoderPosition>(axis + "/true_position", 50, [&](const EncoderPosition::ConstPtr& m) {
+    auto s2 = nh.subscribe<EncoderPosition>(iface.topic_name<EncoderPosition>("<axis>/true_position", axis), 50, [&](const EncoderPosition::ConstPtr& m) {
       act(run->on_truth(m->sequence, m->position * 1e9, m->header.stamp.toSec()));
     }, ros::VoidConstPtr(), hints);
-    auto s3 = nh.subscribe<AxisVoltage>(axis + "/voltage", 50, [&](const AxisVoltage::ConstPtr& m) {
+    auto s3 = nh.subscribe<AxisVoltage>(iface.topic_name<AxisVoltage>("<axis>/voltage", axis), 50, [&](const AxisVoltage::ConstPtr& m) {
       act(run->on_voltage(m->sequence, m->voltage, m->header.stamp.toSec()));
     }, ros::VoidConstPtr(), hints);
-    auto s4 = nh.subscribe<Prediction>(axis + "/prediction", 50, [&](const Prediction::ConstPtr& m) {
+    auto s4 = nh.subscribe<Prediction>(iface.topic_name<Prediction>("<axis>/prediction", axis), 50, [&](const Prediction::ConstPtr& m) {
       DemoRun::Estimate e;
       e.fused_nm = m->fused_position * 1e9;
       e.fused_sigma_nm = m->fused_position_sigma * 1e9;
@@ -140,14 +140,14 @@ int main(int argc, char** argv) {
       act(run->on_prediction(m->header.stamp.toSec(), m->commanded_voltage,
                              m->compensation_active ? m->corrected_voltage : m->commanded_voltage, m->fallback, e));
     }, ros::VoidConstPtr(), hints);
-    if (!ros::service::waitForService(nh.resolveName("predictor/set_compensation"), ros::Duration(60)))
+    if (!ros::service::waitForService(nh.resolveName(set_compensation), ros::Duration(60)))
       throw std::runtime_error("predictor/set_compensation not available after 60 s");
     if (run->switches_hold_trim() &&
-        !ros::service::waitForService(nh.resolveName("predictor/set_hold_trim"), ros::Duration(10)))
+        !ros::service::waitForService(nh.resolveName(set_hold_trim), ros::Duration(10)))
       throw std::runtime_error("predictor/set_hold_trim not available");
     std::vector<ros::Publisher> hold_pubs;  // latched: the predictor gets the intent whenever it connects
     for (const auto& [ax, v] : holds) {
-      hold_pubs.push_back(nh.advertise<piezo_compensation::IntendedMotion>(ax + "/intended", 1, true));
+      hold_pubs.push_back(nh.advertise<IntendedMotion>(iface.topic_name<IntendedMotion>("<axis>/intended", ax), 1, true));
       piezo_compensation::IntendedMotion im;
       im.header.stamp = ros::Time::now();
       im.mode = piezo_compensation::IntendedMotion::VOLTAGE;

@@ -6,6 +6,7 @@
 
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/mm3e_params.h"
 
 namespace piezo::mm3e {
@@ -22,36 +23,109 @@ std::string hex(std::uint32_t v) {
 }
 }  // namespace
 
+const params::NodeInterface& driver_interface() {
+  using namespace params;
+  static const NodeInterface t = [] {
+    NodeInterface n;
+    n.node = "mm3e_driver";
+    n.summary = "one manipulator's CAN bus: voltage commands out (clamped, slew-limited, watchdog), reports in";
+    n.params = transport_params(47100, 47101);
+    const std::vector<ParamDef> rest = {
+        text("frame_prefix", "", "header frame_id of every message is <prefix>base"),
+        text("hardware_id", "", "diagnostics hardware_id; \"\" = mm3e@<interface or udp port>/node 0x<base_node_id>"),
+        flag("stamp_with_receive_time", true,
+             "stamp reports with the kernel receive time (SO_TIMESTAMP); false = ROS time at reception"),
+        number("min_voltage_v", "V", -80.0, -can::kVoltageCeilingV, can::kVoltageCeilingV, "lowest voltage ever sent")
+            .rule("< max_voltage_v"),
+        number("max_voltage_v", "V", 80.0, -can::kVoltageCeilingV, can::kVoltageCeilingV, "highest voltage ever sent"),
+        number("slew_rate_v_per_s", "V/s", 200.0, 1e-3, can::kSlewRateCeilingVPerS,
+               "largest rate of change of the applied voltage"),
+        number("command_timeout_s", "s", 0.5, 1e-3, 3600.0,
+               "no command for this long: hold the last applied voltage (never 0 V)"),
+        number("max_step_dt_s", "s", 0.1, 1e-4, can::kStepDtCeilingS, "longest interval one output step may cover"),
+        number("max_frame_step_v", "V", 5.0, 1e-3, can::kFrameStepCeilingV,
+               "hard cap on the change one frame may carry, whatever the clock did"),
+        number("max_unconfirmed_v", "V", 10.0, 1e-3, 2 * can::kFrameStepCeilingV,
+               "how far the set point may run ahead of the last voltage report that matched")
+            .rule(">= max_frame_step_v"),
+        number("max_stamp_ahead_s", "s", 0.5, 1e-3, 60.0, "a command stamped further ahead of now is refused"),
+        number("report_tolerance_v", "V", 0.5, 1e-3, 10.0,
+               "a voltage report this far from every recently written value does not match"),
+        number("report_lag_s", "s", 0.5, 1e-3, 10.0, "how long written values may still show in a report"),
+        integer("report_mismatch_count", "", 3, 1, 100,
+                "reports in a row that match nothing written: the axis is held, ERROR, ~recover clears"),
+        number("encoder_timeout_s", "s", 0.5, 1e-3, 3600.0, "wall time without an encoder frame before an axis is silent"),
+        number("silence_reconnect_s", "s", 2.0, 1e-3, 3600.0,
+               "wall time without any device frame before the transport is reopened")
+            .rule("sync_mode: > 1.25 × sync_idle_s"),
+        number("reconnect_min_s", "s", 0.1, 1e-3, 60.0, "first reconnect delay (doubles per failure)"),
+        number("reconnect_max_s", "s", 5.0, 1e-3, 3600.0, "longest reconnect delay").rule(">= reconnect_min_s"),
+        integer("receive_poll_ms", "ms", 20, 1, 1000, "receive thread wake-up period"),
+        number("output_rate_hz", "Hz", 200.0, 1.0, 10000.0, "rate of the slew ramp and watchdog tick"),
+        number("diagnostic_period_s", "s", 1.0, 0.05, 60.0, "diagnostics publishing period (wall)"),
+        flag("sync_mode", false,
+             "synchronous mode: the device samples on this node's SYNC, sent once every commanded axis has its "
+             "command (simulated device over udp only)"),
+        number("sync_idle_s", "s", 0.5, 0.001, 60.0, "sync_mode: with no complete set of commands for this long (wall), SYNC anyway"),
+        integer("sync_max_in_flight", "SYNCs", 0, 0, 1000,
+                "sync_mode: a complete set of commands waits while this many SYNCs have no reading (0: no bound)")
+            .rule("> 0 needs sync_mode"),
+    };
+    n.params.insert(n.params.end(), rest.begin(), rest.end());
+    const auto protocol = protocol_params();
+    n.params.insert(n.params.end(), protocol.begin(), protocol.end());
+    using D = TopicDef::Direction;
+    n.topics = {
+        {"<axis>/voltage", "piezo_compensation/AxisVoltage", D::kPublishes,
+         "voltage the controller applied [V], stamped with the CAN receive time, with its sample sequence"},
+        {"<axis>/encoder", "piezo_compensation/EncoderPosition", D::kPublishes, "measured position [m], stamped, sequence"},
+        {"<axis>/command", "piezo_compensation/VoltageCommand", D::kSubscribes, "voltage to apply [V] (queue 1)"},
+        {"/diagnostics", "diagnostic_msgs/DiagnosticArray", D::kPublishes, "bus and per-axis status"},
+    };
+    n.services = {
+        {"~halt", "std_srvs/Trigger", "hold every axis at its applied voltage and refuse commands until ~recover"},
+        {"~recover", "std_srvs/Trigger", "clear a halt or a held axis (report mismatch) and accept commands again"},
+    };
+    return n;
+  }();
+  return t;
+}
+
 DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh), updater_(nh, pnh) {
-  params::ParamReader r(pnh_);
+  const params::NodeInterface& iface = driver_interface();
+  params::ParamReader r(pnh_, iface);
   can::DriverConfig config;
   config.protocol = read_protocol(r);
   auto& lim = config.limits;
   // Ranges stop at the compile-time ceilings of can/command_limiter.h (docs/driver.md).
-  lim.min_voltage_v = r.number("min_voltage_v", -80.0, -can::kVoltageCeilingV, can::kVoltageCeilingV);
-  lim.max_voltage_v = r.number("max_voltage_v", 80.0, -can::kVoltageCeilingV, can::kVoltageCeilingV);
+  lim.min_voltage_v = r.number("min_voltage_v");
+  lim.max_voltage_v = r.number("max_voltage_v");
   if (lim.min_voltage_v >= lim.max_voltage_v)
     throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
-  lim.slew_rate_v_per_s = r.number("slew_rate_v_per_s", 200.0, 1e-3, can::kSlewRateCeilingVPerS);
-  lim.command_timeout_s = r.number("command_timeout_s", 0.5, 1e-3, 3600.0);
-  lim.max_step_dt_s = r.number("max_step_dt_s", 0.1, 1e-4, can::kStepDtCeilingS);
-  lim.max_frame_step_v = r.number("max_frame_step_v", 5.0, 1e-3, can::kFrameStepCeilingV);
-  lim.max_unconfirmed_v = r.number("max_unconfirmed_v", 10.0, lim.max_frame_step_v, 2 * can::kFrameStepCeilingV);
-  lim.max_stamp_ahead_s = r.number("max_stamp_ahead_s", 0.5, 1e-3, 60.0);
-  lim.report_tolerance_v = r.number("report_tolerance_v", 0.5, 1e-3, 10.0);
-  lim.report_lag_s = r.number("report_lag_s", 0.5, 1e-3, 10.0);
-  lim.report_mismatch_count = r.integer("report_mismatch_count", 3, 1, 100);
-  config.encoder_timeout_s = r.number("encoder_timeout_s", 0.5, 1e-3, 3600.0);
-  config.silence_reconnect_s = r.number("silence_reconnect_s", 2.0, 1e-3, 3600.0);
-  config.reconnect_min_s = r.number("reconnect_min_s", 0.1, 1e-3, 60.0);
-  config.reconnect_max_s = r.number("reconnect_max_s", 5.0, config.reconnect_min_s, 3600.0);
-  config.receive_poll_ms = r.integer("receive_poll_ms", 20, 1, 1000);
-  const double output_rate_hz = r.number("output_rate_hz", 200.0, 1.0, 10000.0);
-  const double diagnostic_period_s = r.number("diagnostic_period_s", 1.0, 0.05, 60.0);
-  stamp_with_receive_time_ = r.flag("stamp_with_receive_time", true);
-  sync_mode_ = r.flag("sync_mode", false);
-  sync_idle_s_ = r.number("sync_idle_s", 0.5, 0.001, 60.0);
-  const int max_in_flight = r.integer("sync_max_in_flight", 0, 0, 1000);
+  lim.slew_rate_v_per_s = r.number("slew_rate_v_per_s");
+  lim.command_timeout_s = r.number("command_timeout_s");
+  lim.max_step_dt_s = r.number("max_step_dt_s");
+  lim.max_frame_step_v = r.number("max_frame_step_v");
+  lim.max_unconfirmed_v = r.number("max_unconfirmed_v");
+  if (lim.max_unconfirmed_v < lim.max_frame_step_v)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("max_unconfirmed_v") + " must be at least max_frame_step_v");
+  lim.max_stamp_ahead_s = r.number("max_stamp_ahead_s");
+  lim.report_tolerance_v = r.number("report_tolerance_v");
+  lim.report_lag_s = r.number("report_lag_s");
+  lim.report_mismatch_count = r.integer("report_mismatch_count");
+  config.encoder_timeout_s = r.number("encoder_timeout_s");
+  config.silence_reconnect_s = r.number("silence_reconnect_s");
+  config.reconnect_min_s = r.number("reconnect_min_s");
+  config.reconnect_max_s = r.number("reconnect_max_s");
+  if (config.reconnect_max_s < config.reconnect_min_s)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("reconnect_max_s") + " must be at least reconnect_min_s");
+  config.receive_poll_ms = r.integer("receive_poll_ms");
+  const double output_rate_hz = r.number("output_rate_hz");
+  const double diagnostic_period_s = r.number("diagnostic_period_s");
+  stamp_with_receive_time_ = r.flag("stamp_with_receive_time");
+  sync_mode_ = r.flag("sync_mode");
+  sync_idle_s_ = r.number("sync_idle_s");
+  const int max_in_flight = r.integer("sync_max_in_flight");
   if (max_in_flight > 0 && !sync_mode_)  // as mm3e_sim refuses sync_max_time_scale without sync_mode
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_max_in_flight") + " = " +
                                 std::to_string(max_in_flight) + ": bounds the SYNCs in flight, so it needs sync_mode");
@@ -73,15 +147,15 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   encoder_timeout_s_ = config.encoder_timeout_s;
   sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;
-  const TransportParams transport = read_transport(r, 47100, 47101);
+  const TransportParams transport = read_transport(r);
   // The real controller samples on its own clock: counting slew time in SYNCs would turn V/s into V/command.
   if (sync_mode_ && transport.kind == "socketcan")
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
                                 " is for the simulated device over udp only; it is refused on socketcan (the slew "
                                 "limit would count commands, not seconds)");
-  const std::string prefix = r.text("frame_prefix", "");
+  const std::string prefix = r.text("frame_prefix");
   frame_id_ = prefix + "base";
-  std::string hardware_id = r.text("hardware_id", "");
+  std::string hardware_id = r.text("hardware_id");
   if (hardware_id.empty()) hardware_id = "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
   r.warn_unknown("mm3e_driver");
 
@@ -120,14 +194,14 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
 
   for (int i = 0; i < can::kAxisCount; ++i) {
     const std::string axis = can::kAxisNames[i];
-    voltage_pub_[i] = nh_.advertise<AxisVoltage>(axis + "/voltage", 20);
-    encoder_pub_[i] = nh_.advertise<EncoderPosition>(axis + "/encoder", 20);
-    command_sub_[i] = nh_.subscribe<VoltageCommand>(axis + "/command", 1,
+    voltage_pub_[i] = nh_.advertise<AxisVoltage>(iface.topic_name<AxisVoltage>("<axis>/voltage", axis), 20);
+    encoder_pub_[i] = nh_.advertise<EncoderPosition>(iface.topic_name<EncoderPosition>("<axis>/encoder", axis), 20);
+    command_sub_[i] = nh_.subscribe<VoltageCommand>(iface.topic_name<VoltageCommand>("<axis>/command", axis), 1,
                                                     [this, i](const VoltageCommand::ConstPtr& m) { on_command(i, m); },
                                                     ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
   }
-  halt_srv_ = pnh_.advertiseService("halt", &DriverNode::on_halt, this);
-  recover_srv_ = pnh_.advertiseService("recover", &DriverNode::on_recover, this);
+  halt_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~halt"), &DriverNode::on_halt, this);
+  recover_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~recover"), &DriverNode::on_recover, this);
 
   updater_.setHardwareID(hardware_id);
   updater_.add("bus", this, &DriverNode::diagnose_bus);

@@ -8,41 +8,60 @@
 
 namespace piezo::mm3e {
 
-// The typed, ranged reads are the shared parameter layer's (ros/params.h); these keep the driver's call sites.
-double param_double(const ros::NodeHandle& nh, const std::string& name, double fallback, double min, double max) {
-  return params::ParamReader(nh).number(name, fallback, min, max);
+std::vector<params::ParamDef> protocol_params() {
+  const can::ProtocolConfig d;
+  const int max_id = 0x1FFFFFFF;
+  const auto id = [&](const char* name, std::uint32_t v, int min, const char* meaning) {
+    return params::integer(std::string("protocol/") + name, "", static_cast<int>(v), min, max_id, meaning);
+  };
+  return {
+      id("base_node_id", d.base_node_id, 0, "node ID of axis a; axis i = base_node_id + i × node_id_stride"),
+      id("node_id_stride", d.node_id_stride, 1, "node ID step from one axis to the next"),
+      id("command_function_id", d.command_function_id, 0, "driver → device voltage set point, id = this + node ID"),
+      id("voltage_function_id", d.voltage_function_id, 0, "device → driver applied voltage, id = this + node ID"),
+      id("encoder_function_id", d.encoder_function_id, 0, "device → driver encoder reading, id = this + node ID"),
+      id("heartbeat_function_id", d.heartbeat_function_id, 0, "device → driver heartbeat, id = this + base_node_id"),
+      id("sync_function_id", d.sync_function_id, 0,
+         "driver → device \"sample now\" in synchronous mode, id = this + base_node_id"),
+      params::flag("protocol/extended_ids", d.extended_ids, "29-bit identifiers instead of 11-bit"),
+      params::text("protocol/byte_order", d.byte_order == can::ByteOrder::kBig ? "big" : "little",
+                   "byte order of every multi-byte field", {"little", "big"}),
+      params::number("protocol/voltage_lsb_v", "V", d.voltage_lsb_v, 1e-9, 0.01, "voltage per count of the int32 voltage fields"),
+      params::number("protocol/position_lsb_m", "m", d.position_lsb_m, 1e-15, 1e-3, "position per count of the int32 position field"),
+      params::number("protocol/encoder_rate_hz", "Hz", d.encoder_rate_hz, 0.01, 10000.0, "voltage and encoder report rate per axis"),
+      params::number("protocol/heartbeat_period_s", "s", d.heartbeat_period_s, 0.001, 3600.0, "device heartbeat period"),
+  };
 }
 
-int param_int(const ros::NodeHandle& nh, const std::string& name, int fallback, int min, int max) {
-  return params::ParamReader(nh).integer(name, fallback, min, max);
-}
-
-bool param_bool(const ros::NodeHandle& nh, const std::string& name, bool fallback) {
-  return params::ParamReader(nh).flag(name, fallback);
-}
-
-std::string param_string(const ros::NodeHandle& nh, const std::string& name, const std::string& fallback,
-                         const std::vector<std::string>& allowed) {
-  return params::ParamReader(nh).text(name, fallback, allowed);
+std::vector<params::ParamDef> transport_params(int default_local_port, int default_remote_port) {
+  return {
+      params::text("transport", "socketcan",
+                   "socketcan (a real bus or vcan) or udp (the same frames over loopback, for kernels without CAN)",
+                   {"socketcan", "udp"}),
+      params::text("interface", "can0", "SocketCAN interface (socketcan only)").rule("1..15 characters"),
+      params::text("udp_host", "127.0.0.1", "IPv4 address of both UDP ends (udp only)"),
+      params::integer("udp_local_port", "port", default_local_port, 1, 65535, "this node receives frames here (udp only)"),
+      params::integer("udp_remote_port", "port", default_remote_port, 1, 65535,
+                      "the other end receives frames here (udp only)").rule("≠ udp_local_port with udp"),
+  };
 }
 
 can::ProtocolConfig read_protocol(params::ParamReader& r) {
   can::ProtocolConfig c;
-  const int max_id = 0x1FFFFFFF;
-  c.base_node_id = r.integer("protocol/base_node_id", c.base_node_id, 0, max_id);
-  c.node_id_stride = r.integer("protocol/node_id_stride", c.node_id_stride, 1, max_id);
-  c.command_function_id = r.integer("protocol/command_function_id", c.command_function_id, 0, max_id);
-  c.voltage_function_id = r.integer("protocol/voltage_function_id", c.voltage_function_id, 0, max_id);
-  c.encoder_function_id = r.integer("protocol/encoder_function_id", c.encoder_function_id, 0, max_id);
-  c.heartbeat_function_id = r.integer("protocol/heartbeat_function_id", c.heartbeat_function_id, 0, max_id);
-  c.sync_function_id = r.integer("protocol/sync_function_id", c.sync_function_id, 0, max_id);
-  c.extended_ids = r.flag("protocol/extended_ids", c.extended_ids);
-  c.byte_order = r.text("protocol/byte_order", "little", {"little", "big"}) == "big" ? can::ByteOrder::kBig
-                                                                                      : can::ByteOrder::kLittle;
-  c.voltage_lsb_v = r.number("protocol/voltage_lsb_v", c.voltage_lsb_v, 1e-9, 0.01);
-  c.position_lsb_m = r.number("protocol/position_lsb_m", c.position_lsb_m, 1e-15, 1e-3);
-  c.encoder_rate_hz = r.number("protocol/encoder_rate_hz", c.encoder_rate_hz, 0.01, 10000.0);
-  c.heartbeat_period_s = r.number("protocol/heartbeat_period_s", c.heartbeat_period_s, 0.001, 3600.0);
+  const auto id = [&](const char* name) { return static_cast<std::uint32_t>(r.integer(std::string("protocol/") + name)); };
+  c.base_node_id = id("base_node_id");
+  c.node_id_stride = id("node_id_stride");
+  c.command_function_id = id("command_function_id");
+  c.voltage_function_id = id("voltage_function_id");
+  c.encoder_function_id = id("encoder_function_id");
+  c.heartbeat_function_id = id("heartbeat_function_id");
+  c.sync_function_id = id("sync_function_id");
+  c.extended_ids = r.flag("protocol/extended_ids");
+  c.byte_order = r.text("protocol/byte_order") == "big" ? can::ByteOrder::kBig : can::ByteOrder::kLittle;
+  c.voltage_lsb_v = r.number("protocol/voltage_lsb_v");
+  c.position_lsb_m = r.number("protocol/position_lsb_m");
+  c.encoder_rate_hz = r.number("protocol/encoder_rate_hz");
+  c.heartbeat_period_s = r.number("protocol/heartbeat_period_s");
   try {
     can::validate(c);
   } catch (const std::invalid_argument& e) {
@@ -51,32 +70,22 @@ can::ProtocolConfig read_protocol(params::ParamReader& r) {
   return c;
 }
 
-can::ProtocolConfig read_protocol(const ros::NodeHandle& pnh) {
-  params::ParamReader r(pnh);
-  return read_protocol(r);
-}
-
 std::string TransportParams::describe() const {
   return kind == "udp" ? "udp " + host + ":" + std::to_string(local_port) : interface;
 }
 
-TransportParams read_transport(params::ParamReader& r, int default_local_port, int default_remote_port) {
+TransportParams read_transport(params::ParamReader& r) {
   TransportParams t;
-  t.kind = r.text("transport", "socketcan", {"socketcan", "udp"});
-  t.interface = r.text("interface", "can0");
+  t.kind = r.text("transport");
+  t.interface = r.text("interface");
   if (t.interface.empty() || t.interface.size() > 15)
     throw std::invalid_argument("parameter " + r.resolved("interface") + " must be 1..15 characters");
-  t.host = r.text("udp_host", "127.0.0.1");
-  t.local_port = r.integer("udp_local_port", default_local_port, 1, 65535);
-  t.remote_port = r.integer("udp_remote_port", default_remote_port, 1, 65535);
+  t.host = r.text("udp_host");
+  t.local_port = r.integer("udp_local_port");
+  t.remote_port = r.integer("udp_remote_port");
   if (t.kind == "udp" && t.local_port == t.remote_port)
     throw std::invalid_argument("parameters " + r.resolved("udp_local_port") + " and udp_remote_port must differ");
   return t;
-}
-
-TransportParams read_transport(const ros::NodeHandle& pnh, int default_local_port, int default_remote_port) {
-  params::ParamReader r(pnh);
-  return read_transport(r, default_local_port, default_remote_port);
 }
 
 std::function<std::unique_ptr<can::Transport>()> transport_factory(const TransportParams& params,

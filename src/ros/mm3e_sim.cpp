@@ -12,6 +12,7 @@
 
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/can/lockstep.h"
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/mm3e_params.h"
 #include "piezo_compensation/sim/simulator_config.h"
 
@@ -37,42 +38,102 @@ sim::SimulatorConfig load_device_physics(const std::string& path) {
 }
 }  // namespace
 
+const params::NodeInterface& sim_interface() {
+  using namespace params;
+  static const NodeInterface t = [] {
+    NodeInterface n;
+    n.node = "mm3e_sim";
+    n.summary = "the simulated MM3E controller on the same CAN protocol; optional owner of /clock";
+    n.params = transport_params(47101, 47100);
+    const std::vector<ParamDef> rest = {
+        text("frame_prefix", "", "header frame_id of true_position is <prefix>base"),
+        number("min_voltage_v", "V", -80.0, -1000.0, 1000.0, "the amplifier's lower limit: set points below are clamped")
+            .rule("< max_voltage_v"),
+        number("max_voltage_v", "V", 80.0, -1000.0, 1000.0, "the amplifier's upper limit"),
+        number("initial_voltage_v", "V", 0.0, -1000.0, 1000.0, "voltage on every axis at power-up")
+            .rule("within [min_voltage_v, max_voltage_v]"),
+        number("time_scale", "", 1.0, 0.01, 1000.0, "simulated seconds per wall second").rule("≠ 1 needs publish_clock"),
+        flag("publish_clock", false, "publish /clock: the device owns simulated time (needs /use_sim_time)"),
+        flag("sync_mode", false,
+             "sample on the driver's SYNC frame instead of the clock: simulated time moves one encoder period per "
+             "SYNC (needs publish_clock)"),
+        number("sync_max_time_scale", "", 0.0, 0.0, 1000.0,
+               "sync_mode: at most this many simulated seconds per wall second (0: no ceiling)")
+            .rule("> 0 needs sync_mode"),
+        number("clock_rate_hz", "Hz", 200.0, 1.0, 5000.0, "/clock publishing rate (wall) when publish_clock"),
+        number("fault_silence_s", "s", 1.0, 0.0, 600.0, "after ~inject_bus_off the device sends nothing for this long (wall)"),
+        integer("seed", "", 1, 0, 2147483647, "simulator random seed (deterministic noise)"),
+        text("simulator_config", "",
+             "the device's physics: a simulator YAML (config/simulator.yaml shape) or a stage file "
+             "(config/stages/*.yaml: its simulator: block); \"\" = built-in defaults"),
+        texts("effects", {}, {}, 0, 16,
+              "extra simulator effects to enable: thermal_drift, cross_axis, encoder_periodic, rate_dependent, "
+              "periodic_disturbance, ..."),
+    };
+    n.params.insert(n.params.end(), rest.begin(), rest.end());
+    const auto protocol = protocol_params();
+    n.params.insert(n.params.end(), protocol.begin(), protocol.end());
+    using D = TopicDef::Direction;
+    n.topics = {
+        {"<axis>/true_position", "piezo_compensation/EncoderPosition", D::kPublishes,
+         "noise-free position [m] of each sample, for evaluation"},
+        {"temperature", "sensor_msgs/Temperature", D::kPublishes,
+         "the simulated sensor's temperature [°C] (the thermal_drift effect; ambient while it is off)"},
+        {"/clock", "rosgraph_msgs/Clock", D::kPublishes, "simulated time, with publish_clock"},
+    };
+    n.services = {
+        {"~inject_bus_off", "std_srvs/Trigger", "the device goes silent for fault_silence_s (a bus-off)"},
+        {"~inject_garbage", "std_srvs/Trigger", "send malformed frames"},
+        {"~inject_restart", "std_srvs/Trigger", "restart the controller (sequence numbers restart)"},
+        {"~inject_stuck_amplifier", "std_srvs/SetBool", "the amplifier ignores set points (true) or follows again"},
+        {"~set_thermal_drift", "std_srvs/SetBool", "switch the thermal_drift effect on or off mid-run"},
+        {"~inject_closed_port", "std_srvs/SetBool", "the device's UDP port refuses frames (true) or takes them again"},
+    };
+    return n;
+  }();
+  return t;
+}
+
 SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
-  params::ParamReader r(pnh_);
+  const params::NodeInterface& iface = sim_interface();
+  params::ParamReader r(pnh_, iface);
   can::DeviceConfig config;
   config.protocol = read_protocol(r);
-  config.min_voltage_v = r.number("min_voltage_v", -80.0, -1000.0, 1000.0);
-  config.max_voltage_v = r.number("max_voltage_v", 80.0, -1000.0, 1000.0);
+  config.min_voltage_v = r.number("min_voltage_v");
+  config.max_voltage_v = r.number("max_voltage_v");
   if (config.min_voltage_v >= config.max_voltage_v)
     throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
-  const double initial = r.number("initial_voltage_v", 0.0, config.min_voltage_v, config.max_voltage_v);
+  const double initial = r.number("initial_voltage_v");
+  if (initial < config.min_voltage_v || initial > config.max_voltage_v)
+    throw std::invalid_argument("parameter " + pnh_.resolveName("initial_voltage_v") +
+                                " must be within [min_voltage_v, max_voltage_v]");
   config.initial_voltage_v = {initial, initial, initial};
-  time_scale_ = r.number("time_scale", 1.0, 0.01, 1000.0);
-  publish_clock_ = r.flag("publish_clock", false);
+  time_scale_ = r.number("time_scale");
+  publish_clock_ = r.flag("publish_clock");
   if (time_scale_ != 1.0 && !publish_clock_)
     throw std::invalid_argument("parameter " + pnh_.resolveName("time_scale") +
                                 " != 1 needs ~publish_clock: true (the device owns simulated time)");
   if (publish_clock_ && !ros::Time::isSimTime())
     throw std::invalid_argument("parameter " + pnh_.resolveName("publish_clock") +
                                 " is true but /use_sim_time is not set: set it before the nodes start");
-  sync_mode_ = r.flag("sync_mode", false);
+  sync_mode_ = r.flag("sync_mode");
   if (sync_mode_ && !publish_clock_)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
                                 " needs ~publish_clock: true (simulated time advances one period per SYNC)");
-  sync_max_time_scale_ = r.number("sync_max_time_scale", 0.0, 0.0, 1000.0);
+  sync_max_time_scale_ = r.number("sync_max_time_scale");
   if (sync_max_time_scale_ > 0.0 && !sync_mode_)
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_max_time_scale") +
                                 " only applies with ~sync_mode: true (without it ~time_scale sets the pace)");
-  clock_rate_hz_ = r.number("clock_rate_hz", 200.0, 1.0, 5000.0);
-  fault_silence_s_ = r.number("fault_silence_s", 1.0, 0.0, 600.0);
-  const int seed = r.integer("seed", 1, 0, 2147483647);
-  const std::string sim_config_path = r.text("simulator_config", "");
-  frame_id_ = r.text("frame_prefix", "") + "base";
-  const TransportParams transport = read_transport(r, 47101, 47100);
+  clock_rate_hz_ = r.number("clock_rate_hz");
+  fault_silence_s_ = r.number("fault_silence_s");
+  const int seed = r.integer("seed");
+  const std::string sim_config_path = r.text("simulator_config");
+  frame_id_ = r.text("frame_prefix") + "base";
+  const TransportParams transport = read_transport(r);
 
   sim::SimulatorConfig sim_config = sim_config_path.empty() ? sim::default_simulator_config()
                                                             : load_device_physics(sim_config_path);
-  for (const std::string& effect : r.texts("effects", {}, {}, 0, 16)) {
+  for (const std::string& effect : r.texts("effects")) {
     try {
       sim::enable_effect(sim_config, effect);
     } catch (const std::invalid_argument& e) {
@@ -90,18 +151,18 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
 
   for (int i = 0; i < can::kAxisCount; ++i)
     truth_pub_[i] = nh_.advertise<piezo_compensation::EncoderPosition>(
-        std::string(can::kAxisNames[i]) + "/true_position", 20);
+        iface.topic_name<piezo_compensation::EncoderPosition>("<axis>/true_position", can::kAxisNames[i]), 20);
   // aux signals of the simulated effects, on the topics the predictor's ~aux_topics map (sensor_msgs/Temperature).
   // Always published: the thermal drift can be switched on mid-run (~set_thermal_drift); while it is off the
   // sensor reads the ambient temperature.
-  temperature_pub_ = nh_.advertise<sensor_msgs::Temperature>("temperature", 20);
-  if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>("/clock", 10);
-  bus_off_srv_ = pnh_.advertiseService("inject_bus_off", &SimNode::on_bus_off, this);
-  garbage_srv_ = pnh_.advertiseService("inject_garbage", &SimNode::on_garbage, this);
-  restart_srv_ = pnh_.advertiseService("inject_restart", &SimNode::on_restart, this);
-  stuck_srv_ = pnh_.advertiseService("inject_stuck_amplifier", &SimNode::on_stuck, this);
-  thermal_srv_ = pnh_.advertiseService("set_thermal_drift", &SimNode::on_thermal, this);
-  closed_port_srv_ = pnh_.advertiseService("inject_closed_port", &SimNode::on_closed_port, this);
+  temperature_pub_ = nh_.advertise<sensor_msgs::Temperature>(iface.topic_name<sensor_msgs::Temperature>("temperature"), 20);
+  if (publish_clock_) clock_pub_ = nh_.advertise<rosgraph_msgs::Clock>(iface.topic_name<rosgraph_msgs::Clock>("/clock"), 10);
+  bus_off_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~inject_bus_off"), &SimNode::on_bus_off, this);
+  garbage_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~inject_garbage"), &SimNode::on_garbage, this);
+  restart_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~inject_restart"), &SimNode::on_restart, this);
+  stuck_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~inject_stuck_amplifier"), &SimNode::on_stuck, this);
+  thermal_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_thermal_drift"), &SimNode::on_thermal, this);
+  closed_port_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~inject_closed_port"), &SimNode::on_closed_port, this);
   ROS_INFO_STREAM("mm3e_sim: controller on " << transport_name_ << ", encoder " << config.protocol.encoder_rate_hz
                                              << " Hz, "
                                              << (sync_mode_ ? std::string("synchronous: one sample per SYNC")

@@ -9,6 +9,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/io/axes.h"
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"
 
 namespace piezo::monitor {
@@ -67,16 +68,48 @@ visualization_msgs::Marker to_marker(const ChartPrimitive& p, const std::string&
 
 }  // namespace
 
+const params::NodeInterface& monitor_interface() {
+  using namespace params;
+  static const NodeInterface t = [] {
+    const analysis::StripChartOptions d;
+    const std::vector<std::string> all(io::kAxisNames.begin(), io::kAxisNames.end());
+    NodeInterface n;
+    n.node = "piezo_monitor";
+    n.summary = "the operator's strip charts (measured, predicted, intended, drift fan, error lane) as rviz markers";
+    n.params = {
+        texts("axes", all, all, 1, all.size(), "axes to chart (reads <axis>/prediction)"),
+        number("window_s", "s", d.window_s, 1.0, 86400.0, "time span of each chart"),
+        number("noise_sigma_nm", "nm", d.noise_sigma_nm, 0.0, 1e6,
+               "noise-floor σ of the error bands; 0 = estimated from the window's readings"),
+        structured("encoder_resolution_nm", "nm", "double or map", "0",
+                   "encoder step, one number or a map per axis {a: 250.0, c: 20.0}, each in [0, 1e6]; the noise "
+                   "floor is at least step/sqrt(12); 0 or a missing axis = the step seen in the readings"),
+        number("publish_rate_hz", "Hz", 4.0, 0.1, 50.0, "marker updates per second (wall)"),
+        text("frame_prefix", "", "frames <prefix>chart under <prefix>base"),
+        text("chart_frame", "chart", "the chart's frame (after the prefix)"),
+        text("parent_frame", "base", "the frame the chart hangs off (after the prefix)"),
+    };
+    using D = TopicDef::Direction;
+    n.topics = {
+        {"<axis>/prediction", "piezo_compensation/Prediction", D::kSubscribes, "the predictor's output per axis"},
+        {"monitor/chart", "visualization_msgs/MarkerArray", D::kPublishes, "the strip charts (latched)"},
+        {"/tf_static", "tf2_msgs/TFMessage", D::kPublishes, "<prefix>chart under <prefix>base (identity)"},
+    };
+    return n;
+  }();
+  return t;
+}
+
 MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
-  params::ParamReader r(pnh);
-  std::vector<std::string> all(io::kAxisNames.begin(), io::kAxisNames.end());
-  axes_ = r.texts("axes", all, all, 1, all.size());
+  const params::NodeInterface& iface = monitor_interface();
+  params::ParamReader r(pnh, iface);
+  axes_ = r.texts("axes");
   analysis::StripChartOptions o;
-  o.window_s = r.number("window_s", o.window_s, 1.0, 86400.0);
-  o.noise_sigma_nm = r.number("noise_sigma_nm", 0.0, 0.0, 1e6);
+  o.window_s = r.number("window_s");
+  o.noise_sigma_nm = r.number("noise_sigma_nm");
   // ~encoder_resolution_nm: one step for every axis, or a map {a: 250, b: 250, c: 20}
   std::map<std::string, double> resolution;
-  r.known("encoder_resolution_nm");
+  r.structured("encoder_resolution_nm");
   XmlRpc::XmlRpcValue q;
   const auto as_step = [&](XmlRpc::XmlRpcValue& v, const std::string& name) {
     double x = std::nan("");
@@ -95,10 +128,10 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
       }
     }
   }
-  const double rate_hz = r.number("publish_rate_hz", 4.0, 0.1, 50.0);
-  const std::string prefix = r.text("frame_prefix", "");
-  frame_id_ = prefix + r.text("chart_frame", "chart");
-  const std::string parent = prefix + r.text("parent_frame", "base");
+  const double rate_hz = r.number("publish_rate_hz");
+  const std::string prefix = r.text("frame_prefix");
+  frame_id_ = prefix + r.text("chart_frame");
+  const std::string parent = prefix + r.text("parent_frame");
   r.warn_unknown(pnh.getNamespace());
 
   for (const auto& a : axes_) {
@@ -106,7 +139,7 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
     charts_.push_back(std::make_unique<analysis::StripChart>(a, o));
     analysis::StripChart* chart = charts_.back().get();
     subs_.push_back(nh_.subscribe<piezo_compensation::Prediction>(
-        a + "/prediction", 50, [chart](const piezo_compensation::Prediction::ConstPtr& m) {
+        iface.topic_name<piezo_compensation::Prediction>("<axis>/prediction", a), 50, [chart](const piezo_compensation::Prediction::ConstPtr& m) {
           analysis::ChartSample s;
           s.time_s = m->header.stamp.toSec();
           s.measured_nm = m->measured_position * 1e9;
@@ -125,7 +158,7 @@ MonitorNode::MonitorNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh) {
           chart->add(std::move(s));
         }));
   }
-  pub_ = nh_.advertise<visualization_msgs::MarkerArray>("monitor/chart", 1, true);
+  pub_ = nh_.advertise<visualization_msgs::MarkerArray>(iface.topic_name<visualization_msgs::MarkerArray>("monitor/chart"), 1, true);
   // The chart frame hangs off the manipulator's base so rviz has it in its tf tree (identity: the chart is flat
   // in its own units, not in metres of the tip).
   geometry_msgs::TransformStamped t;

@@ -4,6 +4,7 @@
 
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"
 
 #include <diagnostic_msgs/DiagnosticArray.h>
@@ -45,7 +46,7 @@ compensation::IdealLine line_for(const models::Model& m, const PredictorSettings
 
 }  // namespace
 
-models::ModelPtr load_model_file(const std::string& path) {
+models::ModelPtr load_model_file(const std::string& path, const std::string& axis) {
   if (path.empty()) throw std::runtime_error("no model file given");
   if (!std::ifstream(path)) throw std::runtime_error(path + ": cannot open model file");
   models::ModelPtr m;
@@ -56,6 +57,7 @@ models::ModelPtr load_model_file(const std::string& path) {
     throw std::runtime_error(what.find(path) == std::string::npos ? path + ": " + what : what);
   }
   if (!m) throw std::runtime_error(path + ": model file gave no model");
+  if (!axis.empty()) models::check_model_axis(*m, axis, path);  // before the identification warning: refused anyway
   // `piezo fit`'s identification check (docs/predictor.md): at start-up and at every ~reload_model
   const std::string unidentified = analysis::unidentified_model_warning(*m, path);
   if (!unidentified.empty()) ROS_WARN("%s", unidentified.c_str());
@@ -76,6 +78,11 @@ std::map<std::string, std::string> read_model_files(const ros::NodeHandle& pnh, 
     throw std::invalid_argument("parameter " + name + " is required (a path, or {a: path, ...})");
   if (mf.getType() == XmlRpc::XmlRpcValue::TypeString) {
     for (const auto& a : axes) files[a] = static_cast<std::string>(mf);
+    // a model is fitted for one axis (models::check_model_axis refuses it on the others)
+    if (axes.size() > 1)
+      ROS_WARN("parameter %s: one path for %zu axes is deprecated: give one model per axis (%s/<axis>; launch args "
+               "model_file_a, model_file_b, model_file_c); each axis the file was not fitted for runs uncorrected",
+               name.c_str(), axes.size(), name.c_str());
   } else if (mf.getType() == XmlRpc::XmlRpcValue::TypeStruct) {
     for (const auto& a : axes) {
       if (!mf.hasMember(a) || mf[a].getType() != XmlRpc::XmlRpcValue::TypeString)
@@ -88,30 +95,189 @@ std::map<std::string, std::string> read_model_files(const ros::NodeHandle& pnh, 
   return files;
 }
 
+namespace {
+
+std::vector<params::ParamDef> predictor_core_params(const PredictorSettings& d) {
+  using namespace params;
+  const std::vector<std::string> axes(io::kAxisNames.begin(), io::kAxisNames.end());
+  return {
+      texts("axes", d.axes, axes, 1, axes.size(), "axes to predict and compensate (subscribes <axis>/voltage, encoder, intended)"),
+      structured("model_file", "", "string or map", "(required)",
+                 "the model file of each axis: a map {a: path, b: path, c: path}, one model fitted on each axis' "
+                 "recording (a model of another axis is refused: that axis runs uncorrected); one path for several "
+                 "axes is deprecated"),
+      flag("compensation", d.compensation, "start with the feedforward on (~set_compensation switches it)"),
+      flag("forward_when_off", d.forward_when_off, "compensation off: still send the intent, uncorrected, to <axis>/command"),
+      flag("command_on_sample", d.command_on_sample,
+           "send the command after every encoder sample; false: only when an intent arrives (a lock-step commander paces)"),
+      text("frame_prefix", d.frame_prefix, "tf frames <prefix>base, <prefix>tip_measured, <prefix>tip_predicted, <prefix>tip_intended"),
+      numbers("drift_horizons_s", "s", d.drift_horizons_s, 0.0, 86400.0, 0, 8, "drift forecast look-ahead horizons"),
+      number("drift_update_period_s", "s", d.drift_update_period_s, 0.0, 3600.0,
+             "ROS time between drift forecasts per axis (0 = every encoder sample)"),
+      flag("drift_async", d.drift_async, "run the forecasts in a worker thread (per-message processing stays short)"),
+      number("sample_rate_hz", "Hz", d.sample_rate_hz, 0.0, 100000.0, "model step rate; 0 = the model file's"),
+      number("ideal_line_hold_s", "s", d.ideal_line_hold_s, 0.0, 3600.0,
+             "hold at the voltage limits that defines the ideal line from the model"),
+      number("tf_period_s", "s", d.tf_period_s, 0.0, 60.0, "ROS time between tf and marker updates (while subscribed)"),
+      number("marker_scale", "", d.marker_scale, 1e-3, 1e9, "markers drawn this many times life size"),
+      number("fallback_gain_nm_per_v", "nm/V", d.fallback_gain_nm_per_v, -1e6, 1e6,
+             "ideal line used when no model is usable (position intents, display)")
+          .rule("non-zero"),
+      text("hardware_id", d.hardware_id, "diagnostics hardware_id"),
+      structured("aux_topics", "", "map", "{}",
+                 "model input name → topic (std_msgs/Float64 or sensor_msgs/Temperature), e.g. {temperature_c: temperature}; "
+                 "at most 64 entries"),
+      number("aux_stale_after_s", "s", d.aux_stale_after_s, 1e-3, 3600.0, "an aux signal older than this feeds its fallback"),
+      number("aux_recovery_s", "s", d.aux_recovery_s, 0.0, 3600.0, "a returning aux signal is ramped in over this time"),
+      number("watch_noise_floor_nm", "nm", d.watch.noise_floor_nm, 0.0, 1e6,
+             "residual watch: MAE of the encoder noise alone (0 = no watch)"),
+      number("watch_window_s", "s", d.watch.window_s, 1e-3, 3600.0, "residual watch: rolling window"),
+      number("watch_k", "", d.watch.k, 1.0, 1000.0, "residual watch: warn above this many times the noise floor"),
+      number("watch_hold_s", "s", d.watch.hold_s, 0.0, 86400.0, "residual watch: ... for this long"),
+      number("snapshot_duration_s", "s", d.snapshot_duration_s, 0.0, 86400.0,
+             "how much the ~snapshot buffer keeps (0 = no ~snapshot service, reloads start cold)"),
+      integer("snapshot_max_messages", "", d.snapshot_max_messages, 1000, 20000000,
+              "per stream (axis voltage, encoder, base prediction, aux signal): the buffer's memory bound"),
+      text("snapshot_dir", d.snapshot_dir,
+           "directory of the ~snapshot bags (\"\" = $ROS_HOME/piezo_snapshots, else ~/.ros/piezo_snapshots)"),
+  };
+}
+
+std::vector<params::ParamDef> predictor_axis_params(const PredictorSettings& d) {
+  using namespace params;
+  const compensation::AxisCompensatorConfig& a = d.axis;
+  const compensation::HoldTrimOptions& t = a.hold_trim;
+  return {
+      number("voltage_min_v", "V", a.voltage_min_v, -1000.0, 1000.0, "lowest voltage the predictor commands")
+          .rule("< voltage_max_v"),
+      number("voltage_max_v", "V", a.voltage_max_v, -1000.0, 1000.0, "highest voltage the predictor commands"),
+      number("fallback_max_step_v", "V", a.fallback_max_step_v, 1e-6, 100.0,
+             "largest change per command while falling back to the uncorrected command"),
+      number("inverse_tolerance_nm", "nm", a.inverse_tolerance_nm, 1e-9, 1e6,
+             "the inverse stops when the model position is this close to the target"),
+      number("position_margin_nm", "nm", a.position_margin_nm, 0.0, 1e9,
+             "predictions beyond the ideal stroke ± this margin count as failures (0 = half the stroke)"),
+      flag("position_feedback", a.position_feedback, "false: free run; true: one-step (the model remembers the encoder)"),
+      flag("hold_trim", t.enabled, "trim holds with the encoder through the estimator (~set_hold_trim switches it)"),
+      number("hold_trim_settle_s", "s", t.settle_s, 0.0, 3600.0, "no new intent for this long before the trim acts"),
+      number("hold_trim_time_constant_s", "s", t.time_constant_s, 0.1, 86400.0,
+             "integral time constant of the trim on (intended − fused)"),
+      number("hold_trim_max_nm", "nm", t.max_nm, 0.0, 1e6, "bound on |trim| (0 = 2 % of the ideal stroke)"),
+      number("hold_trim_slew_nm_per_s", "nm/s", t.slew_nm_per_s, 1e-6, 1e6, "largest change of the trim per second"),
+      number("encoder_stale_after_s", "s", t.stale_after_s, 1e-3, 3600.0,
+             "no valid reading for this long: the estimate only predicts and the trim holds"),
+      number("start_estimate_s", "s", a.start_estimate_s, 0.0, 3600.0,
+             "start-up state estimate from the first this many seconds (0 = off: the model starts at rest)"),
+      text("resume_from", d.resume_from, "a bag of the run before: each axis' model resumes on it (\"\" = off)"),
+      number("resume_max_gap_s", "s", d.resume.max_gap_s, 0.0, 30.0 * 86400.0,
+             "longest time between the history's end and the first sample that still resumes"),
+      number("resume_voltage_tolerance_v", "V", d.resume.voltage_tolerance_v, 0.0, 1000.0,
+             "the first sample's voltage must be within this of the history's last"),
+      text("resume_save_to", d.resume_save_to,
+           "the snapshot buffer is saved here for the next start's resume_from (\"\" = off)")
+          .rule("needs snapshot_duration_s > 0"),
+      number("resume_save_period_s", "s", d.resume_save_period_s, 0.0, 86400.0,
+             "ROS time between saves while running (0 = only at shutdown); always also at shutdown")
+          .rule("0 or >= 0.1"),
+  };
+}
+
+// The per-axis compensator's parameters, the hold trim, the start estimate and the resume.
+void read_axis_settings(params::ParamReader& r, PredictorSettings& s) {
+  s.axis.voltage_min_v = r.number("voltage_min_v");
+  s.axis.voltage_max_v = r.number("voltage_max_v");
+  if (!(s.axis.voltage_max_v > s.axis.voltage_min_v))
+    throw std::invalid_argument("parameters " + r.resolved("voltage_min_v") + " and voltage_max_v need min < max");
+  s.axis.fallback_max_step_v = r.number("fallback_max_step_v");
+  s.axis.inverse_tolerance_nm = r.number("inverse_tolerance_nm");
+  s.axis.position_margin_nm = r.number("position_margin_nm");
+  s.axis.position_feedback = r.flag("position_feedback");
+  if (r.handle().hasParam("reanchor_time_constant_s"))
+    throw std::invalid_argument("parameter " + r.resolved("reanchor_time_constant_s") + " was removed: the hold trim "
+                                "on the fused estimate (~hold_trim, docs/predictor.md) replaces it");
+  compensation::HoldTrimOptions& t = s.axis.hold_trim;
+  t.enabled = r.flag("hold_trim");
+  t.settle_s = r.number("hold_trim_settle_s");
+  t.time_constant_s = r.number("hold_trim_time_constant_s");
+  t.max_nm = r.number("hold_trim_max_nm");
+  t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s");
+  t.stale_after_s = r.number("encoder_stale_after_s");
+  s.axis.start_estimate_s = r.number("start_estimate_s");
+  s.resume_from = r.text("resume_from");
+  s.resume.max_gap_s = r.number("resume_max_gap_s");
+  s.resume.voltage_tolerance_v = r.number("resume_voltage_tolerance_v");
+  s.resume_save_to = r.text("resume_save_to");
+  s.resume_save_period_s = r.number("resume_save_period_s");
+  if (s.resume_save_period_s > 0.0 && s.resume_save_period_s < 0.1)
+    throw std::invalid_argument("parameter " + r.resolved("resume_save_period_s") +
+                                " must be 0 (only at shutdown) or at least 0.1 s (each save writes the whole buffer)");
+  if (!s.resume_save_to.empty() && !(s.snapshot_duration_s > 0.0))
+    throw std::invalid_argument("parameter " + r.resolved("resume_save_to") + " needs " +
+                                r.resolved("snapshot_duration_s") + " > 0 (it saves the snapshot buffer)");
+}
+
+}  // namespace
+
+const params::NodeInterface& predictor_interface() {
+  using namespace params;
+  static const NodeInterface t = [] {
+    const PredictorSettings d;
+    NodeInterface n;
+    n.node = "piezo_predictor";
+    n.summary = "prediction, drift forecast, feedforward-corrected commands, fused estimate and hold trim, tf, markers";
+    n.params = predictor_core_params(d);
+    const auto axis = predictor_axis_params(d);
+    n.params.insert(n.params.end(), axis.begin(), axis.end());
+    using D = TopicDef::Direction;
+    n.topics = {
+        {"<axis>/voltage", "piezo_compensation/AxisVoltage", D::kSubscribes, "the applied voltage (from the driver)"},
+        {"<axis>/encoder", "piezo_compensation/EncoderPosition", D::kSubscribes, "the measured position (from the driver)"},
+        {"<axis>/intended", "piezo_compensation/IntendedMotion", D::kSubscribes,
+         "the operator's intent: an ideal-piezo voltage [V] or a target position [m]"},
+        {"<axis>/command", "piezo_compensation/VoltageCommand", D::kPublishes, "the corrected (or forwarded) voltage [V], queue 1"},
+        {"<axis>/prediction", "piezo_compensation/Prediction", D::kPublishes,
+         "predicted and fused position, hold trim, drift over the horizons, corrected voltage, fallback and status"},
+        {"<axis>/residual_mae", "std_msgs/Float64", D::kPublishes,
+         "residual watch (watch_noise_floor_nm > 0): rolling free-run MAE [m], once a second"},
+        {"markers", "visualization_msgs/MarkerArray", D::kPublishes, "tips and drift arrow at marker_scale, error text"},
+        {"/tf", "tf2_msgs/TFMessage", D::kPublishes, "frames <prefix>tip_measured, tip_predicted, tip_intended under <prefix>base"},
+        {"/diagnostics", "diagnostic_msgs/DiagnosticArray", D::kPublishes, "per axis: model, estimator, hold trim, watch, inputs"},
+        {"<aux_topics value>", "std_msgs/Float64 or sensor_msgs/Temperature", D::kSubscribes,
+         "each auxiliary model input mapped by aux_topics"},
+    };
+    n.services = {
+        {"~set_compensation", "std_srvs/SetBool", "feedforward compensation on or off"},
+        {"~set_hold_trim", "std_srvs/SetBool", "hold trim on or off (every axis)"},
+        {"~reload_model", "std_srvs/Trigger", "read ~model_file again and swap every axis' model (all or nothing), warmed on the buffer"},
+        {"~snapshot", "std_srvs/Trigger", "write the buffered last snapshot_duration_s as a bag (snapshot_duration_s > 0)"},
+    };
+    return n;
+  }();
+  return t;
+}
+
 PredictorSettings read_settings(const ros::NodeHandle& pnh) {
-  // Ranges are the documented ceilings of config/predictor.yaml: every size the node allocates from is bounded.
-  params::ParamReader r(pnh);
+  params::ParamReader r(pnh, predictor_interface());
   PredictorSettings s;
-  const std::vector<std::string> axis_names(io::kAxisNames.begin(), io::kAxisNames.end());
-  s.axes = r.texts("axes", s.axes, axis_names, 1, axis_names.size());
-  r.known("model_file");
+  s.axes = r.texts("axes");
+  r.structured("model_file");
   s.model_files = read_model_files(pnh, s.axes);
-  s.compensation = r.flag("compensation", s.compensation);
-  s.forward_when_off = r.flag("forward_when_off", s.forward_when_off);
-  s.command_on_sample = r.flag("command_on_sample", s.command_on_sample);
-  s.frame_prefix = r.text("frame_prefix", s.frame_prefix);
-  s.drift_horizons_s = r.numbers("drift_horizons_s", s.drift_horizons_s, 0.0, 86400.0, 0, 8);
-  s.drift_update_period_s = r.number("drift_update_period_s", s.drift_update_period_s, 0.0, 3600.0);
-  s.drift_async = r.flag("drift_async", s.drift_async);
-  s.sample_rate_hz = r.number("sample_rate_hz", s.sample_rate_hz, 0.0, 100000.0);
-  s.ideal_line_hold_s = r.number("ideal_line_hold_s", s.ideal_line_hold_s, 0.0, 3600.0);
-  s.tf_period_s = r.number("tf_period_s", s.tf_period_s, 0.0, 60.0);
-  s.marker_scale = r.number("marker_scale", s.marker_scale, 1e-3, 1e9);
-  s.fallback_gain_nm_per_v = r.number("fallback_gain_nm_per_v", s.fallback_gain_nm_per_v, -1e6, 1e6);
+  s.compensation = r.flag("compensation");
+  s.forward_when_off = r.flag("forward_when_off");
+  s.command_on_sample = r.flag("command_on_sample");
+  s.frame_prefix = r.text("frame_prefix");
+  s.drift_horizons_s = r.numbers("drift_horizons_s");
+  s.drift_update_period_s = r.number("drift_update_period_s");
+  s.drift_async = r.flag("drift_async");
+  s.sample_rate_hz = r.number("sample_rate_hz");
+  s.ideal_line_hold_s = r.number("ideal_line_hold_s");
+  s.tf_period_s = r.number("tf_period_s");
+  s.marker_scale = r.number("marker_scale");
+  s.fallback_gain_nm_per_v = r.number("fallback_gain_nm_per_v");
   if (s.fallback_gain_nm_per_v == 0.0)
     throw std::invalid_argument("parameter " + r.resolved("fallback_gain_nm_per_v") + " must be non-zero");
-  s.hardware_id = r.text("hardware_id", s.hardware_id);
-  r.known("aux_topics");
+  s.hardware_id = r.text("hardware_id");
+  r.structured("aux_topics");
   if (pnh.hasParam("aux_topics") && !pnh.getParam("aux_topics", s.aux_topics))
     throw std::invalid_argument("parameter " + r.resolved("aux_topics") +
                                 " must be a map of input name to topic, e.g. {temperature_c: temperature}");
@@ -120,45 +286,16 @@ PredictorSettings read_settings(const ros::NodeHandle& pnh) {
   for (const auto& [name, topic] : s.aux_topics)
     if (name.empty() || topic.empty())
       throw std::invalid_argument("parameter " + r.resolved("aux_topics") + ": each entry maps an input name to a topic");
-  s.aux_stale_after_s = r.number("aux_stale_after_s", s.aux_stale_after_s, 1e-3, 3600.0);
-  s.aux_recovery_s = r.number("aux_recovery_s", s.aux_recovery_s, 0.0, 3600.0);
-  s.watch.noise_floor_nm = r.number("watch_noise_floor_nm", s.watch.noise_floor_nm, 0.0, 1e6);
-  s.watch.window_s = r.number("watch_window_s", s.watch.window_s, 1e-3, 3600.0);
-  s.watch.k = r.number("watch_k", s.watch.k, 1.0, 1000.0);
-  s.watch.hold_s = r.number("watch_hold_s", s.watch.hold_s, 0.0, 86400.0);
-  s.snapshot_duration_s = r.number("snapshot_duration_s", s.snapshot_duration_s, 0.0, 86400.0);
-  s.snapshot_max_messages = r.integer("snapshot_max_messages", s.snapshot_max_messages, 1000, 20000000);
-  s.snapshot_dir = r.text("snapshot_dir", s.snapshot_dir);
-  s.axis.voltage_min_v = r.number("voltage_min_v", s.axis.voltage_min_v, -1000.0, 1000.0);
-  s.axis.voltage_max_v = r.number("voltage_max_v", s.axis.voltage_max_v, -1000.0, 1000.0);
-  if (!(s.axis.voltage_max_v > s.axis.voltage_min_v))
-    throw std::invalid_argument("parameters " + r.resolved("voltage_min_v") + " and voltage_max_v need min < max");
-  s.axis.fallback_max_step_v = r.number("fallback_max_step_v", s.axis.fallback_max_step_v, 1e-6, 100.0);
-  s.axis.inverse_tolerance_nm = r.number("inverse_tolerance_nm", s.axis.inverse_tolerance_nm, 1e-9, 1e6);
-  s.axis.position_margin_nm = r.number("position_margin_nm", s.axis.position_margin_nm, 0.0, 1e9);
-  s.axis.position_feedback = r.flag("position_feedback", s.axis.position_feedback);
-  if (pnh.hasParam("reanchor_time_constant_s"))
-    throw std::invalid_argument("parameter " + r.resolved("reanchor_time_constant_s") + " was removed: the hold trim "
-                                "on the fused estimate (~hold_trim, docs/predictor.md) replaces it");
-  compensation::HoldTrimOptions& t = s.axis.hold_trim;
-  t.enabled = r.flag("hold_trim", t.enabled);
-  t.settle_s = r.number("hold_trim_settle_s", t.settle_s, 0.0, 3600.0);
-  t.time_constant_s = r.number("hold_trim_time_constant_s", t.time_constant_s, 0.1, 86400.0);
-  t.max_nm = r.number("hold_trim_max_nm", t.max_nm, 0.0, 1e6);
-  t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s", t.slew_nm_per_s, 1e-6, 1e6);
-  t.stale_after_s = r.number("encoder_stale_after_s", t.stale_after_s, 1e-3, 3600.0);
-  s.axis.start_estimate_s = r.number("start_estimate_s", s.axis.start_estimate_s, 0.0, 3600.0);
-  s.resume_from = r.text("resume_from", s.resume_from);
-  s.resume.max_gap_s = r.number("resume_max_gap_s", s.resume.max_gap_s, 0.0, 30.0 * 86400.0);
-  s.resume.voltage_tolerance_v = r.number("resume_voltage_tolerance_v", s.resume.voltage_tolerance_v, 0.0, 1000.0);
-  s.resume_save_to = r.text("resume_save_to", s.resume_save_to);
-  s.resume_save_period_s = r.number("resume_save_period_s", s.resume_save_period_s, 0.0, 86400.0);
-  if (s.resume_save_period_s > 0.0 && s.resume_save_period_s < 0.1)
-    throw std::invalid_argument("parameter " + r.resolved("resume_save_period_s") +
-                                " must be 0 (only at shutdown) or at least 0.1 s (each save writes the whole buffer)");
-  if (!s.resume_save_to.empty() && !(s.snapshot_duration_s > 0.0))
-    throw std::invalid_argument("parameter " + r.resolved("resume_save_to") + " needs " +
-                                r.resolved("snapshot_duration_s") + " > 0 (it saves the snapshot buffer)");
+  s.aux_stale_after_s = r.number("aux_stale_after_s");
+  s.aux_recovery_s = r.number("aux_recovery_s");
+  s.watch.noise_floor_nm = r.number("watch_noise_floor_nm");
+  s.watch.window_s = r.number("watch_window_s");
+  s.watch.k = r.number("watch_k");
+  s.watch.hold_s = r.number("watch_hold_s");
+  s.snapshot_duration_s = r.number("snapshot_duration_s");
+  s.snapshot_max_messages = r.integer("snapshot_max_messages");
+  s.snapshot_dir = r.text("snapshot_dir");
+  read_axis_settings(r, s);
   r.warn_unknown("piezo_predictor");
   return s;
 }
@@ -414,15 +551,16 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
   compensation_ = s_.compensation;
   for (const auto& name : s_.axes) add_axis(name);
   subscribe_aux();
-  markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>("markers", 2);
+  const params::NodeInterface& iface = predictor_interface();
+  markers_pub_ = nh_.advertise<visualization_msgs::MarkerArray>(iface.topic_name<visualization_msgs::MarkerArray>("markers"), 2);
   tf_ = std::make_unique<tf2_ros::TransformBroadcaster>();
-  tf_probe_ = nh_.advertise<tf2_msgs::TFMessage>("/tf", 100);
-  srv_compensation_ = pnh_.advertiseService("set_compensation", &PredictorNode::on_set_compensation, this);
-  srv_hold_trim_ = pnh_.advertiseService("set_hold_trim", &PredictorNode::on_set_hold_trim, this);
-  srv_reload_ = pnh_.advertiseService("reload_model", &PredictorNode::on_reload, this);
+  tf_probe_ = nh_.advertise<tf2_msgs::TFMessage>(iface.topic_name<tf2_msgs::TFMessage>("/tf"), 100);
+  srv_compensation_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_compensation"), &PredictorNode::on_set_compensation, this);
+  srv_hold_trim_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_hold_trim"), &PredictorNode::on_set_hold_trim, this);
+  srv_reload_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~reload_model"), &PredictorNode::on_reload, this);
   if (s_.snapshot_duration_s > 0.0) {
     setup_snapshot();
-    srv_snapshot_ = pnh_.advertiseService("snapshot", &PredictorNode::on_snapshot, this);
+    srv_snapshot_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~snapshot"), &PredictorNode::on_snapshot, this);
   }
   // Resuming from the file this run saves to: the history is read now, before this run's saves replace it; else at
   // the first sample (a ~snapshot of the run before may be written after the node started).
@@ -445,9 +583,7 @@ void PredictorNode::add_axis(const std::string& name) {
   models::ModelPtr m;
   std::string error;
   try {
-    m = load_model_file(path);
-    if (m->meta.axis != name)
-      ROS_WARN("axis %s: model file %s was fitted for axis %s", name.c_str(), path.c_str(), m->meta.axis.c_str());
+    m = load_model_file(path, name);
   } catch (const std::exception& e) {
     // Keep the axis movable: uncorrected commands with bounded steps, reported in diagnostics.
     error = e.what();
@@ -462,17 +598,18 @@ void PredictorNode::add_axis(const std::string& name) {
   ROS_INFO("axis %s: model %s (%s), ideal line %.4f nm/V, offset %.2f nm", name.c_str(), path.c_str(),
            a->logic->compensator().model().kind().c_str(), line.gain_nm_per_v, line.offset_nm);
   Axis* ap = a.get();
-  a->pub_prediction = nh_.advertise<Prediction>(name + "/prediction", 20);
-  a->pub_command = nh_.advertise<VoltageCommand>(name + "/command", 1);
+  const params::NodeInterface& iface = predictor_interface();
+  a->pub_prediction = nh_.advertise<Prediction>(iface.topic_name<Prediction>("<axis>/prediction", name), 20);
+  a->pub_command = nh_.advertise<VoltageCommand>(iface.topic_name<VoltageCommand>("<axis>/command", name), 1);
   // Sensor topics keep every sample through a stall of the host (kInputQueue samples: 18 s at 11 Hz, 0.45 s of
   // wall time at 40 x simulated time); a dropped one would be a gap in the snapshot and in the model's clock.
-  a->sub_voltage = nh_.subscribe<AxisVoltage>(name + "/voltage", kInputQueue, [this, ap](const AxisVoltage::ConstPtr& m) {
+  a->sub_voltage = nh_.subscribe<AxisVoltage>(iface.topic_name<AxisVoltage>("<axis>/voltage", name), kInputQueue, [this, ap](const AxisVoltage::ConstPtr& m) {
     on_voltage(*ap, m);
   }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
-  a->sub_encoder = nh_.subscribe<EncoderPosition>(name + "/encoder", kInputQueue, [this, ap](const EncoderPosition::ConstPtr& m) {
+  a->sub_encoder = nh_.subscribe<EncoderPosition>(iface.topic_name<EncoderPosition>("<axis>/encoder", name), kInputQueue, [this, ap](const EncoderPosition::ConstPtr& m) {
     on_encoder(*ap, m);
   }, ros::VoidConstPtr(), ros::TransportHints().tcpNoDelay());
-  a->sub_intended = nh_.subscribe<IntendedMotion>(name + "/intended", 10, [this, ap](const IntendedMotion::ConstPtr& m) {
+  a->sub_intended = nh_.subscribe<IntendedMotion>(iface.topic_name<IntendedMotion>("<axis>/intended", name), 10, [this, ap](const IntendedMotion::ConstPtr& m) {
     on_intended(*ap, m);
   });
   axes_.push_back(std::move(a));
@@ -579,7 +716,7 @@ std::string PredictorNode::reload_models(const std::map<std::string, std::string
   const auto t_start = std::chrono::steady_clock::now();
   const auto secs = [](auto a, auto b) { return std::chrono::duration<double>(b - a).count(); };
   std::vector<models::ModelPtr> fresh;
-  for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis())));
+  for (const auto& a : axes_) fresh.push_back(load_model_file(files.at(a->logic->axis()), a->logic->axis()));
   // Warm start on the buffered samples: a model with slow terms (a 300 s low-pass, creep) started at rest
   // would carry a transient of minutes that the offline score of the same model never saw.
   std::vector<std::string> cold(axes_.size());
@@ -706,13 +843,16 @@ void PredictorNode::setup_diagnostics_and_watch() {
       st.add("duration [s]", snapshot_->options().duration_s);
     });
   }
-  diag_probe_ = nh_.advertise<diagnostic_msgs::DiagnosticArray>("/diagnostics", 1);
+  diag_probe_ = nh_.advertise<diagnostic_msgs::DiagnosticArray>(
+      predictor_interface().topic_name<diagnostic_msgs::DiagnosticArray>("/diagnostics"), 1);
   diag_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) {
     if (diag_probe_.getNumSubscribers() > 0) diag_->update();
   });
   if (s_.watch.noise_floor_nm > 0.0) {
     // rolling free-run MAE per axis [m] (SI), once a second
-    for (auto& a : axes_) a->pub_watch = nh_.advertise<std_msgs::Float64>(a->logic->axis() + "/residual_mae", 2);
+    for (auto& a : axes_)
+      a->pub_watch = nh_.advertise<std_msgs::Float64>(
+          predictor_interface().topic_name<std_msgs::Float64>("<axis>/residual_mae", a->logic->axis()), 2);
     watch_timer_ = nh_.createTimer(ros::Duration(1.0), [this](const ros::TimerEvent&) {
       for (auto& a : axes_) {
         const auto* w = a->logic->watch();

@@ -15,6 +15,7 @@
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/sequence_pairer.h"
 #include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"
 
 namespace fs = std::filesystem;
@@ -52,13 +53,66 @@ std::string join(const std::string& ns, const std::string& rel) { return ns + "/
 
 }  // namespace
 
+const params::NodeInterface& recorder_interface() {
+  using namespace params;
+  static const NodeInterface t = [] {
+    const RecorderOptions d;
+    constexpr double kDay = 86400.0;
+    constexpr int kMaxInt = std::numeric_limits<int>::max();
+    NodeInterface n;
+    n.node = "piezo_recorder";
+    n.summary = "drives a protocol through the driver's command topics into a chunked, resumable bag";
+    n.params = {
+        text("protocol", d.protocol,
+             "noise, random_walk, sweep, creep, plan or sawtooth (required unless resuming an existing bag)"),
+        structured("protocol_params", "", "map or YAML string", "{}",
+                   "overrides of config/protocols.yaml for this protocol, e.g. {duration_s: 600.0}"),
+        integer("seed", "", static_cast<int>(d.seed), 0, kMaxInt, "protocol seed (random walks, creep histories)"),
+        number("sample_rate_hz", "Hz", d.sample_rate_hz, 0.01, 10000.0,
+               "protocol rate; must equal the encoder rate: one command per sample"),
+        number("duration_s", "s", d.duration_s, 0.0, 1e9, "record only the first duration_s of the protocol (0 = all)"),
+        text("out", d.out, "the bag to write (must end in .bag)").rule("required"),
+        flag("resume", d.resume, "continue the protocol where an interrupted `out` stopped"),
+        texts("axes", d.axes, std::vector<std::string>(io::kAxisNames.begin(), io::kAxisNames.end()), 1, io::kAxisCount,
+              "axes to drive and record"),
+        number("chunk_period_s", "s", d.chunk_period_s, 0.001, kDay,
+               "close the bag chunk this often (wall): at most this much is lost in a hard crash"),
+        number("encoder_timeout_s", "s", d.encoder_timeout_s, 0.01, kDay,
+               "no encoder data for this long (wall) = dead driver: stop (voltage held), close the bag"),
+        number("startup_timeout_s", "s", d.startup_timeout_s, 0.01, kDay,
+               "wait this long (wall) for the first encoder data on every axis"),
+        number("min_free_space_mb", "MB", d.min_free_space_mb, 0.0, 1e9,
+               "stop safely when the disk holding `out` has less free space than this"),
+        number("voltage_tolerance_v", "V", d.voltage_tolerance_v, 0.0, 10.0,
+               "applied within this of the command = the command has reached the piezo"),
+        integer("max_wait_samples", "samples", d.max_wait_samples, 0, 1000,
+                "encoder samples to wait for a command to show before recording anyway"),
+        number("progress_period_s", "s", d.progress_period_s, 0.01, kDay, "a progress line in the log this often (wall)"),
+        number("approach_timeout_s", "s", d.approach_timeout_s, 0.0, kDay,
+               "wait this long (wall) for the driver to reach the first sample's voltages"),
+        integer("stop_after_samples", "samples", static_cast<int>(d.stop_after_samples), 0, kMaxInt,
+                "stop like Ctrl-C after this many samples in this session (0 = never)"),
+    };
+    using D = TopicDef::Direction;
+    n.topics = {
+        {"<axis>/command", "piezo_compensation/VoltageCommand", D::kPublishes, "the protocol's voltage [V], one per sample"},
+        {"<axis>/encoder", "piezo_compensation/EncoderPosition", D::kSubscribes, "measured position (recorded)"},
+        {"<axis>/voltage", "piezo_compensation/AxisVoltage", D::kSubscribes, "applied voltage (recorded)"},
+        {"<axis>/true_position", "piezo_compensation/EncoderPosition", D::kSubscribes,
+         "the simulated device's true position (recorded when present)"},
+        {"protocol_phase", "piezo_compensation/ProtocolPhase", D::kPublishes, "segment and phase markers (latched)"},
+        {"recorder/progress", "piezo_compensation/RecorderProgress", D::kPublishes, "samples done, ETA"},
+    };
+    return n;
+  }();
+  return t;
+}
+
 RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh, std::vector<std::string>* unknown) {
   RecorderOptions o;
-  params::ParamReader r(pnh);
-  constexpr double kDay = 86400.0;
-  constexpr int kMaxInt = std::numeric_limits<int>::max();
-  o.protocol = r.text("protocol", o.protocol);
-  r.known("protocol_params");
+  params::ParamReader r(pnh, recorder_interface());
+  o.protocol = r.text("protocol");
+  r.structured("protocol_params");
   if (pnh.hasParam("protocol_params")) {
     XmlRpc::XmlRpcValue v;
     pnh.getParam("protocol_params", v);
@@ -73,22 +127,21 @@ RecorderOptions RecorderOptions::from_params(const ros::NodeHandle& pnh, std::ve
     if (!o.protocol_params.IsMap())
       throw std::invalid_argument("parameter " + r.resolved("protocol_params") + " must be a map");
   }
-  o.seed = static_cast<std::uint64_t>(r.integer("seed", static_cast<int>(o.seed), 0, kMaxInt));
-  o.sample_rate_hz = r.number("sample_rate_hz", o.sample_rate_hz, 0.01, 10000.0);
-  o.duration_s = r.number("duration_s", o.duration_s, 0.0, 1e9);
-  o.out = r.text("out", o.out);
-  o.resume = r.flag("resume", o.resume);
-  o.axes = r.texts("axes", o.axes, std::vector<std::string>(io::kAxisNames.begin(), io::kAxisNames.end()), 1,
-                   io::kAxisCount);
-  o.chunk_period_s = r.number("chunk_period_s", o.chunk_period_s, 0.001, kDay);
-  o.encoder_timeout_s = r.number("encoder_timeout_s", o.encoder_timeout_s, 0.01, kDay);
-  o.startup_timeout_s = r.number("startup_timeout_s", o.startup_timeout_s, 0.01, kDay);
-  o.min_free_space_mb = r.number("min_free_space_mb", o.min_free_space_mb, 0.0, 1e9);
-  o.voltage_tolerance_v = r.number("voltage_tolerance_v", o.voltage_tolerance_v, 0.0, 10.0);
-  o.max_wait_samples = r.integer("max_wait_samples", o.max_wait_samples, 0, 1000);
-  o.progress_period_s = r.number("progress_period_s", o.progress_period_s, 0.01, kDay);
-  o.approach_timeout_s = r.number("approach_timeout_s", o.approach_timeout_s, 0.0, kDay);
-  o.stop_after_samples = static_cast<std::uint64_t>(r.integer("stop_after_samples", 0, 0, kMaxInt));
+  o.seed = static_cast<std::uint64_t>(r.integer("seed"));
+  o.sample_rate_hz = r.number("sample_rate_hz");
+  o.duration_s = r.number("duration_s");
+  o.out = r.text("out");
+  o.resume = r.flag("resume");
+  o.axes = r.texts("axes");
+  o.chunk_period_s = r.number("chunk_period_s");
+  o.encoder_timeout_s = r.number("encoder_timeout_s");
+  o.startup_timeout_s = r.number("startup_timeout_s");
+  o.min_free_space_mb = r.number("min_free_space_mb");
+  o.voltage_tolerance_v = r.number("voltage_tolerance_v");
+  o.max_wait_samples = r.integer("max_wait_samples");
+  o.progress_period_s = r.number("progress_period_s");
+  o.approach_timeout_s = r.number("approach_timeout_s");
+  o.stop_after_samples = static_cast<std::uint64_t>(r.integer("stop_after_samples"));
   for (const char* gone : {"publish_clock", "lockstep_settle_s"}) {
     r.known(gone);
     if (pnh.hasParam(gone))
@@ -206,22 +259,26 @@ Recorder::Recorder(ros::NodeHandle nh, RecorderOptions options) : nh_(std::move(
   }
   // small messages at the encoder rate: Nagle's algorithm would hold them back by up to tens of ms
   const ros::TransportHints hints = ros::TransportHints().tcpNoDelay();
+  const params::NodeInterface& iface = recorder_interface();
   for (std::size_t k = 0; k < axes_.size(); ++k) {
     auto& ax = axes_[k];
-    ax.command = nh_.advertise<piezo_compensation::VoltageCommand>(ax.name + "/command", 1);
+    ax.command = nh_.advertise<piezo_compensation::VoltageCommand>(
+        iface.topic_name<piezo_compensation::VoltageCommand>("<axis>/command", ax.name), 1);
     ax.encoder = nh_.subscribe<piezo_compensation::EncoderPosition>(
-        ax.name + "/encoder", 100, [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_encoder(k, m); },
+        iface.topic_name<piezo_compensation::EncoderPosition>("<axis>/encoder", ax.name), 100, [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_encoder(k, m); },
         ros::VoidConstPtr(), hints);
     ax.voltage = nh_.subscribe<piezo_compensation::AxisVoltage>(
-        ax.name + "/voltage", 100, [this, k](const piezo_compensation::AxisVoltage::ConstPtr& m) { on_voltage(k, m); },
+        iface.topic_name<piezo_compensation::AxisVoltage>("<axis>/voltage", ax.name), 100, [this, k](const piezo_compensation::AxisVoltage::ConstPtr& m) { on_voltage(k, m); },
         ros::VoidConstPtr(), hints);
     ax.truth = nh_.subscribe<piezo_compensation::EncoderPosition>(
-        ax.name + "/true_position", 100,
+        iface.topic_name<piezo_compensation::EncoderPosition>("<axis>/true_position", ax.name), 100,
         [this, k](const piezo_compensation::EncoderPosition::ConstPtr& m) { on_truth(k, m); }, ros::VoidConstPtr(),
         hints);
   }
-  phase_pub_ = nh_.advertise<piezo_compensation::ProtocolPhase>("protocol_phase", 10, true);
-  progress_pub_ = nh_.advertise<piezo_compensation::RecorderProgress>("recorder/progress", 10);
+  phase_pub_ = nh_.advertise<piezo_compensation::ProtocolPhase>(
+      iface.topic_name<piezo_compensation::ProtocolPhase>("protocol_phase"), 10, true);
+  progress_pub_ = nh_.advertise<piezo_compensation::RecorderProgress>(
+      iface.topic_name<piezo_compensation::RecorderProgress>("recorder/progress"), 10);
   started_wall_ = last_encoder_wall_ = last_progress_log_ = last_progress_pub_ = Clock::now();
   watchdog_ = nh_.createWallTimer(ros::WallDuration(0.1), &Recorder::on_watchdog, this);
   ROS_INFO("recorder: protocol %s, %llu samples at %.3g Hz (%.1f h), into %s; waiting for encoder data",

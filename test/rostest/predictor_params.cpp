@@ -13,6 +13,7 @@
 #include <utility>
 #include <vector>
 
+#include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"
 #include "piezo_compensation/ros/predictor.h"
 
@@ -146,6 +147,64 @@ TEST(PredictorParams, AnUnidentifiedModelFileIsWarnedAboutWhenLoaded) {
   EXPECT_NE(seen[0].msg.find("refit on a longer recording"), std::string::npos) << seen[0].msg;
   std::remove(identified.c_str());
   std::remove(unidentified.c_str());
+}
+
+// The node reads through its interface table: a name the table lacks, a read of another type, or a topic used with
+// another message type is a programming error (std::logic_error), never a silent second definition.
+TEST(PredictorParams, ReadsGoThroughTheInterfaceTable) {
+  const auto& table = piezo::predictor::predictor_interface();
+  ros::NodeHandle pnh("/predictor_table_reads");
+  piezo::params::ParamReader r(pnh, table);
+  EXPECT_DOUBLE_EQ(r.number("watch_k"), table.param("watch_k").number);
+  EXPECT_THROW(r.number("watch_treshold"), std::logic_error);
+  EXPECT_THROW(r.integer("watch_k"), std::logic_error);
+  EXPECT_EQ(table.topic_name<piezo_compensation::Prediction>("<axis>/prediction", "b"), "b/prediction");
+  EXPECT_THROW(table.topic_name<piezo_compensation::VoltageCommand>("<axis>/prediction", "b"), std::logic_error);
+  EXPECT_EQ(table.service_name<std_srvs::SetBool>("~set_hold_trim"), "set_hold_trim");
+  EXPECT_THROW(table.service_name<std_srvs::Trigger>("~set_hold_trim"), std::logic_error);
+  pnh.setParam("watch_k", 0.5);
+  EXPECT_THROW(r.number("watch_k"), std::invalid_argument);  // the table's range [1, 1000]
+  pnh.deleteParam("watch_k");
+}
+
+// A model of one axis loaded for another is refused for that axis: load_model_file names both axes, and the node
+// keeps the axis (uncorrected, FALLBACK) with one ERROR naming both; one path for several axes is a deprecation WARN.
+TEST(PredictorParams, AModelOfAnotherAxisIsRefusedForThatAxis) {
+  const std::string c_model = std::string(PIEZO_SOURCE_DIR) + "/test/rostest/pi_creep_model_c.yaml";
+  EXPECT_NE(piezo::predictor::load_model_file(c_model, "c"), nullptr);
+  try {
+    piezo::predictor::load_model_file(c_model, "a");
+    ADD_FAILURE() << "a model of axis c was loaded for axis a";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("model fitted for axis c, loaded for axis a"), std::string::npos) << e.what();
+  }
+  std::vector<rosgraph_msgs::Log> errors, warnings;
+  ros::NodeHandle nh;
+  ros::Subscriber sub = nh.subscribe<rosgraph_msgs::Log>("/rosout", 100, [&](const rosgraph_msgs::Log::ConstPtr& m) {
+    if (m->level == rosgraph_msgs::Log::ERROR) errors.push_back(*m);
+    if (m->level == rosgraph_msgs::Log::WARN && m->msg.find("deprecated") != std::string::npos) warnings.push_back(*m);
+  });
+  for (int i = 0; i < 50 && sub.getNumPublishers() == 0; ++i) ros::WallDuration(0.05).sleep();
+  ros::NodeHandle ns("/mm_axis_check"), pnh("/mm_axis_check/predictor");
+  XmlRpc::XmlRpcValue axes;
+  axes[0] = "a", axes[1] = "c";
+  pnh.setParam("axes", axes);
+  pnh.setParam("model_file", c_model);  // one path for both axes
+  pnh.setParam("snapshot_duration_s", 0.0);
+  pnh.setParam("drift_async", false);
+  {
+    piezo::predictor::PredictorNode node(ns, pnh);
+    for (int i = 0; i < 100 && (errors.empty() || warnings.empty()); ++i) ros::spinOnce(), ros::WallDuration(0.05).sleep();
+    ros::WallDuration(0.2).sleep();
+    ros::spinOnce();
+  }
+  ASSERT_EQ(errors.size(), 1u) << "expected one ERROR for axis a";
+  const std::string& msg = errors[0].msg;
+  EXPECT_NE(msg.find("axis a"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("model fitted for axis c, loaded for axis a"), std::string::npos) << msg;
+  EXPECT_NE(msg.find("fallback"), std::string::npos) << msg;
+  EXPECT_EQ(warnings.size(), 1u) << "expected one deprecation WARN for one path given for two axes";
+  for (const auto& p : {"axes", "model_file", "snapshot_duration_s", "drift_async"}) pnh.deleteParam(p);
 }
 
 int main(int argc, char** argv) {

@@ -197,3 +197,24 @@ TEST(ModelFile, DataOfAnotherRateOrAxisIsRejected) {
   models[1]->meta.axis = "c";
   EXPECT_NO_THROW(check_model_matches_data(*models[1], d, "m.yaml"));
 }
+
+// A model runs only on the axis it was fitted for: the refusal names the file and both axes.
+TEST(ModelFile, ModelOfAnotherAxisIsRefusedNamingBothAxes) {
+  auto models = one_of_each_kind();
+  models[0]->meta.axis = "c";
+  EXPECT_NO_THROW(check_model_axis(*models[0], "c", "m_c.yaml"));
+  try {
+    check_model_axis(*models[0], "a", "m_c.yaml");
+    FAIL() << "a model of axis c was accepted for axis a";
+  } catch (const ModelFileError& e) {
+    EXPECT_NE(std::string(e.what()).find("m_c.yaml: model fitted for axis c, loaded for axis a"), std::string::npos)
+        << e.what();
+  }
+  // the file's own axis, as load_model reads it
+  const std::string path = tmp("axis_b.yaml");
+  save_model(path, *models[0]);
+  auto loaded = load_model(path);
+  EXPECT_EQ(loaded->meta.axis, "c");
+  EXPECT_THROW(check_model_axis(*loaded, "b", path), ModelFileError);
+  std::remove(path.c_str());
+}

@@ -40,6 +40,10 @@ ModelPtr load_model(const std::string& path);
 // Throws ModelFileError naming `where` when the data's rate or axes do not fit the model, or an input the model
 // reads is not in the data as models::InputResolver (the one resolver every tool streams with) finds it.
 // `axis`: the axis it runs on (default: the model's own).
+// Throws ModelFileError naming `where` and both axes when `model` was fitted for another axis than `axis` (the
+// file's `axis:`): each axis has its own hysteresis and creep, so a model is run only on the axis it was fitted for.
+void check_model_axis(const Model& model, const std::string& axis, const std::string& where);
+
 void check_model_matches_data(const Model& model, const io::Dataset& data, const std::string& where,
                               const std::string& axis = "");
 

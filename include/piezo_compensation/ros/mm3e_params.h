@@ -15,15 +15,14 @@
 
 namespace piezo::mm3e {
 
-double param_double(const ros::NodeHandle& nh, const std::string& name, double fallback, double min, double max);
-int param_int(const ros::NodeHandle& nh, const std::string& name, int fallback, int min, int max);
-bool param_bool(const ros::NodeHandle& nh, const std::string& name, bool fallback);
-std::string param_string(const ros::NodeHandle& nh, const std::string& name, const std::string& fallback,
-                         const std::vector<std::string>& allowed = {});
+// The ~protocol/<field> entries for every field of can::ProtocolConfig (docs/can_protocol.md), shared by the
+// driver's and the simulated device's interface tables.
+std::vector<params::ParamDef> protocol_params();
+// ~transport, ~interface, ~udp_host, ~udp_local_port, ~udp_remote_port with the node's default ports.
+std::vector<params::ParamDef> transport_params(int default_local_port, int default_remote_port);
 
-// ~protocol/<field> for every field of can::ProtocolConfig (docs/can_protocol.md), then validated.
+// Reads the ~protocol entries through the reader's table, then validates.
 can::ProtocolConfig read_protocol(params::ParamReader& reader);
-can::ProtocolConfig read_protocol(const ros::NodeHandle& pnh);
 
 struct TransportParams {
   std::string kind = "socketcan";  // socketcan | udp
@@ -33,9 +32,8 @@ struct TransportParams {
   int remote_port = 0;
   std::string describe() const;   // "can0" or "udp 127.0.0.1:47100"
 };
-// ~transport, ~interface, ~udp_host, ~udp_local_port, ~udp_remote_port.
-TransportParams read_transport(params::ParamReader& reader, int default_local_port, int default_remote_port);
-TransportParams read_transport(const ros::NodeHandle& pnh, int default_local_port, int default_remote_port);
+// The transport entries of transport_params(), through the reader's table.
+TransportParams read_transport(params::ParamReader& reader);
 
 std::function<std::unique_ptr<can::Transport>()> transport_factory(const TransportParams& params,
                                                                    const std::vector<can_filter>& filters);

@@ -66,9 +66,9 @@ class UnavailableModel : public models::Model {
   std::size_t num_parameters() const override { return 0; }
 };
 
-// Loads a model file (models/model_file.h) and checks it can be driven by the compensator.
-// Throws std::runtime_error with one line naming the file.
-models::ModelPtr load_model_file(const std::string& path);
+// Loads a model file (models/model_file.h) and checks it can be driven by the compensator and, with `axis`, that it
+// was fitted for that axis (models::check_model_axis). Throws std::runtime_error with one line naming the file.
+models::ModelPtr load_model_file(const std::string& path, const std::string& axis = "");
 
 struct PredictorSettings {
   std::vector<std::string> axes{io::kAxisNames.begin(), io::kAxisNames.end()};

@@ -181,6 +181,12 @@ ModelPtr load_model(const std::string& path) {
   return model_from_file_yaml(root, path);
 }
 
+void check_model_axis(const Model& m, const std::string& axis, const std::string& where) {
+  if (m.meta.axis != axis)
+    throw ModelFileError(where + ": model fitted for axis " + m.meta.axis + ", loaded for axis " + axis +
+                         ": refused (one model per axis; fit one on axis " + axis + "'s recording)");
+}
+
 void check_model_matches_data(const Model& m, const io::Dataset& data, const std::string& where,
                               const std::string& axis_in) {
   const std::string& axis = axis_in.empty() ? m.meta.axis : axis_in;
