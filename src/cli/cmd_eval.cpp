@@ -34,6 +34,9 @@ void read_options(const Args& args, analysis::EvalContext& ctx, analysis::EvalOp
     throw UsageError(std::string("eval: ") + e.what());
   }
   ctx.test_segments = eo.test_segments;
+  ctx.zero_window_s = eo.zero_window_s = args.seconds("zero-before-hold-s");
+  ctx.walk_end_s = eo.walk_end_s = args.seconds("walk-end-s");
+  if (!(eo.zero_window_s >= 0) || !(eo.walk_end_s > 0)) throw UsageError("eval: --zero-before-hold-s must be >= 0, --walk-end-s > 0");
   ctx.creep_segments = eo.creep_segments;
 }
 
@@ -54,6 +57,9 @@ int run(int argc, char** argv) {
       .option("anchor-offset-only", "", "with --anchor-s: fix the offset only, the model starting at rest")
       .option("test-segments", "LIST", "score only these segments for hysteresis (e.g. 2); the model still runs over all")
       .option("creep-segments", "LIST", "score only the holds of these segments for creep (e.g. 3-17)")
+      .option("zero-before-hold-s", "T", "score each test recording's first hold from a zero taken over the T before it\n"
+              "(its walk's MAE over --walk-end-s before the hold, and the hold's creep); 0 = off", "0")
+      .option("walk-end-s", "T", "with --zero-before-hold-s: the walk scored over this long before the hold", "900")
       .option("no-plots", "", "skip the PNG plots")
       .required("out", "DIR", "output directory");
   if (!args.parse(argc, argv)) return 0;

@@ -19,6 +19,7 @@ struct EvalContext {
   bool anchor_history = true; // with anchor_s: the start state was estimated too (EvalOptions::anchor_history)
   double final_window_s = 5;  // end-of-hold window
   std::vector<int> test_segments, creep_segments;  // scored segments (empty = all)
+  double zero_window_s = 0, walk_end_s = 900;      // EvalOptions' zero before each recording's hold (0 = off)
   std::vector<std::string> lasso_notes;          // extra markdown sections (optional)
 };
 

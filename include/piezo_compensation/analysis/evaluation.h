@@ -65,6 +65,19 @@ struct HoldErrors {
 HoldErrors hold_errors(const std::vector<double>& predicted, const std::vector<double>& reference, const io::Dataset& data,
                        const std::vector<char>& mask = {}, double window_s = 5.0);
 
+// Each recording's first hold scored with the recording's zero taken from the data before it (the feedforward as
+// an operator uses it after a zero: the tip's offset known, the model run free from the recording's start):
+//   offset = mean(measured − free run) over the zero_window_s before the hold;
+//   walk MAE over the walk_end_s before the hold (free run + offset against the readings);
+//   creep = the position's change from the hold's first end_window_s to its last, predicted against measured
+//   (means of the readings, so their noise averages to σ/√n).
+struct ZeroedHold {
+  std::string recording;
+  double hold_s = 0, offset_nm = NAN, walk_mae_nm = NAN;
+  double creep_measured_nm = NAN, creep_predicted_nm = NAN;
+  double creep_error_nm() const { return creep_predicted_nm - creep_measured_nm; }
+};
+
 struct ModelEvaluation {
   std::string name, kind;
   std::size_t num_parameters = 0;
@@ -76,6 +89,7 @@ struct ModelEvaluation {
   SetMetrics creep;       // hold samples of the creep data
   std::vector<FinalDeviation> finals;
   HoldErrors holds_free_run, holds_free_run_truth;  // free-run in the creep data's holds, vs measured / vs truth
+  std::vector<ZeroedHold> zeroed;  // EvalOptions::zero_window_s > 0: per recording of the test data
   SeriesPrediction test, creep_pred;
 };
 
@@ -88,7 +102,15 @@ struct EvalOptions {
   // Held out by time within one continuous recording (e.g. the plan: 2 = test, 3…17 = creep scenarios): the
   // model runs over the whole file, as it would live, and only these segments are scored. Empty = all.
   std::vector<int> test_segments, creep_segments;
+  // > 0: each test recording's first hold scored from a zero taken over this long before it (ZeroedHold).
+  double zero_window_s = 0.0;
+  double walk_end_s = 900.0;
 };
+
+// The ZeroedHold of each recording of `data` from its free-run prediction (recordings without a hold, or with less
+// than zero_window_s before it, are left out).
+std::vector<ZeroedHold> zeroed_holds(const std::vector<double>& free_run, const io::Dataset& data, const std::string& axis,
+                                     const EvalOptions& opt);
 
 // `piezo eval`'s check of a loaded model file against the data it will run on: rate, axis, and every input
 // through the one resolver of models/model_stream.h, as the streaming itself reads them. creep may be null.

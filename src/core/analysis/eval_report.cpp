@@ -1,5 +1,6 @@
 #include "piezo_compensation/analysis/eval_report.h"
 
+#include <algorithm>
 #include <cstdio>
 #include <fstream>
 #include <sstream>
@@ -127,6 +128,27 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
   os << "\n(one-step, against the measurement — the study's setting; the study reported 8.2 nm / 10.0 nm for linear "
         "regression, below this floor, see docs/models.md.)\n\n";
 
+  if (std::any_of(evals.begin(), evals.end(), [](const ModelEvaluation& e) { return !e.zeroed.empty(); })) {
+    os << "## Each recording's hold from a zero taken before it [nm]\n\nFree run from the recording's start; its offset "
+          "from the readings over the " << f1(ctx.zero_window_s) << " s before the hold; walk: MAE over the "
+       << f1(ctx.walk_end_s) << " s before the hold against the readings (floor " << f1(floor)
+       << " nm); creep: the change from the hold's first to its last 5 s, predicted − measured.\n\n"
+       << "| model | recording | hold [s] | offset | walk MAE | creep measured | creep predicted | creep error |\n"
+       << "|---|---|---|---|---|---|---|---|\n";
+    for (const auto& e : evals) {
+      double walk = 0, worst = 0;
+      for (const auto& z : e.zeroed) {
+        os << "| " << e.name << " | " << z.recording << " | " << f1(z.hold_s) << " | " << f1(z.offset_nm) << " | "
+           << f1(z.walk_mae_nm) << " | " << f1(z.creep_measured_nm) << " | " << f1(z.creep_predicted_nm) << " | "
+           << f1(z.creep_error_nm()) << " |\n";
+        walk += z.walk_mae_nm / static_cast<double>(e.zeroed.size());
+        worst = std::max(worst, std::abs(z.creep_error_nm()));
+      }
+      if (!e.zeroed.empty())
+        os << "| " << e.name << " | **mean / worst** | | | **" << f1(walk) << "** | | | **" << f1(worst) << "** |\n";
+    }
+    os << "\n";
+  }
   os << "## All modes [nm]: MAE / RMS / max\n\n"
      << "| model | set | one-step vs measured | one-step vs truth | free-run vs measured | free-run vs truth |\n"
      << "|---|---|---|---|---|---|\n";

@@ -171,6 +171,36 @@ HoldErrors hold_errors(const std::vector<double>& predicted, const std::vector<d
   return h;
 }
 
+std::vector<ZeroedHold> zeroed_holds(const std::vector<double>& free_run, const io::Dataset& data, const std::string& axis,
+                                     const EvalOptions& opt) {
+  std::vector<ZeroedHold> out;
+  if (opt.zero_window_s <= 0 || data.size() < 2) return out;
+  const auto& y = data.axis(axis).position_nm;
+  const double rate = data.sample_rate_hz();
+  auto rows = [&](double s) { return static_cast<std::size_t>(std::lround(s * rate)); };
+  const std::size_t zw = rows(opt.zero_window_s), ww = rows(opt.walk_end_s);
+  const std::size_t ew = std::max<std::size_t>(1, rows(opt.final_window_s));
+  const std::vector<Hold> holds = find_holds(data);
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [rb, re] = data.recording_rows(k);
+    const auto h = std::find_if(holds.begin(), holds.end(), [&](const Hold& x) { return x.begin >= rb && x.begin < re; });
+    if (h == holds.end() || h->begin < rb + std::max(zw, ww) || h->end - h->begin < 2 * ew) continue;
+    ZeroedHold z;
+    z.recording = data.recordings.empty() ? data.source_or_data() : data.recordings[k].name;
+    z.hold_s = h->duration_s;
+    double s = 0;
+    for (std::size_t i = h->begin - zw; i < h->begin; ++i) s += y[i] - free_run[i];
+    z.offset_nm = s / static_cast<double>(zw);
+    double a = 0;
+    for (std::size_t i = h->begin - ww; i < h->begin; ++i) a += std::abs(free_run[i] + z.offset_nm - y[i]);
+    z.walk_mae_nm = a / static_cast<double>(ww);
+    z.creep_measured_nm = hold_mean(y, h->end - ew, h->end) - hold_mean(y, h->begin, h->begin + ew);
+    z.creep_predicted_nm = hold_mean(free_run, h->end - ew, h->end) - hold_mean(free_run, h->begin, h->begin + ew);
+    out.push_back(z);
+  }
+  return out;
+}
+
 ModelEvaluation evaluate_model(const models::Model& model, const std::string& name, const io::Dataset& test,
                                const io::Dataset* creep, const EvalOptions& opt) {
   ModelEvaluation ev;
@@ -189,6 +219,7 @@ ModelEvaluation evaluate_model(const models::Model& model, const std::string& na
                           after_anchor(hysteresis_mask(test, opt.warmup_s, opt.test_segments), ev.test.scored));
   const io::Dataset& cd = creep ? *creep : test;
   ev.creep_pred = creep ? predict_series(model, *creep, opt.axis, opt.anchor_s, opt.anchor_history) : ev.test;
+  ev.zeroed = zeroed_holds(ev.test.free_run, test, opt.axis, opt);
   const io::AxisSeries& cax = cd.axis(opt.axis);
   ev.creep = metrics(ev.creep_pred, cax, after_anchor(hold_mask(cd, opt.creep_segments), ev.creep_pred.scored));
   {
