@@ -76,6 +76,8 @@ int run(int argc, char** argv) {
       .option("settle-skip-s", "T", "score holds from this long after their start [s]", "120")
       .option("end-window-s", "T", "the end of a hold: its last T [s]", "5")
       .option("start-estimate-s", "T", "the start-up state estimate over the first T [s] (models/start_state.h); 0 = off", "0")
+      .option("allow-training-rows", "", "score rows the model was trained on (refused otherwise: a figure on them says\n"
+              "nothing about new data)")
       .option("plot", "", "also write DIR/track.png (python3-matplotlib)")
       .required("out", "DIR", "output directory");
   if (!args.parse(argc, argv)) return 0;
@@ -87,6 +89,10 @@ int run(int argc, char** argv) {
   std::string data_names;
   for (const auto& f : args.list("data")) data_names += (data_names.empty() ? "" : " ") + f;
   models::check_model_matches_data(*model, data, data_names);
+  if (const std::string overlap = models::training_overlap(model->meta, data, axis, args.str("model")); !overlap.empty()) {
+    if (!args.flag("allow-training-rows")) throw UsageError("track: " + overlap + "; --allow-training-rows tracks them anyway");
+    std::cerr << "warning: " << overlap << " (tracked: --allow-training-rows)\n";
+  }
   if (args.has("identify-on")) {
     const io::Dataset id = ros_io::read_data(args.str("identify-on"));
     const double from_s = args.num("identify-from-s");

@@ -5,6 +5,7 @@
 #include <cmath>
 
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
@@ -107,4 +108,25 @@ TEST(Recordings, AFitEstimatesEachZeroInsteadOfLearningIt) {
             << separate->meta.validation.at("recording_offset_rms_nm") << " nm\n";
   EXPECT_NEAR(separate->meta.validation.at("recording_offset_rms_nm"), 600.0 * std::sqrt(2.0 / 3.0), 30.0);
   EXPECT_LT(e_sep, 0.2 * e_one);
+}
+
+TEST(Recordings, TheTrainingRowsAreKnownAgain) {
+  const io::Dataset a = walk(30, 0, 300), b = walk(31, 0, 300);
+  const io::Dataset train = a.slice(0, a.size() * 4 / 5), tail = a.slice(a.size() * 4 / 5, a.size());
+  training::FitRequest r;
+  r.train = &train;
+  const models::ModelPtr m = training::fit_model("linear", r);
+  ASSERT_EQ(m->meta.trained_on.size(), 1u);
+  const std::string overlap = models::training_overlap(m->meta, a, "c", "m.yaml");
+  std::cout << "[overlap] " << overlap << "\n";
+  EXPECT_NE(overlap.find("walk30: rows 2-" + std::to_string(train.size() + 1)), std::string::npos) << overlap;
+  EXPECT_NE(overlap.find("are rows m.yaml was trained on"), std::string::npos) << overlap;
+  EXPECT_EQ(models::training_overlap(m->meta, tail, "c", "m.yaml"), "");  // the held-out part
+  EXPECT_EQ(models::training_overlap(m->meta, b, "c", "m.yaml"), "");     // another recording, same times
+  // among several recordings, and through the model file
+  const io::Dataset joined = io::join_recordings({b, a});
+  const std::string path = ::testing::TempDir() + "overlap_model.yaml";
+  models::save_model(path, *m);
+  const models::ModelPtr loaded = models::load_model(path);
+  EXPECT_NE(models::training_overlap(loaded->meta, joined, "c", path).find("walk30: rows 2-"), std::string::npos);
 }

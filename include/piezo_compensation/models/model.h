@@ -23,12 +23,22 @@ struct LinearStatePrior {
   double intercept_nm = 0, slope_nm_per_v = 0, sigma_nm = 0;
 };
 
+// One recording (or part of one) a model was trained on: its own times, rows and a hash of its axis' voltage and
+// position (models/model_file.h, training_spans), so a tool can tell the same rows when it meets them again.
+struct TrainingSpan {
+  std::string source;
+  double begin_s = 0, end_s = 0;
+  std::size_t rows = 0;
+  std::string fingerprint;
+};
+
 // Facts about a fitted model, stored in the model file beside the weights.
 struct ModelMeta {
   std::string axis = "c";
   double sample_rate_hz = 11.0;
   std::string training_fingerprint;            // hash of the training data (see io::fingerprint)
   std::string training_source;                 // file(s) it was fitted on
+  std::vector<TrainingSpan> trained_on;        // each training recording (empty: an older model file)
   std::string time_clock;                      // what the training data's time_s was: "ros" (ROS time stamps,
                                                // a bag the nodes wrote) or "" (the data file's own time base)
   // The applied voltage's range in the training data [V] (NaN: not known): where a history the model has not seen

@@ -44,6 +44,14 @@ ModelPtr load_model(const std::string& path);
 // file's `axis:`): each axis has its own hysteresis and creep, so a model is run only on the axis it was fitted for.
 void check_model_axis(const Model& model, const std::string& axis, const std::string& where);
 
+// The TrainingSpan of each recording of `data` for `axis` (what training::fit_model stores).
+std::vector<TrainingSpan> training_spans(const io::Dataset& data, const std::string& axis);
+// "" when no recording of `data` holds the rows of one of the model's training spans (its own times in the span's
+// range, the same count and hash); else one line naming the overlap, e.g. "test.csv: rows 1-28699 (t = 0-2609 s)
+// are rows model.yaml was trained on (test.csv)".
+std::string training_overlap(const ModelMeta& meta, const io::Dataset& data, const std::string& axis,
+                             const std::string& model_path);
+
 void check_model_matches_data(const Model& model, const io::Dataset& data, const std::string& where,
                               const std::string& axis = "");
 

@@ -7,6 +7,7 @@
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/util/fingerprint.h"
 
 namespace piezo::models {
 
@@ -47,6 +48,15 @@ YAML::Node model_to_file_yaml(const Model& m) {
   root["created_utc"] = m.meta.created_utc;
   root["training"]["fingerprint"] = m.meta.training_fingerprint;
   root["training"]["source"] = m.meta.training_source;
+  for (const TrainingSpan& t : m.meta.trained_on) {
+    YAML::Node n;
+    n["source"] = t.source;
+    n["begin_s"] = t.begin_s;
+    n["end_s"] = t.end_s;
+    n["rows"] = t.rows;
+    n["fingerprint"] = t.fingerprint;
+    root["training"]["recordings"].push_back(n);
+  }
   if (!m.meta.time_clock.empty()) root["training"]["time_clock"] = m.meta.time_clock;
   if (std::isfinite(m.meta.train_voltage_min_v) && std::isfinite(m.meta.train_voltage_max_v)) {
     root["training"]["voltage_min_v"] = m.meta.train_voltage_min_v;
@@ -118,6 +128,22 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
       if (!t.IsMap()) throw top_err("training", "expected a mapping");
       if (t["fingerprint"]) m->meta.training_fingerprint = t["fingerprint"].as<std::string>();
       if (t["source"]) m->meta.training_source = t["source"].as<std::string>();
+      if (const YAML::Node rs = t["recordings"]) {
+        if (!rs.IsSequence()) throw top_err("training.recordings", "expected a list");
+        for (const auto& r : rs) {
+          TrainingSpan sp;
+          try {
+            sp.source = r["source"].as<std::string>();
+            sp.begin_s = r["begin_s"].as<double>();
+            sp.end_s = r["end_s"].as<double>();
+            sp.rows = r["rows"].as<std::size_t>();
+            sp.fingerprint = r["fingerprint"].as<std::string>();
+          } catch (const YAML::Exception&) {
+            throw top_err("training.recordings", "each entry needs source, begin_s, end_s, rows and fingerprint");
+          }
+          m->meta.trained_on.push_back(sp);
+        }
+      }
       if (t["time_clock"]) m->meta.time_clock = t["time_clock"].as<std::string>();
       if (t["voltage_min_v"] || t["voltage_max_v"]) {
         double lo = NAN, hi = NAN;
@@ -185,6 +211,57 @@ void check_model_axis(const Model& m, const std::string& axis, const std::string
   if (m.meta.axis != axis)
     throw ModelFileError(where + ": model fitted for axis " + m.meta.axis + ", loaded for axis " + axis +
                          ": refused (one model per axis; fit one on axis " + axis + "'s recording)");
+}
+
+namespace {
+std::string span_hash(const io::AxisSeries& ax, std::size_t b, std::size_t e) {
+  std::uint64_t h = util::fnv1a64(ax.voltage_v.data() + b, (e - b) * sizeof(double));
+  h = util::fnv1a64(ax.position_nm.data() + b, (e - b) * sizeof(double), h);
+  std::ostringstream os;
+  os << std::hex << h;
+  return os.str();
+}
+}  // namespace
+
+std::vector<TrainingSpan> training_spans(const io::Dataset& data, const std::string& axis) {
+  std::vector<TrainingSpan> out;
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [b, e] = data.recording_rows(k);
+    if (e <= b) continue;
+    const double shift = data.recordings.empty() ? 0.0 : data.recordings[k].time_shift_s;
+    TrainingSpan s;
+    s.source = data.recordings.empty() ? data.source_or_data() : data.recordings[k].name;
+    s.begin_s = data.time_s[b] - shift;
+    s.end_s = data.time_s[e - 1] - shift;
+    s.rows = e - b;
+    s.fingerprint = span_hash(data.axis(axis), b, e);
+    out.push_back(s);
+  }
+  return out;
+}
+
+std::string training_overlap(const ModelMeta& meta, const io::Dataset& data, const std::string& axis,
+                             const std::string& model_path) {
+  if (!data.has_axis(axis)) return "";
+  const io::AxisSeries& ax = data.axis(axis);
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [rb, re] = data.recording_rows(k);
+    const double shift = data.recordings.empty() ? 0.0 : data.recordings[k].time_shift_s;
+    for (const TrainingSpan& sp : meta.trained_on) {
+      const double tol = 1e-6 * std::max(1.0, std::abs(sp.end_s));
+      std::size_t b = rb;
+      while (b < re && data.time_s[b] - shift < sp.begin_s - tol) ++b;
+      if (b == re || data.time_s[b] - shift > sp.begin_s + tol || b + sp.rows > re) continue;
+      if (std::abs(data.time_s[b + sp.rows - 1] - shift - sp.end_s) > tol) continue;
+      if (span_hash(ax, b, b + sp.rows) != sp.fingerprint) continue;
+      std::ostringstream os;
+      const std::string name = data.recordings.empty() ? data.source_or_data() : data.recordings[k].name;
+      os << name << ": rows " << b - rb + 2 << "-" << b - rb + sp.rows + 1 << " (t = " << sp.begin_s << "-" << sp.end_s
+         << " s) are rows " << model_path << " was trained on (" << sp.source << ")";
+      return os.str();
+    }
+  }
+  return "";
 }
 
 void check_model_matches_data(const Model& m, const io::Dataset& data, const std::string& where,

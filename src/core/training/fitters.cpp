@@ -6,6 +6,7 @@
 #include <map>
 #include <stdexcept>
 
+#include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/models/start_state.h"
@@ -142,6 +143,7 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request) {
   const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   const bool recordings = request.train && request.train->recording_count() > 1;
   models::ModelPtr m = recordings ? fit_recordings(fit, request) : fit(request);
+  if (m && request.train) m->meta.trained_on = models::training_spans(*request.train, request.axis);
   // Where the training keeps the linear states: the start estimate's prior on a recording it has not seen.
   // A failure here leaves the model without a prior (the start estimate then uses the candidates'), not unfitted.
   if (m && m->meta.state_prior.empty()) {
