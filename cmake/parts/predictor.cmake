@@ -1,6 +1,7 @@
 # compensation/ + the predictor node: inverse, drift forecast, per-axis compensator, node, rostests, benchmark.
 piezo_unit_test(test_compensation_core test/unit/test_compensation_core.cpp)
 piezo_unit_test(test_estimation test/unit/test_estimation.cpp)
+piezo_unit_test(test_estimation_quantised test/unit/test_estimation_quantised.cpp)
 piezo_unit_test(test_hold_trim test/unit/test_hold_trim.cpp)
 piezo_node(piezo_predictor src/nodes/piezo_predictor_node.cpp)
 piezo_benchmark(bench_compensation bench/bench_compensation.cpp)
