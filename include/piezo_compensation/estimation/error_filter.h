@@ -4,6 +4,8 @@
 // parts: a slow part (random walk: what stays wrong after the stage settles — branch and creep mismatch) and a
 // fast part (first-order Gauss–Markov, time constant fast_tau_s: the part of the error that settles after a move).
 // Both grow with the model's own motion |Δp|, so the filter is tight in long holds and honest after moves. The
+// slow part may also ramp: its rate of change is a third state, a random walk of q_drift_nm2_per_s3 (the creep a
+// model with a wrong start state keeps mispredicting through a whole hold; 0 in files without the key). The
 // reading is the truth p + e plus Gaussian noise of σ (noise_sigma_nm) before a quantiser of step q (step_nm): its
 // exact likelihood (estimation/quantised_reading.h) is the measurement model of every axis. Axis c (20 nm steps,
 // σ ≈ 20 nm) is the dithered end of it, axes a/b (250 nm steps) the quantised end, where the information is in the
@@ -52,6 +54,7 @@ struct NoiseModel {
   double q_rest_nm2_per_s = 0.0;    // slow error: variance rate at rest
   double q_motion_nm = 0.0;         // slow error: variance per nm of predicted motion [nm²/nm]
   double q_fast_nm = 0.0;           // fast error: variance per nm of predicted motion [nm²/nm]
+  double q_drift_nm2_per_s3 = 0.0;  // slow error's rate of change: variance rate of its random walk
   double fast_tau_s = 30.0;         // fast error: settling time constant
   double initial_sigma_nm = 0.0;    // 1σ of the model's error when it starts at rest on a reading (cold start)
   double model_sigma_nm = 0.0;      // model-only axes: the model's slow error, 1σ (what the σ output reports)
@@ -80,8 +83,9 @@ struct NoiseModel {
 // The filter's state, for a node that resumes (compensation/resume.h): the error's two parts, their covariance and
 // the last prediction (the next one's motion drives the process noise).
 struct FilterState {
-  double slow_nm = 0.0, fast_nm = 0.0;
-  double p_slow_nm2 = 0.0, p_cross_nm2 = 0.0, p_fast_nm2 = 0.0;
+  double slow_nm = 0.0, fast_nm = 0.0, drift_nm_per_s = 0.0;
+  // the covariance of (slow, fast, drift), row by row, upper triangle: ss, sf, sd, ff, fd, dd
+  std::array<double, 6> covariance{};
   double last_predicted_nm = 0.0;
   bool started = false;
 };
@@ -125,6 +129,8 @@ class ErrorFilter {
 
  private:
   void check_consistency(double s);
+  void predict(double dp, Eigen::Vector3d& x, Eigen::Matrix3d& P) const;
+  double var_error(const Eigen::Matrix3d& P) const { return P(0, 0) + 2.0 * P(0, 1) + P(1, 1); }
   bool take_reading(double y_minus_p_nm);  // false: the reading was outside the gate and not taken
   bool track_level(double measured_nm, double predicted_nm);  // false: a stale level
   void floor_unchanged_level();
@@ -132,8 +138,8 @@ class ErrorFilter {
   double dt_s_, phi_, sigma_;
   bool started_ = false;
   double last_p_ = 0.0;
-  Eigen::Vector2d x_ = Eigen::Vector2d::Zero();
-  Eigen::Matrix2d P_ = Eigen::Matrix2d::Zero();
+  Eigen::Vector3d x_ = Eigen::Vector3d::Zero();  // slow, fast, slow's rate [nm/s]
+  Eigen::Matrix3d P_ = Eigen::Matrix3d::Zero();
   double loglik_ = 0.0, innovation_ = 0.0;
   std::size_t updates_ = 0, since_reading_ = 0;
   struct Window {  // exponential means of the innovations and of their variance over one time scale
@@ -147,11 +153,12 @@ class ErrorFilter {
   bool rejected_level_changed_ = false;
   // the level last taken: since it was first read, the model's range, the readings, the variance without them
   bool have_level_ = false;
-  double level_nm_ = 0.0, level_p_min_ = 0.0, level_p_max_ = 0.0, level_free_var_ = 0.0, level_first_var_ = 0.0;
+  double level_nm_ = 0.0, level_p_min_ = 0.0, level_p_max_ = 0.0, level_first_var_ = 0.0;
   std::size_t level_n_ = 0, stale_ = 0;
   bool level_stale_ = false;
-  Eigen::Vector2d level_x_ = Eigen::Vector2d::Zero();  // the state after the level's first reading
-  Eigen::Matrix2d level_P_ = Eigen::Matrix2d::Zero();
+  Eigen::Vector3d level_x_ = Eigen::Vector3d::Zero();  // the state after the level's first reading
+  Eigen::Matrix3d level_P_ = Eigen::Matrix3d::Zero();
+  Eigen::Matrix3d level_free_P_ = Eigen::Matrix3d::Zero();  // … and its covariance since, without readings
 };
 
 struct IdentifyOptions {

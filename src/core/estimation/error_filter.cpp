@@ -9,6 +9,8 @@
 #include <sstream>
 #include <stdexcept>
 
+#include <Eigen/Eigenvalues>
+
 #include "piezo_compensation/estimation/quantised_reading.h"
 
 namespace piezo::estimation {
@@ -130,6 +132,7 @@ YAML::Node NoiseModel::to_yaml() const {
   n["q_rest_nm2_per_s"] = q_rest_nm2_per_s;
   n["q_motion_nm"] = q_motion_nm;
   n["q_fast_nm"] = q_fast_nm;
+  n["q_drift_nm2_per_s3"] = q_drift_nm2_per_s3;
   n["fast_tau_s"] = fast_tau_s;
   n["initial_sigma_nm"] = initial_sigma_nm;
   n["model_sigma_nm"] = model_sigma_nm;
@@ -161,6 +164,7 @@ NoiseModel NoiseModel::from_yaml(const YAML::Node& node, const std::string& wher
   m.q_rest_nm2_per_s = field(node, "q_rest_nm2_per_s", where, 0.0, inf);
   m.q_motion_nm = field(node, "q_motion_nm", where, 0.0, inf);
   m.q_fast_nm = field(node, "q_fast_nm", where, 0.0, inf);
+  if (node["q_drift_nm2_per_s3"]) m.q_drift_nm2_per_s3 = field(node, "q_drift_nm2_per_s3", where, 0.0, inf);
   m.fast_tau_s = field(node, "fast_tau_s", where, 1e-6, inf);
   m.initial_sigma_nm = field(node, "initial_sigma_nm", where, 0.0, inf);
   m.model_sigma_nm = field(node, "model_sigma_nm", where, 0.0, inf);
@@ -184,7 +188,7 @@ std::string NoiseModel::describe() const {
   }
   s << "fused: noise σ " << noise_sigma_nm << " nm before a " << step_nm << " nm step, slow error " << q_rest_nm2_per_s
     << " nm²/s at rest + " << q_motion_nm << " nm²/nm moved, fast error " << q_fast_nm << " nm²/nm settling in "
-    << fast_tau_s << " s, cold start 1σ " << initial_sigma_nm << " nm";
+    << fast_tau_s << " s, ramp " << q_drift_nm2_per_s3 << " nm²/s³, cold start 1σ " << initial_sigma_nm << " nm";
   return s.str();
 }
 
@@ -221,7 +225,23 @@ void ErrorFilter::reset(double slow_error_nm, double slow_sigma_nm) {
 
 double ErrorFilter::sigma_nm() const {
   if (!model_.fuse) return model_.model_sigma_nm;
-  return std::sqrt(std::max(0.0, P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1)));
+  return std::sqrt(std::max(0.0, var_error(P_)));
+}
+
+// One sample ahead: the slow error walks and ramps, the fast one settles; the walks are driven by the model's motion
+// |Δp|; the ramp's rate walks (an integrated random walk for the slow error).
+void ErrorFilter::predict(double dp, Eigen::Vector3d& x, Eigen::Matrix3d& P) const {
+  const double dt = dt_s_;
+  Eigen::Matrix3d F;
+  F << 1.0, 0.0, dt, 0.0, phi_, 0.0, 0.0, 0.0, 1.0;
+  x = F * x;
+  P = F * P * F.transpose();
+  const double qd = model_.q_drift_nm2_per_s3;
+  P(0, 0) += model_.q_rest_nm2_per_s * dt + model_.q_motion_nm * dp + qd * dt * dt * dt / 3.0;
+  P(0, 2) += qd * dt * dt / 2.0;
+  P(2, 0) = P(0, 2);
+  P(2, 2) += qd * dt;
+  P(1, 1) += model_.q_fast_nm * dp;
 }
 
 bool ErrorFilter::zero_known() const {
@@ -230,27 +250,40 @@ bool ErrorFilter::zero_known() const {
 
 void ErrorFilter::hold(std::size_t samples) {
   if (!model_.fuse || samples == 0) return;
-  const double phin = std::pow(phi_, static_cast<double>(samples));
-  x_(1) *= phin;
-  P_(0, 1) *= phin;
-  P_(1, 0) = P_(0, 1);
-  P_(1, 1) *= phin * phin;
-  P_(0, 0) += model_.q_rest_nm2_per_s * dt_s_ * static_cast<double>(samples);
+  // n samples at rest in closed form: F^n = [[1, 0, T], [0, φ^n, 0], [0, 0, 1]], the process noise summed over them
+  const double n = static_cast<double>(samples), T = n * dt_s_, phin = std::pow(phi_, n), qd = model_.q_drift_nm2_per_s3;
+  Eigen::Matrix3d F;
+  F << 1.0, 0.0, T, 0.0, phin, 0.0, 0.0, 0.0, 1.0;
+  x_ = F * x_;
+  P_ = F * P_ * F.transpose();
+  P_(0, 0) += model_.q_rest_nm2_per_s * T + qd * T * T * T / 3.0;
+  P_(0, 2) += qd * T * T / 2.0;
+  P_(2, 0) = P_(0, 2);
+  P_(2, 2) += qd * T;
   since_reading_ += samples;
 }
 
 FilterState ErrorFilter::state() const {
-  return FilterState{x_(0), x_(1), P_(0, 0), P_(0, 1), P_(1, 1), last_p_, started_};
+  FilterState s;
+  s.slow_nm = x_(0), s.fast_nm = x_(1), s.drift_nm_per_s = x_(2);
+  s.covariance = {P_(0, 0), P_(0, 1), P_(0, 2), P_(1, 1), P_(1, 2), P_(2, 2)};
+  s.last_predicted_nm = last_p_;
+  s.started = started_;
+  return s;
 }
 
 void ErrorFilter::set_state(const FilterState& s) {
-  const double v[] = {s.slow_nm, s.fast_nm, s.p_slow_nm2, s.p_cross_nm2, s.p_fast_nm2, s.last_predicted_nm};
-  for (double d : v)
-    if (!std::isfinite(d)) throw std::invalid_argument("ErrorFilter: the filter state holds a non-finite number");
-  if (s.p_slow_nm2 < 0.0 || s.p_fast_nm2 < 0.0 || s.p_cross_nm2 * s.p_cross_nm2 > s.p_slow_nm2 * s.p_fast_nm2 * (1.0 + 1e-9))
+  Eigen::Matrix3d P;
+  const auto& c = s.covariance;
+  P << c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5];
+  if (!std::isfinite(s.slow_nm) || !std::isfinite(s.fast_nm) || !std::isfinite(s.drift_nm_per_s) ||
+      !std::isfinite(s.last_predicted_nm) || !P.allFinite())
+    throw std::invalid_argument("ErrorFilter: the filter state holds a non-finite number");
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(P, Eigen::EigenvaluesOnly);
+  if (eig.eigenvalues().minCoeff() < -1e-9 * std::max(1.0, P.diagonal().maxCoeff()))
     throw std::invalid_argument("ErrorFilter: the filter state's covariance is not positive semi-definite");
-  x_ << s.slow_nm, s.fast_nm;
-  P_ << s.p_slow_nm2, s.p_cross_nm2, s.p_cross_nm2, s.p_fast_nm2;
+  x_ << s.slow_nm, s.fast_nm, s.drift_nm_per_s;
+  P_ = P;
   last_p_ = s.last_predicted_nm;
   started_ = s.started;
   rejected_run_ = 0;
@@ -262,23 +295,17 @@ void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
   last_p_ = predicted_nm;
   started_ = true;
   if (!model_.fuse) return;
-  // predict: the slow error walks, the fast one settles; both are driven by the model's motion
-  x_(1) *= phi_;
-  P_(0, 1) *= phi_;
-  P_(1, 0) = P_(0, 1);
-  P_(1, 1) *= phi_ * phi_;
-  P_(0, 0) += model_.q_rest_nm2_per_s * dt_s_ + model_.q_motion_nm * dp;
-  P_(1, 1) += model_.q_fast_nm * dp;
-  level_free_var_ += model_.q_rest_nm2_per_s * dt_s_ + (model_.q_motion_nm + model_.q_fast_nm) * dp;
+  predict(dp, x_, P_);
+  if (have_level_) predict(dp, level_x_, level_free_P_);
   if (!valid || !std::isfinite(measured_nm) || !track_level(measured_nm, predicted_nm) ||
       !take_reading(measured_nm - predicted_nm)) {
     ++since_reading_;
     return;
   }
   if (level_n_ == 0) {
-    level_free_var_ = level_first_var_ = P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1);
+    level_first_var_ = var_error(P_);
     level_x_ = x_;
-    level_P_ = P_;
+    level_P_ = level_free_P_ = P_;
   } else {
     floor_unchanged_level();
   }
@@ -296,14 +323,13 @@ bool ErrorFilter::track_level(double measured_nm, double predicted_nm) {
   }
   level_p_min_ = std::min(level_p_min_, predicted_nm);
   level_p_max_ = std::max(level_p_max_, predicted_nm);
-  const double reach = model_.step_nm + 3.0 * std::sqrt(std::max(0.0, level_free_var_ - level_first_var_)) +
-                       2.0 * sigma_;
+  const double grown = std::max(0.0, var_error(level_free_P_) - level_first_var_);
+  const double reach = model_.step_nm + 3.0 * std::sqrt(grown) + 2.0 * sigma_;
   if (level_stale_ || (model_.step_nm > 0.0 && level_p_max_ - level_p_min_ > reach)) {
     if (!level_stale_) {  // the readings since the level was first read were stale too: undo them
       level_stale_ = true;
       x_ = level_x_;
-      P_ = level_P_;
-      P_(0, 0) += level_free_var_ - level_first_var_;
+      P_ = level_free_P_;
     }
     ++stale_;
     return false;
@@ -326,16 +352,16 @@ void ErrorFilter::floor_unchanged_level() {
   // Narrower than the noise (dithered readings: c's 20 nm under 20 nm of noise), the posterior is Gaussian-shaped
   // and repeated levels average down as they should.
   if (w <= 2.0 * sigma_) return;
-  const double floor = std::min(level_free_var_, w * w / 12.0);
-  const double var_e = P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1);
+  const double floor = std::min(var_error(level_free_P_), w * w / 12.0);
+  const double var_e = var_error(P_);
   if (var_e < floor) P_(0, 0) += floor - var_e;
 }
 
 // The reading of y − p = e_slow + e_fast + noise, quantised: the exact update of the scalar e = h·x, carried to both
 // parts (x | e is Gaussian and linear in e, so the moment-matched e moves the state along P·hᵀ).
 bool ErrorFilter::take_reading(double y_nm) {
-  const Eigen::Vector2d ph(P_(0, 0) + P_(0, 1), P_(1, 0) + P_(1, 1));
-  double var_e = ph(0) + ph(1);
+  const Eigen::Vector3d ph = P_.col(0) + P_.col(1);  // P·hᵀ, h = (1, 1, 0)
+  const double var_e = ph(0) + ph(1);
   ReadingUpdate u = quantised_update(error_nm(), var_e, y_nm, sigma_, model_.step_nm);
   if (u.cell_distance > model_.gate_s) {
     if (rejected_run_ == 0) rejected_level_nm_ = y_nm, rejected_level_changed_ = false;
@@ -352,10 +378,9 @@ bool ErrorFilter::take_reading(double y_nm) {
   }
   rejected_run_ = 0;
   if (var_e > 0.0) {
-    const Eigen::Vector2d k = ph / var_e;
-    x_ += k * (u.mean_nm - error_nm());
+    x_ += ph * ((u.mean_nm - error_nm()) / var_e);
     P_ += (ph * ph.transpose()) * ((u.var_nm2 - var_e) / (var_e * var_e));
-    P_(1, 0) = P_(0, 1) = 0.5 * (P_(0, 1) + P_(1, 0));
+    P_ = 0.5 * (P_ + P_.transpose()).eval();
   }
   innovation_ = u.innovation_nm;
   loglik_ += u.log_p;
@@ -424,13 +449,14 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
   if (o.step_nm > 0.0 && sigma0 < 0.05 * o.step_nm) sigma0 = 0.1 * o.step_nm;
   // Parameters are searched in log space, bounded so the filter stays defined; a rate at the lower bound (e^-25) is
   // one the data do not show: 0.
-  auto unpack = [](const std::array<double, 4>& z, NoiseModel& t) {
+  auto unpack = [](const std::array<double, 5>& z, NoiseModel& t) {
     auto rate = [](double x) { return x <= -25.0 ? 0.0 : std::exp(std::min(x, 12.0)); };
     t.q_rest_nm2_per_s = rate(z[0]);
     t.q_motion_nm = rate(z[1]);
     t.q_fast_nm = rate(z[2]);
     t.noise_sigma_nm = std::exp(std::clamp(z[3], -7.0, 12.0));
     t.reading_sigma_nm = std::sqrt(t.noise_sigma_nm * t.noise_sigma_nm + t.step_nm * t.step_nm / 12.0);
+    t.q_drift_nm2_per_s3 = z[4] <= -40.0 ? 0.0 : std::exp(std::min(z[4], 0.0));
   };
   NoiseModel best = m;
   double best_ll = -std::numeric_limits<double>::infinity();
@@ -441,16 +467,17 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
     // identified on did not show, so they stay out of the likelihood (with them in, the rates they cover shrink).
     trial.adapt_k = 0.0;
     trial.gate_s = 1e3;
-    auto nll = [&](const std::array<double, 4>& z) {
+    auto nll = [&](const std::array<double, 5>& z) {
       unpack(z, trial);
       ErrorFilter f(trial, o.dt_s);
       for (std::size_t i = 0; i < predicted_nm.size(); ++i)
         f.step(predicted_nm[i], measured_nm[i], std::isfinite(measured_nm[i]));
       return -f.log_likelihood() / static_cast<double>(readings);
     };
-    const std::array<double, 4> z =
-        nelder_mead<4>(nll, {std::log(0.01), std::log(0.01), std::log(0.1), std::log(sigma0)},
-                       {std::log(30.0), std::log(30.0), std::log(30.0), std::log(1.5)}, o.max_evaluations);
+    const std::array<double, 5> z =
+        nelder_mead<5>(nll, {std::log(0.01), std::log(0.01), std::log(0.1), std::log(sigma0), std::log(1e-6)},
+                       {std::log(30.0), std::log(30.0), std::log(30.0), std::log(1.5), std::log(100.0)},
+                       o.max_evaluations);
     const double ll = -nll(z);
     if (ll > best_ll) {
       best_ll = ll;
