@@ -131,7 +131,9 @@ class ErrorFilter {
   void check_consistency(double s);
   void predict(double dp, Eigen::Vector3d& x, Eigen::Matrix3d& P) const;
   double var_error(const Eigen::Matrix3d& P) const { return P(0, 0) + 2.0 * P(0, 1) + P(1, 1); }
-  bool take_reading(double y_minus_p_nm);  // false: the reading was outside the gate and not taken
+  // false: the reading was outside the gate and not taken (level_nm: the reading itself, whose changes say the
+  // encoder is alive)
+  bool take_reading(double y_minus_p_nm, double level_nm);
   bool track_level(double measured_nm, double predicted_nm);  // false: a stale level
   void floor_unchanged_level();
   NoiseModel model_;

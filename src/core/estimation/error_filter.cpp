@@ -298,7 +298,7 @@ void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
   predict(dp, x_, P_);
   if (have_level_) predict(dp, level_x_, level_free_P_);
   if (!valid || !std::isfinite(measured_nm) || !track_level(measured_nm, predicted_nm) ||
-      !take_reading(measured_nm - predicted_nm)) {
+      !take_reading(measured_nm - predicted_nm, measured_nm)) {
     ++since_reading_;
     return;
   }
@@ -359,13 +359,13 @@ void ErrorFilter::floor_unchanged_level() {
 
 // The reading of y − p = e_slow + e_fast + noise, quantised: the exact update of the scalar e = h·x, carried to both
 // parts (x | e is Gaussian and linear in e, so the moment-matched e moves the state along P·hᵀ).
-bool ErrorFilter::take_reading(double y_nm) {
+bool ErrorFilter::take_reading(double y_nm, double level_nm) {
   const Eigen::Vector3d ph = P_.col(0) + P_.col(1);  // P·hᵀ, h = (1, 1, 0)
   const double var_e = ph(0) + ph(1);
   ReadingUpdate u = quantised_update(error_nm(), var_e, y_nm, sigma_, model_.step_nm);
   if (u.cell_distance > model_.gate_s) {
-    if (rejected_run_ == 0) rejected_level_nm_ = y_nm, rejected_level_changed_ = false;
-    rejected_level_changed_ = rejected_level_changed_ || y_nm != rejected_level_nm_;
+    if (rejected_run_ == 0) rejected_level_nm_ = level_nm, rejected_level_changed_ = false;
+    rejected_level_changed_ = rejected_level_changed_ || level_nm != rejected_level_nm_;
     ++rejected_run_;
     ++rejections_;
     // A stale level (the same one throughout): not taken. A level that moves: the encoder is alive and the
@@ -374,7 +374,7 @@ bool ErrorFilter::take_reading(double y_nm) {
     const double reach = u.cell_distance * std::sqrt(var_e + sigma_ * sigma_);
     P_(0, 0) += reach * reach;
     ++widenings_;
-    return take_reading(y_nm);
+    return take_reading(y_nm, level_nm);
   }
   rejected_run_ = 0;
   if (var_e > 0.0) {
