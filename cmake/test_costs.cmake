@@ -29,8 +29,8 @@ piezo_test_costs(
   test_stage_matrix_stack150_pi 22  test_stage_matrix_stack150_preisach 21  test_models_preisach_preisach 20
   test_stage_matrix_stack150_preisach_creep 19  test_residual_preisach 15  test_stage_matrix_stack150_pi_creep 15
   test_residual_sim_clean 13  test_stage_matrix_lowvolt_pi 12  test_stage_matrix_lowvolt_preisach 11
-  test_stage_matrix_lowvolt_pi_creep 11  test_models_prony 11  test_residual_gain 10
+  test_stage_matrix_lowvolt_pi_creep 11  test_models_prony 11  test_hold_trim 11  test_residual_gain 10
   test_stage_matrix_lowvolt_preisach_creep 8
   # rostests and the VM [s of wall]
-  vcan_vm 100  live_loop 48  hold_trim_thermal 33  hold_trim 31  recorder_protocols 26  recorder_lockstep 26
+  vcan_vm 100  live_loop 48  hold_trim_thermal 33  hold_trim 31  hold_trim_a 26  recorder_protocols 26  recorder_lockstep 26
   predictor_replay 23  sim_launch 12  sim_launch_broken_model 12  predictor_inputs 11)

@@ -9,13 +9,14 @@ if(PIEZO_CLANGXX)
   set(fuzz_flags -std=c++17 -O1 -g -fsanitize=fuzzer-no-link,address,undefined -fno-sanitize-recover=undefined
       -Wno-unknown-pragmas -I${CMAKE_CURRENT_SOURCE_DIR}/include -I${EIGEN3_INCLUDE_DIR})
   # Only the parts the readers and the bag reader link (io, features, models, protocols and the CAN protocol
-  # config, util's FlushSubnormals: 27 of the 81 core sources); the others, compiled again with clang and the sanitizers on every fresh
+  # config, util's FlushSubnormals, format and fingerprint); the others, compiled again with clang and the sanitizers on every fresh
   # build, were linked by neither.
   file(GLOB_RECURSE fuzz_core_sources CONFIGURE_DEPENDS ${CMAKE_CURRENT_SOURCE_DIR}/src/core/io/*.cpp
        ${CMAKE_CURRENT_SOURCE_DIR}/src/core/features/*.cpp ${CMAKE_CURRENT_SOURCE_DIR}/src/core/models/*.cpp
        ${CMAKE_CURRENT_SOURCE_DIR}/src/core/protocols/*.cpp)
   list(APPEND fuzz_core_sources ${CMAKE_CURRENT_SOURCE_DIR}/src/core/can/protocol.cpp
-       ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/flush_subnormals.cpp ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/format.cpp)
+       ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/flush_subnormals.cpp ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/format.cpp
+       ${CMAKE_CURRENT_SOURCE_DIR}/src/core/util/fingerprint.cpp)
   set(fuzz_objects)
   foreach(src ${fuzz_core_sources} ${CMAKE_CURRENT_SOURCE_DIR}/fuzz/fuzz_readers.cpp)
     file(RELATIVE_PATH rel ${CMAKE_CURRENT_SOURCE_DIR} ${src})

@@ -460,7 +460,8 @@ void PredictorAxis::resume_at(const io::PairedSample& sample) {
     compensation::Resume r =
         compensation::resume_model(comp_->model(), *history, axis_, sample.stamp_s, sample.voltage_v, o);
     resume_status_ = r.status;
-    if (r.resumed) comp_->start_resumed(std::move(r.model), r.last_voltage_v, r.predicted_nm, r.status);
+    if (r.resumed)
+      comp_->start_resumed(std::move(r.model), r.last_voltage_v, r.predicted_nm, r.status, r.filter ? &*r.filter : nullptr);
   }
   if (comp_->resumed()) ROS_INFO("axis %s: %s", axis_.c_str(), resume_status_.c_str());
   else ROS_WARN("axis %s: %s; the model starts at rest", axis_.c_str(), resume_status_.c_str());
@@ -1132,6 +1133,9 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
     st.add("fused 1σ [nm]", cc.estimator()->sigma_nm());
     st.add("estimated model error [nm]", cc.estimator()->error_nm());
     st.add("samples since a reading", cc.estimator()->samples_since_reading());
+    st.add("zero known", cc.estimator()->zero_known() ? std::string("yes") : std::string("no: the model's error is "
+                                                                                       "not pinned yet (move the axis)"));
+    st.add("stale encoder readings", cc.estimator()->stale_readings());
   }
   st.add("hold trim", std::string(compensation::trim_state_name(cc.hold_trim().state())) +
                           (cc.hold_trim().enabled() ? "" : " (~hold_trim off)"));

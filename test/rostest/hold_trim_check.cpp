@@ -1,6 +1,7 @@
-// hold_trim.test / hold_trim_thermal.test (live): piezo_demo's hold_trim scenario on a foreign stage with a gain the
-// model lacks, scored by the demo itself (compensation/demo_scenario.h: worst |true − intended| over each hold's
-// last 28 min; the trimmed worst must be min_improvement times below the feedforward-only one), and the predictor's output on /mm1/c/prediction checked sample by sample:
+// hold_trim.test / hold_trim_thermal.test / hold_trim_a.test (live): piezo_demo's hold_trim scenario on a foreign
+// stage with physics the model lacks, scored by the demo itself (compensation/demo_scenario.h: worst |true −
+// intended| over each hold's last 28 min; the trimmed worst must be min_improvement times below the feedforward-only
+// one where asserted), and the predictor's output on /mm1/<~axis>/prediction (c unless said) checked sample by sample:
 //   - the trim never changes by more than hold_trim_slew_nm_per_s × the sample period between two samples of one
 //     intent (a new intent cancels it at once: those steps are counted, and the trim is then 0);
 //   - while the intent changes (moves) the trim is 0 and its state is never "active";
@@ -24,7 +25,7 @@
 
 namespace {
 
-std::string g_prefix, g_label = "hold_trim", g_demo_node = "/mm1/piezo_demo";
+std::string g_prefix, g_label = "hold_trim", g_demo_node = "/mm1/piezo_demo", g_axis = "c";
 double g_max_worst_nm = 2.0, g_slew_nm_per_s = 1.0, g_min_gain = -1.0;
 bool g_below_ff = false, g_keep = false;
 
@@ -58,7 +59,7 @@ TEST(HoldTrim, TrimmedHoldAtTheAveragingLimit) {
   seen.reserve(60000);
   // The whole run is ~43 000 predictions in ~20 s wall: a deep queue, emptied by the waits below, so none is dropped.
   auto sub = nh.subscribe<piezo_compensation::Prediction>(
-      "/mm1/c/prediction", 20000,
+      "/mm1/" + g_axis + "/prediction", 20000,
       [&](const piezo_compensation::Prediction::ConstPtr& m) {
         std::lock_guard<std::mutex> lock(mu);
         seen.push_back({m->header.stamp.toSec(), m->intended_position * 1e9, m->hold_trim * 1e9, m->hold_trim_state});
@@ -171,5 +172,6 @@ int main(int argc, char** argv) {
   p.getParam("slew_nm_per_s", g_slew_nm_per_s);
   p.getParam("keep", g_keep);
   p.getParam("demo_node", g_demo_node);
+  p.getParam("axis", g_axis);
   return RUN_ALL_TESTS();
 }

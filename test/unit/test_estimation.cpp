@@ -145,22 +145,27 @@ TEST(ErrorFilter, ConsistencyGuardFollowsAnUnexpectedJump) {
   EXPECT_GE(trips, 1u);
 }
 
-TEST(ErrorFilter, CoarseStepsRunModelOnlyAndSaySo) {
-  // a/b: 250 nm steps against 21 nm of noise — the readings' mean is biased by up to 125 nm
-  EXPECT_FALSE(piezo::estimation::readings_inform(std::sqrt(21.0 * 21.0 + 250.0 * 250.0 / 12.0), 250.0));
-  EXPECT_TRUE(piezo::estimation::readings_inform(std::sqrt(20.0 * 20.0 + 20.0 * 20.0 / 12.0), 20.0));
+// A model file identified before the quantised reading model declared a coarse axis model-only (fuse: false, no
+// noise σ before the quantiser): it keeps loading, stays model-only (never worse than feedforward) and says so.
+TEST(ErrorFilter, AnOldModelOnlyFileLoadsModelOnlyAndSaysToReidentify) {
+  const YAML::Node old = YAML::Load(
+      "{fuse: false, reading_sigma_nm: 72.168783648703226, step_nm: 250, q_rest_nm2_per_s: 0, q_motion_nm: 0,"
+      " q_fast_nm: 0, fast_tau_s: 30, initial_sigma_nm: 122.2, model_sigma_nm: 49.3}");
+  const NoiseModel m = NoiseModel::from_yaml(old, "mm3e_sim_a.yaml");
+  EXPECT_FALSE(m.fuse);
+  EXPECT_NE(m.describe().find("re-identify"), std::string::npos) << m.describe();
   std::vector<double> p(3000), y(3000);
   std::mt19937 rng(4);
   std::normal_distribution<double> g(0.0, 21.0);
   for (std::size_t i = 0; i < p.size(); ++i) p[i] = 1000.0 * std::sin(i / 300.0), y[i] = quantise(p[i] + 30 + g(rng), 250.0);
-  piezo::estimation::IdentifyOptions o;
-  o.reading_sigma_nm = std::sqrt(21.0 * 21.0 + 250.0 * 250.0 / 12.0);
-  o.step_nm = 250.0;
-  const NoiseModel m = piezo::estimation::identify_noise_model(p, y, o);
-  EXPECT_FALSE(m.fuse);
-  EXPECT_NE(m.describe().find("model-only"), std::string::npos);
   const auto t = piezo::estimation::run_filter(m, kDt, p, y);
-  for (std::size_t i = 0; i < p.size(); ++i) ASSERT_EQ(t.fused_nm[i], p[i]);  // never worse than feedforward
+  for (std::size_t i = 0; i < p.size(); ++i) ASSERT_EQ(t.fused_nm[i], p[i]);
+  // and an old fused file (c) gets its σ before the quantiser from its reading σ less the step's rounding
+  const NoiseModel c = NoiseModel::from_yaml(
+      YAML::Load("{reading_sigma_nm: 20.8, step_nm: 20, q_rest_nm2_per_s: 0.01, q_motion_nm: 0.07, q_fast_nm: 0,"
+                 " fast_tau_s: 60, initial_sigma_nm: 170, model_sigma_nm: 85}"),
+      "mm3e_foreign_c.yaml");
+  EXPECT_NEAR(c.noise_sigma_nm, std::sqrt(20.8 * 20.8 - 400.0 / 12.0), 1e-9);
 }
 
 TEST(NoiseModelFile, RoundTripsAndNamesABadKey) {

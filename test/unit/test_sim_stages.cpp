@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <fstream>
 
+#include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/piezo_axis.h"
 #include "piezo_compensation/sim/simulator_config.h"
@@ -150,13 +151,17 @@ TEST(SimStages, EveryStageFileBuildsDataOfItsRange) {
     ++files;
     SCOPED_TRACE(entry.path().string());
     const auto stage = sim::load_stage(entry.path().string());
-    const auto& c = stage.simulator.axes[2];
+    // the stage's last driven axis (c where it drives c; a/b on the coarse-encoder stages)
+    const std::string name = stage.axes.back();
+    const int k = io::axis_index_or_none(name);
+    ASSERT_GE(k, 0) << name;
+    const auto& c = stage.simulator.axes[static_cast<std::size_t>(k)];
     // A short piece is enough to check ranges and determinism: 2000 samples.
     const double d = 2000.0 / stage.simulator.sample_rate_hz;
     const auto x = sim::simulate_stage(stage, 4, d), y = sim::simulate_stage(stage, 4, d);
     ASSERT_EQ(x.size(), 2000u);
-    const auto& ax = x.axis("c");
-    EXPECT_EQ(ax.position_nm, y.axis("c").position_nm);
+    const auto& ax = x.axis(name);
+    EXPECT_EQ(ax.position_nm, y.axis(name).position_nm);
     for (std::size_t i = 0; i < x.size(); ++i) {
       ASSERT_GE(ax.voltage_v[i], c.voltage_min_v);
       ASSERT_LE(ax.voltage_v[i], c.voltage_max_v);

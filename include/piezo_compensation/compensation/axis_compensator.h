@@ -95,9 +95,10 @@ class AxisCompensator {
 
   // Start from a resumed model (compensation/resume.h: the state its recorded history left, held to now) instead of
   // at rest at the first sample: call before the first sample; that sample then predicts from this state. No start
-  // estimate is made (with start_estimate_s > 0, start_estimate_status() says why: `status`). Throws
-  // std::logic_error once started.
-  void start_resumed(models::ModelPtr model, double last_applied_v, double predicted_nm, const std::string& status);
+  // estimate is made (with start_estimate_s > 0, start_estimate_status() says why: `status`). `filter`: the
+  // estimator's resumed state (compensation/resume.h), else it starts cold. Throws std::logic_error once started.
+  void start_resumed(models::ModelPtr model, double last_applied_v, double predicted_nm, const std::string& status,
+                     const estimation::FilterState* filter = nullptr);
   bool resumed() const { return resumed_; }
 
   const models::Model& model() const { return *model_; }

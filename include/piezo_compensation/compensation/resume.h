@@ -5,8 +5,10 @@
 #pragma once
 
 #include <cstddef>
+#include <optional>
 #include <string>
 
+#include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
 #include "piezo_compensation/models/model_stream.h"
@@ -32,6 +34,10 @@ struct Resume {
   double last_voltage_v = 0.0;  // the history's last voltage (the hold's)
   double predicted_nm = 0.0;    // the model's position at the end of the hold
   models::ModelPtr model;       // the resumed copy (null when not resumed)
+  // The estimator's state (estimation/error_filter.h) when the model file has a fused `estimator:` block: the
+  // filter run over the history's readings beside the model (from a cold start at its first row, as the node ran),
+  // then held at rest for the gap without readings (its σ grows by the rest rate). Empty otherwise.
+  std::optional<estimation::FilterState> filter;
 };
 
 // Streams a copy of `model` over `history` (reset at rest at its first row's voltage and measured position, in
@@ -42,7 +48,8 @@ struct Resume {
 // status (Resume::model null), when: the history is empty or lacks the axis or one of the model's inputs; a voltage is not finite;
 // now_s is less than half a sample period after the history's end (that sample may be in it) or further than
 // max_gap_s after it; now_v is not within voltage_tolerance_v of
-// the last voltage; or the model's run diverges. `model` itself is not changed. Never throws on bad data.
+// the last voltage; or the model's run diverges. `model` itself is not changed. Never throws on bad data (a broken
+// estimator block: resumed without the filter state, and the status says why).
 Resume resume_model(const models::Model& model, const io::Dataset& history, const std::string& axis, double now_s,
                     double now_v, const ResumeOptions& options = {});
 

@@ -17,6 +17,8 @@ struct TrackOptions {
   double settle_skip_s = 120.0; // hold scores start this long after the hold starts
   double end_window_s = 5.0;    // "end of hold": its last seconds
   double start_estimate_s = 0.0;  // > 0: the compensator's start-up state estimate over the first seconds
+  double score_from_s = 300.0;  // every sample from this long after the first row is scored too (a cold start's
+                                // first minutes are the estimator pinning the model's error)
 };
 
 struct TrackHold {
@@ -44,6 +46,11 @@ struct TrackResult {
   // over every hold's scored samples
   double fused_mae_nm = NAN, model_mae_nm = NAN, worst_fused_end_nm = NAN, worst_model_end_nm = NAN,
          within_2sigma = NAN;
+  // over every sample from score_from_s on (moves included), against the truth
+  double all_fused_mae_nm = NAN, all_model_mae_nm = NAN, all_within_2sigma = NAN;
+  // when the estimator first knew the model's error to the reading's resolution (estimation::ErrorFilter::
+  // zero_known), seconds after the first row; NaN: never
+  double zero_known_s = NAN;
 };
 
 // Data of several recordings: each tracked on its own from a cold start (a fresh clone of the model), the rows and

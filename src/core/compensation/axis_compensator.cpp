@@ -254,7 +254,7 @@ CommandUpdate AxisCompensator::command(bool compensate) {
 }
 
 void AxisCompensator::start_resumed(models::ModelPtr model, double last_applied_v, double predicted_nm,
-                                    const std::string& status) {
+                                    const std::string& status, const estimation::FilterState* filter) {
   if (started_) throw std::logic_error("AxisCompensator: start_resumed after the first sample");
   if (!model) throw std::invalid_argument("AxisCompensator: no model");
   if (!std::isfinite(last_applied_v) || !std::isfinite(predicted_nm))
@@ -263,6 +263,7 @@ void AxisCompensator::start_resumed(models::ModelPtr model, double last_applied_
   model_ = std::move(model);
   set_inputs_for(*model_);
   set_estimator_for(*model_);
+  if (filter_ && filter) filter_->set_state(*filter);
   started_ = true;
   resumed_ = true;
   last_applied_v_ = last_applied_v;

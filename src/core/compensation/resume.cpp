@@ -29,6 +29,26 @@ io::Dataset held_rows(const io::Dataset& last, std::size_t m, double t0, double 
   return d;
 }
 
+// The estimator over the history's readings and the model's predictions, then held for the gap's samples.
+std::optional<estimation::FilterState> resume_filter(const models::Model& model, const io::AxisSeries& ax,
+                                                     const std::vector<double>& predicted, double dt,
+                                                     std::size_t held, std::string& status) {
+  if (!model.meta.estimator || model.meta.estimator.IsNull()) return std::nullopt;
+  try {
+    const estimation::NoiseModel nm = estimation::NoiseModel::from_yaml(model.meta.estimator, "model " + model.kind());
+    if (!nm.fuse) return std::nullopt;
+    estimation::ErrorFilter f(nm, dt);
+    for (std::size_t i = 0; i < predicted.size(); ++i)
+      f.step(predicted[i], ax.position_nm[i], std::isfinite(ax.position_nm[i]));
+    f.hold(held);
+    status = "; estimator resumed at 1σ " + fmt(f.sigma_nm(), 3) + " nm";
+    return f.state();
+  } catch (const std::exception& e) {
+    status = std::string("; estimator not resumed: ") + e.what();
+    return std::nullopt;
+  }
+}
+
 Resume refused(std::string why) {
   Resume r;
   r.status = "not resumed: " + std::move(why);
@@ -65,6 +85,8 @@ Resume resume_model(const models::Model& model, const io::Dataset& history, cons
       return refused(src + " holds a non-finite voltage of " + axis + " at row " + std::to_string(i + 1));
   models::ModelPtr m = model.clone();
   double last_nm = 0.0;
+  std::optional<estimation::FilterState> filter;
+  std::string filter_status;
   try {
     models::StreamOptions so;  // reset at rest at the first row
     so.mode = o.mode;
@@ -74,6 +96,7 @@ Resume resume_model(const models::Model& model, const io::Dataset& history, cons
     // chunks through the same path (state continued), at most 10^5 rows in memory at a time.
     const double steps = std::round(gap_s / dt);
     const std::size_t rows = steps > 1.0 ? static_cast<std::size_t>(steps) - 1 : 0;
+    filter = resume_filter(model, ax, p, dt, rows, filter_status);
     const io::Dataset last = history.slice(n - 1, n);
     so.reset = false;
     for (std::size_t done = 0; done < rows;) {
@@ -93,8 +116,10 @@ Resume resume_model(const models::Model& model, const io::Dataset& history, cons
   r.last_voltage_v = last_v;
   r.predicted_nm = last_nm;
   r.status = "resumed on " + fmt(r.history_s, 5) + " s of recorded history (" + std::to_string(n) + " rows of " + src +
-             "), held " + fmt(gap_s, 4) + " s at " + fmt(last_v, 5) + " V since";
+             "), held " + fmt(gap_s, 4) + " s at " + fmt(last_v, 5) + " V since" + filter_status;
   r.model = std::move(m);
+  if (filter) filter->last_predicted_nm = last_nm;
+  r.filter = filter;
   return r;
 }
 

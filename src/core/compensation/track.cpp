@@ -81,6 +81,18 @@ void score_hold(const TrackResult& r, std::size_t b, std::size_t e, double rate,
   if (checked && (r.has_truth || std::isfinite(r.reading_sigma_nm))) h.within_2sigma = static_cast<double>(in2) / static_cast<double>(checked);
 }
 
+void score_from(TrackResult& r, double from_s) {
+  if (!r.has_truth) return;
+  double f = 0, m = 0, in2 = 0, n = 0;
+  for (std::size_t i = 0; i < r.time_s.size(); ++i) {
+    if (r.time_s[i] - r.time_s[0] < from_s) continue;
+    const double ef = std::abs(r.fused_nm[i] - r.true_nm[i]);
+    f += ef, m += std::abs(r.model_nm[i] - r.true_nm[i]), n += 1;
+    in2 += ef <= 2.0 * r.fused_sigma_nm[i];
+  }
+  if (n > 0) r.all_fused_mae_nm = f / n, r.all_model_mae_nm = m / n, r.all_within_2sigma = in2 / n;
+}
+
 void summarise(TrackResult& r) {
   double f = 0, m = 0, in2 = 0, n = 0, fe = 0, me = 0;
   for (const auto& h : r.holds) {
@@ -175,6 +187,8 @@ TrackResult track_one(models::ModelPtr model, const io::Dataset& data, const std
     r.model_nm[i] = u.predicted_nm;
     r.fused_nm[i] = u.fused_nm;
     r.fused_sigma_nm[i] = u.fused_sigma_nm;
+    if (std::isnan(r.zero_known_s) && comp.estimator() && comp.estimator()->zero_known())
+      r.zero_known_s = data.time_s[i] - data.time_s[0];
   }
   r.start_estimate = comp.start_estimate_status();
   for (const auto& [b, e] : find_holds(ax.voltage_v, rate, o.min_hold_s)) {
@@ -183,6 +197,7 @@ TrackResult track_one(models::ModelPtr model, const io::Dataset& data, const std
     r.holds.push_back(h);
   }
   summarise(r);
+  score_from(r, o.score_from_s);
   return r;
 }
 

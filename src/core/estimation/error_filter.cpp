@@ -9,10 +9,12 @@
 #include <sstream>
 #include <stdexcept>
 
+#include <Eigen/Eigenvalues>
+
+#include "piezo_compensation/estimation/quantised_reading.h"
+
 namespace piezo::estimation {
 namespace {
-
-constexpr double kTwoPi = 6.283185307179586;
 
 double field(const YAML::Node& node, const char* key, const std::string& where, double lo, double hi) {
   const YAML::Node v = node[key];
@@ -33,14 +35,15 @@ double field(const YAML::Node& node, const char* key, const std::string& where, 
 
 // Nelder–Mead on a few log-parameters: small, derivative-free, enough for a smooth 3-parameter likelihood.
 template <std::size_t N, class F>
-std::array<double, N> nelder_mead(F f, std::array<double, N> x0, double step, std::size_t max_eval) {
+std::array<double, N> nelder_mead(F f, std::array<double, N> x0, const std::array<double, N>& step,
+                                  std::size_t max_eval) {
   using P = std::array<double, N>;
   std::array<P, N + 1> s;
   std::array<double, N + 1> v;
   s[0] = x0;
   for (std::size_t i = 0; i < N; ++i) {
     s[i + 1] = x0;
-    s[i + 1][i] += step;
+    s[i + 1][i] += step[i];
   }
   std::size_t evals = 0;
   for (std::size_t i = 0; i <= N; ++i) v[i] = f(s[i]), ++evals;
@@ -107,11 +110,17 @@ double slow_error_sigma(const std::vector<double>& p, const std::vector<double>&
 
 }  // namespace
 
-bool readings_inform(double reading_sigma_nm, double step_nm) {
-  if (!(step_nm > 0.0)) return true;
-  // σ here includes the step's own q²/12; the noise before the quantiser is what dithers it.
-  const double raw2 = reading_sigma_nm * reading_sigma_nm - step_nm * step_nm / 12.0;
-  return raw2 > 0.0 && std::sqrt(raw2) >= 0.5 * step_nm;
+// √(r² − q²/12): the noise before the quantiser for a reading σ that includes the step's rounding; 0 when the
+// rounding is all of it.
+double noise_before_quantiser(double reading_sigma_nm, double step_nm) {
+  return std::sqrt(std::max(0.0, reading_sigma_nm * reading_sigma_nm - step_nm * step_nm / 12.0));
+}
+
+// The σ a noise model without one (an old file, or built in code) runs with.
+double effective_noise_sigma(const NoiseModel& m) {
+  if (m.noise_sigma_nm > 0.0) return m.noise_sigma_nm;
+  const double s = noise_before_quantiser(m.reading_sigma_nm, m.step_nm);
+  return s > 0.0 ? s : m.reading_sigma_nm;
 }
 
 YAML::Node NoiseModel::to_yaml() const {
@@ -119,14 +128,17 @@ YAML::Node NoiseModel::to_yaml() const {
   n["fuse"] = fuse;
   n["reading_sigma_nm"] = reading_sigma_nm;
   n["step_nm"] = step_nm;
+  n["noise_sigma_nm"] = effective_noise_sigma(*this);
   n["q_rest_nm2_per_s"] = q_rest_nm2_per_s;
   n["q_motion_nm"] = q_motion_nm;
   n["q_fast_nm"] = q_fast_nm;
+  n["q_drift_nm2_per_s3"] = q_drift_nm2_per_s3;
   n["fast_tau_s"] = fast_tau_s;
   n["initial_sigma_nm"] = initial_sigma_nm;
   n["model_sigma_nm"] = model_sigma_nm;
   n["adapt_window_s"] = adapt_window_s;
   n["adapt_k"] = adapt_k;
+  n["gate_s"] = gate_s;
   n["samples"] = samples;
   n["log_likelihood_per_reading"] = log_likelihood;
   n["method"] = method;
@@ -144,14 +156,21 @@ NoiseModel NoiseModel::from_yaml(const YAML::Node& node, const std::string& wher
   }
   m.reading_sigma_nm = field(node, "reading_sigma_nm", where, 1e-6, inf);
   m.step_nm = field(node, "step_nm", where, 0.0, inf);
+  if (node["noise_sigma_nm"]) {
+    m.noise_sigma_nm = field(node, "noise_sigma_nm", where, 1e-6, inf);
+  } else {  // a file from before the quantised reading model: its reading σ included the rounding
+    m.noise_sigma_nm = effective_noise_sigma(m);
+  }
   m.q_rest_nm2_per_s = field(node, "q_rest_nm2_per_s", where, 0.0, inf);
   m.q_motion_nm = field(node, "q_motion_nm", where, 0.0, inf);
   m.q_fast_nm = field(node, "q_fast_nm", where, 0.0, inf);
+  if (node["q_drift_nm2_per_s3"]) m.q_drift_nm2_per_s3 = field(node, "q_drift_nm2_per_s3", where, 0.0, inf);
   m.fast_tau_s = field(node, "fast_tau_s", where, 1e-6, inf);
   m.initial_sigma_nm = field(node, "initial_sigma_nm", where, 0.0, inf);
   m.model_sigma_nm = field(node, "model_sigma_nm", where, 0.0, inf);
   if (node["adapt_window_s"]) m.adapt_window_s = field(node, "adapt_window_s", where, 1e-3, 86400.0);
   if (node["adapt_k"]) m.adapt_k = field(node, "adapt_k", where, 0.0, 1e3);
+  if (node["gate_s"]) m.gate_s = field(node, "gate_s", where, 1.0, 1e3);
   if (node["samples"]) m.samples = node["samples"].as<std::size_t>(0);
   if (node["log_likelihood_per_reading"]) m.log_likelihood = node["log_likelihood_per_reading"].as<double>(0.0);
   if (node["method"]) m.method = node["method"].as<std::string>("");
@@ -163,20 +182,22 @@ std::string NoiseModel::describe() const {
   s << std::setprecision(3);
   if (!fuse) {
     s << "model-only: encoder step " << step_nm << " nm against reading noise σ " << reading_sigma_nm
-      << " nm (readings biased by up to half a step); model error 1σ " << model_sigma_nm << " nm";
+      << " nm; model error 1σ " << model_sigma_nm << " nm (identified before the quantised reading model: "
+      << "re-identify with piezo track --identify-on to fuse)";
     return s.str();
   }
-  s << "fused: reading σ " << reading_sigma_nm << " nm (step " << step_nm << " nm), slow error " << q_rest_nm2_per_s
+  s << "fused: noise σ " << noise_sigma_nm << " nm before a " << step_nm << " nm step, slow error " << q_rest_nm2_per_s
     << " nm²/s at rest + " << q_motion_nm << " nm²/nm moved, fast error " << q_fast_nm << " nm²/nm settling in "
-    << fast_tau_s << " s, cold start 1σ " << initial_sigma_nm << " nm";
+    << fast_tau_s << " s, ramp " << q_drift_nm2_per_s3 << " nm²/s³, cold start 1σ " << initial_sigma_nm << " nm";
   return s.str();
 }
 
 ErrorFilter::ErrorFilter(const NoiseModel& model, double dt_s) : model_(model), dt_s_(dt_s) {
   if (!(dt_s > 0.0) || !std::isfinite(dt_s)) throw std::invalid_argument("ErrorFilter: dt_s must be > 0");
   if (!(model.reading_sigma_nm > 0.0)) throw std::invalid_argument("ErrorFilter: reading_sigma_nm must be > 0");
+  model_.noise_sigma_nm = effective_noise_sigma(model);  // built in code without it: as an old file loads
   phi_ = std::exp(-dt_s / std::max(model.fast_tau_s, 1e-9));
-  r_ = model.reading_sigma_nm * model.reading_sigma_nm;
+  sigma_ = model_.noise_sigma_nm;
   const double scales[] = {1.0, 6.0, 30.0};
   for (std::size_t w = 0; w < windows_.size(); ++w) {
     windows_[w].n = std::max<std::size_t>(10, static_cast<std::size_t>(std::lround(scales[w] * model.adapt_window_s / dt_s)));
@@ -197,12 +218,76 @@ void ErrorFilter::reset(double slow_error_nm, double slow_sigma_nm) {
   P_(0, 0) = slow_sigma_nm * slow_sigma_nm;
   started_ = false;
   since_reading_ = 0;
+  rejected_run_ = 0;
+  have_level_ = false;
   for (auto& w : windows_) w.nu_bar = w.s_bar = 0.0, w.count = 0;
 }
 
 double ErrorFilter::sigma_nm() const {
   if (!model_.fuse) return model_.model_sigma_nm;
-  return std::sqrt(std::max(0.0, P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1)));
+  return std::sqrt(std::max(0.0, var_error(P_)));
+}
+
+// One sample ahead: the slow error walks and ramps, the fast one settles; the walks are driven by the model's motion
+// |Δp|; the ramp's rate walks (an integrated random walk for the slow error).
+void ErrorFilter::predict(double dp, Eigen::Vector3d& x, Eigen::Matrix3d& P) const {
+  const double dt = dt_s_;
+  Eigen::Matrix3d F;
+  F << 1.0, 0.0, dt, 0.0, phi_, 0.0, 0.0, 0.0, 1.0;
+  x = F * x;
+  P = F * P * F.transpose();
+  const double qd = model_.q_drift_nm2_per_s3;
+  P(0, 0) += model_.q_rest_nm2_per_s * dt + model_.q_motion_nm * dp + qd * dt * dt * dt / 3.0;
+  P(0, 2) += qd * dt * dt / 2.0;
+  P(2, 0) = P(0, 2);
+  P(2, 2) += qd * dt;
+  P(1, 1) += model_.q_fast_nm * dp;
+}
+
+bool ErrorFilter::zero_known() const {
+  return model_.fuse && sigma_nm() <= std::max(model_.step_nm / 8.0, 0.5 * sigma_);
+}
+
+void ErrorFilter::hold(std::size_t samples) {
+  if (!model_.fuse || samples == 0) return;
+  // n samples at rest in closed form: F^n = [[1, 0, T], [0, φ^n, 0], [0, 0, 1]], the process noise summed over them
+  const double n = static_cast<double>(samples), T = n * dt_s_, phin = std::pow(phi_, n), qd = model_.q_drift_nm2_per_s3;
+  Eigen::Matrix3d F;
+  F << 1.0, 0.0, T, 0.0, phin, 0.0, 0.0, 0.0, 1.0;
+  x_ = F * x_;
+  P_ = F * P_ * F.transpose();
+  P_(0, 0) += model_.q_rest_nm2_per_s * T + qd * T * T * T / 3.0;
+  P_(0, 2) += qd * T * T / 2.0;
+  P_(2, 0) = P_(0, 2);
+  P_(2, 2) += qd * T;
+  since_reading_ += samples;
+}
+
+FilterState ErrorFilter::state() const {
+  FilterState s;
+  s.slow_nm = x_(0), s.fast_nm = x_(1), s.drift_nm_per_s = x_(2);
+  s.covariance = {P_(0, 0), P_(0, 1), P_(0, 2), P_(1, 1), P_(1, 2), P_(2, 2)};
+  s.last_predicted_nm = last_p_;
+  s.started = started_;
+  return s;
+}
+
+void ErrorFilter::set_state(const FilterState& s) {
+  Eigen::Matrix3d P;
+  const auto& c = s.covariance;
+  P << c[0], c[1], c[2], c[1], c[3], c[4], c[2], c[4], c[5];
+  if (!std::isfinite(s.slow_nm) || !std::isfinite(s.fast_nm) || !std::isfinite(s.drift_nm_per_s) ||
+      !std::isfinite(s.last_predicted_nm) || !P.allFinite())
+    throw std::invalid_argument("ErrorFilter: the filter state holds a non-finite number");
+  const Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d> eig(P, Eigen::EigenvaluesOnly);
+  if (eig.eigenvalues().minCoeff() < -1e-9 * std::max(1.0, P.diagonal().maxCoeff()))
+    throw std::invalid_argument("ErrorFilter: the filter state's covariance is not positive semi-definite");
+  x_ << s.slow_nm, s.fast_nm, s.drift_nm_per_s;
+  P_ = P;
+  last_p_ = s.last_predicted_nm;
+  started_ = s.started;
+  rejected_run_ = 0;
+  have_level_ = false;
 }
 
 void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
@@ -210,29 +295,98 @@ void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
   last_p_ = predicted_nm;
   started_ = true;
   if (!model_.fuse) return;
-  // predict: the slow error walks, the fast one settles; both are driven by the model's motion
-  x_(1) *= phi_;
-  P_(0, 1) *= phi_;
-  P_(1, 0) = P_(0, 1);
-  P_(1, 1) *= phi_ * phi_;
-  P_(0, 0) += model_.q_rest_nm2_per_s * dt_s_ + model_.q_motion_nm * dp;
-  P_(1, 1) += model_.q_fast_nm * dp;
-  if (!valid || !std::isfinite(measured_nm)) {
+  predict(dp, x_, P_);
+  if (have_level_) predict(dp, level_x_, level_free_P_);
+  if (!valid || !std::isfinite(measured_nm) || !track_level(measured_nm, predicted_nm) ||
+      !take_reading(measured_nm - predicted_nm, measured_nm)) {
     ++since_reading_;
     return;
   }
+  if (level_n_ == 0) {
+    level_first_var_ = var_error(P_);
+    level_x_ = x_;
+    level_P_ = level_free_P_ = P_;
+  } else {
+    floor_unchanged_level();
+  }
   since_reading_ = 0;
-  // update with y − p = e_slow + e_fast + v
-  const double s = P_(0, 0) + 2.0 * P_(0, 1) + P_(1, 1) + r_;
-  const Eigen::Vector2d ph(P_(0, 0) + P_(0, 1), P_(1, 0) + P_(1, 1));
-  const Eigen::Vector2d k = ph / s;
-  innovation_ = measured_nm - predicted_nm - error_nm();
-  x_ += k * innovation_;
-  P_ -= k * ph.transpose();
-  P_(1, 0) = P_(0, 1) = 0.5 * (P_(0, 1) + P_(1, 0));
-  loglik_ += -0.5 * (std::log(kTwoPi * s) + innovation_ * innovation_ / s);
+}
+
+bool ErrorFilter::track_level(double measured_nm, double predicted_nm) {
+  if (!have_level_ || measured_nm != level_nm_) {
+    have_level_ = true;
+    level_nm_ = measured_nm;
+    level_p_min_ = level_p_max_ = predicted_nm;
+    level_n_ = 0;
+    level_stale_ = false;
+    return true;
+  }
+  level_p_min_ = std::min(level_p_min_, predicted_nm);
+  level_p_max_ = std::max(level_p_max_, predicted_nm);
+  const double grown = std::max(0.0, var_error(level_free_P_) - level_first_var_);
+  const double reach = model_.step_nm + 3.0 * std::sqrt(grown) + 2.0 * sigma_;
+  if (level_stale_ || (model_.step_nm > 0.0 && level_p_max_ - level_p_min_ > reach)) {
+    if (!level_stale_) {  // the readings since the level was first read were stale too: undo them
+      level_stale_ = true;
+      x_ = level_x_;
+      P_ = level_free_P_;
+    }
+    ++stale_;
+    return false;
+  }
+  ++level_n_;
+  return true;
+}
+
+// N readings of one level without a flicker: the truth stayed d = σ·Q⁻¹(1/N) inside the cell's edges.
+void ErrorFilter::floor_unchanged_level() {
+  if (!(model_.step_nm > 0.0)) return;
+  const double n = static_cast<double>(level_n_ + 1);
+  double d = 0.0;
+  if (n >= 3.0) {  // Q(z) ≈ φ(z)/z: z² = 2(log N − log z − log √(2π)), two fixed-point steps
+    double z = std::sqrt(2.0 * std::log(n));
+    for (int k = 0; k < 2; ++k) z = std::sqrt(std::max(0.0, 2.0 * (std::log(n) - std::log(z) - 0.9189385332)));
+    d = sigma_ * z;
+  }
+  const double w = std::max(0.0, model_.step_nm - 2.0 * d);
+  // Narrower than the noise (dithered readings: c's 20 nm under 20 nm of noise), the posterior is Gaussian-shaped
+  // and repeated levels average down as they should.
+  if (w <= 2.0 * sigma_) return;
+  const double floor = std::min(var_error(level_free_P_), w * w / 12.0);
+  const double var_e = var_error(P_);
+  if (var_e < floor) P_(0, 0) += floor - var_e;
+}
+
+// The reading of y − p = e_slow + e_fast + noise, quantised: the exact update of the scalar e = h·x, carried to both
+// parts (x | e is Gaussian and linear in e, so the moment-matched e moves the state along P·hᵀ).
+bool ErrorFilter::take_reading(double y_nm, double level_nm) {
+  const Eigen::Vector3d ph = P_.col(0) + P_.col(1);  // P·hᵀ, h = (1, 1, 0)
+  const double var_e = ph(0) + ph(1);
+  ReadingUpdate u = quantised_update(error_nm(), var_e, y_nm, sigma_, model_.step_nm);
+  if (u.cell_distance > model_.gate_s) {
+    if (rejected_run_ == 0) rejected_level_nm_ = level_nm, rejected_level_changed_ = false;
+    rejected_level_changed_ = rejected_level_changed_ || level_nm != rejected_level_nm_;
+    ++rejected_run_;
+    ++rejections_;
+    // A stale level (the same one throughout): not taken. A level that moves: the encoder is alive and the
+    // model's error is larger than its covariance says; the slow error is widened to reach the reading.
+    if (rejected_run_ < 3 || !rejected_level_changed_) return false;
+    const double reach = u.cell_distance * std::sqrt(var_e + sigma_ * sigma_);
+    P_(0, 0) += reach * reach;
+    ++widenings_;
+    return take_reading(y_nm, level_nm);
+  }
+  rejected_run_ = 0;
+  if (var_e > 0.0) {
+    x_ += ph * ((u.mean_nm - error_nm()) / var_e);
+    P_ += (ph * ph.transpose()) * ((u.var_nm2 - var_e) / (var_e * var_e));
+    P_ = 0.5 * (P_ + P_.transpose()).eval();
+  }
+  innovation_ = u.innovation_nm;
+  loglik_ += u.log_p;
   ++updates_;
-  check_consistency(s);
+  check_consistency(u.explained_nm2);
+  return true;
 }
 
 void ErrorFilter::check_consistency(double s) {
@@ -289,36 +443,41 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
   m.samples = readings;
   m.model_sigma_nm = slow_error_sigma(predicted_nm, measured_nm, o.dt_s, o.reading_sigma_nm);
   m.initial_sigma_nm = std::sqrt(o.reading_sigma_nm * o.reading_sigma_nm + 4.0 * m.model_sigma_nm * m.model_sigma_nm);
-  if (!readings_inform(o.reading_sigma_nm, o.step_nm)) {
-    m.fuse = false;
-    m.method = "model-only: readings not dithered (step > 2 × the noise before it)";
-    return m;
-  }
+  // The σ before the quantiser starts from the noise floor's, less the rounding it includes; where rounding is all
+  // of the floor (σ ≪ q: the readings of a hold rarely flicker) from a tenth of a step.
+  double sigma0 = noise_before_quantiser(o.reading_sigma_nm, o.step_nm);
+  if (o.step_nm > 0.0 && sigma0 < 0.05 * o.step_nm) sigma0 = 0.1 * o.step_nm;
   // Parameters are searched in log space, bounded so the filter stays defined; a rate at the lower bound (e^-25) is
   // one the data do not show: 0.
-  auto unpack = [](const std::array<double, 3>& z, NoiseModel& t) {
+  auto unpack = [](const std::array<double, 5>& z, NoiseModel& t) {
     auto rate = [](double x) { return x <= -25.0 ? 0.0 : std::exp(std::min(x, 12.0)); };
     t.q_rest_nm2_per_s = rate(z[0]);
     t.q_motion_nm = rate(z[1]);
     t.q_fast_nm = rate(z[2]);
+    t.noise_sigma_nm = std::exp(std::clamp(z[3], -7.0, 12.0));
+    t.reading_sigma_nm = std::sqrt(t.noise_sigma_nm * t.noise_sigma_nm + t.step_nm * t.step_nm / 12.0);
+    t.q_drift_nm2_per_s3 = z[4] <= -40.0 ? 0.0 : std::exp(std::min(z[4], 0.0));
   };
   NoiseModel best = m;
   double best_ll = -std::numeric_limits<double>::infinity();
   for (double tau : o.fast_tau_grid_s) {
     NoiseModel trial = m;
     trial.fast_tau_s = tau;
-    // The rates are those of the Gaussian model itself; the consistency test is a guard against what the data
-    // identified on did not show, so it stays out of the likelihood (with it in, the rates it covers shrink).
+    // The rates are those of the model itself; the consistency test and the gate are guards against what the data
+    // identified on did not show, so they stay out of the likelihood (with them in, the rates they cover shrink).
     trial.adapt_k = 0.0;
-    auto nll = [&](const std::array<double, 3>& z) {
+    trial.gate_s = 1e3;
+    auto nll = [&](const std::array<double, 5>& z) {
       unpack(z, trial);
       ErrorFilter f(trial, o.dt_s);
       for (std::size_t i = 0; i < predicted_nm.size(); ++i)
         f.step(predicted_nm[i], measured_nm[i], std::isfinite(measured_nm[i]));
       return -f.log_likelihood() / static_cast<double>(readings);
     };
-    const std::array<double, 3> z = nelder_mead<3>(nll, {std::log(0.01), std::log(0.01), std::log(0.1)},
-                                                   std::log(30.0), o.max_evaluations);
+    const std::array<double, 5> z =
+        nelder_mead<5>(nll, {std::log(0.01), std::log(0.01), std::log(0.1), std::log(sigma0), std::log(1e-6)},
+                       {std::log(30.0), std::log(30.0), std::log(30.0), std::log(1.5), std::log(100.0)},
+                       o.max_evaluations);
     const double ll = -nll(z);
     if (ll > best_ll) {
       best_ll = ll;
@@ -328,8 +487,11 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
   }
   best.log_likelihood = best_ll;
   best.adapt_k = m.adapt_k;
+  best.gate_s = m.gate_s;
+  // the cold start covers the reading's own spread as identified
+  best.initial_sigma_nm = std::sqrt(best.reading_sigma_nm * best.reading_sigma_nm + 4.0 * m.model_sigma_nm * m.model_sigma_nm);
   std::ostringstream s;
-  s << "maximum likelihood of the innovations on " << readings << " readings (fast τ from {";
+  s << "maximum likelihood of the quantised readings on " << readings << " readings (σ before the quantiser and fast τ from {";
   for (std::size_t i = 0; i < o.fast_tau_grid_s.size(); ++i) s << (i ? ", " : "") << o.fast_tau_grid_s[i];
   s << "} s)";
   best.method = s.str();
