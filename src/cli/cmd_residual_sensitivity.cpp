@@ -30,11 +30,12 @@ int run(int argc, char** argv) {
       .option("sizes", "LIST", "effect sizes, RMS over σ", "0.25,0.5,1,1.5,2")
       .option("trials", "N", "stages per family and size", "5")
       .option("clean-trials", "N", "stages without an effect", "20")
-      .option("hours", "H", "length of each stage", "2")
+      .option("hours", "H", "length of each stage", "6")
       .option("seed", "N", "first seed (trial t uses seed + t)", "1000")
       .option("base", "KIND", "base model kind fitted on each stage", "pi_creep_lti")
       .option("permutations", "N", "circular-shift draws per family", "20")
-      .option("quiet", "", "no line per trial on stderr");
+      .option("quiet", "", "no line per trial on stderr")
+      .option("verbose", "", "the loop's own progress lines on stderr");
   if (!args.parse(argc, argv)) return 0;
   analysis::SensitivityOptions o;
   o.families.clear();
@@ -62,6 +63,7 @@ int run(int argc, char** argv) {
   if (o.permutations < 10) throw UsageError("residual-sensitivity: --permutations must be ≥ 10");
   if (!(o.hours >= 0.5)) throw UsageError("residual-sensitivity: --hours must be ≥ 0.5");
   if (!args.flag("quiet")) o.progress = [](const std::string& s) { std::cerr << "residual-sensitivity: " << s << std::endl; };
+  if (args.flag("verbose")) o.loop_log = [](const std::string& s) { std::cerr << "  " << s << "\n"; };
   const analysis::SensitivityResult r = analysis::run_sensitivity(o);
   std::cout << analysis::sensitivity_table(r, o);
   return 0;

@@ -20,9 +20,9 @@ SensitivityFamily parse_sensitivity_family(const std::string& name);
 struct SensitivityOptions {
   // The stage: the simulator's default axes a and c, a random walk on both, `hours` long, TRAIN the first
   // `train_fraction`, a temperature_c column on every stage (a slow sine + random walk, felt only when planted).
-  double hours = 2.0;
+  double hours = 6.0;
   double train_fraction = 2.0 / 3.0;
-  std::string base_kind = "pi_creep_lti";  // fitted on TRAIN's fit part; not refitted while the loop runs
+  std::string base_kind = "pi_creep_lti";  // fitted on TRAIN's fit part, refitted while the loop backfits
   std::vector<SensitivityFamily> families{SensitivityFamily::kPeriodic, SensitivityFamily::kCrossAxis,
                                           SensitivityFamily::kAuxSignal, SensitivityFamily::kGain};
   std::vector<double> sizes_sigma{0.25, 0.5, 1.0, 1.5, 2.0};  // effect RMS over the reading noise σ
@@ -31,6 +31,7 @@ struct SensitivityOptions {
   std::uint64_t seed = 1000;  // trial t uses seed + t (the same stages for every family and size)
   int permutations = 20;      // circular-shift draws per family in the loop
   std::function<void(const std::string&)> progress;  // one line per trial (may be empty)
+  std::function<void(const std::string&)> loop_log;  // the loop's own progress lines (may be empty)
 };
 
 struct SensitivityCell {

@@ -47,19 +47,18 @@ io::Dataset simulate(const sim::SimulatorConfig& cfg, double hours, std::uint64_
   return s.run(proto->program());
 }
 
-// A temperature the stage may feel: a 1200-s sine and a slow random walk; `felt` is it through a 20-s delay and a
-// 60-s low-pass.
+// A temperature the stage may feel: a first-order Gauss–Markov wander (σ 0.5 °C, correlation 400 s; a periodic one
+// would make the circular-shift null as wide as its period allows), felt through a 20-s delay and a 60-s low-pass.
 void temperature(const io::Dataset& d, std::uint64_t seed, std::vector<double>& t, std::vector<double>& felt) {
   std::mt19937_64 rng(seed * 7919 + 13);
   std::normal_distribution<double> g(0.0, 1.0);
-  std::uniform_real_distribution<double> u(0.0, kTwoPiS);
-  const double phase = u(rng), fs = d.sample_rate_hz();
+  const double fs = d.sample_rate_hz(), rho = std::exp(-1.0 / (400.0 * fs));
   t.resize(d.size());
   felt.resize(d.size());
-  double w = 0;
+  double w = 0.5 * g(rng);
   for (std::size_t i = 0; i < d.size(); ++i) {
-    w += 0.0004 * g(rng);
-    t[i] = 22.0 + 0.5 * std::sin(kTwoPiS * d.time_s[i] / 1200.0 + phase) + w;
+    w = rho * w + 0.5 * std::sqrt(1.0 - rho * rho) * g(rng);
+    t[i] = 22.0 + w;
   }
   const std::size_t lag = static_cast<std::size_t>(20.0 * fs);
   const double a = std::exp(-1.0 / (60.0 * fs));
@@ -139,6 +138,7 @@ std::vector<FoundEffect> run_trial(const Planted* p, const SensitivityOptions& o
   ro.permutations = o.permutations;
   ro.max_effects = 3;
   ro.seed = seed;
+  ro.log = o.loop_log;
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - ro.validation_fraction)));
   const io::Dataset fit = train.slice(0, n_fit), val = train.slice(n_fit, train.size());
@@ -148,6 +148,14 @@ std::vector<FoundEffect> run_trial(const Planted* p, const SensitivityOptions& o
   req.axis = "c";
   req.seed = seed;
   const models::ModelPtr base = training::fit_model(o.base_kind, req);
+  // Backfitting as `piezo residual` does: a base fitted on data that hold the effect has absorbed part of it.
+  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) {
+    training::FitRequest r = req;
+    r.train = &f;
+    r.validation = &v;
+    r.options = training::refit_options(previous, r.options);
+    return training::fit_model(o.base_kind, r);
+  };
   return trace_residual(*base, train, test, ro).effects;
 }
 
