@@ -216,6 +216,11 @@ struct PeriodicPeak {
   double p_value = 1.0;
   std::size_t searched = 0;
 };
+// p-value of a maximum (over variants or frequencies) against the same maximum on null draws: the empirical rank
+// ((1 + draws ≥ it)/(1 + draws)), and beyond every draw a Gumbel tail fitted to the draws by moments (the law of
+// a maximum; a Gaussian tail is too thin for it).
+double null_max_p_value(double observed, const std::vector<double>& null_max);
+
 PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
                                 double oversample = 4.0);
 

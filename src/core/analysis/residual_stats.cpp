@@ -325,20 +325,6 @@ PositionScan position_scan(const std::vector<double>& u, const std::vector<doubl
   return out;
 }
 
-// The observed maximum against the draws' maxima: the empirical rank, and beyond every draw a Gumbel tail fitted
-// to them by moments (the law of a maximum over many frequencies).
-double max_p_value(double observed, const std::vector<double>& null_max) {
-  const double k = static_cast<double>(null_max.size());
-  if (k < 2) return 1.0;
-  double mean = 0, var = 0, above = 0;
-  for (double x : null_max) mean += x / k, above += x >= observed;
-  for (double x : null_max) var += (x - mean) * (x - mean) / (k - 1);
-  const double p_emp = (1.0 + above) / (1.0 + k);
-  if (above > 0 || !(var > 0)) return p_emp;
-  const double beta = std::sqrt(6.0 * var) / 3.141592653589793, mu = mean - 0.5772156649015329 * beta;
-  return std::min(p_emp, -std::expm1(-std::exp(-(observed - mu) / beta)));
-}
-
 // Refines the frequency inside the peak's bin by a fine local search; returns (frequency, power).
 std::pair<double, double> refine_peak(const std::vector<double>& u, const std::vector<double>& r, double f0, double p0,
                                       double step) {
@@ -358,6 +344,20 @@ std::pair<double, double> refine_peak(const std::vector<double>& u, const std::v
 
 }  // namespace
 
+// The observed maximum against the draws' maxima: the empirical rank, and beyond every draw a Gumbel tail fitted
+// to them by moments (the law of a maximum over many frequencies).
+double null_max_p_value(double observed, const std::vector<double>& null_max) {
+  const double k = static_cast<double>(null_max.size());
+  if (k < 2) return 1.0;
+  double mean = 0, var = 0, above = 0;
+  for (double x : null_max) mean += x / k, above += x >= observed;
+  for (double x : null_max) var += (x - mean) * (x - mean) / (k - 1);
+  const double p_emp = (1.0 + above) / (1.0 + k);
+  if (above > 0 || !(var > 0)) return p_emp;
+  const double beta = std::sqrt(6.0 * var) / 3.141592653589793, mu = mean - 0.5772156649015329 * beta;
+  return std::min(p_emp, -std::expm1(-std::exp(-(observed - mu) / beta)));
+}
+
 PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r_in, double f_min, double f_max,
                                 double oversample) {
   PeriodicPeak out;
@@ -376,7 +376,7 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
     out.amplitude = ps.amplitude;
     out.power_ratio = ps.ratio;
     out.searched = std::max<std::size_t>(1, static_cast<std::size_t>(static_cast<double>(ps.grid) / oversample));
-    out.p_value = max_p_value(ps.ratio, ps.null_max);
+    out.p_value = null_max_p_value(ps.ratio, ps.null_max);
     return out;
   }
   // On a uniform grid (time) the periodogram divided by its AR(1) background shape is compared with its own
