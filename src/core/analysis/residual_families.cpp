@@ -224,7 +224,8 @@ void periodic(bool in_time, const Context& c, const std::vector<double>& residua
   else
     add({t}, {{"period_nm", period}, {"power_ratio", fc.peak.power_ratio}});
   std::ostringstream os;
-  os << "peak " << fc.peak.power_ratio << "× the red-noise background, " << fc.peak.searched << " frequencies searched";
+  os << "peak " << fc.peak.power_ratio << (in_time ? "× the red-noise background, " : "× the prewhitened noise level, ")
+     << fc.peak.searched << " frequencies searched";
   fc.note = os.str();
 }
 
