@@ -20,6 +20,7 @@ piezo_unit_test(test_residual_preisach test/unit/test_residual_preisach.cpp)
 piezo_unit_test(test_residual_mid_history test/unit/test_residual_mid_history.cpp)
 piezo_unit_test(test_residual_two_effects test/unit/test_residual_two_effects.cpp)
 piezo_unit_test(test_residual_steps test/unit/test_residual_steps.cpp)
+piezo_unit_test(test_residual_sensitivity test/unit/test_residual_sensitivity.cpp)
 piezo_unit_test(test_eval_stream test/unit/test_eval_stream.cpp)
 # The clean reference figures several of the binaries above compare against, each a fit on 6 h of data: computed
 # once per ctest run by a fixture instead of in every binary (a binary run by hand computes its own).
@@ -39,5 +40,5 @@ piezo_slow_tests(test_residual_loop test_residual_sim test_residual_sim_coupling
                  test_residual_sim_disturbance test_residual_gain test_residual_gain_drift test_residual_preisach
                  test_residual_mid_history test_residual_loop_signals test_residual_loop_coupling
                  test_residual_sim_clean test_residual_gain_temperature test_residual_gain_other_axis
-                 test_residual_two_effects test_residual_steps test_residual_refs_sim_clean
+                 test_residual_two_effects test_residual_steps test_residual_sensitivity test_residual_refs_sim_clean
                  test_residual_refs_gain_base)

@@ -33,6 +33,8 @@ bool extrapolates_in_time(const std::string& family);
 // Families whose regressors are functions of the operating point (voltage, position) rather than of a
 // physical signal; they must win by a clear margin (AcceptanceThresholds::operating_point_margin).
 bool is_operating_point_family(const std::string& family);
+// Families of sensor effects (FamilyTraits::in_readings): in the readings, not in the stage's position.
+bool is_reading_family(const std::string& family);
 
 // Runs of a model over data go through models::stream_model (models/model_stream.h), inputs through
 // models::InputResolver: the one path and the one resolver.
@@ -86,7 +88,10 @@ struct FoundEffect {
   double hold_validation_gain = 0.0;
   std::vector<FamilyScore> competitors;       // other families that also validated, with why they lost
   ErrorStats test_after;                      // TEST error after adding this effect (and the ones before)
-  ErrorStats test_after_truth;                // against the true position when the data has it (n = 0 otherwise)
+  // The stage position (sensor effects left out: is_reading_family) against the true position when the data has
+  // it (n = 0 otherwise).
+  ErrorStats test_after_truth;
+  bool in_readings = false;                   // a sensor effect: in the readings, not in the stage's position
   std::vector<FamilyScore> ranking;           // all families at this step, best first
   std::vector<double> test_prediction;        // TEST prediction after this step
 };
@@ -167,7 +172,7 @@ std::string describe_remainder(const Remainder& r);
 
 struct ResidualResult {
   ErrorStats before_test, after_test;
-  ErrorStats before_test_truth, after_test_truth;  // n = 0 without truth
+  ErrorStats before_test_truth, after_test_truth;  // the stage position against the truth; n = 0 without truth
   ErrorStats before_validation, after_validation;
   bool warm_started = false;  // TEST predictions continued from TRAIN (see ResidualOptions::warm_start)
   double anchor_s = 0.0;              // ResidualOptions::anchor_s as used
@@ -176,7 +181,8 @@ struct ResidualResult {
   std::vector<FoundEffect> effects;        // in the order added
   std::vector<FamilyScore> final_ranking;  // the last round (nothing significant or limit reached)
   Remainder remainder;                     // TEST residual after all effects
-  std::vector<double> test_pred_before, test_pred_after;
+  std::vector<double> test_pred_before, test_pred_after;  // what the encoder reads
+  std::vector<double> test_position_after;  // the stage position: test_pred_after without sensor effects
   models::ModelPtr model;                  // the augmented model (base + terms), fitted on TRAIN
 };
 
@@ -196,16 +202,25 @@ CvScore cv_explained_variance(const std::vector<double>& r, const std::vector<do
                               const std::vector<std::size_t>& shifts);
 
 // Strongest periodic component of r against a variable u (time or position): searches frequencies (cycles per
-// unit of u) in [f_min, f_max], refines the peak and tests it against a red-noise background: on a uniform
-// grid the periodogram divided by the AR(1) spectrum fitted to r, then the median of that over [f/2, 2f]
-// around the peak (periodogram ordinates ≈ exponential; Bonferroni over the frequencies searched).
+// unit of u) in [f_min, f_max], refines the peak and tests it. On a uniform grid (time) against a red-noise
+// background: the periodogram divided by the AR(1) spectrum fitted to r, then the median of that over [f/2, 2f]
+// around the peak (periodogram ordinates ≈ exponential; Bonferroni over the frequencies searched). On a
+// non-uniform u (position; r in time order): r and each frequency's sinusoid pair prewhitened by r's AR(1)
+// filter, the whitened regression's explained sum of squares over twice the whitened variance (power_ratio),
+// its maximum over the grid tested against the same scan with r shifted circularly against u (rank, Gumbel
+// tail): the residual's slow structure and holds at one position are in the null, not in the peak.
 struct PeriodicPeak {
   double frequency = 0.0;   // cycles per unit of u
   double amplitude = 0.0;   // of r's sinusoid at that frequency [unit of r]
-  double power_ratio = 0.0; // peak power / red-noise background mean
+  double power_ratio = 0.0; // peak power / red-noise background mean (position: whitened ESS / 2σ²_w)
   double p_value = 1.0;
   std::size_t searched = 0;
 };
+// p-value of a maximum (over variants or frequencies) against the same maximum on null draws: the empirical rank
+// ((1 + draws ≥ it)/(1 + draws)), and beyond every draw a Gumbel tail fitted to the draws by moments (the law of
+// a maximum; a Gaussian tail is too thin for it).
+double null_max_p_value(double observed, const std::vector<double>& null_max);
+
 PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
                                 double oversample = 4.0);
 

@@ -27,6 +27,11 @@ struct AcceptanceThresholds {
   double alpha = 0.01;
   // Cross-validated share of the residual variance: below 1 % the fit is too small to estimate a lag or form.
   double min_explained_variance = 0.01;
+  // … and what that share is in nm, √(EV · (σ² + systematic²)) with the validation's systematic error, must be at
+  // least this many σ of the reading noise: a slow signal (a temperature low-passed over minutes, a line in time)
+  // correlates by chance with the slow misfit any base leaves, explaining 0.15–0.2 σ on clean simulated stages,
+  // while an effect of 0.5 σ explains 0.3–0.5 σ there (docs/closing-the-loop.md, "Sensitivity").
+  double min_explained_noise = 0.25;
   // Share of the validation systematic error (MSE − σ²) a candidate must remove: a smaller share is within what
   // refitting the same terms on another stretch moves by, and not worth a term that must also hold live.
   double min_removed_fraction = 0.10;
@@ -72,6 +77,7 @@ struct AcceptanceRound {
   bool validation_has_holds = false;
   double block_noise_nm = 0.0;      // σ/√B: the noise of a mean over resolution_block_s of readings [nm]
   double systematic_nm = 0.0;       // systematic error of the validation part without a new effect, √(MSE − σ²) [nm]
+  double noise_sigma_nm = 0.0;      // the reading noise σ estimated from the data [nm] (0: the rule on it is off)
   std::vector<double> block_mae;    // validation |error| per paired block without a new effect
 };
 

@@ -41,6 +41,10 @@ struct FamilyTraits {
   bool spectral = false;
   // Regressors are compared on the same signal as the additive counterpart (time_drift/time_gain have none).
   bool compares_signal = true;
+  // A sensor effect: in the readings, not in the stage's motion. An error periodic in the position at a few
+  // hundred nm is the encoder's interpolation error (a piezo stage's motion has no such period): it belongs to
+  // the model of what the encoder reads, and the stage position (what the feedforward positions) leaves it out.
+  bool in_readings = false;
 };
 
 // All families, in report order.

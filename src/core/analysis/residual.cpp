@@ -158,6 +158,9 @@ class Loop {
     if (o_.log) o_.log(s);
   }
   std::vector<double> run_test(models::Model& m, const Level& lv);
+  // The stage position over TEST: the augmented model without its sensor effects (is_reading_family), which
+  // are in the readings only.
+  std::vector<double> run_test_position(const std::vector<double>& readings);
   void score_before();
   std::vector<FamilyScore> rank(int step);
   bool step(int step);
@@ -194,6 +197,15 @@ std::vector<double> Loop::run_test(models::Model& m, const Level& lv) {
       for (std::size_t i = 0; i < p.size(); ++i)
         p[i] += lv.transient_nm[j] * std::exp(-(test_.time_s[i] - train_.time_s[0]) / c_.transient_taus_s[j]);
   return p;
+}
+
+std::vector<double> Loop::run_test_position(const std::vector<double>& readings) {
+  std::vector<EffectTerm> stage;
+  for (const auto& t : terms_)
+    if (!is_reading_family(t.family)) stage.push_back(t);
+  if (stage.size() == terms_.size()) return readings;
+  models::AugmentedModel m(base_->clone(), stage, level_.offset_nm, c_.fs);
+  return run_test(m, level_);
 }
 
 void Loop::score_before() {
@@ -287,8 +299,10 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   models::AugmentedModel m(base_->clone(), terms_, level_.offset_nm, c_.fs);
   e.test_prediction = run_test(m, level_);
   e.test_after = error_stats(e.test_prediction, meas_test_, res_.test_mask);
-  if (!truth_test_.empty()) e.test_after_truth = error_stats(e.test_prediction, truth_test_, res_.test_mask);
-  log("added " + e.family + ": TEST MAE " + std::to_string(e.test_after.mae_nm) + " nm" +
+  e.in_readings = is_reading_family(e.family);
+  if (!truth_test_.empty())
+    e.test_after_truth = error_stats(run_test_position(e.test_prediction), truth_test_, res_.test_mask);
+  log("added " + e.family + (e.in_readings ? " (a sensor effect: in the readings)" : "") + ": TEST MAE " + std::to_string(e.test_after.mae_nm) + " nm" +
       (truth_test_.empty() ? "" : " (against the truth " + std::to_string(e.test_after_truth.mae_nm) + " nm)"));
   res_.effects.push_back(std::move(e));
 }
@@ -303,7 +317,8 @@ void Loop::finish() {
   auto model = std::make_unique<models::AugmentedModel>(base_->clone(), terms_, level_.offset_nm, c_.fs);
   res_.test_pred_after = run_test(*model, level_);
   res_.after_test = error_stats(res_.test_pred_after, meas_test_, res_.test_mask);
-  if (!truth_test_.empty()) res_.after_test_truth = error_stats(res_.test_pred_after, truth_test_, res_.test_mask);
+  res_.test_position_after = run_test_position(res_.test_pred_after);
+  if (!truth_test_.empty()) res_.after_test_truth = error_stats(res_.test_position_after, truth_test_, res_.test_mask);
   res_.after_validation.mae_nm = mae_of(residual_of(c_, terms_, level_), n_fit_, n_);
   std::vector<double> r(test_.size());
   for (std::size_t i = 0; i < r.size(); ++i) r[i] = meas_test_[i] - res_.test_pred_after[i];

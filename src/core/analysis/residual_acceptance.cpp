@@ -76,6 +76,15 @@ Verdict rule_significance(const FamilyScore& s, const AcceptanceThresholds& t) {
 
 Verdict rule_size(const FamilyScore& s, const AcceptanceThresholds& t, const AcceptanceRound& round) {
   const AcceptanceRule r = AcceptanceRule::kSize;
+  const double sigma = round.noise_sigma_nm;
+  if (sigma > 0) {
+    const double explained = std::sqrt(std::max(0.0, s.explained_variance) *
+                                       (sigma * sigma + round.systematic_nm * round.systematic_nm));
+    if (explained < t.min_explained_noise * sigma)
+      return refuse(r, "explains " + nm(explained) + " of the residual in cross-validation, under " +
+                           nm(t.min_explained_noise * sigma) + " (" +
+                           std::to_string(t.min_explained_noise).substr(0, 4) + " σ of the reading noise)");
+  }
   const double need = line_in_time(s) ? t.time_trend_min_removed_fraction : t.min_removed_fraction;
   if (s.removed_fraction < need)
     return refuse(r, "removes " + pct(s.removed_fraction) + " of the validation systematic error (" +

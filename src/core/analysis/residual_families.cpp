@@ -13,11 +13,11 @@ namespace piezo::analysis {
 
 const std::vector<FamilyTraits>& family_table() {
   // Report order. Fields: id, name, gain, additive counterpart, line in time, operating point, spectral,
-  // compares signal.
+  // compares signal, in readings.
   static const std::vector<FamilyTraits> table = {
       {Family::kTimeDrift, "time_drift", false, std::nullopt, true, false, false, false},
       {Family::kCrossAxis, "cross_axis", false, std::nullopt, false, false, false, true},
-      {Family::kPositionPeriodic, "position_periodic", false, std::nullopt, false, true, true, true},
+      {Family::kPositionPeriodic, "position_periodic", false, std::nullopt, false, true, true, true, true},
       {Family::kRateDependent, "rate_dependent", false, std::nullopt, false, true, false, true},
       {Family::kAuxSignal, "aux_signal", false, std::nullopt, false, false, false, true},
       {Family::kPeriodicDisturbance, "periodic_disturbance", false, std::nullopt, false, false, true, true},
@@ -67,6 +67,10 @@ std::string additive_counterpart(const std::string& gain_family) {
 bool extrapolates_in_time(const std::string& family) {
   const FamilyTraits* t = find_family(family);
   return t && t->line_in_time;
+}
+bool is_reading_family(const std::string& family) {
+  const FamilyTraits* t = find_family(family);
+  return t && t->in_readings;
 }
 bool is_operating_point_family(const std::string& family) {
   const FamilyTraits* t = find_family(family);
@@ -220,7 +224,8 @@ void periodic(bool in_time, const Context& c, const std::vector<double>& residua
   else
     add({t}, {{"period_nm", period}, {"power_ratio", fc.peak.power_ratio}});
   std::ostringstream os;
-  os << "peak " << fc.peak.power_ratio << "× the red-noise background, " << fc.peak.searched << " frequencies searched";
+  os << "peak " << fc.peak.power_ratio << (in_time ? "× the red-noise background, " : "× the prewhitened noise level, ")
+     << fc.peak.searched << " frequencies searched";
   fc.note = os.str();
 }
 

@@ -209,6 +209,7 @@ void json_effects(util::JsonWriter& j, const ReportParts& p) {
   for (std::size_t i = 0; i < res.effects.size(); ++i) {
     const auto& e = res.effects[i];
     j.begin_object().kv("family", e.family).kv("gain", is_gain_family(e.family));
+    j.kv("acts_on", e.in_readings ? "readings" : "position");
     j.key("parameters").begin_object();
     for (const auto& [k, v] : e.labels) j.kv(k, v);
     for (const auto& [k, v] : e.parameters) j.kv(k, v);
@@ -312,6 +313,10 @@ void md_header(std::ostream& f, const ReportParts& p) {
   }
   f << "| **after** | **" << res.after_test.mae_nm << "** | **" << res.after_test.rms_nm << "** | **" << res.after_test.max_nm << "** |";
   if (truth) f << " **" << res.after_test_truth.mae_nm << "** |";
+  bool sensor = false;
+  for (const auto& e : res.effects) sensor = sensor || e.in_readings;
+  if (truth && sensor)
+    f << "\n\nMAE vs truth is the stage position's: the sensor effects (in the readings) are left out of it.";
   const Remainder& rem = res.remainder;
   f << "\n\nNoise floor estimated from the TEST data: " << rem.noise_floor << ".\n\n";
 }
@@ -343,11 +348,18 @@ void md_effects(std::ostream& f, const ReportParts& p) {
   if (res.effects.empty()) f << "None: no family was significant, improved the validation error enough and kept the holds.\n";
   for (std::size_t i = 0; i < res.effects.size(); ++i) {
     const auto& e = res.effects[i];
-    f << i + 1 << ". **" << e.family << "**" << (is_gain_family(e.family) ? " (gain: scales the motion)" : " (additive)")
+    f << i + 1 << ". **" << e.family << "**"
+      << (e.in_readings ? " (sensor effect: in the readings, not in the stage's position)"
+                        : is_gain_family(e.family) ? " (stage effect, gain: scales the motion)" : " (stage effect, additive)")
       << " — " << params_text(e.parameters, e.labels) << "; cross-validated explained variance " << e.explained_variance
       << ", p = " << e.p_value << ", validation MAE −" << 100 * e.validation_gain << " %";
     if (holds) f << " (inside holds −" << 100 * e.hold_validation_gain << " %)";
     f << ".\n";
+    if (e.in_readings)
+      f << "   It belongs to the model of what the encoder reads, not to the feedforward: the stage position (and the "
+           "error against the truth above) leaves it out. The model file carries it as a term like any other, so "
+           "the predictor adds it to its predicted position: subtract it from the readings instead where the tip "
+           "must be positioned.\n";
     for (const auto& c : e.competitors)
       f << "   - competing explanation **" << c.family << "** (" << c.parameters << " parameters, validation −"
         << 100 * c.validation_gain << " %): not taken, " << c.verdict << ".\n";
@@ -425,7 +437,8 @@ void write_residual_report(const std::string& dir, const ResidualReportContext& 
   p.hs.after = hold_errors(res.test_pred_after, meas, test, res.test_mask);
   if (p.truth) {
     p.hs.before_truth = hold_errors(res.test_pred_before, test.axis(ctx.axis).true_position_nm, test, res.test_mask);
-    p.hs.after_truth = hold_errors(res.test_pred_after, test.axis(ctx.axis).true_position_nm, test, res.test_mask);
+    p.hs.after_truth = hold_errors(res.test_position_after.empty() ? res.test_pred_after : res.test_position_after,
+                                   test.axis(ctx.axis).true_position_nm, test, res.test_mask);
   }
   p.holds = p.hs.before.valid();
   write_predictions(dir, p);

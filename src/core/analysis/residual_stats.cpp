@@ -12,6 +12,9 @@ namespace piezo::analysis {
 
 namespace {
 constexpr double kTwoPi = 6.283185307179586;
+// Circular-shift draws of the position scan's null (its family-wise p-value; each costs two dot products per
+// frequency, the sinusoids being computed once).
+constexpr std::size_t kPositionNullDraws = 39;
 
 struct FoldSums {
   Eigen::MatrixXd G;  // X_f^T X_f, X = [1, Z]
@@ -210,20 +213,116 @@ Spectrum uniform_spectrum(const std::vector<double>& u, const std::vector<double
   return s;
 }
 
-// On a non-uniform variable (position): the direct sum on a grid oversampled relative to 1/range, flat shape.
-Spectrum direct_spectrum(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
-                         double oversample, double range) {
-  Spectrum s;
-  const double df = 1.0 / (oversample * range);
-  const std::size_t m = static_cast<std::size_t>((f_max - f_min) / df) + 1;
-  if (m > 200000) throw std::invalid_argument("find_periodic_peak: frequency grid too large");
-  for (std::size_t j = 0; j < m; ++j) {
-    const double f = f_min + df * static_cast<double>(j);
-    s.freq.push_back(f);
-    s.pow.push_back(power_at(u, r, f));
-    s.shape.push_back(1.0);
+// On a non-uniform variable (position) the residual is in time order and strongly autocorrelated (slow misfit,
+// holds at one position for minutes), so a plain periodogram against position sees a background of slow
+// structure that swamps a periodic error of the size of the reading noise. The scan therefore prewhitens the
+// residual and each frequency's sinusoids alike with the residual's AR(1) filter (1 − φB), regresses the
+// whitened residual on the whitened pair, and scores the explained sum of squares over the whitened residual's
+// variance: under white whitened noise half of it is Exp(1), the same scale as a periodogram over its
+// background. Its family-wise significance comes from the same scan with the whitened residual shifted
+// circularly against the positions (the alignment destroyed, the sampling of positions and the residual's
+// remaining structure kept): the draws' maxima over the grid, their rank and a Gumbel tail beyond them.
+struct PositionScan {
+  double frequency = 0, ratio = 0, amplitude = 0;
+  std::vector<double> null_max;  // per shift: the largest ratio over the grid
+  std::size_t grid = 0;
+};
+
+struct Whitened {
+  std::vector<double> w;  // (1 − φB) r, demeaned, rows 1 … n − 1
+  double phi = 0, var = 0;
+};
+
+Whitened whiten(const std::vector<double>& r) {
+  Whitened out;
+  const std::size_t n = r.size();
+  double c0 = 0, c1 = 0;
+  for (std::size_t i = 0; i < n; ++i) c0 += r[i] * r[i];
+  for (std::size_t i = 1; i < n; ++i) c1 += r[i] * r[i - 1];
+  out.phi = c0 > 0 ? std::clamp(c1 / c0, 0.0, 0.999) : 0.0;
+  out.w.resize(n - 1);
+  double m = 0;
+  for (std::size_t i = 1; i < n; ++i) m += (out.w[i - 1] = r[i] - out.phi * r[i - 1]);
+  m /= static_cast<double>(n - 1);
+  for (double& x : out.w) x -= m, out.var += x * x;
+  out.var /= static_cast<double>(n - 1);
+  return out;
+}
+
+// The whitened sinusoid pair at f, and the 2 × 2 normal matrix's inverse (false when singular).
+bool whitened_pair(const std::vector<double>& u, double f, double phi, std::vector<double>& cw, std::vector<double>& sw,
+                   double inv[3]) {
+  const std::size_t n = u.size();
+  double pc = std::cos(kTwoPi * f * u[0]), ps = std::sin(kTwoPi * f * u[0]);
+  double g11 = 0, g12 = 0, g22 = 0;
+  for (std::size_t i = 1; i < n; ++i) {
+    const double c = std::cos(kTwoPi * f * u[i]), s = std::sin(kTwoPi * f * u[i]);
+    cw[i - 1] = c - phi * pc, sw[i - 1] = s - phi * ps;
+    pc = c, ps = s;
+    g11 += cw[i - 1] * cw[i - 1], g12 += cw[i - 1] * sw[i - 1], g22 += sw[i - 1] * sw[i - 1];
   }
-  return s;
+  const double det = g11 * g22 - g12 * g12;
+  if (!(det > 1e-12 * (g11 * g22 + 1e-300))) return false;
+  inv[0] = g22 / det, inv[1] = -g12 / det, inv[2] = g11 / det;
+  return true;
+}
+
+// Explained sum of squares of w (shifted by `shift`) by the pair, and the coefficients.
+double pair_ess(const std::vector<double>& w, std::size_t shift, const std::vector<double>& cw, const std::vector<double>& sw,
+                const double inv[3], double* beta = nullptr) {
+  const std::size_t m = w.size();
+  double bc = 0, bs = 0;
+  for (std::size_t i = 0, j = shift; i < m; ++i, ++j) {
+    if (j == m) j = 0;
+    bc += cw[i] * w[j], bs += sw[i] * w[j];
+  }
+  const double x = inv[0] * bc + inv[1] * bs, y = inv[1] * bc + inv[2] * bs;
+  if (beta) beta[0] = x, beta[1] = y;
+  return x * bc + y * bs;
+}
+
+PositionScan position_scan(const std::vector<double>& u, const std::vector<double>& r, double f_min, double f_max,
+                           double oversample, double range, std::size_t draws) {
+  PositionScan out;
+  const Whitened wh = whiten(r);
+  if (!(wh.var > 0)) return out;
+  const std::size_t m = wh.w.size();
+  const double df = 1.0 / (oversample * range);
+  const std::size_t grid = static_cast<std::size_t>((f_max - f_min) / df) + 1;
+  if (grid > 200000) throw std::invalid_argument("find_periodic_peak: frequency grid too large");
+  out.grid = grid;
+  std::vector<std::size_t> shifts(draws);
+  for (std::size_t q = 0; q < draws; ++q) shifts[q] = m / 10 + (m * 8 / 10) * q / std::max<std::size_t>(1, draws - 1);
+  out.null_max.assign(draws, 0.0);
+  std::vector<double> cw(m), sw(m);
+  double inv[3];
+  auto ratio_at = [&](double f, std::size_t shift, double* beta) {
+    if (!whitened_pair(u, f, wh.phi, cw, sw, inv)) return 0.0;
+    return pair_ess(wh.w, shift, cw, sw, inv, beta) / (2.0 * wh.var);
+  };
+  for (std::size_t j = 0; j < grid; ++j) {
+    const double f = f_min + df * static_cast<double>(j);
+    if (!whitened_pair(u, f, wh.phi, cw, sw, inv)) continue;
+    const double obs = pair_ess(wh.w, 0, cw, sw, inv) / (2.0 * wh.var);
+    if (obs > out.ratio) out.ratio = obs, out.frequency = f;
+    for (std::size_t q = 0; q < draws; ++q)
+      out.null_max[q] = std::max(out.null_max[q], pair_ess(wh.w, shifts[q], cw, sw, inv) / (2.0 * wh.var));
+  }
+  if (!(out.frequency > 0)) return out;
+  // The peak refined inside its bin (two passes of 21 points, the second a tenth as wide).
+  for (int it = 0; it < 2; ++it) {
+    const double width = (it == 0 ? 1.0 : 0.1) * df, centre = out.frequency;
+    for (int q = -10; q <= 10; ++q) {
+      const double f = centre + width * q / 10.0;
+      if (f <= 0 || q == 0) continue;
+      const double x = ratio_at(f, 0, nullptr);
+      if (x > out.ratio) out.ratio = x, out.frequency = f;
+    }
+  }
+  double beta[2] = {0, 0};
+  ratio_at(out.frequency, 0, beta);
+  out.amplitude = std::hypot(beta[0], beta[1]);
+  return out;
 }
 
 // Refines the frequency inside the peak's bin by a fine local search; returns (frequency, power).
@@ -245,6 +344,20 @@ std::pair<double, double> refine_peak(const std::vector<double>& u, const std::v
 
 }  // namespace
 
+// The observed maximum against the draws' maxima: the empirical rank, and beyond every draw a Gumbel tail fitted
+// to them by moments (the law of a maximum over many frequencies).
+double null_max_p_value(double observed, const std::vector<double>& null_max) {
+  const double k = static_cast<double>(null_max.size());
+  if (k < 2) return 1.0;
+  double mean = 0, var = 0, above = 0;
+  for (double x : null_max) mean += x / k, above += x >= observed;
+  for (double x : null_max) var += (x - mean) * (x - mean) / (k - 1);
+  const double p_emp = (1.0 + above) / (1.0 + k);
+  if (above > 0 || !(var > 0)) return p_emp;
+  const double beta = std::sqrt(6.0 * var) / 3.141592653589793, mu = mean - 0.5772156649015329 * beta;
+  return std::min(p_emp, -std::expm1(-std::exp(-(observed - mu) / beta)));
+}
+
 PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<double>& r_in, double f_min, double f_max,
                                 double oversample) {
   PeriodicPeak out;
@@ -256,10 +369,20 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
   const auto [umin, umax] = std::minmax_element(u.begin(), u.end());
   const double range = *umax - *umin;
   if (!(range > 0)) return out;
-  // The periodogram divided by its background shape is then compared with its own median over a log-frequency
-  // window [f/2, 2f] around the peak (outside the peak's lobe), which follows whatever slope is left.
-  const Spectrum sp = is_uniform(u) ? uniform_spectrum(u, r, f_min, f_max, oversample)
-                                    : direct_spectrum(u, r, f_min, f_max, oversample, range);
+  if (!is_uniform(u)) {
+    const PositionScan ps = position_scan(u, r, f_min, f_max, oversample, range, kPositionNullDraws);
+    if (ps.grid / static_cast<std::size_t>(oversample) < 2 || !(ps.frequency > 0)) return out;
+    out.frequency = ps.frequency;
+    out.amplitude = ps.amplitude;
+    out.power_ratio = ps.ratio;
+    out.searched = std::max<std::size_t>(1, static_cast<std::size_t>(static_cast<double>(ps.grid) / oversample));
+    out.p_value = null_max_p_value(ps.ratio, ps.null_max);
+    return out;
+  }
+  // On a uniform grid (time) the periodogram divided by its AR(1) background shape is compared with its own
+  // median over a log-frequency window [f/2, 2f] around the peak (outside the peak's lobe), which follows
+  // whatever slope is left.
+  const Spectrum sp = uniform_spectrum(u, r, f_min, f_max, oversample);
   const std::vector<double>& freq = sp.freq;
   std::vector<double> white(sp.pow.size());
   for (std::size_t j = 0; j < sp.pow.size(); ++j) white[j] = sp.pow[j] / sp.shape[j];

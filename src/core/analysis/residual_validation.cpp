@@ -56,6 +56,7 @@ AcceptanceRound Validator::round(const Val& now) const {
   const double b = std::max(1.0, t_.resolution_block_s * c_.fs);
   r.block_noise_nm = c_.noise_sigma_nm / std::sqrt(b);
   r.systematic_nm = std::sqrt(std::max(0.0, now.mse - c_.noise_sigma_nm * c_.noise_sigma_nm));
+  r.noise_sigma_nm = c_.noise_sigma_nm;
   r.block_mae = block_mae(now.abs_err);
   return r;
 }

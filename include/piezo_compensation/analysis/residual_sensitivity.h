@@ -1,0 +1,60 @@
+// Sensitivity of the residual loop: how often it names an effect of a given size, and how often it adds anything
+// to a stage without one. A harness around trace_residual (analysis/residual.h), which itself never reads
+// simulator settings: here the simulator builds the stages, each effect planted at a size in units of the reading
+// noise σ (the RMS of what it adds to the readings over σ), and the loop is run on them blind.
+#pragma once
+
+#include <cstdint>
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace piezo::analysis {
+
+// The families the harness plants, and the loop families that name each (detection = one of them is added).
+enum class SensitivityFamily { kPeriodic, kCrossAxis, kAuxSignal, kGain };
+const char* sensitivity_family_name(SensitivityFamily f);
+// Parses "periodic", "cross_axis", "aux_signal", "gain"; throws std::invalid_argument listing the valid names.
+SensitivityFamily parse_sensitivity_family(const std::string& name);
+
+struct SensitivityOptions {
+  // The stage: the simulator's default axes a and c, a random walk on both, `hours` long, TRAIN the first
+  // `train_fraction`, a temperature_c column on every stage (a slow sine + random walk, felt only when planted).
+  double hours = 6.0;
+  double train_fraction = 2.0 / 3.0;
+  std::string base_kind = "pi_creep_lti";  // fitted on TRAIN's fit part, refitted while the loop backfits
+  std::vector<SensitivityFamily> families{SensitivityFamily::kPeriodic, SensitivityFamily::kCrossAxis,
+                                          SensitivityFamily::kAuxSignal, SensitivityFamily::kGain};
+  std::vector<double> sizes_sigma{0.25, 0.5, 1.0, 1.5, 2.0};  // effect RMS over the reading noise σ
+  int trials = 5;         // stages per (family, size)
+  int clean_trials = 20;  // stages without an effect
+  std::uint64_t seed = 1000;  // trial t uses seed + t (the same stages for every family and size)
+  int permutations = 20;      // circular-shift draws per family in the loop
+  std::function<void(const std::string&)> progress;  // one line per trial (may be empty)
+  std::function<void(const std::string&)> loop_log;  // the loop's own progress lines (may be empty)
+};
+
+struct SensitivityCell {
+  SensitivityFamily family = SensitivityFamily::kPeriodic;
+  double size_sigma = 0.0;
+  int trials = 0;
+  int detected = 0;  // the planted family named
+  int other = 0;     // something else added, the planted family not named
+};
+
+struct SensitivityResult {
+  double noise_sigma_nm = 0.0;  // the reading noise the sizes are in units of (the simulator's c encoder)
+  std::vector<SensitivityCell> cells;
+  int clean_trials = 0;
+  int clean_false = 0;                  // clean stages where anything was added
+  std::vector<std::string> clean_added; // what was added there, one entry per effect
+  double seconds = 0.0;                 // wall time
+};
+
+SensitivityResult run_sensitivity(const SensitivityOptions& o);
+
+// A markdown table: one row per family, one column per size (detected / trials), then the clean stages'
+// false-positive rate, and the options that reproduce it.
+std::string sensitivity_table(const SensitivityResult& r, const SensitivityOptions& o);
+
+}  // namespace piezo::analysis
