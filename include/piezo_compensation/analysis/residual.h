@@ -215,6 +215,7 @@ struct PeriodicPeak {
   double power_ratio = 0.0; // peak power / red-noise background mean (position: whitened ESS / 2σ²_w)
   double p_value = 1.0;
   std::size_t searched = 0;
+  std::string skipped;      // why nothing was searched (e.g. too many frequencies over a non-uniform u), else ""
 };
 // p-value of a maximum (over variants or frequencies) against the same maximum on null draws: the empirical rank
 // ((1 + draws ≥ it)/(1 + draws)), and beyond every draw a Gumbel tail fitted to the draws by moments (the law of

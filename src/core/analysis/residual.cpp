@@ -102,6 +102,31 @@ double stroke_pivot(const models::Model& base, const io::Dataset& train, Context
   return pivot;
 }
 
+// Several TRAIN recordings: each one's zero is not an effect. Its mean residual, less the mean over the
+// recordings, is taken out of its measured positions before any family is searched (as the fit profiles it out).
+void remove_recording_zeros(const io::Dataset& train, Context& c, const ResidualOptions& o) {
+  const std::size_t R = train.recording_count();
+  if (R < 2) return;
+  std::vector<double> d(R, 0.0);
+  double mean = 0, ss = 0;
+  for (std::size_t k = 0; k < R; ++k) {
+    const auto [b, e] = train.recording_rows(k);
+    for (std::size_t i = b; i < e; ++i) d[k] += c.measured[i] - c.x_base[i];
+    d[k] /= static_cast<double>(e - b);
+    mean += d[k] / static_cast<double>(R);
+  }
+  for (std::size_t k = 0; k < R; ++k) {
+    const auto [b, e] = train.recording_rows(k);
+    for (std::size_t i = b; i < e; ++i) c.measured[i] -= d[k] - mean;
+    ss += (d[k] - mean) * (d[k] - mean);
+  }
+  if (o.log) {
+    std::ostringstream os;
+    os << "TRAIN has " << R << " recordings: each one's zero taken out of its residual (RMS " << std::sqrt(ss / R) << " nm)";
+    o.log(os.str());
+  }
+}
+
 Context make_context(const models::Model& base, const io::Dataset& train, const io::Dataset& test, const ResidualOptions& o) {
   Context c;
   c.data = &train;
@@ -112,6 +137,7 @@ Context make_context(const models::Model& base, const io::Dataset& train, const 
   c.measured = ax.position_nm;
   models::ModelPtr b = base.clone();
   c.x_base = run_model(*b, train, o.axis, o.mode);
+  remove_recording_zeros(train, c, o);
   for (const auto& other : train.axes)
     if (other.name != o.axis && test.has_axis(other.name)) {
       c.other_axes.push_back(io::voltage_column(other.name));

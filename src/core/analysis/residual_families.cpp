@@ -213,7 +213,7 @@ void periodic(bool in_time, const Context& c, const std::vector<double>& residua
   }
   fc.peak = find_periodic_peak(u, r, f_min, f_max, 4.0);
   if (fc.peak.frequency <= 0) {
-    fc.note = "no spectrum";
+    fc.note = fc.peak.skipped.empty() ? "no spectrum" : fc.peak.skipped;
     return;
   }
   const double period = 1.0 / fc.peak.frequency;
