@@ -211,6 +211,7 @@ struct CandidateResult {
   double fit_s = 0.0;
   std::size_t parameters = 0;
   std::string refused;  // non-empty: the fit threw or failed a gate (the message)
+  std::string cold_start_off;  // non-empty: not chosen, its cold start is off by too much (cold_start_exclusions)
   // The fitted model (null when refused), so a caller can run every candidate on other data (the stage matrix's
   // separate recording); Selection::model is a copy of the chosen one with the figures stored.
   std::shared_ptr<const models::Model> model;
@@ -266,6 +267,12 @@ struct Selection {
 // lacks it (its half fit failed), it is dropped from every candidate and their scores summarised again, so no
 // candidate is compared on fewer columns than another (the carry-over is often the largest; select_model calls it).
 void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o);
+// A model whose cold start is far off is no model to park a tip with, whatever its other columns: a candidate
+// whose cold fold is over kMaxColdFoldFraction of the position range is not chosen when another candidate's is
+// within it. Per score (null: not scored), "" or the reason it is left out.
+constexpr double kMaxColdFoldFraction = 0.10;
+std::vector<std::string> cold_start_exclusions(const std::vector<const SlowScore*>& scores, double position_range_nm);
+
 // Fits every candidate, scores it free-run on the validation part (the gates: score_validation), refuses the ones
 // failing a gate, scores the rest on the slow part of the error (slow_score) and chooses by choose_candidate.
 // Throws FitRejected (listing each candidate's reason) when none passes.

@@ -320,6 +320,22 @@ bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std
   return within;
 }
 
+std::vector<std::string> cold_start_exclusions(const std::vector<const SlowScore*>& scores, double position_range_nm) {
+  std::vector<std::string> out(scores.size());
+  const double limit = kMaxColdFoldFraction * position_range_nm;
+  if (!(limit > 0)) return out;
+  const bool any_within = std::any_of(scores.begin(), scores.end(), [&](const SlowScore* s) {
+    return s && std::isfinite(s->cold_nm) && s->cold_nm <= limit;
+  });
+  if (!any_within) return out;
+  for (std::size_t k = 0; k < scores.size(); ++k)
+    if (scores[k] && std::isfinite(scores[k]->cold_nm) && scores[k]->cold_nm > limit)
+      out[k] = "cold start off: cold fold " + std::to_string(std::lround(scores[k]->cold_nm)) + " nm > " +
+               fmt(100 * kMaxColdFoldFraction, 2) + " % of the position range (" +
+               std::to_string(std::lround(position_range_nm)) + " nm)";
+  return out;
+}
+
 Choice choose_candidate(const std::vector<ChoiceEntry>& en) {
   Choice ch;
   for (std::size_t k = 0; k < en.size(); ++k)
@@ -668,9 +684,14 @@ Selection select_model(const SelectionRequest& rq) {
     sel.table.push_back(std::move(r));
   }
   align_carry_over(sel.table, sel.slow_options);
+  std::vector<const SlowScore*> scored;
+  for (const auto& r : sel.table) scored.push_back(r.refused.empty() && r.slow.valid() ? &r.slow : nullptr);
+  const std::vector<std::string> cold_off = cold_start_exclusions(scored, sel.scale.position_range_nm);
   std::vector<ChoiceEntry> entries;
-  for (const auto& r : sel.table)
-    entries.push_back({r.candidate.label, r.parameters, r.refused.empty() && r.slow.valid() ? &r.slow : nullptr});
+  for (std::size_t k = 0; k < sel.table.size(); ++k) {
+    sel.table[k].cold_start_off = cold_off[k];
+    entries.push_back({sel.table[k].candidate.label, sel.table[k].parameters, cold_off[k].empty() ? scored[k] : nullptr});
+  }
   const Choice ch = choose_candidate(entries);
   if (ch.chosen == SIZE_MAX) {
     std::string why = "model selection: every candidate was refused:";
@@ -721,7 +742,7 @@ std::string selection_table(const Selection& s) {
   for (std::size_t k = 0; k < s.table.size(); ++k) {
     const auto& r = s.table[k];
     const auto& w = r.slow;
-    std::string status = r.refused;
+    std::string status = r.refused.empty() ? r.cold_start_off : r.refused;
     if (status.empty()) {
       if (s.model && k == s.best) status = "**chosen**";
       else if (k == s.best_overall) status = "lowest overall";
