@@ -52,9 +52,15 @@ LogColumns map_columns(const std::vector<std::string_view>& names, const std::st
     else if (n == axis + "_mean") c.mean = col;
     else if (n.empty() && k == 0) continue;  // a pandas index column
     else if (n.size() > axis.size() + 1 && n.compare(0, axis.size() + 1, axis + "_") == 0 &&
-             std::all_of(n.begin() + static_cast<long>(axis.size()) + 1, n.end(), [](char ch) { return ch >= '0' && ch <= '9'; }))
-      reads.emplace_back(std::stoi(n.substr(axis.size() + 1)), col);
-    else
+             std::all_of(n.begin() + static_cast<long>(axis.size()) + 1, n.end(), [](char ch) { return ch >= '0' && ch <= '9'; })) {
+      const std::string digits = n.substr(axis.size() + 1);
+      if (digits.size() > 3)
+        throw DataError(path + ": row 1, column " + n + ": a read index over 999 (the reads are numbered from 0)");
+      const int index = std::stoi(digits);
+      for (const auto& r : reads)
+        if (r.first == index) throw DataError(path + ": row 1, column " + n + ": the read numbered twice");
+      reads.emplace_back(index, col);
+    } else
       throw DataError(path + ": row 1, column " + (n.empty() ? "#" + std::to_string(k + 1) : n) +
                       ": not a controller-log column for axis " + axis + " (finestep, time, " + axis + "_0…, temp, " +
                       axis + "_mean)");
