@@ -676,3 +676,31 @@ TEST(ModelChoice, AColdStartFarOffIsNotChosenWhenAnotherIsWithinRange) {
   near.cold_nm = 50000;
   for (const auto& s : analysis::cold_start_exclusions({&far, &near}, 45000)) EXPECT_EQ(s, "");
 }
+
+// Several validation recordings: each one's zero is no model's to know, so the slow score leaves it out; a model
+// exact up to each recording's zero scores its noise, not the zeros.
+TEST(ModelChoice, EachRecordingsZeroIsNotScored) {
+  std::vector<io::Dataset> parts;
+  std::mt19937 rng(3);
+  std::normal_distribution<double> noise(0.0, 2.0);
+  for (int k = 0; k < 3; ++k) {
+    io::Dataset d;
+    io::AxisSeries& c = d.add_axis("c");
+    for (int i = 0; i < 6000; ++i) {
+      const double v = 10.0 * std::sin(i / 300.0 + k);
+      d.time_s.push_back(i / 10.0);
+      c.voltage_v.push_back(v);
+      c.position_nm.push_back(100.0 * v + 500.0 * (k - 1) + noise(rng));
+    }
+    d.source = "rec" + std::to_string(k);
+    parts.push_back(d);
+  }
+  const io::Dataset joined = io::join_recordings(parts);
+  const FakeModel exact(100.0, 0.0, YAML::Node());
+  const analysis::SlowScore s = analysis::slow_score(exact, joined, 0, "c");
+  std::cout << "[zeros] moves " << s.moves_nm << " nm\n";
+  EXPECT_LT(s.moves_nm, 2.0);  // block means of 2-nm noise, not the ±500-nm zeros
+  io::Dataset one = joined;
+  one.recordings.clear();  // the same rows as one recording: its zero is one, the others' differences are scored
+  EXPECT_GT(analysis::slow_score(exact, one, 0, "c").moves_nm, 200.0);
+}

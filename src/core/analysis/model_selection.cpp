@@ -252,6 +252,24 @@ std::vector<double> cold_fold(const models::Model& model, const io::Dataset& tai
 }
 }  // namespace
 
+namespace {
+// Several recordings: each one's zero is unknown to any model (an encoder reset per run), so it is taken out of
+// `pred` (the mean of measured − predicted over its rows from `from` on) and the blocks score the rest.
+void take_out_recording_zeros(const io::Dataset& data, const std::string& axis, std::size_t from, std::vector<double>& pred) {
+  if (data.recording_count() < 2) return;
+  const auto& y = data.axis(axis).position_nm;
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [rb, re] = data.recording_rows(k);
+    const std::size_t b = std::max(rb, from);
+    if (b >= re) continue;
+    double d = 0;
+    for (std::size_t i = b; i < re; ++i) d += y[i] - pred[i];
+    d /= static_cast<double>(re - b);
+    for (std::size_t i = rb; i < re; ++i) pred[i] += d;
+  }
+}
+}  // namespace
+
 SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
                      const std::string& axis, const SlowScoreOptions& o, const std::vector<double>* warm_free_run) {
   const auto& ax = data.axis(axis);
@@ -267,6 +285,7 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
     auto m = model.clone();
     warm = models::stream_model(*m, data, axis, so).prediction;
   }
+  take_out_recording_zeros(data, axis, score_from, warm);
   const auto holds = voltage_holds(data, axis, score_from, o);
   SlowErrors e = slow_errors(warm, ax.position_nm, holds, score_from, block, hold_end);
   if (score_from < data.size()) e.cold = cold_fold(model, data.slice(score_from, data.size()), axis, o, block);
@@ -284,7 +303,8 @@ std::vector<double> carry_over_errors(const models::Model& half_fit, const io::D
                                       const std::string& axis, const SlowScoreOptions& o) {
   if (half >= train.size()) return {};
   auto m = half_fit.clone();
-  const std::vector<double> p = models::stream_model(*m, train, axis, free_run()).prediction;
+  std::vector<double> p = models::stream_model(*m, train, axis, free_run()).prediction;
+  take_out_recording_zeros(train, axis, half, p);
   const auto& y = train.axis(axis).position_nm;
   const std::size_t block = block_rows(o, train.size() > 1 ? train.sample_rate_hz() : 1.0, train.size() - half);
   const auto h = static_cast<std::ptrdiff_t>(half);
@@ -534,7 +554,15 @@ training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidat
 void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const SlowScoreOptions& o, SlowScore& s,
                     training::LassoFeatureCache* lasso_cache) {
   const io::Dataset& train = *rq.train;
-  const std::size_t half = train.size() / 2;
+  std::size_t half = train.size() / 2;
+  if (train.recording_count() > 1) {  // whole recordings on either side: the recording starting nearest the middle
+    std::size_t best = 0;
+    for (std::size_t k = 1; k < train.recording_count(); ++k) {
+      const std::size_t b = train.recording_rows(k).first;
+      if (best == 0 || (b > half ? b - half : half - b) < (best > half ? best - half : half - best)) best = b;
+    }
+    half = best;
+  }
   if (!o.carry_fold || half < 2 * static_cast<std::size_t>(std::max(1, o.min_blocks))) return;
   const io::Dataset first = train.slice(0, half);
   const std::size_t fit_rows = rq.validation ? half * 4 / 5 : half;
