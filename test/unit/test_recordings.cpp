@@ -130,3 +130,16 @@ TEST(Recordings, TheTrainingRowsAreKnownAgain) {
   const models::ModelPtr loaded = models::load_model(path);
   EXPECT_NE(models::training_overlap(loaded->meta, joined, "c", path).find("walk30: rows 2-"), std::string::npos);
 }
+
+TEST(Recordings, EachZeroAsThePredictionShowsIt) {
+  const io::Dataset a = walk(40, 0, 30), b = walk(41, 0, 30);
+  const io::Dataset j = io::join_recordings({a, b});
+  std::vector<double> pred = j.axis("c").position_nm;
+  for (std::size_t i = a.size(); i < pred.size(); ++i) pred[i] -= 250.0;  // the second recording's zero 250 nm up
+  const auto d = models::recording_offsets(j, "c", pred);
+  ASSERT_EQ(d.size(), 2u);
+  EXPECT_NEAR(d[0], 0.0, 1e-9);
+  EXPECT_NEAR(d[1], 250.0, 1e-9);
+  EXPECT_EQ(models::recording_offsets(j, "c", pred, j.size())[1], 0.0);  // no row from `from` on: 0
+  EXPECT_THROW(models::recording_offsets(j, "c", std::vector<double>(3)), std::invalid_argument);
+}

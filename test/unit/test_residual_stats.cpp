@@ -71,6 +71,16 @@ TEST(ResidualStats, PeriodicPeakInPositionOnAnIrregularGrid) {
   EXPECT_LT(p.p_value, 1e-6);
 }
 
+// A scan of a non-uniform axis costs a pass per frequency: one with too many frequencies (a host clock's hour at
+// 5 Hz resolution) is not run, and says so, instead of stopping the loop.
+TEST(ResidualStats, APeriodicScanTooLargeIsSkippedAndSaysWhy) {
+  std::vector<double> t(2000), r(2000);
+  for (std::size_t i = 0; i < t.size(); ++i) t[i] = 2.0 * static_cast<double>(i) + (i % 3 == 1 ? 0.3 : 0.0), r[i] = std::sin(0.1 * i);
+  const pa::PeriodicPeak p = pa::find_periodic_peak(t, r, 1e-3, 50.0);
+  EXPECT_EQ(p.frequency, 0.0);
+  EXPECT_NE(p.skipped.find("frequencies over a non-uniform axis"), std::string::npos) << p.skipped;
+}
+
 TEST(ResidualStats, ErrorStats) {
   const pa::ErrorStats e = pa::error_stats({0, 0, 0, 0}, {1, -1, 3, -3});
   EXPECT_DOUBLE_EQ(e.mae_nm, 2.0);

@@ -97,6 +97,12 @@ struct StreamResult {
 // keep_diverging), io::DataError on missing columns.
 StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o = {});
 
+// Each recording's zero as the data show it against a prediction: per recording of `data`, the mean of measured −
+// predicted over its rows from `from` on (0 for a recording with no such row). A fit profiles it out of its training
+// positions, the residual loop out of TRAIN's residual, model selection out of its scores.
+std::vector<double> recording_offsets(const io::Dataset& data, const std::string& axis, const std::vector<double>& predicted_nm,
+                                      std::size_t from = 0);
+
 // Mask of the rows scored after an anchor: 0 in each recording's anchor window (sized data.size()).
 std::vector<char> scored_mask(const StreamResult& r, std::size_t n);
 

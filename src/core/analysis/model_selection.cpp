@@ -257,15 +257,10 @@ namespace {
 // `pred` (the mean of measured − predicted over its rows from `from` on) and the blocks score the rest.
 void take_out_recording_zeros(const io::Dataset& data, const std::string& axis, std::size_t from, std::vector<double>& pred) {
   if (data.recording_count() < 2) return;
-  const auto& y = data.axis(axis).position_nm;
-  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+  const std::vector<double> d = models::recording_offsets(data, axis, pred, from);
+  for (std::size_t k = 0; k < d.size(); ++k) {
     const auto [rb, re] = data.recording_rows(k);
-    const std::size_t b = std::max(rb, from);
-    if (b >= re) continue;
-    double d = 0;
-    for (std::size_t i = b; i < re; ++i) d += y[i] - pred[i];
-    d /= static_cast<double>(re - b);
-    for (std::size_t i = rb; i < re; ++i) pred[i] += d;
+    for (std::size_t i = rb; i < re; ++i) pred[i] += d[k];
   }
 }
 }  // namespace

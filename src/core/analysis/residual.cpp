@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <numeric>
 #include <sstream>
 #include <stdexcept>
 
@@ -14,6 +15,7 @@
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/analysis/residual_backfit.h"
 #include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/analysis/residual_validation.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/pi_model.h"
@@ -107,14 +109,9 @@ double stroke_pivot(const models::Model& base, const io::Dataset& train, Context
 void remove_recording_zeros(const io::Dataset& train, Context& c, const ResidualOptions& o) {
   const std::size_t R = train.recording_count();
   if (R < 2) return;
-  std::vector<double> d(R, 0.0);
-  double mean = 0, ss = 0;
-  for (std::size_t k = 0; k < R; ++k) {
-    const auto [b, e] = train.recording_rows(k);
-    for (std::size_t i = b; i < e; ++i) d[k] += c.measured[i] - c.x_base[i];
-    d[k] /= static_cast<double>(e - b);
-    mean += d[k] / static_cast<double>(R);
-  }
+  std::vector<double> d = models::recording_offsets(train, o.axis, c.x_base);
+  const double mean = std::accumulate(d.begin(), d.end(), 0.0) / static_cast<double>(R);
+  double ss = 0;
   for (std::size_t k = 0; k < R; ++k) {
     const auto [b, e] = train.recording_rows(k);
     for (std::size_t i = b; i < e; ++i) c.measured[i] -= d[k] - mean;

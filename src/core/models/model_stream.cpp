@@ -186,6 +186,24 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
   return r;
 }
 
+std::vector<double> recording_offsets(const io::Dataset& data, const std::string& axis, const std::vector<double>& predicted_nm,
+                                      std::size_t from) {
+  const auto& y = data.axis(axis).position_nm;
+  if (predicted_nm.size() != y.size())
+    throw std::invalid_argument("recording_offsets: " + std::to_string(predicted_nm.size()) + " predictions for " +
+                                std::to_string(y.size()) + " rows");
+  std::vector<double> out(data.recording_count(), 0.0);
+  for (std::size_t k = 0; k < out.size(); ++k) {
+    const auto [rb, re] = data.recording_rows(k);
+    const std::size_t b = std::max(rb, from);
+    if (b >= re) continue;
+    double s = 0;
+    for (std::size_t i = b; i < re; ++i) s += y[i] - predicted_nm[i];
+    out[k] = s / static_cast<double>(re - b);
+  }
+  return out;
+}
+
 std::vector<char> scored_mask(const StreamResult& r, std::size_t n) {
   std::vector<char> m(n, 1);
   if (r.windows.empty()) {

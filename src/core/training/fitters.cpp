@@ -45,22 +45,13 @@ const std::map<std::string, FitFn>& fitters() {
 // per recording — which a random walk's hysteresis averages out of.
 constexpr int kRecordingOffsetPasses = 2;
 
-// Each recording's mean of measured − predicted (free run from its own rest).
+// Each recording's mean of measured − predicted, the model run free from each recording's own rest.
 std::vector<double> recording_residuals(const models::Model& model, const io::Dataset& data, const std::string& axis) {
   models::StreamOptions so;
   so.mode = models::PredictionMode::kFreeRun;
   so.keep_diverging = true;
   auto m = model.clone();
-  const std::vector<double> pred = models::stream_model(*m, data, axis, so).prediction;
-  const auto& y = data.axis(axis).position_nm;
-  std::vector<double> out;
-  for (std::size_t k = 0; k < data.recording_count(); ++k) {
-    const auto [b, e] = data.recording_rows(k);
-    double s = 0;
-    for (std::size_t i = b; i < e; ++i) s += y[i] - pred[i];
-    out.push_back(s / static_cast<double>(e - b));
-  }
-  return out;
+  return models::recording_offsets(data, axis, models::stream_model(*m, data, axis, so).prediction);
 }
 
 // Each recording's intercept of y ≈ Σ_{p≤3} a_p·v^p + c_r, centred over the recordings.
