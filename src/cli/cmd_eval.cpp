@@ -6,6 +6,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "training_rows.h"
 #include "plot_script.h"
 #include "piezo_compensation/analysis/eval_report.h"
 #include "piezo_compensation/analysis/noise_floor.h"
@@ -60,10 +61,9 @@ int run(int argc, char** argv) {
       .option("zero-before-hold-s", "T", "score each test recording's first hold from a zero taken over the T before it\n"
               "(its walk's MAE over --walk-end-s before the hold, and the hold's creep); 0 = off", "0")
       .option("walk-end-s", "T", "with --zero-before-hold-s: the walk scored over this long before the hold", "900")
-      .option("allow-training-rows", "", "score rows the model was trained on (refused otherwise: a figure on them says\n"
-              "nothing about new data)")
       .option("no-plots", "", "skip the PNG plots")
       .required("out", "DIR", "output directory");
+  allow_training_rows_option(args);
   if (!args.parse(argc, argv)) return 0;
   std::vector<std::string> paths = args.list("models");
   for (const auto& p : args.positional()) paths.push_back(p);
@@ -88,12 +88,8 @@ int run(int argc, char** argv) {
     if (ms.size() == 1) ctx.axis = axis;
     if (axis != ctx.axis) throw UsageError("eval: models are for different axes; pass --axis");
     analysis::check_model_for_eval(*ms.back(), p, axis, test, creep.empty() ? nullptr : &creep);
-    for (const io::Dataset* d : {&test, static_cast<const io::Dataset*>(&creep)}) {
-      const std::string overlap = models::training_overlap(ms.back()->meta, *d, axis, p);
-      if (!overlap.empty() && !args.flag("allow-training-rows"))
-        throw UsageError("eval: " + overlap + "; --allow-training-rows scores them anyway");
-      if (!overlap.empty()) std::cerr << "warning: " << overlap << " (scored: --allow-training-rows)\n";
-    }
+    check_training_rows(args, "eval", ms.back()->meta, test, axis, p);
+    check_training_rows(args, "eval", ms.back()->meta, creep, axis, p);
   }
   eo.axis = ctx.axis;
   const io::AxisSeries& ax = test.axis(ctx.axis);

@@ -9,6 +9,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "training_rows.h"
 #include "plot_script.h"
 #include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/residual.h"
@@ -59,10 +60,9 @@ int run(int argc, char** argv) {
       .option("refit-base", "", "with a model file: refit its kind (default options) while backfitting")
       .option("mid-history", "", "TRAIN starts on a stage already in use (a ~snapshot): fit the decay of the base's "
               "unknown initial creep state alongside the effects (not put in the model)")
-      .option("allow-training-rows", "", "score rows the model was trained on (refused otherwise: a figure on them says\n"
-              "nothing about new data)")
       .option("no-plots", "", "skip the PNGs")
       .required("out", "DIR", "output directory");
+  allow_training_rows_option(args);
   if (!args.parse(argc, argv)) return 0;
 
   io::Dataset train, test;
@@ -127,11 +127,7 @@ int run(int argc, char** argv) {
     base = models::load_model(model_arg);
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");
     models::check_model_matches_data(*base, train, args.has("data") ? args.str("data") : train.source_or_data());
-    if (const std::string overlap = models::training_overlap(base->meta, test, axis, model_arg); !overlap.empty()) {
-      if (!args.flag("allow-training-rows"))
-        throw UsageError("residual: TEST " + overlap + "; --allow-training-rows scores them anyway");
-      std::cerr << "warning: TEST " << overlap << " (scored: --allow-training-rows)\n";
-    }
+    check_training_rows(args, "residual", base->meta, test, axis, model_arg, "TEST ");
   } else {
     if (!training::fitter(model_arg)) throw UsageError("residual: model kind '" + model_arg + "' cannot be fitted on its own");
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());

@@ -8,6 +8,7 @@
 
 #include "args.h"
 #include "command.h"
+#include "training_rows.h"
 #include "plot_script.h"
 #include "piezo_compensation/analysis/estimator_fit.h"
 #include "piezo_compensation/compensation/track.h"
@@ -81,10 +82,9 @@ int run(int argc, char** argv) {
       .option("end-window-s", "T", "the end of a hold: its last T [s]", "5")
       .option("score-from-s", "T", "also score every sample from T after the first row on [s]", "300")
       .option("start-estimate-s", "T", "the start-up state estimate over the first T [s] (models/start_state.h); 0 = off", "0")
-      .option("allow-training-rows", "", "score rows the model was trained on (refused otherwise: a figure on them says\n"
-              "nothing about new data)")
       .option("plot", "", "also write DIR/track.png (python3-matplotlib)")
       .required("out", "DIR", "output directory");
+  allow_training_rows_option(args);
   if (!args.parse(argc, argv)) return 0;
   models::ModelPtr model = models::load_model(args.str("model"));
   const std::string axis = args.has("axis") ? args.str("axis") : model->meta.axis;
@@ -94,10 +94,7 @@ int run(int argc, char** argv) {
   std::string data_names;
   for (const auto& f : args.list("data")) data_names += (data_names.empty() ? "" : " ") + f;
   models::check_model_matches_data(*model, data, data_names);
-  if (const std::string overlap = models::training_overlap(model->meta, data, axis, args.str("model")); !overlap.empty()) {
-    if (!args.flag("allow-training-rows")) throw UsageError("track: " + overlap + "; --allow-training-rows tracks them anyway");
-    std::cerr << "warning: " << overlap << " (tracked: --allow-training-rows)\n";
-  }
+  check_training_rows(args, "track", model->meta, data, axis, args.str("model"), "", "tracks");
   if (args.has("identify-on")) {
     const io::Dataset id = ros_io::read_data(args.str("identify-on"));
     const double from_s = args.num("identify-from-s");
