@@ -121,6 +121,11 @@ TEST(CExport, PiAndCreepKindsMatchCpp) {
       // with an input map (the memory-free play in pieces)
       PiCreepModel mapped({0, 10, 20, 35}, {3, 5, 8, 6, 1, 0.5, 0.25}, 2.0, cp, 11.0, {{-30, 0, 30}, {}, {}, {}}, true);
       expect_equal_to_cpp(mapped, true);
+      // with an output map (a monotone cubic of the hysteresis output; the inverse bisects through it)
+      models::OutputMap om;
+      om.lo_nm = -150, om.hi_nm = 150, om.quadratic_nm = 20, om.cubic_nm = -12;
+      m.set_output_map(om);
+      expect_equal_to_cpp(m, true);
     }
 }
 

@@ -144,6 +144,80 @@ TEST(PiModel, FitTakesTheInputMapWhereTheLoopsAreAsymmetric) {
   EXPECT_EQ(pieces_sym, 0.0);
 }
 
+// An output map (a monotone cubic of the hysteresis output): the file round-trips, the inverse is exact through the
+// bend and beyond the map's range, and a bend that would fold a branch back is refused on load.
+TEST(PiModel, AnOutputMapRoundTripsInvertsAndRefusesAFold) {
+  CreepParams cp;
+  cp.kind = models::CreepKind::kLti;
+  cp.taus_s = {5, 200}, cp.gains_nm_per_v = {0.4, 0.8}, cp.on_hysteresis = true;
+  PiCreepModel m = make_pi(cp);
+  models::OutputMap map;
+  map.lo_nm = -700, map.hi_nm = 700, map.quadratic_nm = 90, map.cubic_nm = -60;
+  m.set_output_map(map);
+  EXPECT_GT(m.output_map().min_slope(), 0.4);
+  EXPECT_EQ(m.num_parameters(), make_pi(cp).num_parameters() + 2u);
+  const std::string text = model_file_text(m);
+  EXPECT_NE(text.find("output_map"), std::string::npos);
+  EXPECT_EQ(model_file_text(*model_from_text(text)), text);
+  PiCreepModel run = m, plain = make_pi(cp);
+  run.reset(0, 0), plain.reset(0, 0);
+  double bend = 0;
+  for (int t = 0; t < 400; ++t) {
+    const double v = 70 * std::sin(0.03 * t) + 6 * std::sin(0.5 * t);
+    for (double target : {-2500.0, -600.0, 0.0, 90.0, 650.0, 2600.0})
+      EXPECT_NEAR(run.predict_v(run.inverse(target)), target, 1e-6);
+    bend = std::max(bend, std::abs(run.predict_v(v) - plain.predict_v(v)));
+    run.commit({v, nullptr}, 0), plain.commit({v, nullptr}, 0);
+  }
+  EXPECT_GT(bend, 50.0);  // the map is in the prediction, not only in the file
+  EXPECT_NE(load_error_after(text, "cubic_nm: -60", "cubic_nm: -900").find("not increasing"), std::string::npos);
+  EXPECT_NE(load_error_after(text, "quadratic_nm: 90", "quadratic: 90").find("model.output_map"), std::string::npos);
+  map.hi_nm = map.lo_nm;
+  EXPECT_THROW(m.set_output_map(map), std::runtime_error);
+}
+
+// A stage whose loop is bent by a static map of its hysteresis output: the fit with output_map on recovers most of
+// the bend (scored on the shape: the validation part's mean error taken out), auto takes it by validation; on the
+// same stage without the bend auto leaves it out.
+TEST(PiModel, FitTakesTheOutputMapWhereTheLoopIsBent) {
+  const std::size_t N = 60000, split = 30000;  // 45 min of validation at 11 Hz: 9 blocks of 5 min
+  const auto v = testdata::random_walk_v(N, 11);
+  auto fit = [&](bool bent, const char* option) {
+    PiCreepModel truth = make_pi();
+    if (bent) {
+      models::OutputMap map;
+      map.lo_nm = -1500, map.hi_nm = 1500, map.quadratic_nm = 150, map.cubic_nm = -100;  // beyond the walk
+      truth.set_output_map(map);
+    }
+    const io::Dataset d = testdata::make_dataset(truth, v, 11.0, 5.0, 3);
+    const io::Dataset train = d.slice(0, split), val = d.slice(split, N);
+    training::FitRequest req;
+    req.train = &train;
+    req.validation = &val;
+    req.options["output_map"] = option;
+    auto m = training::fit_model("pi", req);
+    const std::vector<double> p = models::stream_model(*m, d, "c").prediction;
+    const auto& c = d.axis("c");
+    double offset = 0, mae = 0;
+    for (std::size_t i = split; i < N; ++i) offset += (p[i] - c.true_position_nm[i]) / double(N - split);
+    for (std::size_t i = split; i < N; ++i) mae += std::abs(p[i] - offset - c.true_position_nm[i]) / double(N - split);
+    const auto it = m->meta.validation.find("fit_output_map");
+    return std::make_pair(it == m->meta.validation.end() ? -1.0 : it->second, mae);
+  };
+  const auto [on, mae_on] = fit(true, "on");
+  const auto [off, mae_off] = fit(true, "off");
+  const auto [taken, mae_auto] = fit(true, "auto");
+  std::printf("bent loop: with the map %.2f nm vs truth, without %.2f nm, auto %.2f nm (map %.0f)\n", mae_on, mae_off,
+              mae_auto, taken);
+  EXPECT_EQ(on, 1.0);
+  EXPECT_EQ(off, -1.0);  // off: no map fitted, nothing recorded
+  EXPECT_LT(mae_on, 0.3 * mae_off);
+  EXPECT_EQ(taken, 1.0);
+  const auto [plain, mae_plain] = fit(false, "auto");
+  std::printf("plain loop: auto %.2f nm vs truth (map %.0f)\n", mae_plain, plain);
+  EXPECT_EQ(plain, 0.0);
+}
+
 TEST(Nnls, MatchesBruteForceOnSmallProblem) {
   // min ½xᵀGx − cᵀx, x0 free, x1..x2 ≥ 0: compare with enumerating all active sets.
   Eigen::MatrixXd A(6, 3);

@@ -10,6 +10,11 @@
 // The PI kinds may cut the memory-free play (r_0 = 0) alone into pieces: an input map, a monotone piecewise-linear
 // function of V in front of the symmetric plays (the "modified PI" of asymmetric hysteresis; the fit chooses it by
 // validation, training/fit_pi.cpp), stored as `input_map: {knots_v: [...]}`.
+// Every PI and Preisach kind may carry an output map: a monotone static nonlinearity S of the hysteresis output H,
+//   y = b + S(H) + creep,   S(H) = H + a₂·z² + a₃·z³,   z = (H − H_mid)/H_half on [H_lo, H_hi], affine beyond,
+// (the superposition operator of the modified PI: loops whose middle and ends bend differently, which the odd play
+// operators cannot; the real MM3E's c axis, docs/models.md "Real recordings"). The creep input stays H. Stored as
+// `output_map: {h_range_nm: [lo, hi], quadratic_nm, cubic_nm}`; S' > 0 on its range is checked on load.
 #pragma once
 
 #include <Eigen/Dense>
@@ -21,6 +26,16 @@
 #include "piezo_compensation/models/model.h"
 
 namespace piezo::models {
+
+// The output map S (see above). Identity when empty().
+struct OutputMap {
+  double lo_nm = 0, hi_nm = 0, quadratic_nm = 0, cubic_nm = 0;
+  bool empty() const { return quadratic_nm == 0 && cubic_nm == 0; }
+  double operator()(double h_nm) const;
+  double slope(double h_nm) const;  // dS/dH
+  // Smallest dS/dH over [lo, hi] (the map is affine beyond).
+  double min_slope() const;
+};
 
 class PiCreepModel : public Model {
  public:
@@ -59,6 +74,9 @@ class PiCreepModel : public Model {
   // Hysteresis output Σ w·pieces for input v from play states p; writes the advanced states to p_next if given.
   double hysteresis(double v, const std::vector<double>& p, std::vector<double>* p_next = nullptr) const;
   double bias_nm() const { return b_; }
+  const OutputMap& output_map() const { return map_; }
+  // Sets the output map; throws when it is not finite, its range is empty or S' ≤ 0 somewhere on it.
+  void set_output_map(const OutputMap& map);
   const CreepParams& creep() const { return creep_; }
   const std::vector<double>& mode_taus_s() const { return taus_; }
   const std::vector<double>& mode_gains() const { return gains_; }
@@ -73,11 +91,14 @@ class PiCreepModel : public Model {
   bool input_map_ = false;
   std::vector<std::size_t> first_;  // index in w_ of each play's first piece
   double b_;
+  OutputMap map_;
   CreepParams creep_;
   double rate_hz_;
   std::vector<double> taus_, gains_, poles_;  // expanded creep modes
   std::vector<std::size_t> live_modes_;       // modes with g·pole ≠ 0 (the linear states)
   std::vector<double> p_, l_;                 // state: play outputs, mode low-passes
+
+  double inverse_piecewise(double target_nm) const;  // exact without an output map
 };
 
 // The classical inverse PI operator (Kuhnen / Al Janaideh): V = Σ_i w'_i · play_{r'_i}(y − b) with

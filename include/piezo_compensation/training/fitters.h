@@ -46,7 +46,20 @@ constexpr double kMaxFreeRunGain = 10.0;
 // pi_creep_lti, pi_creep_fractional, pi_creep_prony; with preisach also "preisach" (kNone) and
 // "preisach_creep_prony" (kProny), which take knots_per_span (≤ 65, default min(n_play, 12)) and piece_smoothing
 // (0.1).
+// Option output_map (all PI and Preisach kinds): off (default), on, or auto (with validation data: kept when
+// validation clearly prefers it): the output map S of the hysteresis output (models/pi_model.h).
 models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, bool preisach = false);
+
+// The option output_map, checked (off when not given).
+std::string output_map_option(const YAML::Node& options);
+
+// The model `fit` returns for `req`, then for a PI or Preisach model its output map: fitted on the training residual
+// (z², z³ of the hysteresis output, one intercept per recording), the kind refitted with the same structure on the
+// positions less the map's bend, the map fitted again. Kept when `always`, else when validation clearly prefers it
+// over the first fit: free run from each validation recording's rest, scored on the 5-min blocks that move, each
+// block's mean error taken out (the map bends the moves' shape; a hold only sees a constant), paired blocks
+// (validation_prefers). The model's validation map records fit_output_map (1 or 0).
+models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const FitFn& fit);
 
 // The options that refit `previous` on new data (a backfitting round of `piezo residual`): its creep law's time
 // constants (taus_s, t1_s or alpha) as a start refined near it (warm_start) rather than searched over the whole

@@ -184,13 +184,24 @@ static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
   for (i = 0; i < PFX_NMODE; ++i) st->l[i] = PFX_CREEP_ON_H ? h : voltage_v;
 }
 
-/* y = bias + H + creep, H = sum of weighted play pieces; creep low-passes H or V (PFX_CREEP_ON_H). */
+/* Output map S(H) = H + a2 z^2 + a3 z^3, z = (H - mid) / half on [lo, hi], affine beyond (identity when a2 = a3 = 0). */
+static double PFX_map(double h) {
+  const double mid = 0.5 * (PFX_map_lo + PFX_map_hi), half = 0.5 * (PFX_map_hi - PFX_map_lo);
+  double z, s;
+  if (PFX_map_a2 == 0.0 && PFX_map_a3 == 0.0) return h;
+  z = (h - mid) / half;
+  z = z < -1.0 ? -1.0 : (z > 1.0 ? 1.0 : z);
+  s = 1.0 + (2.0 * PFX_map_a2 * z + 3.0 * PFX_map_a3 * z * z) / half;
+  return mid + half * z + PFX_map_a2 * z * z + PFX_map_a3 * z * z * z + s * (h - (mid + half * z));
+}
+
+/* y = bias + S(H) + creep, H = sum of weighted play pieces; creep low-passes H or V (PFX_CREEP_ON_H). */
 static double PFX_predict(const PFX_state* st, double v) {
   double h = 0.0, u, y;
   int i;
   for (i = 0; i < PFX_NP; ++i) h += PFX_pieces(PFX_play(v, PFX_r[i], st->p[i]), i);
   u = PFX_CREEP_ON_H ? h : v;
-  y = PFX_bias_nm + h;
+  y = PFX_bias_nm + PFX_map(h);
   for (i = 0; i < PFX_NMODE_USED; ++i) y += PFX_g[i] * (PFX_a[i] * st->l[i] + (1.0 - PFX_a[i]) * u);
   return y;
 }
@@ -212,9 +223,9 @@ static double PFX_step(PFX_state* st, double voltage_v, double measured_nm) {
 }
 
 #define PFX_HAS_INVERSE 1
-/* Exact inverse for the current state: the prediction is piecewise linear in V with kinks at p_i -/+ r_i and where
- * a moving play output crosses a knot; affine outside them. */
-static double PFX_inverse(const PFX_state* st, double target_nm) {
+/* Exact inverse for the current state without an output map: the prediction is piecewise linear in V with kinks at
+ * p_i -/+ r_i and where a moving play output crosses a knot; affine outside them. */
+static double PFX_inverse_piecewise(const PFX_state* st, double target_nm) {
   double k[2 * PFX_NP + 2 * PFX_NKNOT];
   int n = 0, i, j;
   double slope_lo, slope_hi, f_last, x_prev, f_prev;
@@ -241,6 +252,22 @@ static double PFX_inverse(const PFX_state* st, double target_nm) {
     x_prev = k[i]; f_prev = f;
   }
   return slope_hi > 0.0 ? x_prev + (target_nm - f_prev) / slope_hi : x_prev;
+}
+
+/* With an output map the prediction is increasing in V but curved between kinks: bracket the piecewise guess, bisect. */
+static double PFX_inverse(const PFX_state* st, double target_nm) {
+  const double v0 = PFX_inverse_piecewise(st, target_nm);
+  double lo = v0, hi = v0, step = 1.0, mid;
+  int i;
+  if (PFX_map_a2 == 0.0 && PFX_map_a3 == 0.0) return v0;
+  for (i = 0; i < 64 && PFX_predict(st, lo) > target_nm; ++i, step *= 2.0) lo = v0 - step;
+  step = 1.0;
+  for (i = 0; i < 64 && PFX_predict(st, hi) < target_nm; ++i, step *= 2.0) hi = v0 + step;
+  for (i = 0; i < 60 && hi - lo > 1e-9 * (1.0 + (v0 < 0.0 ? -v0 : v0)); ++i) {
+    mid = 0.5 * (lo + hi);
+    if (PFX_predict(st, mid) < target_nm) lo = mid; else hi = mid;
+  }
+  return 0.5 * (lo + hi);
 }
 )C";
 
@@ -423,6 +450,9 @@ std::string export_c99_pi(const Model& model, const std::string& prefix) {
   os << "#define PFX_NP " << m->thresholds_v().size() << "\n#define PFX_NMODE " << std::max<std::size_t>(1, nm)
      << "\n#define PFX_NMODE_USED " << nm << "\n#define PFX_CREEP_ON_H " << (m->creep().on_hysteresis ? 1 : 0) << "\n";
   os << "static const double PFX_bias_nm = " << num(m->bias_nm()) << ";\n";
+  const OutputMap& om = m->output_map();
+  os << "static const double PFX_map_lo = " << num(om.lo_nm) << ", PFX_map_hi = " << num(om.hi_nm)
+     << ", PFX_map_a2 = " << num(om.quadratic_nm) << ", PFX_map_a3 = " << num(om.cubic_nm) << ";\n";
   // Knot tables (the preisach kinds and a PI input map; zero knots everywhere for plain PI: one weight per play).
   std::vector<std::string> nk, k0, w0;
   std::vector<double> knots;

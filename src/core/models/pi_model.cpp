@@ -15,6 +15,45 @@ namespace {
 using features::play;
 }  // namespace
 
+double OutputMap::operator()(double h) const {
+  if (empty()) return h;
+  const double mid = 0.5 * (lo_nm + hi_nm), half = 0.5 * (hi_nm - lo_nm);
+  const double z = (h - mid) / half, zc = std::min(1.0, std::max(-1.0, z));
+  const double inside = mid + half * zc + quadratic_nm * zc * zc + cubic_nm * zc * zc * zc;
+  return inside + slope(h) * (h - (mid + half * zc));  // affine beyond the range
+}
+
+double OutputMap::slope(double h) const {
+  if (empty()) return 1.0;
+  const double mid = 0.5 * (lo_nm + hi_nm), half = 0.5 * (hi_nm - lo_nm);
+  const double z = std::min(1.0, std::max(-1.0, (h - mid) / half));
+  return 1.0 + (2.0 * quadratic_nm * z + 3.0 * cubic_nm * z * z) / half;
+}
+
+double OutputMap::min_slope() const {
+  if (empty()) return 1.0;
+  const double half = 0.5 * (hi_nm - lo_nm), mid = 0.5 * (lo_nm + hi_nm);
+  double m = std::min(slope(lo_nm), slope(hi_nm));
+  if (cubic_nm != 0) {  // the parabola S'(z) has its extremum at z = −a₂ / (3·a₃)
+    const double z = -quadratic_nm / (3.0 * cubic_nm);
+    if (z > -1.0 && z < 1.0) m = std::min(m, slope(mid + half * z));
+  }
+  return m;
+}
+
+void PiCreepModel::set_output_map(const OutputMap& map) {
+  if (!map.empty()) {
+    if (!std::isfinite(map.lo_nm) || !std::isfinite(map.hi_nm) || !(map.hi_nm > map.lo_nm))
+      throw std::runtime_error("model.output_map.h_range_nm: expected two finite values, the first below the second");
+    if (!std::isfinite(map.quadratic_nm) || !std::isfinite(map.cubic_nm))
+      throw std::runtime_error("model.output_map: non-finite quadratic_nm or cubic_nm");
+    if (!(map.min_slope() > 0))
+      throw std::runtime_error("model.output_map: not increasing on h_range_nm (smallest slope " +
+                               std::to_string(map.min_slope()) + "), so the model could not be inverted");
+  }
+  map_ = map;
+}
+
 PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double> weights, double bias_nm,
                            CreepParams creep, double sample_rate_hz, std::vector<std::vector<double>> knots_v,
                            bool input_map)
@@ -85,7 +124,7 @@ void PiCreepModel::reset(double voltage_v, double /*position_nm*/) {
 double PiCreepModel::predict_v(double v) const {
   const double h = hysteresis(v, p_);
   const double u = creep_.on_hysteresis ? h : v;
-  double y = b_ + h;
+  double y = b_ + map_(h);
   for (std::size_t j = 0; j < taus_.size(); ++j) y += gains_[j] * (poles_[j] * l_[j] + (1 - poles_[j]) * u);
   return y;
 }
@@ -108,6 +147,22 @@ void PiCreepModel::shift_linear_state(std::size_t k, double delta_nm) {
 }
 
 double PiCreepModel::inverse(double target) const {
+  const double v0 = inverse_piecewise(target);
+  if (map_.empty()) return v0;
+  // With an output map predict_v is still increasing in V but curved between kinks: bracket the piecewise guess,
+  // then bisect (each step one predict_v; 60 halvings of the bracket reach the double's resolution).
+  double lo = v0, hi = v0, step = 1.0;
+  for (int i = 0; i < 64 && predict_v(lo) > target; ++i, step *= 2) lo = v0 - step;
+  step = 1.0;
+  for (int i = 0; i < 64 && predict_v(hi) < target; ++i, step *= 2) hi = v0 + step;
+  for (int i = 0; i < 60 && hi - lo > 1e-9 * (1.0 + std::abs(v0)); ++i) {
+    const double mid = 0.5 * (lo + hi);
+    (predict_v(mid) < target ? lo : hi) = mid;
+  }
+  return 0.5 * (lo + hi);
+}
+
+double PiCreepModel::inverse_piecewise(double target) const {
   // predict_v is piecewise linear with kinks at p_i ± r_i and, for the preisach kinds, where a play output that
   // moves crosses a knot (c + r above the state, c − r below it); walk the sorted kinks.
   std::vector<double> k;
@@ -141,6 +196,7 @@ std::size_t PiCreepModel::num_parameters() const {
   if (creep_.kind == CreepKind::kLti) n += 2 * creep_.taus_s.size();
   if (creep_.kind == CreepKind::kLog || creep_.kind == CreepKind::kFractional) n += 2;
   if (creep_.kind == CreepKind::kProny) n += creep_.gains_nm_per_v.size();
+  if (!map_.empty()) n += 2;
   return n;
 }
 
@@ -164,6 +220,13 @@ YAML::Node PiCreepModel::to_yaml() const {
     pn["knot_counts"] = yaml_list(counts);
     pn["knots_v"] = yaml_list(flat);
     n["preisach"] = pn;
+  }
+  if (!map_.empty()) {
+    YAML::Node om;
+    om["h_range_nm"] = yaml_list(std::vector<double>{map_.lo_nm, map_.hi_nm});
+    om["quadratic_nm"] = map_.quadratic_nm;
+    om["cubic_nm"] = map_.cubic_nm;
+    n["output_map"] = om;
   }
   if (creep_.kind != CreepKind::kNone) {
     YAML::Node c;
@@ -316,7 +379,19 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
                               : expected == CreepKind::kLti     ? std::string("taus_s, gains_nm_per_v")
                               : expected == CreepKind::kProny   ? std::string("mode_gains, tau_min_s, ...")
                                                                 : std::string("alpha, b_nm_per_v, ...")));
-  return std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots, input_map);
+  auto m = std::make_unique<PiCreepModel>(r, w, b, cp, rate, knots, input_map);
+  if (node["output_map"]) {
+    const YAML::Node om = node["output_map"];
+    if (!om.IsMap()) throw std::runtime_error("model.output_map: expected a mapping with h_range_nm, quadratic_nm, cubic_nm");
+    check_keys(om, {"h_range_nm", "quadratic_nm", "cubic_nm"}, "model.output_map");
+    const auto range = yaml_numbers(om, "h_range_nm", 2, "model.output_map");
+    OutputMap map;
+    map.lo_nm = range[0], map.hi_nm = range[1];
+    map.quadratic_nm = yaml_number(om, "quadratic_nm", "model.output_map");
+    map.cubic_nm = yaml_number(om, "cubic_nm", "model.output_map");
+    m->set_output_map(map);
+  }
+  return m;
 }
 
 // ---- classical inverse -------------------------------------------------------------------------

@@ -1461,7 +1461,10 @@ models::ModelPtr PiCreepFit::run() {
 // The preisach kinds cut each play output at knots (basis_for); K, the knot intervals over the span, is the number of
 // play operators unless given (knots_per_span), so the plane is tiled by an n × n triangle of ramp hysterons.
 models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, bool preisach) {
-  return PiCreepFit(req, kind, preisach).run();
+  const std::string map = output_map_option(req.options);
+  const FitFn fit = [kind, preisach](const FitRequest& r) -> models::ModelPtr { return PiCreepFit(r, kind, preisach).run(); };
+  if (map == "off") return fit(req);
+  return fit_with_output_map(req, map == "on", fit);
 }
 
 YAML::Node refit_options(const models::Model& previous, const YAML::Node& options) {
