@@ -164,6 +164,8 @@ std::vector<params::ParamDef> predictor_axis_params(const PredictorSettings& d) 
              "integral time constant of the trim on (intended − fused)"),
       number("hold_trim_max_nm", "nm", t.max_nm, 0.0, 1e6, "bound on |trim| (0 = 2 % of the ideal stroke)"),
       number("hold_trim_slew_nm_per_s", "nm/s", t.slew_nm_per_s, 1e-6, 1e6, "largest change of the trim per second"),
+      number("hold_trim_deadband_sigma", "fused 1σ", t.deadband_sigma, 0.0, 100.0,
+             "the trim acts on the part of |intended − fused| beyond this many fused σ (0 = none)"),
       number("encoder_stale_after_s", "s", t.stale_after_s, 1e-3, 3600.0,
              "no valid reading for this long: the estimate only predicts and the trim holds"),
       number("start_estimate_s", "s", a.start_estimate_s, 0.0, 3600.0,
@@ -201,6 +203,7 @@ void read_axis_settings(params::ParamReader& r, PredictorSettings& s) {
   t.time_constant_s = r.number("hold_trim_time_constant_s");
   t.max_nm = r.number("hold_trim_max_nm");
   t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s");
+  t.deadband_sigma = r.number("hold_trim_deadband_sigma");
   t.stale_after_s = r.number("encoder_stale_after_s");
   s.axis.start_estimate_s = r.number("start_estimate_s");
   s.resume_from = r.text("resume_from");

@@ -1,12 +1,15 @@
 // sim.launch as a new user starts it: per axis a, b, c the encoder, voltage and prediction topics arrive at the
 // encoder rate (on their stamps: the driver's receive times of the device's reports, so the rate is the device's,
 // whenever the host lets us read them). ~fallback_axis (if set) must run uncorrected with a status naming ~fallback_file, while its driver
-// still reports a held voltage.
+// still reports a held voltage. Every other axis fuses its encoder (the shipped models' estimator: blocks, a and b
+// through the 250 nm quantiser): a finite fused position and σ on every prediction, never "model_only". With
+// ~check_chart the monitor (piezo_monitor) draws the fused ±1σ band on each of those axes' strip charts.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <map>
 #include <string>
 #include <vector>
@@ -14,6 +17,7 @@
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/Prediction.h"
+#include "visualization_msgs/MarkerArray.h"
 
 namespace {
 
@@ -21,7 +25,8 @@ namespace {
 constexpr double kPatienceS = 60.0;
 
 struct Counts {
-  int encoder = 0, voltage = 0, prediction = 0, fallback = 0, model_predicted = 0;
+  int encoder = 0, voltage = 0, prediction = 0, fallback = 0, model_predicted = 0, fused = 0, model_only = 0;
+  double last_sigma_nm = std::nan("");
   std::string last_status, model;
   std::vector<double> voltages;
   std::vector<double> encoder_stamps, voltage_stamps, prediction_stamps;
@@ -79,6 +84,10 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
           k.prediction_stamps.push_back(m->header.stamp.toSec());
           k.fallback += m->fallback;
           k.model_predicted += !m->fallback && std::isfinite(m->predicted_position);
+          k.fused += std::isfinite(m->fused_position) && std::isfinite(m->fused_position_sigma) &&
+                     m->fused_position_sigma > 0.0;
+          k.model_only += m->hold_trim_state == "model_only";
+          k.last_sigma_nm = m->fused_position_sigma * 1e9;
           k.last_status = m->status;
           k.model = m->model;
         }));
@@ -131,7 +140,40 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
       EXPECT_EQ(k.fallback, 0) << k.last_status;
       EXPECT_EQ(k.model_predicted, k.prediction) << "predictions from the model";
       EXPECT_NE(k.model.find("mm3e_sim_" + a), std::string::npos) << "shipped default model, got " << k.model;
+      EXPECT_EQ(k.fused, k.prediction) << "a fused position with a finite σ on every prediction";
+      EXPECT_EQ(k.model_only, 0) << "the shipped model's estimator fuses the encoder";
+      std::printf("axis %s: %d predictions fused, last 1σ %.1f nm\n", a.c_str(), k.fused, k.last_sigma_nm);
     }
+  }
+}
+
+// The monitor's strip chart of each fused axis carries the fused ±1σ band (analysis/strip_chart.h: triangles
+// between consecutive samples that both have a σ).
+TEST(SimLaunch, TheMonitorDrawsTheFusedBand) {
+  ros::NodeHandle nh, pnh("~");
+  if (!pnh.param("check_chart", false)) GTEST_SKIP() << "~check_chart off";
+  std::map<std::string, std::size_t> band_points;
+  auto sub = nh.subscribe<visualization_msgs::MarkerArray>(
+      "/mm1/monitor/chart", 1, [&](const visualization_msgs::MarkerArray::ConstPtr& m) {
+        for (const auto& mk : m->markers) {
+          const auto slash = mk.ns.find('/');
+          if (slash != std::string::npos && mk.ns.substr(slash + 1) == "fused_band")
+            band_points[mk.ns.substr(0, slash)] = mk.points.size();
+        }
+      });
+  const auto drawn = [&] {
+    for (const std::string a : {"a", "b", "c"})
+      if (band_points[a] < 60) return false;  // ten or more samples' worth of band
+    return true;
+  };
+  const ros::WallTime give_up = ros::WallTime::now() + ros::WallDuration(kPatienceS);
+  while (ros::ok() && !drawn() && ros::WallTime::now() < give_up) {
+    ros::spinOnce();
+    ros::WallDuration(0.05).sleep();
+  }
+  for (const std::string a : {"a", "b", "c"}) {
+    std::printf("axis %s: fused band of %zu points on the chart\n", a.c_str(), band_points[a]);
+    EXPECT_GE(band_points[a], 60u) << "axis " << a << ": no fused ±1σ band on /mm1/monitor/chart";
   }
 }
 

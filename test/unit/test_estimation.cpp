@@ -209,13 +209,13 @@ TEST(HoldTrim, WaitsForTheSettleTimeThenIntegratesBoundedAndSlewLimited) {
   HoldTrim t(o, kDt);
   t.on_new_intent();
   for (int i = 0; i < 54; ++i) {  // < 5 s
-    t.step(100.0, 130.0, true, 0, true, true);
+    t.step(100.0, 130.0, 1.0, true, 0, true, true);
     EXPECT_EQ(t.trim_nm(), 0.0);
     EXPECT_NE(t.state(), TrimState::kActive);
   }
   double last = 0.0;
   for (int i = 0; i < 2000; ++i) {
-    t.step(100.0, 130.0, true, 0, true, true);  // 30 nm too far: the trim goes negative
+    t.step(100.0, 130.0, 1.0, true, 0, true, true);  // 30 nm too far: the trim goes negative
     EXPECT_EQ(t.state(), TrimState::kActive);
     EXPECT_LE(std::abs(t.trim_nm() - last), 0.5 * kDt + 1e-12);  // slew
     last = t.trim_nm();
@@ -226,21 +226,41 @@ TEST(HoldTrim, WaitsForTheSettleTimeThenIntegratesBoundedAndSlewLimited) {
   EXPECT_EQ(t.state(), TrimState::kMoving);
 }
 
+// An estimate that cannot tell the error from zero does not move the tip: the trim integrates only the part of
+// |intended − fused| beyond deadband_sigma × the fused σ (a coarse axis' estimate in a hold that does not flicker
+// wanders within its σ, and a trim chasing it walks the tip towards a level's edge).
+TEST(HoldTrim, ActsOnlyOnTheErrorBeyondTheFusedSigma) {
+  HoldTrimOptions o;
+  o.settle_s = 0.0;
+  o.time_constant_s = 100.0;
+  o.deadband_sigma = 1.0;
+  HoldTrim t(o, kDt);
+  for (int i = 0; i < 1000; ++i) t.step(100.0, 104.0, 8.0, true, 0, true, true);  // 4 nm off at 1σ 8 nm
+  EXPECT_EQ(t.state(), TrimState::kActive);
+  EXPECT_EQ(t.trim_nm(), 0.0);
+  t.step(100.0, 130.0, 8.0, true, 0, true, true);  // 30 nm off: the 22 nm beyond 1σ, over τ
+  EXPECT_NEAR(t.trim_nm(), -22.0 / 100.0 * kDt, 1e-12);
+  t.step(100.0, 130.0, std::nan(""), true, 0, true, true);  // no σ: no band
+  EXPECT_NEAR(t.trim_nm(), -(22.0 + 30.0) / 100.0 * kDt, 1e-12);
+  o.deadband_sigma = -1.0;
+  EXPECT_THROW(HoldTrim(o, kDt), std::invalid_argument);
+}
+
 TEST(HoldTrim, PausesOnAStaleEncoderAndOnFallbackAndOffWhenModelOnly) {
   HoldTrimOptions o;
   o.settle_s = 0.0;
   o.stale_after_s = 1.0;
   HoldTrim t(o, kDt);
-  for (int i = 0; i < 100; ++i) t.step(0.0, 5.0, true, 0, true, true);
+  for (int i = 0; i < 100; ++i) t.step(0.0, 5.0, 1.0, true, 0, true, true);
   const double held = t.trim_nm();
   EXPECT_LT(held, 0.0);
-  t.step(0.0, 5.0, true, 12, true, true);  // 12 samples without a reading > 1 s
+  t.step(0.0, 5.0, 1.0, true, 12, true, true);  // 12 samples without a reading > 1 s
   EXPECT_EQ(t.state(), TrimState::kStale);
   EXPECT_EQ(t.trim_nm(), held);
-  t.step(0.0, 5.0, true, 0, false, true);
+  t.step(0.0, 5.0, 1.0, true, 0, false, true);
   EXPECT_EQ(t.state(), TrimState::kFallback);
   EXPECT_EQ(t.trim_nm(), held);
-  t.step(0.0, 5.0, false, 0, true, true);
+  t.step(0.0, 5.0, 1.0, false, 0, true, true);
   EXPECT_EQ(t.state(), TrimState::kModelOnly);
   EXPECT_EQ(t.trim_nm(), 0.0);
   EXPECT_THROW(HoldTrim(HoldTrimOptions{true, 5.0, 0.0}, kDt), std::invalid_argument);

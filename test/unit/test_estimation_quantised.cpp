@@ -273,6 +273,35 @@ TEST(QuantisedFilter, IdentifiesTheNoiseBeforeTheQuantiser) {
   EXPECT_NEAR(m.noise_sigma_nm, kSigma, 2.0);
 }
 
+// An encoder that never changes level (a stuck one, or a tip that never left its cell) identifies nothing: the
+// likelihood is flat in σ and the rates. The block is model-only and says why, in the file and in describe().
+TEST(QuantisedFilter, AnEncoderThatNeverChangesLevelIsModelOnlyAndSaysWhy) {
+  const SimRun r = simulate(51, 600.0, 10.0, 1200.0, 0.0);
+  IdentifyOptions o;
+  o.dt_s = kDt;
+  o.reading_sigma_nm = 0.0;  // what the noise floor reports for readings that never change
+  o.step_nm = 0.0;
+  const std::vector<double> stuck(r.p.size(), 500.0);
+  const NoiseModel m = identify_noise_model(r.p, stuck, o);
+  std::printf("never changes level: %s\n", m.describe().c_str());
+  EXPECT_FALSE(m.fuse);
+  EXPECT_NE(m.method.find("changed level 0 times"), std::string::npos) << m.method;
+  EXPECT_NE(m.describe().find("not identifiable"), std::string::npos) << m.describe();
+  EXPECT_GT(m.model_sigma_nm, 0.0);
+  const NoiseModel back = NoiseModel::from_yaml(m.to_yaml(), "stuck.yaml");  // the block loads again
+  EXPECT_FALSE(back.fuse);
+  EXPECT_EQ(back.describe(), m.describe());
+  ErrorFilter f(back, kDt);
+  for (std::size_t i = 0; i < 100; ++i) f.step(r.p[i], stuck[i], true);
+  EXPECT_EQ(f.fused_nm(), r.p[99]);  // model-only: the fused position is the model's
+  // a few crossings do not identify it either; the same walk read through the quantiser does
+  std::vector<double> few = stuck;
+  for (std::size_t i = 1000; i < 1004; ++i) few[i] = 750.0;
+  o.reading_sigma_nm = kStep / std::sqrt(12.0);
+  o.step_nm = kStep;
+  EXPECT_FALSE(identify_noise_model(r.p, few, o).fuse);
+}
+
 // The compensator closes the hold on a coarse axis: the coarse stage's simulated axis a (20 µm, 250 nm steps) and
 // the shipped model fitted on another seed of it, from rest: a 5-min walk of intents, then a 20-min hold. The trim
 // acts under the same rules as on c (0 and never active while the intent moves, slew-limited, bounded), and the

@@ -17,6 +17,9 @@ struct HoldTrimOptions {
   double max_nm = 0.0;              // bound on |trim| (0 = 2 % of the ideal stroke, set by the compensator)
   double slew_nm_per_s = 1.0;       // largest change of the trim per second
   double stale_after_s = 1.0;       // no valid reading for this long: paused (the trim holds its value)
+  // Dead band in fused 1σ: the trim integrates only the part of |intended − fused| beyond this many σ, so an
+  // estimate that cannot tell the error from zero does not move the tip (0 = none).
+  double deadband_sigma = 1.0;
   void validate() const;            // throws std::invalid_argument naming the field
 };
 
@@ -31,10 +34,10 @@ class HoldTrim {
   void set_max_nm(double max_nm) { o_.max_nm = max_nm; }
   // A new intent (a different target): the trim is cancelled at once and the settle time starts again.
   void on_new_intent();
-  // One sample. `fusing`: the estimate is informed by readings; `since_reading_samples`: samples since the last
-  // valid one; `model_ok`: the prediction and the command are from the model (no fallback).
-  void step(double intended_nm, double fused_nm, bool fusing, std::size_t since_reading_samples, bool model_ok,
-            bool has_intent);
+  // One sample. `fusing`: the estimate is informed by readings; `fused_sigma_nm`: its 1σ; `since_reading_samples`:
+  // samples since the last valid one; `model_ok`: the prediction and the command are from the model (no fallback).
+  void step(double intended_nm, double fused_nm, double fused_sigma_nm, bool fusing, std::size_t since_reading_samples,
+            bool model_ok, bool has_intent);
   double trim_nm() const { return trim_nm_; }
   TrimState state() const { return state_; }
   double settled_s() const { return settled_samples_ * dt_s_; }

@@ -67,8 +67,10 @@ struct NoiseModel {
   double adapt_window_s = 10.0;
   double adapt_k = 3.0;
   double gate_s = 5.0;              // readings further than this many predictive σ outside their cell are not taken
-  // false: model-only (fused = model). Written by identifications before the quantised reading model for axes whose
-  // step is coarse against the noise; such a file keeps loading, and its describe() says to re-identify.
+  // false: model-only (fused = model). Written by the identification when the readings cannot identify the
+  // quantised reading model (fewer than 10 level changes: an encoder that never crosses a level), its method saying
+  // why; and by identifications before the quantised reading model for axes whose step is coarse against the noise:
+  // such a file keeps loading, and its describe() says to re-identify.
   bool fuse = true;
   std::string method;               // how it was identified (one line)
   std::size_t samples = 0;          // readings the identification used
@@ -178,8 +180,10 @@ struct IdentifyOptions {
 // Maximum likelihood of the filter's variance rates and the noise σ before the quantiser on one run of the model
 // over data (free-run predictions and the readings; NaN readings are lost ones), under the quantised reading model
 // (the prediction-error decomposition: the sum of log P(reading | readings before)). The data should be held out from the model's fit (its validation
-// part), else the model's error — and so the process noise — is underestimated. Throws std::invalid_argument for
-// mismatched lengths, fewer than 200 readings, or σ ≤ 0.
+// part), else the model's error — and so the process noise — is underestimated. Readings with fewer than 10 level
+// changes do not identify it (the likelihood is flat in σ and the rates): the result is then model-only
+// (`fuse: false`) and its method says so. Throws std::invalid_argument for mismatched lengths, fewer than 200
+// readings, or σ ≤ 0 on readings that change level.
 NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const std::vector<double>& measured_nm,
                                 const IdentifyOptions& options);
 

@@ -43,7 +43,7 @@ void AxisCompensator::track(double predicted_nm, double measured_nm, bool measur
     u.fused_nm = filter_->fused_nm();
     u.fused_sigma_nm = filter_->sigma_nm();
   }
-  trim_.step(has_intent_ ? intended_nm_ : u.fused_nm, u.fused_nm, filter_ && filter_->fusing(),
+  trim_.step(has_intent_ ? intended_nm_ : u.fused_nm, u.fused_nm, u.fused_sigma_nm, filter_ && filter_->fusing(),
              filter_ ? filter_->samples_since_reading() : 0, ok && last_command_active_, has_intent_);
 }
 

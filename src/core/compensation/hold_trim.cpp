@@ -16,6 +16,7 @@ void HoldTrimOptions::validate() const {
   need(std::isfinite(max_nm) && max_nm >= 0.0, "hold_trim_max_nm must be ≥ 0 [nm] (0 = 2 % of the ideal stroke)");
   need(std::isfinite(slew_nm_per_s) && slew_nm_per_s > 0.0, "hold_trim_slew_nm_per_s must be > 0 [nm/s]");
   need(std::isfinite(stale_after_s) && stale_after_s > 0.0, "encoder_stale_after_s must be > 0 [s]");
+  need(std::isfinite(deadband_sigma) && deadband_sigma >= 0.0, "hold_trim_deadband_sigma must be ≥ 0 [fused 1σ]");
 }
 
 const char* trim_state_name(TrimState s) {
@@ -47,8 +48,8 @@ void HoldTrim::on_new_intent() {
   state_ = TrimState::kMoving;
 }
 
-void HoldTrim::step(double intended_nm, double fused_nm, bool fusing, std::size_t since_reading_samples,
-                    bool model_ok, bool has_intent) {
+void HoldTrim::step(double intended_nm, double fused_nm, double fused_sigma_nm, bool fusing,
+                    std::size_t since_reading_samples, bool model_ok, bool has_intent) {
   ++settled_samples_;
   if (!o_.enabled) {
     state_ = TrimState::kOff;
@@ -73,7 +74,10 @@ void HoldTrim::step(double intended_nm, double fused_nm, bool fusing, std::size_
   }
   state_ = TrimState::kActive;
   if (!std::isfinite(fused_nm)) return;
-  const double rate = std::clamp((intended_nm - fused_nm) / o_.time_constant_s, -o_.slew_nm_per_s, o_.slew_nm_per_s);
+  const double e = intended_nm - fused_nm;
+  const double band = std::isfinite(fused_sigma_nm) ? o_.deadband_sigma * fused_sigma_nm : 0.0;
+  const double beyond = std::copysign(std::max(0.0, std::abs(e) - band), e);
+  const double rate = std::clamp(beyond / o_.time_constant_s, -o_.slew_nm_per_s, o_.slew_nm_per_s);
   const double bound = o_.max_nm > 0.0 ? o_.max_nm : std::numeric_limits<double>::infinity();
   trim_nm_ = std::clamp(trim_nm_ + rate * dt_s_, -bound, bound);
 }

@@ -108,6 +108,23 @@ double slow_error_sigma(const std::vector<double>& p, const std::vector<double>&
   return blocks ? std::sqrt(std::max(0.0, sum2 / blocks)) : 0.0;
 }
 
+// A model-only block written by an identification under the quantised reading model starts with this; the
+// method then says why the model is not identifiable on the data.
+constexpr const char* kNotIdentifiable = "model-only: the quantised reading model is not identifiable";
+constexpr std::size_t kMinLevelChanges = 10;
+
+// Level changes between consecutive valid readings: the crossings and flicker that pin a quantised reading model.
+std::size_t level_changes(const std::vector<double>& y) {
+  std::size_t n = 0;
+  double last = std::numeric_limits<double>::quiet_NaN();
+  for (double v : y) {
+    if (!std::isfinite(v)) continue;
+    n += std::isfinite(last) && v != last;
+    last = v;
+  }
+  return n;
+}
+
 }  // namespace
 
 // √(r² − q²/12): the noise before the quantiser for a reading σ that includes the step's rounding; 0 when the
@@ -122,6 +139,34 @@ double effective_noise_sigma(const NoiseModel& m) {
   const double s = noise_before_quantiser(m.reading_sigma_nm, m.step_nm);
   return s > 0.0 ? s : m.reading_sigma_nm;
 }
+
+namespace {
+
+// The block of an axis whose readings cannot identify the quantised reading model: model-only, σ the model's slow
+// error, the reading σ the data's (at least the step's rounding), and the method saying why.
+NoiseModel model_only(const std::vector<double>& p, const std::vector<double>& y, const IdentifyOptions& o,
+                      std::size_t readings, std::size_t changes) {
+  NoiseModel m;
+  m.fuse = false;
+  m.step_nm = o.step_nm;
+  m.samples = readings;
+  m.fast_tau_s = o.fast_tau_grid_s.empty() ? m.fast_tau_s : o.fast_tau_grid_s.front();
+  m.model_sigma_nm = slow_error_sigma(p, y, o.dt_s, std::max(0.0, o.reading_sigma_nm));
+  // one level only: the readings show no spread; the reading σ is then the step's rounding or the model's error
+  m.reading_sigma_nm = std::max({o.reading_sigma_nm, o.step_nm / std::sqrt(12.0), m.model_sigma_nm, 1e-3});
+  m.noise_sigma_nm = noise_before_quantiser(m.reading_sigma_nm, m.step_nm);
+  if (!(m.noise_sigma_nm > 0.0)) m.noise_sigma_nm = m.step_nm > 0.0 ? 0.1 * m.step_nm : m.reading_sigma_nm;
+  m.initial_sigma_nm = std::sqrt(m.reading_sigma_nm * m.reading_sigma_nm + 4.0 * m.model_sigma_nm * m.model_sigma_nm);
+  std::ostringstream s;
+  s << std::setprecision(4) << kNotIdentifiable << ": the encoder changed level " << changes << " times in "
+    << readings << " readings";
+  if (o.step_nm > 0.0) s << " (" << o.step_nm << " nm steps)";
+  s << "; at least " << kMinLevelChanges << " crossings or flickers are needed to pin the model's error within a step";
+  m.method = s.str();
+  return m;
+}
+
+}  // namespace
 
 YAML::Node NoiseModel::to_yaml() const {
   YAML::Node n(YAML::NodeType::Map);
@@ -180,6 +225,10 @@ NoiseModel NoiseModel::from_yaml(const YAML::Node& node, const std::string& wher
 std::string NoiseModel::describe() const {
   std::ostringstream s;
   s << std::setprecision(3);
+  if (!fuse && method.rfind(kNotIdentifiable, 0) == 0) {
+    s << method << "; model error 1σ " << model_sigma_nm << " nm";
+    return s.str();
+  }
   if (!fuse) {
     s << "model-only: encoder step " << step_nm << " nm against reading noise σ " << reading_sigma_nm
       << " nm; model error 1σ " << model_sigma_nm << " nm (identified before the quantised reading model: "
@@ -426,7 +475,6 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
                                 const IdentifyOptions& o) {
   if (predicted_nm.size() != measured_nm.size())
     throw std::invalid_argument("identify_noise_model: predictions and readings differ in length");
-  if (!(o.reading_sigma_nm > 0.0)) throw std::invalid_argument("identify_noise_model: reading σ must be > 0");
   if (!(o.dt_s > 0.0)) throw std::invalid_argument("identify_noise_model: dt_s must be > 0");
   std::size_t readings = 0;
   for (std::size_t i = 0; i < predicted_nm.size(); ++i) {
@@ -436,6 +484,11 @@ NoiseModel identify_noise_model(const std::vector<double>& predicted_nm, const s
   }
   if (readings < 200)
     throw std::invalid_argument("identify_noise_model: " + std::to_string(readings) + " readings (need ≥ 200)");
+  // The noise σ before a quantiser and the error's rates show only in level changes (crossings during moves, flicker
+  // in holds); without them the likelihood is flat in them, and the axis runs model-only.
+  const std::size_t changes = level_changes(measured_nm);
+  if (changes < kMinLevelChanges) return model_only(predicted_nm, measured_nm, o, readings, changes);
+  if (!(o.reading_sigma_nm > 0.0)) throw std::invalid_argument("identify_noise_model: reading σ must be > 0");
 
   NoiseModel m;
   m.reading_sigma_nm = o.reading_sigma_nm;
