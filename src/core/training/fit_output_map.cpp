@@ -42,7 +42,7 @@ std::vector<double> free_run(const models::Model& model, const io::Dataset& data
 }
 
 // The hysteresis output H of every row: the same plays and weights without bias, creep or map.
-std::vector<double> hysteresis_series(const PiCreepModel& m, const io::Dataset& data, const std::string& axis) {
+std::vector<double> map_input_series(const PiCreepModel& m, const io::Dataset& data, const std::string& axis) {
   const PiCreepModel h(m.thresholds_v(), m.weights(), 0.0, models::CreepParams{}, m.sample_rate_hz(), m.knots_v(),
                        m.has_input_map());
   return free_run(h, data, axis);
@@ -84,7 +84,7 @@ std::vector<double> moving_block_errors(const models::Model& model, const io::Da
 OutputMap fit_map(const PiCreepModel& model, const io::Dataset& data, const std::string& axis) {
   PiCreepModel plain = model;
   plain.set_output_map(OutputMap{});
-  const std::vector<double> pred = free_run(plain, data, axis), H = hysteresis_series(plain, data, axis);
+  const std::vector<double> pred = free_run(plain, data, axis), H = map_input_series(plain, data, axis);
   const auto& y = data.axis(axis).position_nm;
   const auto [lo, hi] = std::minmax_element(H.begin(), H.end());
   OutputMap map;
@@ -163,7 +163,7 @@ models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const F
   r.options.reset(same_structure(*base, req.options));  // reset: assignment would write into the caller's node
   io::Dataset shifted = *req.train;
   for (int pass = 0; pass < kMapPasses; ++pass) {
-    const std::vector<double> H = hysteresis_series(*refit, *req.train, req.axis);
+    const std::vector<double> H = map_input_series(*refit, *req.train, req.axis);
     const auto& y0 = req.train->axis(req.axis).position_nm;
     auto& y = shifted.axis(req.axis).position_nm;
     for (std::size_t i = 0; i < y.size(); ++i) y[i] = y0[i] - (map(H[i]) - H[i]);
