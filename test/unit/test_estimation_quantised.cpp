@@ -273,6 +273,23 @@ TEST(QuantisedFilter, IdentifiesTheNoiseBeforeTheQuantiser) {
   EXPECT_NEAR(m.noise_sigma_nm, kSigma, 2.0);
 }
 
+// A held axis started cold with a start offset several cells off and too confident a σ (the demo's axis a: no move
+// to learn the zero from): the same level read again and again is the zero the start did not know. Before any
+// reading has been taken it is taken (the slow error widened to reach it), and the estimate ends inside the cell.
+TEST(QuantisedFilter, AHeldAxisStartedFarOffTakesItsLevel) {
+  const NoiseModel nm = true_noise_model();
+  ErrorFilter f(nm, kDt);
+  f.reset(-250.0, 60.0);  // the model's zero 950 nm from the truth at +700, σ 60 nm
+  const double truth = 700.0, level = 750.0;  // 700 nm read through 250-nm cells: level 3
+  for (int i = 0; i < static_cast<int>(60.0 / kDt); ++i) f.step(0.0, level, true);
+  std::printf("held axis, start 950 nm off: fused %.1f nm (truth %.0f, cell [625, 875]), 1σ %.1f nm\n", f.fused_nm(),
+              truth, f.sigma_nm());
+  EXPECT_GT(f.fused_nm(), 625.0 - 2.0 * f.sigma_nm());
+  EXPECT_LT(f.fused_nm(), 875.0 + 2.0 * f.sigma_nm());
+  EXPECT_LT(f.sigma_nm(), 125.0);
+  EXPECT_GT(f.updates(), 0u);
+}
+
 // An encoder that never changes level (a stuck one, or a tip that never left its cell) identifies nothing: the
 // likelihood is flat in σ and the rates. The block is model-only and says why, in the file and in describe().
 TEST(QuantisedFilter, AnEncoderThatNeverChangesLevelIsModelOnlyAndSaysWhy) {

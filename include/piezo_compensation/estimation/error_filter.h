@@ -153,6 +153,8 @@ class ErrorFilter {
   std::array<Window, 3> windows_;
   std::size_t adaptations_ = 0;
   std::size_t rejected_run_ = 0, rejections_ = 0, widenings_ = 0;
+  std::size_t taken_ = 0;        // readings taken since the last reset
+  double taken_level_nm_ = 0.0;  // the level of the last reading taken
   double rejected_level_nm_ = 0.0;
   bool rejected_level_changed_ = false;
   // the level last taken: since it was first read, the model's range, the readings, the variance without them

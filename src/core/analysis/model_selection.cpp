@@ -10,6 +10,7 @@
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/training/lasso.h"
@@ -666,6 +667,68 @@ void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOption
     }
 }
 
+namespace {
+// One candidate fitted on the training part and scored on the validation part (refused with the reason otherwise).
+CandidateResult fit_candidate(const SelectionRequest& rq, const ModelCandidate& cand, const Selection& sel,
+                              training::LassoFeatureCache& lasso_cache) {
+  CandidateResult r;
+  r.candidate = cand;
+  const auto t0 = std::chrono::steady_clock::now();
+  models::ModelPtr m;
+  try {
+    if (!training::fitter(r.candidate.kind)) throw std::runtime_error("kind cannot be fitted on its own");
+    if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
+    m = training::fit_model(r.candidate.kind, fit_request(rq, r.candidate, *rq.train, rq.validation, &lasso_cache));
+    if (!m) throw std::runtime_error("the fit returned no model");
+    m->meta.axis = rq.axis;
+    m->meta.sample_rate_hz = rq.train->sample_rate_hz();
+    r.parameters = m->num_parameters();
+    SeriesPrediction p;
+    r.score = score_validation_series(*m, *rq.score_data, rq.score_from, rq.axis, p);
+    r.refused = sanity_problem(*m, &r.score, sel.scale);
+    if (r.refused.empty()) {
+      r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
+      add_carry_over(rq, r.candidate, sel.slow_options, r.slow, &lasso_cache);
+    }
+  } catch (const std::exception& e) {
+    r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
+  }
+  r.fit_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (r.refused.empty()) r.model = std::move(m);
+  return r;
+}
+
+// The choice over the table as it stands: carry-over aligned, cold starts far off excluded (recorded per row).
+Choice choose_from(Selection& sel) {
+  align_carry_over(sel.table, sel.slow_options);
+  std::vector<const SlowScore*> scored;
+  for (const auto& r : sel.table) scored.push_back(r.refused.empty() && r.slow.valid() ? &r.slow : nullptr);
+  const std::vector<std::string> cold_off = cold_start_exclusions(scored, sel.scale.position_range_nm);
+  std::vector<ChoiceEntry> entries;
+  for (std::size_t k = 0; k < sel.table.size(); ++k) {
+    sel.table[k].cold_start_off = cold_off[k];
+    entries.push_back({sel.table[k].candidate.label, sel.table[k].parameters, cold_off[k].empty() ? scored[k] : nullptr});
+  }
+  return choose_candidate(entries);
+}
+
+// The chosen PI or Preisach kind with its output map (the loop's static bend, models/pi_model.h), when it was fitted
+// without one: a further candidate, chosen by the same rule (its two more parameters lose to the plain kind within
+// the noise).
+bool output_map_candidate(const CandidateResult& chosen, ModelCandidate& out) {
+  if (!chosen.model || !dynamic_cast<const models::PiCreepModel*>(chosen.model.get())) return false;
+  const auto it = chosen.model->meta.validation.find("fit_output_map");
+  if (it != chosen.model->meta.validation.end() && it->second > 0) return false;
+  if (chosen.candidate.options && chosen.candidate.options.IsMap() && chosen.candidate.options["output_map"]) return false;
+  out = chosen.candidate;
+  out.label += " + output map";
+  out.options = chosen.candidate.options && chosen.candidate.options.IsMap() ? YAML::Clone(chosen.candidate.options)
+                                                                            : YAML::Node(YAML::NodeType::Map);
+  out.options["output_map"] = "on";
+  return true;
+}
+}  // namespace
+
 Selection select_model(const SelectionRequest& rq) {
   if (!rq.train || !rq.score_data) throw std::invalid_argument("model selection: no training or validation data");
   if (rq.score_data->size() <= rq.score_from)
@@ -679,43 +742,16 @@ Selection select_model(const SelectionRequest& rq) {
   // The neural candidates' voltage_lasso is resolved once on the training part and once on its half (the fold's own).
   training::LassoFeatureCache lasso_cache;
   for (std::size_t k = 0; k < cands.size(); ++k) {
-    CandidateResult r;
-    r.candidate = cands[k];
-    if (rq.progress) rq.progress(double(k), double(cands.size()), "fitting " + r.candidate.label);
-    const auto t0 = std::chrono::steady_clock::now();
-    models::ModelPtr m;
-    try {
-      if (!training::fitter(r.candidate.kind)) throw std::runtime_error("kind cannot be fitted on its own");
-      if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
-      m = training::fit_model(r.candidate.kind, fit_request(rq, r.candidate, *rq.train, rq.validation, &lasso_cache));
-      if (!m) throw std::runtime_error("the fit returned no model");
-      m->meta.axis = rq.axis;
-      m->meta.sample_rate_hz = rq.train->sample_rate_hz();
-      r.parameters = m->num_parameters();
-      SeriesPrediction p;
-      r.score = score_validation_series(*m, *rq.score_data, rq.score_from, rq.axis, p);
-      r.refused = sanity_problem(*m, &r.score, sel.scale);
-      if (r.refused.empty()) {
-        r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
-        add_carry_over(rq, r.candidate, sel.slow_options, r.slow, &lasso_cache);
-      }
-    } catch (const std::exception& e) {
-      r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
-    }
-    r.fit_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-    if (r.refused.empty()) r.model = std::move(m);
-    sel.table.push_back(std::move(r));
+    if (rq.progress) rq.progress(double(k), double(cands.size()), "fitting " + cands[k].label);
+    sel.table.push_back(fit_candidate(rq, cands[k], sel, lasso_cache));
   }
-  align_carry_over(sel.table, sel.slow_options);
-  std::vector<const SlowScore*> scored;
-  for (const auto& r : sel.table) scored.push_back(r.refused.empty() && r.slow.valid() ? &r.slow : nullptr);
-  const std::vector<std::string> cold_off = cold_start_exclusions(scored, sel.scale.position_range_nm);
-  std::vector<ChoiceEntry> entries;
-  for (std::size_t k = 0; k < sel.table.size(); ++k) {
-    sel.table[k].cold_start_off = cold_off[k];
-    entries.push_back({sel.table[k].candidate.label, sel.table[k].parameters, cold_off[k].empty() ? scored[k] : nullptr});
+  Choice ch = choose_from(sel);
+  ModelCandidate mapped;
+  if (ch.chosen != SIZE_MAX && output_map_candidate(sel.table[ch.chosen], mapped)) {
+    if (rq.progress) rq.progress(double(cands.size()), double(cands.size()), "fitting " + mapped.label);
+    sel.table.push_back(fit_candidate(rq, mapped, sel, lasso_cache));
+    ch = choose_from(sel);
   }
-  const Choice ch = choose_candidate(entries);
   if (ch.chosen == SIZE_MAX) {
     std::string why = "model selection: every candidate was refused:";
     for (const auto& r : sel.table)

@@ -268,6 +268,7 @@ void ErrorFilter::reset(double slow_error_nm, double slow_sigma_nm) {
   started_ = false;
   since_reading_ = 0;
   rejected_run_ = 0;
+  taken_ = 0;
   have_level_ = false;
   for (auto& w : windows_) w.nu_bar = w.s_bar = 0.0, w.count = 0;
 }
@@ -417,15 +418,20 @@ bool ErrorFilter::take_reading(double y_nm, double level_nm) {
     rejected_level_changed_ = rejected_level_changed_ || level_nm != rejected_level_nm_;
     ++rejected_run_;
     ++rejections_;
-    // A stale level (the same one throughout): not taken. A level that moves: the encoder is alive and the
-    // model's error is larger than its covariance says; the slow error is widened to reach the reading.
-    if (rejected_run_ < 3 || !rejected_level_changed_) return false;
+    // The level last taken, read again and again while the model moved away: a stuck encoder, not taken. A level
+    // that moves, or one never taken (a cold start whose zero is cells off, a held axis: nothing else will tell
+    // the filter; a slip to a new level that then stays): the model's error is larger than its covariance says, and
+    // the slow error is widened to reach the reading.
+    const bool stuck = !rejected_level_changed_ && taken_ > 0 && rejected_level_nm_ == taken_level_nm_;
+    if (rejected_run_ < 3 || stuck) return false;
     const double reach = u.cell_distance * std::sqrt(var_e + sigma_ * sigma_);
     P_(0, 0) += reach * reach;
     ++widenings_;
     return take_reading(y_nm, level_nm);
   }
   rejected_run_ = 0;
+  ++taken_;
+  taken_level_nm_ = level_nm;
   if (var_e > 0.0) {
     x_ += ph * ((u.mean_nm - error_nm()) / var_e);
     P_ += (ph * ph.transpose()) * ((u.var_nm2 - var_e) / (var_e * var_e));
