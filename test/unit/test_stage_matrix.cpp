@@ -213,17 +213,28 @@ StageFit fit_stage(const std::string& name, const sim::StageConfig& stage, bool 
   return f;
 }
 
+// The row auto adds for its first choice with the output map (analysis::select_model): a variant, not a kind.
+bool output_map_row(const analysis::CandidateResult& r) {
+  const std::string tail = " + output map";
+  const std::string& l = r.candidate.label;
+  return l.size() > tail.size() && l.compare(l.size() - tail.size(), tail.size(), tail) == 0;
+}
+
 // What `piezo fit --model auto` chooses: choose_candidate (the call select_model makes) over auto's own
-// candidates, the first default_candidates() of the table; dense and lstm are scored beside them, not offered.
+// candidates, the first default_candidates() of the table, and its output-map variant; dense and lstm are scored
+// beside them, not offered.
 std::size_t auto_choice(const analysis::Selection& sel) {
   const std::size_t n = std::min(analysis::default_candidates().size(), sel.table.size());
   std::vector<analysis::ChoiceEntry> entries;
-  for (std::size_t k = 0; k < n; ++k) {
+  std::vector<std::size_t> rows;  // the table row of each entry: auto's candidates, then its output-map variant
+  for (std::size_t k = 0; k < sel.table.size(); ++k) {
     const auto& r = sel.table[k];
+    if (k >= n && !output_map_row(r)) continue;
     entries.push_back({r.candidate.label, r.parameters, r.refused.empty() && r.slow.valid() ? &r.slow : nullptr});
+    rows.push_back(k);
   }
   const std::size_t chosen = analysis::choose_candidate(entries).chosen;
-  return chosen == SIZE_MAX ? sel.best : chosen;
+  return chosen == SIZE_MAX ? sel.best : rows[chosen];
 }
 
 double continuation_mae(const analysis::CandidateResult& r) {
@@ -240,6 +251,7 @@ std::string continuation_row(const std::string& name, const StageFit& f, CellChe
   std::string md = buf;
   double best = INFINITY;
   for (const auto& r : sel.table) {
+    if (output_map_row(r)) continue;  // auto's variant of its first choice: scored in the auto cell only
     const double mae = continuation_mae(r);
     const bool ok = r.refused.empty() && mae < 0.10 * range;
     if (std::isfinite(mae))
@@ -273,6 +285,10 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
   double best = INFINITY, swept = 0;
   for (std::size_t k = 0; k < sel.table.size(); ++k) {
     const auto& r = sel.table[k];
+    if (output_map_row(r)) {  // auto's variant of its first choice: scored in the auto cell only
+      if (r.model) sep[k] = separate_mae(*r.model, rec, anchor_s).estimate;
+      continue;
+    }
     if (!r.model) {
       md += " refused |";
       continue;
@@ -297,7 +313,7 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
   }
   double best_cont = INFINITY;
   for (const auto& r : sel.table)
-    if (r.refused.empty()) best_cont = std::min(best_cont, continuation_mae(r));
+    if (r.refused.empty() && !output_map_row(r)) best_cont = std::min(best_cont, continuation_mae(r));
   std::string both;
   for (std::size_t k = 0; k < std::min(analysis::default_candidates().size(), sel.table.size()); ++k)
     if (continuation_mae(sel.table[k]) <= kAutoMargin * best_cont && sep[k] <= kAutoMargin * best)

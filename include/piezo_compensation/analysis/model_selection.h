@@ -111,6 +111,11 @@ struct SlowScoreOptions {
   // 4·min_blocks rows, and for every candidate when one candidate's half fit fails (compared on the same columns).
   bool carry_fold = true;
   double carry_weight = 1.0;
+  // Several recordings (each zero unknown): a hold's rows are scored from the zero of its own first hold_zero_s,
+  // as an operator parks a tip where the encoder says it is: the holds and hold ends columns then score the drift
+  // after parking (the creep), not how the hold's level sits against the recording's mean, which the moves column
+  // scores (docs/models.md, "`--model auto`: the choice rule").
+  double hold_zero_s = 5.0;
   int min_blocks = 32;
   double noise_nm = 0.0;  // noise of a block mean [nm]; 0: select_model estimates it (σ of a reading / √rows)
 };

@@ -264,6 +264,20 @@ void take_out_recording_zeros(const io::Dataset& data, const std::string& axis, 
     for (std::size_t i = rb; i < re; ++i) pred[i] += d[k];
   }
 }
+
+// Several recordings: each hold's rows shifted by the mean of measured − predicted over its first `window` rows.
+void take_out_hold_zeros(const io::Dataset& data, const std::string& axis, const std::vector<VoltageHold>& holds,
+                         double window, std::vector<double>& pred) {
+  if (data.recording_count() < 2 || !(window >= 1.0)) return;
+  const auto& y = data.axis(axis).position_nm;
+  for (const auto& h : holds) {
+    const std::size_t e = std::min(h.end, pred.size()), z = std::min(e, h.begin + static_cast<std::size_t>(window));
+    if (z <= h.begin) continue;
+    double d = 0;
+    for (std::size_t i = h.begin; i < z; ++i) d += (y[i] - pred[i]) / static_cast<double>(z - h.begin);
+    for (std::size_t i = h.begin; i < e; ++i) pred[i] += d;
+  }
+}
 }  // namespace
 
 SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
@@ -283,6 +297,7 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
   }
   take_out_recording_zeros(data, axis, score_from, warm);
   const auto holds = voltage_holds(data, axis, score_from, o);
+  take_out_hold_zeros(data, axis, holds, o.hold_zero_s * rate, warm);
   SlowErrors e = slow_errors(warm, ax.position_nm, holds, score_from, block, hold_end);
   if (score_from < data.size()) e.cold = cold_fold(model, data.slice(score_from, data.size()), axis, o, block);
   SlowScore s = summarise_slow(e, o);
