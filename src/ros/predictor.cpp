@@ -960,6 +960,9 @@ void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
 
 void PredictorNode::emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now) {
   for (auto& out : outs) {
+    // another axis' model may read this axis' fused position (models::InputSource::Kind::kAxisFused)
+    if (std::isfinite(out.prediction.fused_position))
+      live_.add_fused(a.logic->axis(), out.sequence, out.prediction.fused_position * kNmPerM);
     if (snapshot_ && std::isfinite(out.base_predicted_nm) && out.stamp_s > 0.0)
       snapshot_->add_prediction(a.logic->axis(), out.sequence, out.base_predicted_nm, out.stamp_s);
     if (out.send) a.pub_command.publish(out.command);
