@@ -325,32 +325,45 @@ int Loop::joint_pair(std::vector<FamilyScore>& ranking, const Val& now) {
 // A base fitted on data that carry an effect absorbs what its own regressors can express of it (a slow wander of
 // another axis projects onto its long creep modes by chance), and the effect's terms fitted on the residual of that
 // base then validate poorly. When nothing passes alone or in a pair, the two strongest significant physical
-// families are validated once more with the base refitted on TRAIN without their part (as backfitting will do
-// when one is added), against the model as it is; the first that then passes every rule is added. -1 when none.
+// families, and then the two together, are validated once more with the base refitted on TRAIN without their part
+// (as backfitting will do when one is added), against the model as it is; the first that then passes every rule
+// is added (of a pair, the stronger; the next round judges the other). -1 when none.
 int Loop::after_one_refit(std::vector<FamilyScore>& ranking, const Val& now) {
   if (!o_.refit_base) return -1;
+  std::vector<std::size_t> sig;
+  for (std::size_t i = 0; i < ranking.size() && sig.size() < 2; ++i)
+    if (ranking[i].available && ranking[i].significant && !is_operating_point_family(ranking[i].family) &&
+        !extrapolates_in_time(ranking[i].family))
+      sig.push_back(i);
+  std::vector<std::vector<std::size_t>> trials;
+  for (std::size_t i : sig) trials.push_back({i});
+  if (sig.size() == 2 && additive_counterpart(ranking[sig[0]].family) != ranking[sig[1]].family &&
+      additive_counterpart(ranking[sig[1]].family) != ranking[sig[0]].family)
+    trials.push_back(sig);
   const AcceptanceRound round = validator_.round(now);
-  int tried = 0;
-  for (std::size_t i = 0; i < ranking.size() && tried < 2; ++i) {
-    FamilyScore& s = ranking[i];
-    if (!s.available || !s.significant || is_operating_point_family(s.family) || extrapolates_in_time(s.family)) continue;
-    ++tried;
+  for (const auto& trial_set : trials) {
+    FamilyScore again = ranking[trial_set[0]];
+    std::string names = again.family;
+    for (std::size_t k = 1; k < trial_set.size(); ++k) {
+      const auto& other = ranking[trial_set[k]];
+      again.best.terms.insert(again.best.terms.end(), other.best.terms.begin(), other.best.terms.end());
+      names += " with " + other.family;
+    }
     const std::vector<double> x_base = c_.x_base;
     models::ModelPtr base = base_->clone();
     std::vector<EffectTerm> trial = terms_;
-    trial.insert(trial.end(), s.best.terms.begin(), s.best.terms.end());
+    trial.insert(trial.end(), again.best.terms.begin(), again.best.terms.end());
     Level lv;
     fit_terms(c_, trial, lv, 0, n_);
     backfitter_.refit_without(trial, lv, base);
-    FamilyScore again = s;
     validator_.score(again, terms_, now, false);
     c_.x_base = x_base;  // the refit was a trial: add_effect backfits for real
     const Verdict v = judge_alone(again, o_.acceptance, round);
-    log("  " + s.family + " validated with the base refitted without it: " +
+    log("  " + names + " validated with the base refitted without it: " +
         (v.pass ? "passes" : std::string(rule_name(v.rule)) + ": " + v.reason));
     if (!v.pass) continue;
-    s.verdict = "kept: validated with the base refitted without it";
-    return static_cast<int>(i);
+    ranking[trial_set[0]].verdict = "kept: validated with the base refitted without " + names;
+    return static_cast<int>(trial_set[0]);
   }
   return -1;
 }
