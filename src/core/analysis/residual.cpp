@@ -137,7 +137,7 @@ Context make_context(const models::Model& base, const io::Dataset& train, const 
   c.x_base = run_model(*b, train, o.axis, o.mode);
   remove_recording_zeros(train, c, o);
   // Another axis enters through its best-known position: its fused column where the caller gave its model
-  // (add_fused_columns), else its readings.
+  // (add_fused_positions), else its readings.
   for (const auto& other : train.axes)
     if (other.name != o.axis && test.has_axis(other.name)) {
       c.other_axes.push_back(io::voltage_column(other.name));
@@ -309,7 +309,6 @@ int Loop::joint_pair(std::vector<FamilyScore>& ranking, const Val& now) {
       const FamilyScore &x = ranking[sig[a]], &y = ranking[sig[b]];
       if (additive_counterpart(x.family) == y.family || additive_counterpart(y.family) == x.family) continue;
       FamilyScore pair = x;
-      pair.family = x.family;
       for (const auto& t : y.best.terms) pair.best.terms.push_back(t);
       validator_.score(pair, terms_, now, false);
       const Verdict v = judge_alone(pair, o_.acceptance, round);
