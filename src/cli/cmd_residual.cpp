@@ -35,6 +35,22 @@ YAML::Node parse_sets(const std::vector<std::string>& sets) {
   return n;
 }
 
+// --other-model AXIS=FILE, repeatable: each other axis' model, checked to be that axis'.
+std::map<std::string, std::shared_ptr<const models::Model>> other_axis_models(const std::vector<std::string>& specs) {
+  std::map<std::string, std::shared_ptr<const models::Model>> out;
+  for (const auto& spec : specs) {
+    const auto eq = spec.find('=');
+    if (eq == std::string::npos || eq == 0 || eq + 1 == spec.size())
+      throw UsageError("residual: --other-model expects AXIS=FILE, got '" + spec + "'");
+    const std::string other_axis = spec.substr(0, eq), file = spec.substr(eq + 1);
+    if (out.count(other_axis)) throw UsageError("residual: --other-model given twice for axis " + other_axis);
+    models::ModelPtr m = models::load_model(file);
+    models::check_model_axis(*m, other_axis, file);
+    out[other_axis] = std::move(m);
+  }
+  return out;
+}
+
 int run(int argc, char** argv) {
   Args args("residual",
             "Close the loop: fit (or load) a model on TRAIN, trace its residual to effect families (time_drift,\n"
@@ -109,18 +125,7 @@ int run(int argc, char** argv) {
       if (!f.empty()) o.families.push_back(f);
   }
   o.log = [](const std::string& s) { std::cerr << "residual: " << s << "\n"; };
-  std::map<std::string, std::shared_ptr<const models::Model>> other_models;
-  for (const auto& spec : args.list("other-model")) {
-    const auto eq = spec.find('=');
-    if (eq == std::string::npos || eq == 0 || eq + 1 == spec.size())
-      throw UsageError("residual: --other-model expects AXIS=FILE, got '" + spec + "'");
-    const std::string other_axis = spec.substr(0, eq), file = spec.substr(eq + 1);
-    if (other_models.count(other_axis)) throw UsageError("residual: --other-model given twice for axis " + other_axis);
-    models::ModelPtr m = models::load_model(file);
-    models::check_model_axis(*m, other_axis, file);
-    other_models[other_axis] = std::move(m);
-  }
-  analysis::add_fused_positions(train, test, other_models, axis, o.warm_start, o.log);
+  analysis::add_fused_positions(train, test, other_axis_models(args.list("other-model")), axis, o.warm_start, o.log);
 
   // Base model: a file, or a kind fitted on TRAIN's first part (the rest validates it).
   const std::string model_arg = args.str("model");
