@@ -24,7 +24,7 @@ piezo_test_costs(
   test_residual_refs_sim_clean 99  test_residual_refs_gain_base 98
   test_residual_two_effects 32  test_residual_sim 27  test_stage_matrix_mm3e_preisach_creep 30
   test_residual_gain_temperature 30  test_residual_sim_coupling 18  test_residual_sim_disturbance 25
-  test_residual_sim_periodic 25  test_residual_sensitivity 12  test_stage_matrix_mm3e_pi_creep 25  test_residual_gain_other_axis 25
+  test_residual_sim_periodic 25  test_residual_sensitivity 12  test_sensor_reading_model 10  test_stage_matrix_mm3e_pi_creep 25  test_residual_gain_other_axis 25
   test_residual_gain_drift 25  test_stage_matrix_mm3e_preisach 24  test_stage_matrix_mm3e_pi 22
   test_stage_matrix_stack150_pi 22  test_stage_matrix_stack150_preisach 21  test_models_preisach_preisach 20
   test_stage_matrix_stack150_preisach_creep 19  test_residual_preisach 15  test_stage_matrix_stack150_pi_creep 15

@@ -5,6 +5,8 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <map>
+#include <memory>
 #include <sstream>
 
 #include "args.h"
@@ -31,6 +33,22 @@ YAML::Node parse_sets(const std::vector<std::string>& sets) {
     n[s.substr(0, eq)] = YAML::Load(s.substr(eq + 1));
   }
   return n;
+}
+
+// --other-model AXIS=FILE, repeatable: each other axis' model, checked to be that axis'.
+std::map<std::string, std::shared_ptr<const models::Model>> other_axis_models(const std::vector<std::string>& specs) {
+  std::map<std::string, std::shared_ptr<const models::Model>> out;
+  for (const auto& spec : specs) {
+    const auto eq = spec.find('=');
+    if (eq == std::string::npos || eq == 0 || eq + 1 == spec.size())
+      throw UsageError("residual: --other-model expects AXIS=FILE, got '" + spec + "'");
+    const std::string other_axis = spec.substr(0, eq), file = spec.substr(eq + 1);
+    if (out.count(other_axis)) throw UsageError("residual: --other-model given twice for axis " + other_axis);
+    models::ModelPtr m = models::load_model(file);
+    models::check_model_axis(*m, other_axis, file);
+    out[other_axis] = std::move(m);
+  }
+  return out;
 }
 
 int run(int argc, char** argv) {
@@ -60,6 +78,8 @@ int run(int argc, char** argv) {
       .option("refit-base", "", "with a model file: refit its kind (default options) while backfitting")
       .option("mid-history", "", "TRAIN starts on a stage already in use (a ~snapshot): fit the decay of the base's "
               "unknown initial creep state alongside the effects (not put in the model)")
+      .option("other-model", "AXIS=FILE", "another axis' model file (with its estimator block): that axis enters the "
+              "cross-axis families through its fused position, not its raw readings", "", true)
       .option("no-plots", "", "skip the PNGs")
       .required("out", "DIR", "output directory");
   allow_training_rows_option(args);
@@ -105,6 +125,7 @@ int run(int argc, char** argv) {
       if (!f.empty()) o.families.push_back(f);
   }
   o.log = [](const std::string& s) { std::cerr << "residual: " << s << "\n"; };
+  analysis::add_fused_positions(train, test, other_axis_models(args.list("other-model")), axis, o.warm_start, o.log);
 
   // Base model: a file, or a kind fitted on TRAIN's first part (the rest validates it).
   const std::string model_arg = args.str("model");

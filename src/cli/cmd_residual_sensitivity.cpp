@@ -19,6 +19,31 @@ std::vector<std::string> split_list(const std::string& s) {
   return out;
 }
 
+int run_compare(const Args& args) {
+  analysis::ComparisonOptions o;
+  for (const auto& e : split_list(args.str("compare")))
+    if (e != "none") o.effects.push_back(e);
+  o.stage_path = args.str("stage");
+  o.size_sigma = args.num("size");
+  o.gain_lag_s = args.num("gain-lag-s");
+  o.encoder_step_a_nm = args.num("step-a-nm");
+  o.fused_other_axis = !args.flag("no-fused");
+  o.hours = args.num("hours");
+  o.seed = static_cast<std::uint64_t>(args.integer("seed"));
+  o.base_kind = args.str("base");
+  o.permutations = static_cast<int>(args.integer("permutations"));
+  if (o.permutations < 10) throw UsageError("residual-sensitivity: --permutations must be ≥ 10");
+  if (args.flag("verbose")) o.loop_log = [](const std::string& s) { std::cerr << "  " << s << "\n"; };
+  analysis::ComparisonResult r;
+  try {
+    r = analysis::run_comparison(o);
+  } catch (const std::invalid_argument& e) {
+    throw UsageError(std::string("residual-sensitivity: ") + e.what());
+  }
+  std::cout << analysis::comparison_text(r, o);
+  return 0;
+}
+
 int run(int argc, char** argv) {
   Args args("residual-sensitivity",
             "Detection rate of the residual loop against the size of a planted effect (periodic encoder error,\n"
@@ -34,9 +59,17 @@ int run(int argc, char** argv) {
       .option("seed", "N", "first seed (trial t uses seed + t)", "1000")
       .option("base", "KIND", "base model kind fitted on each stage", "pi_creep_lti")
       .option("permutations", "N", "circular-shift draws per family", "20")
+      .option("compare", "LIST", "instead of the table: one stage with these effects (cross_axis, gain, periodic, "
+              "slips; 'none' for a clean stage) against the same stage without them, the loop run on both")
+      .option("stage", "FILE", "with --compare: a stage file (config/stages) for axis c; a gets c's physics", "")
+      .option("size", "SIGMA", "with --compare: each effect's RMS over σ", "1.5")
+      .option("gain-lag-s", "S", "with --compare: the stroke gain's first-order temperature lag", "90")
+      .option("step-a-nm", "NM", "with --compare: axis a's encoder step", "250")
+      .option("no-fused", "", "with --compare: axis a enters through its readings and voltage, not its fused position")
       .option("quiet", "", "no line per trial on stderr")
       .option("verbose", "", "the loop's own progress lines on stderr");
   if (!args.parse(argc, argv)) return 0;
+  if (args.has("compare")) return run_compare(args);
   analysis::SensitivityOptions o;
   o.families.clear();
   for (const auto& f : split_list(args.str("families"))) {

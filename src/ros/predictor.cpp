@@ -430,7 +430,7 @@ PredictorAxis::Output PredictorAxis::process(const io::PairedSample& sample, con
   if (u.ok) out.base_predicted_nm = u.base_predicted_nm;
   // free-run residual for the watch (one-step mode remembers the encoder: no free-run figure to watch)
   if (watch_ && u.ok && valid && !s_.axis.position_feedback && model_error_.empty())
-    watch_->add(sample.stamp_s > 0.0 ? sample.stamp_s : now.toSec(), sample.position_nm - u.predicted_nm);
+    watch_->add(sample.stamp_s > 0.0 ? sample.stamp_s : now.toSec(), sample.position_nm - u.predicted_nm - u.sensor_nm);
   hold_v_ = applied;
 
   Prediction& p = out.prediction;
@@ -664,9 +664,14 @@ void PredictorNode::subscribe_aux() {
   }
   for (const auto& a : axes_)
     for (const auto& src : a->logic->inputs().sources())
-      if (src.kind == models::InputSource::Kind::kAux && !s_.aux_topics.count(src.name))
+      if (src.kind == models::InputSource::Kind::kAux && !s_.aux_topics.count(src.name)) {
         ROS_WARN("axis %s: the model reads '%s', which ~aux_topics maps to no topic: it runs on its fallback",
                  a->logic->axis().c_str(), src.name.c_str());
+      } else if (src.kind == models::InputSource::Kind::kAxisFused &&
+                 std::none_of(axes_.begin(), axes_.end(), [&](const auto& b) { return b->logic->axis() == src.axis; })) {
+        ROS_WARN("axis %s: the model reads '%s', but this predictor runs no model for axis %s: it runs on its fallback",
+                 a->logic->axis().c_str(), src.name.c_str(), src.axis.c_str());
+      }
 }
 
 bool PredictorNode::on_set_compensation(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
@@ -963,6 +968,9 @@ void PredictorNode::on_encoder(Axis& a, const EncoderPosition::ConstPtr& msg) {
 
 void PredictorNode::emit(Axis& a, std::vector<PredictorAxis::Output>& outs, const ros::Time& now) {
   for (auto& out : outs) {
+    // another axis' model may read this axis' fused position (models::InputSource::Kind::kAxisFused)
+    if (std::isfinite(out.prediction.fused_position))
+      live_.add_fused(a.logic->axis(), out.sequence, out.prediction.fused_position * kNmPerM);
     if (snapshot_ && std::isfinite(out.base_predicted_nm) && out.stamp_s > 0.0)
       snapshot_->add_prediction(a.logic->axis(), out.sequence, out.base_predicted_nm, out.stamp_s);
     if (out.send) a.pub_command.publish(out.command);

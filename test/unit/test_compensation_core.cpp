@@ -364,3 +364,50 @@ TEST(CompensationLiveInputs, AuxIsReadAtTheSampleStampWhateverTheArrivalOrder) {
     live.add_aux("temperature_c", 30.0 + static_cast<double>(i), 200.0 + static_cast<double>(i), 200.0);
   EXPECT_DOUBLE_EQ(live.aux("temperature_c", 0.0)->value, 40.0);  // the oldest kept
 }
+
+// Another axis' fused position as a model input: offline the derived column of that name at the previous row (as a
+// reading), refused with a message naming how to get it when the data lack it, never the own axis'; live the
+// other axis' fused estimate of the previous sample, waited for like its reading.
+TEST(CompensationLiveInputs, AnotherAxisFusedPositionIsReadAtThePreviousSample) {
+  models::EffectTerm t;
+  t.type = "linear";
+  t.signal = io::fused_position_column("a");
+  t.family = "cross_axis";
+  t.center = {0.0};
+  t.scale = {1.0};
+  t.weight = {0.05};
+  models::AugmentedModel model(test::make_pi_creep(), {t}, 0.0, 11.0);
+  EXPECT_EQ(models::classify_input("a_fused_position_nm", "c", {"a", "b", "c"}).kind,
+            models::InputSource::Kind::kAxisFused);
+  EXPECT_THROW(models::classify_input("c_fused_position_nm", "c", {"a", "b", "c"}), io::DataError);
+
+  io::Dataset d;
+  d.add_axis("a");
+  d.add_axis("c");
+  for (int i = 0; i < 3; ++i) {
+    d.time_s.push_back(i / 11.0);
+    for (auto& ax : d.axes) ax.voltage_v.push_back(0.0), ax.position_nm.push_back(0.0);
+  }
+  try {
+    models::InputResolver r(d, model.aux_inputs(), "c");
+    ADD_FAILURE() << "a missing fused column was accepted";
+  } catch (const io::DataError& e) {
+    EXPECT_NE(std::string(e.what()).find("--other-model a="), std::string::npos) << e.what();
+  }
+  d.aux.push_back({"a_fused_position_nm", {10.0, 20.0, 30.0}});
+  models::InputResolver r(d, model.aux_inputs(), "c");
+  double v = 0.0;
+  r.fill(2, &v);
+  EXPECT_DOUBLE_EQ(v, 20.0);  // the previous row's
+
+  InputFeeder feeder(model, "c", AuxFeedOptions{});
+  LiveInputs live;
+  io::PairedSample s;
+  s.sequence = 8;
+  double fed = 0.0;
+  EXPECT_FALSE(feeder.fill(live, s, 1.0, false, &fed));  // a's estimate for sample 7 may still come
+  live.add_fused("a", 7, 123.0);
+  ASSERT_TRUE(feeder.fill(live, s, 1.0, false, &fed));
+  EXPECT_DOUBLE_EQ(fed, 123.0);
+  EXPECT_FALSE(feeder.any_fallback());
+}

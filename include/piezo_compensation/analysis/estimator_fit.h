@@ -5,6 +5,7 @@
 
 #include <cstddef>
 #include <string>
+#include <vector>
 
 #include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/io/dataset.h"
@@ -17,5 +18,12 @@ namespace piezo::analysis {
 // problem (too few rows, a model that diverges).
 estimation::NoiseModel identify_estimator(const models::Model& model, const io::Dataset& data,
                                           const std::string& axis, std::size_t first_row = 0);
+
+// An axis' best-known position over `data`: its model run free (after `warmup` when given, as a model that kept
+// running would), fused with its readings by the error filter of the model file's estimator block
+// (models::ModelMeta::estimator); the model's prediction where the file has none or the block says model-only.
+// Throws io::DataError when `data` lacks the axis, std::invalid_argument for a broken estimator block.
+std::vector<double> fused_position(const models::Model& model, const io::Dataset& data, const std::string& axis,
+                                   const io::Dataset* warmup = nullptr);
 
 }  // namespace piezo::analysis

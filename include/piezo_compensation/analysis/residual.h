@@ -7,6 +7,7 @@
 #include <cstdint>
 #include <functional>
 #include <map>
+#include <memory>
 #include <string>
 #include <utility>
 #include <vector>
@@ -185,6 +186,18 @@ struct ResidualResult {
   std::vector<double> test_position_after;  // the stage position: test_pred_after without sensor effects
   models::ModelPtr model;                  // the augmented model (base + terms), fitted on TRAIN
 };
+
+// Another axis enters the cross-axis families through its best-known position: the column
+// io::fused_position_column(axis), when TRAIN and TEST have it, in place of its raw readings (its voltage stays a
+// candidate, kept only where it validates better than that position). This adds the column for each axis of
+// `models` (axis name → that axis' model, with its estimator block when it has one): analysis::fused_position, its
+// model fused with its encoder (its model alone where nothing fuses); TEST's runs on from TRAIN when TEST continues
+// TRAIN in time and `warm_start`. Throws io::DataError for an axis TRAIN or TEST lacks, std::invalid_argument for
+// a model of `own_axis` or an empty one. `log` (may be empty) gets one line per axis.
+void add_fused_positions(io::Dataset& train, io::Dataset& test,
+                         const std::map<std::string, std::shared_ptr<const models::Model>>& models,
+                         const std::string& own_axis, bool warm_start = true,
+                         const std::function<void(const std::string&)>& log = {});
 
 // `base` must already be fitted (on TRAIN's first part); it is cloned, not changed.
 ResidualResult trace_residual(const models::Model& base, const io::Dataset& train, const io::Dataset& test,

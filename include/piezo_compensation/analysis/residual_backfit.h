@@ -19,6 +19,11 @@ class Backfitter {
   // winner's best variant.
   void run(FamilyScore& winner, std::vector<models::EffectTerm>& terms, std::size_t first, Level& level,
            models::ModelPtr& base);
+  // One more refit of the base with every term's part taken out, then the terms on its residual (the loop's last
+  // step, after each effect's variant was chosen again given the others). No-op without ResidualOptions::refit_base.
+  void refit_all(std::vector<models::EffectTerm>& terms, Level& level, models::ModelPtr& base);
+  // The base refitted once on TRAIN with `terms`' part taken out (c.x_base follows), then `terms` on its residual.
+  void refit_without(std::vector<models::EffectTerm>& terms, Level& level, models::ModelPtr& base);
 
  private:
   // The secant on the size of a gain fitted after each refit (see the .cpp); how many times its part is taken out.

@@ -9,6 +9,8 @@
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/analysis/residual.h"
+
 namespace piezo::analysis {
 
 // The families the harness plants, and the loop families that name each (detection = one of them is added).
@@ -56,5 +58,44 @@ SensitivityResult run_sensitivity(const SensitivityOptions& o);
 // A markdown table: one row per family, one column per size (detected / trials), then the clean stages'
 // false-positive rate, and the options that reproduce it.
 std::string sensitivity_table(const SensitivityResult& r, const SensitivityOptions& o);
+
+// A stage with effects against the same stage without them: the figure the residual loop is judged by (its TEST
+// error against the truth after the loop over that of the clean stage after the loop).
+struct ComparisonOptions {
+  // A stage file (config/stages/*.yaml) whose axis c is the one modelled; axis a is driven too, with c's physics
+  // and encoder_step_a_nm steps (the instrument's coarse axes). Empty: the simulator's default axes a and c.
+  std::string stage_path;
+  double encoder_step_a_nm = 250.0;
+  double hours = 6.0;                 // random-walk stages; a creep-protocol stage is truncated to it
+  double train_fraction = 2.0 / 3.0;
+  std::string base_kind = "pi_creep_lti";
+  // Planted on c: "cross_axis" (a's displacement, through its position: sim effect cross_axis), "gain" (c's stroke
+  // scaled by 1 + g·(temperature through a first-order lag of gain_lag_s − 22 °C)), "periodic" (the encoder's
+  // interpolation error), "slips" (the mount slips +60 nm and −45 nm at 80 % and 90 % of the stage). Sizes: each
+  // effect's RMS on the readings over the reading noise σ (slips: fixed).
+  std::vector<std::string> effects;
+  double size_sigma = 1.5;
+  double gain_lag_s = 90.0;
+  // Axis a's model (the base kind fitted on a, its estimator identified on TRAIN's validation part) gives the loop
+  // a's fused position (add_fused_positions); false: a enters through its readings and voltage only.
+  bool fused_other_axis = true;
+  std::uint64_t seed = 4000;
+  int permutations = 20;
+  std::function<void(const std::string&)> loop_log;
+};
+
+struct ComparisonRun {
+  double before_truth_nm = 0.0, after_truth_nm = 0.0;  // TEST MAE of the stage position against the truth
+  std::vector<FoundEffect> effects;
+};
+struct ComparisonResult {
+  ComparisonRun with_effects, clean;
+  double noise_sigma_nm = 0.0;
+  double seconds = 0.0;
+};
+
+ComparisonResult run_comparison(const ComparisonOptions& o);
+// Markdown: both runs, what was named (with its parameters and where it acts), the ratio, the options.
+std::string comparison_text(const ComparisonResult& r, const ComparisonOptions& o);
 
 }  // namespace piezo::analysis

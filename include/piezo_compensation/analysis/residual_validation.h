@@ -42,9 +42,11 @@ class Validator {
   bool has_holds() const { return n_val_hold_ > 0; }
 
  private:
+  void prefer_fused_position(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, Val& v) const;
   void choose_gain_form(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, Val& v) const;
   bool refine_time_constants(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, std::size_t rows,
                              double span) const;
+  bool split_delay(FamilyScore& s, const std::vector<models::EffectTerm>& fixed, std::size_t rows, std::size_t q) const;
   double train_ms(const std::vector<models::EffectTerm>& fixed, const Candidate& cand, std::size_t rows) const;
   void fill_sizes(FamilyScore& s, const Val& v, const Val& now) const;
   void log_score(const FamilyScore& s) const;

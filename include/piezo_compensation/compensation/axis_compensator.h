@@ -44,7 +44,10 @@ struct AxisCompensatorConfig {
 
 // Result of one encoder sample.
 struct SampleUpdate {
-  double predicted_nm = 0.0;   // model position for the applied voltage, history up to the previous sample
+  // Model position for the applied voltage, history up to the previous sample: the stage position (an augmented
+  // model's sensor terms, acts_on: readings, left out; they go to the estimator's reading model, sensor_nm).
+  double predicted_nm = 0.0;
+  double sensor_nm = 0.0;      // what the model's sensor terms expect the encoder to add to this reading
   // Model and encoder fused (estimation/error_filter.h): the position and its 1σ; the prediction and NaN when the
   // model file has no estimator noise model.
   double fused_nm = 0.0;
@@ -124,6 +127,7 @@ class AxisCompensator {
   static void check_model(const models::Model& model);  // throws for models the compensator cannot feed
   void set_estimator_for(const models::Model& model);    // the filter from the model file's noise model
   void track(double predicted_nm, double measured_nm, bool measured_valid, bool ok, SampleUpdate& u);
+  double sensor_part(const models::ModelInput& in) const;  // 0 without sensor terms
   void set_inputs_for(const models::Model& model);
   std::vector<double> aux_now_;                         // the model's inputs at the last sample
   std::vector<std::size_t> time_index_;                 // which of them is time_s
@@ -138,7 +142,10 @@ class AxisCompensator {
   bool resumed_ = false;
 
   models::ModelPtr model_;
-  const models::AugmentedModel* augmented_ = nullptr;   // model_ when it is augmented (for its base's part)
+  // model_ when it is augmented (for its base's part; set to give the stage position: its sensor terms go to the
+  // estimator's reading model, never into the feedforward)
+  models::AugmentedModel* augmented_ = nullptr;
+  bool sensor_terms_ = false;
   IdealLine line_;
   AxisCompensatorConfig config_;
   bool started_ = false;

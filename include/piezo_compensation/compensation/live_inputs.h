@@ -6,6 +6,8 @@
 //  - <axis>_voltage_v: that axis' voltage report with this sample's sequence number (the controller numbers all
 //    axes alike), waited for and declared lost by the one pairing rule (io/sequence_pairer.h).
 //  - <axis>_position_nm of another axis: its reading at the previous sample, by the same rule.
+//  - <axis>_fused_position_nm of another axis: its fused estimate at the previous sample (add_fused: the predictor
+//    gives each axis' estimate after its update; a model-only axis gives its model's prediction), by the same rule.
 //  - any other name: an auxiliary signal from a topic: the newest value stamped at or before the sample's stamp
 //    (the rule the bag snapshot and the offline resolver use), so which topic's message arrives first does not
 //    change the prediction. It has a staleness limit. A stale or missing signal feeds
@@ -46,16 +48,18 @@ class LiveInputs {
   };
   void add_voltage(const std::string& axis, std::uint32_t seq, double voltage_v);
   void add_reading(const std::string& axis, std::uint32_t seq, double position_nm);  // valid readings only
+  void add_fused(const std::string& axis, std::uint32_t seq, double fused_nm);  // an axis' estimate after its update
   // Keeps the last kAuxKept values of each signal, ordered by stamp.
   void add_aux(const std::string& name, double value, double stamp_s, double time_s);
   const std::deque<Report>* voltages(const std::string& axis) const;
   const std::deque<Report>* readings(const std::string& axis) const;
+  const std::deque<Report>* fused(const std::string& axis) const;
   // The newest value stamped at or before `stamp_s`; the oldest kept when all are newer; nullptr before any.
   const Aux* aux(const std::string& name, double stamp_s) const;
   static constexpr std::size_t kAuxKept = 256;
 
  private:
-  std::map<std::string, std::deque<Report>> voltages_, readings_;
+  std::map<std::string, std::deque<Report>> voltages_, readings_, fused_;
   std::map<std::string, std::deque<Aux>> aux_;
 };
 

@@ -101,8 +101,10 @@ class ErrorFilter {
   // non-finite σ falls back to initial_sigma_nm. Throws std::invalid_argument for a non-finite offset or σ < 0.
   void reset(double slow_error_nm, double slow_sigma_nm);
   // One sample: the model's prediction (its change from the last sample drives the process noise), then the
-  // reading when `valid` (a lost or stale reading: predict only, the covariance grows).
-  void step(double predicted_nm, double measured_nm, bool valid);
+  // reading when `valid` (a lost or stale reading: predict only, the covariance grows). `reading_offset_nm`: what the
+  // sensor adds to this reading besides the position (a sensor effect the caller's model knows, e.g. the encoder's
+  // interpolation error): the expected reading is the position plus it, before the noise and the quantiser.
+  void step(double predicted_nm, double measured_nm, bool valid, double reading_offset_nm = 0.0);
 
   // n samples at rest without readings, in closed form (a node that was down while the stage held).
   void hold(std::size_t samples);

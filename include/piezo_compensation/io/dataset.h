@@ -144,6 +144,9 @@ double median_step_s(const std::vector<double>& time_s);
 std::string voltage_column(const std::string& axis);        // "<axis>_voltage_v"
 std::string position_column(const std::string& axis);       // "<axis>_position_nm"
 std::string true_position_column(const std::string& axis);  // "<axis>_true_position_nm"
+// "<axis>_fused_position_nm": an axis' fused position (its model with its encoder, estimation/error_filter.h), a
+// derived column (analysis::add_fused_positions) that another axis' model may read.
+std::string fused_position_column(const std::string& axis);
 
 // CSV I/O. read_csv throws DataError with file, row (1-based, header = row 1) and column on:
 // missing time_s, an axis with voltage but no position (or vice versa), no axis at all, a non-numeric

@@ -5,6 +5,11 @@
 // an auxiliary signal such as a temperature). Columns and time enter through ModelInput::aux (see aux_inputs()).
 // The base model is committed with (position − correction), so it keeps seeing the part of the signal it was
 // fitted to: in free-run that is exactly its own free-run, so the terms can be fitted on the base residual.
+// Each term acts on the stage's position (a stage effect: what the feedforward must position) or only on the
+// readings (a sensor effect, acts_on: readings, e.g. the encoder's interpolation error). predict() gives what the
+// encoder reads (base + offset + every term), as the residual loop fits it; with set_stage_position(true) it gives
+// the stage position (the sensor terms left out), and sensor_part_nm() what the sensor terms add to the readings:
+// the compensator inverts the stage position and hands the sensor part to the estimator's reading model.
 #pragma once
 
 #include <yaml-cpp/yaml.h>
@@ -21,6 +26,9 @@ namespace piezo::models {
 inline constexpr const char* kSignalVoltage = "voltage";    // this axis' applied voltage [V]
 inline constexpr const char* kSignalPosition = "position";  // the base model's predicted position [nm]
 inline constexpr const char* kSignalTime = "time_s";        // the data's time column [s] (read as an input)
+// Where a term acts (EffectTerm::acts_on).
+inline constexpr const char* kActsOnPosition = "position";
+inline constexpr const char* kActsOnReadings = "readings";
 
 struct EffectTerm {
   // "linear"          [y]                                   y = lowpass_τ(lag_L(s))
@@ -40,6 +48,10 @@ struct EffectTerm {
   double period = 0.0;             // sincos period, in the signal's unit (s for time, nm for position)
   double pre_center = 0.0, pre_scale = 1.0;  // powers and gains: centring of the signal
   std::string scales = kSignalPosition;      // gains: what is scaled, "position" (base output) or "voltage"
+  // Where the effect is: "position" (the stage moves: prediction and feedforward) or "readings" (only the
+  // encoder reads it: the estimator's reading model). Files without the key: position.
+  std::string acts_on = kActsOnPosition;
+  bool in_readings() const { return acts_on == kActsOnReadings; }
   double reference = 0.0;                    // gains: value of the scaled quantity the gain acts about
   bool is_gain() const { return type == "gain" || type == "gain_quadratic"; }
   // Standardisation of each raw regressor (fitted on training data) and its weight [nm per standardised unit].
@@ -73,10 +85,10 @@ class EffectTermStream {
   void raw(double voltage_v, double base_position_nm, const double* columns, double* out) const;
   // Standardised regressors (using each term's center/scale).
   void standardised(double voltage_v, double base_position_nm, const double* columns, double* out) const;
-  // offset + Σ w · standardised regressors.
-  double correction(double voltage_v, double base_position_nm, const double* columns) const;
+  // offset + Σ w · standardised regressors; with `readings_nm`, the part of it the readings-only terms give.
+  double correction(double voltage_v, double base_position_nm, const double* columns, double* readings_nm = nullptr) const;
   // Commits the sample; returns its correction (what correction() gave before the commit), from the same pass.
-  double commit(double voltage_v, double base_position_nm, const double* columns);
+  double commit(double voltage_v, double base_position_nm, const double* columns, double* readings_nm = nullptr);
   // raw() then commit() in one pass over the terms (each term reads only its own state): the same numbers.
   void raw_and_commit(double voltage_v, double base_position_nm, const double* columns, double* out);
 
@@ -111,6 +123,14 @@ class AugmentedModel : public Model {
   double sample_rate_hz() const { return sample_rate_hz_; }
   // Base prediction and correction for the current sample (for reports and tests).
   double base_prediction(const ModelInput& in) const;
+  // What the sensor terms (acts_on: readings) add to the readings at the current sample (0 without any).
+  double sensor_part_nm(const ModelInput& in) const;
+  bool has_sensor_terms() const;
+  // true: predict() gives the stage position (the sensor terms left out) and commit() takes one (the base is
+  // committed with position − the stage terms' correction). false (the default): what the encoder reads. A runtime
+  // setting, not stored in the file; copies keep it.
+  void set_stage_position(bool on) { stage_position_ = on; }
+  bool stage_position() const { return stage_position_; }
 
   static ModelPtr from_yaml(const YAML::Node& model_node);
 
@@ -136,6 +156,7 @@ class AugmentedModel : public Model {
   std::vector<std::string> aux_names_;
   std::vector<int> col_index_;  // term column j → index into ModelInput::aux
   std::vector<double>* base_trace_ = nullptr;
+  bool stage_position_ = false;
 };
 
 }  // namespace piezo::models

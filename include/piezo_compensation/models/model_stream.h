@@ -26,6 +26,9 @@ struct InputSource {
     kAxisVoltage,   // "<axis>_voltage_v": an axis' applied voltage at this sample
     kAxisPosition,  // "<axis>_position_nm" of ANOTHER axis: its measured position at the previous sample (the
                     // latest reading known before this sample's; row 0 reads row 0)
+    kAxisFused,     // "<axis>_fused_position_nm" of ANOTHER axis: its best-known position (its model fused with its
+                    // encoder) at the previous sample, like kAxisPosition. Offline a derived column of that name
+                    // (analysis::add_fused_positions); live the predictor's estimate for that axis.
   };
   Kind kind = Kind::kAux;
   std::string name;  // as in aux_inputs()

@@ -28,4 +28,28 @@ estimation::NoiseModel identify_estimator(const models::Model& model, const io::
   return nm;
 }
 
+std::vector<double> fused_position(const models::Model& model, const io::Dataset& data, const std::string& axis,
+                                   const io::Dataset* warmup) {
+  models::ModelPtr m = model.clone();
+  models::StreamOptions so;
+  so.mode = models::PredictionMode::kFreeRun;
+  std::vector<double> p, y;
+  if (warmup) {
+    p = models::stream_model(*m, *warmup, axis, so).prediction;
+    y = warmup->axis(axis).position_nm;
+    so.reset = false;
+  }
+  const std::size_t first = p.size();
+  const std::vector<double> pd = models::stream_model(*m, data, axis, so).prediction;
+  p.insert(p.end(), pd.begin(), pd.end());
+  const std::vector<double>& yd = data.axis(axis).position_nm;
+  y.insert(y.end(), yd.begin(), yd.end());
+  if (!model.meta.estimator || model.meta.estimator.IsNull()) return pd;
+  const estimation::NoiseModel nm =
+      estimation::NoiseModel::from_yaml(model.meta.estimator, "the " + axis + " model's estimator block");
+  if (!nm.fuse) return pd;
+  const estimation::FilterTrace t = estimation::run_filter(nm, data.sample_period_s(), p, y);
+  return std::vector<double>(t.fused_nm.begin() + static_cast<long>(first), t.fused_nm.end());
+}
+
 }  // namespace piezo::analysis

@@ -11,6 +11,7 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/estimator_fit.h"
 #include "piezo_compensation/analysis/evaluation.h"
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/analysis/residual_backfit.h"
@@ -135,14 +136,18 @@ Context make_context(const models::Model& base, const io::Dataset& train, const 
   models::ModelPtr b = base.clone();
   c.x_base = run_model(*b, train, o.axis, o.mode);
   remove_recording_zeros(train, c, o);
+  // Another axis enters through its best-known position: its fused column where the caller gave its model
+  // (add_fused_positions), else its readings.
   for (const auto& other : train.axes)
     if (other.name != o.axis && test.has_axis(other.name)) {
       c.other_axes.push_back(io::voltage_column(other.name));
-      c.other_axes.push_back(io::position_column(other.name));
+      const std::string fused = io::fused_position_column(other.name);
+      c.other_axes.push_back(train.find_aux(fused) && test.find_aux(fused) ? fused : io::position_column(other.name));
     }
   c.x_at_zero_v = stroke_pivot(base, train, c, o);
   for (const auto& a : train.aux)
-    if (test.find_aux(a.name)) c.aux_names.push_back(a.name);
+    if (test.find_aux(a.name) && std::find(c.other_axes.begin(), c.other_axes.end(), a.name) == c.other_axes.end())
+      c.aux_names.push_back(a.name);
   if (o.start_transients) {
     c.transient_taus_s = start_transient_taus(base, train);
     for (double tau : c.transient_taus_s) {
@@ -187,9 +192,12 @@ class Loop {
   void score_before();
   std::vector<FamilyScore> rank(int step);
   bool step(int step);
+  int joint_pair(std::vector<FamilyScore>& ranking, const Val& now);
+  int after_one_refit(std::vector<FamilyScore>& ranking, const Val& now);
   // `winner` is an element of `ranking`: the report's ranking shows its variant after the backfits.
   void add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranking, std::vector<FamilyScore> competitors);
   void finish();
+  void rechoose_jointly();
 
   const ResidualOptions& o_;
   const io::Dataset& train_;
@@ -282,6 +290,83 @@ std::vector<FamilyScore> Loop::rank(int step) {
   return ranking;
 }
 
+// Two effects at once each leave the other's residual, and the base's distortion by both, in the validation of
+// the other: each alone may then fail its rules though the two together pass them. When no family passes alone,
+// the significant physical families are validated in pairs (the two strongest by explained variance first, not a
+// gain with its own additive family); the stronger of the first pair that passes every rule of a single family is
+// added, and the next round judges the other on the backfitted base. -1 when no pair passes.
+int Loop::joint_pair(std::vector<FamilyScore>& ranking, const Val& now) {
+  std::vector<std::size_t> sig;
+  for (std::size_t i = 0; i < ranking.size(); ++i)
+    if (ranking[i].available && ranking[i].significant && !is_operating_point_family(ranking[i].family) &&
+        !extrapolates_in_time(ranking[i].family))
+      sig.push_back(i);
+  if (sig.size() < 2) return -1;
+  if (sig.size() > 3) sig.resize(3);  // ranking is sorted by explained variance
+  const AcceptanceRound round = validator_.round(now);
+  for (std::size_t a = 0; a < sig.size(); ++a)
+    for (std::size_t b = a + 1; b < sig.size(); ++b) {
+      const FamilyScore &x = ranking[sig[a]], &y = ranking[sig[b]];
+      if (additive_counterpart(x.family) == y.family || additive_counterpart(y.family) == x.family) continue;
+      FamilyScore pair = x;
+      for (const auto& t : y.best.terms) pair.best.terms.push_back(t);
+      validator_.score(pair, terms_, now, false);
+      const Verdict v = judge_alone(pair, o_.acceptance, round);
+      log("  " + x.family + " with " + y.family + " validated jointly: " +
+          (v.pass ? "passes" : std::string(rule_name(v.rule)) + ": " + v.reason));
+      if (!v.pass) continue;
+      ranking[sig[a]].verdict = "kept: validated jointly with " + y.family + " (added in the next round if it then passes alone)";
+      return static_cast<int>(sig[a]);
+    }
+  return -1;
+}
+
+// A base fitted on data that carry an effect absorbs what its own regressors can express of it (a slow wander of
+// another axis projects onto its long creep modes by chance), and the effect's terms fitted on the residual of that
+// base then validate poorly. When nothing passes alone or in a pair, the two strongest significant physical
+// families, and then the two together, are validated once more with the base refitted on TRAIN without their part
+// (as backfitting will do when one is added), against the model as it is; the first that then passes every rule
+// is added (of a pair, the stronger; the next round judges the other). -1 when none.
+int Loop::after_one_refit(std::vector<FamilyScore>& ranking, const Val& now) {
+  if (!o_.refit_base) return -1;
+  std::vector<std::size_t> sig;
+  for (std::size_t i = 0; i < ranking.size() && sig.size() < 2; ++i)
+    if (ranking[i].available && ranking[i].significant && !is_operating_point_family(ranking[i].family) &&
+        !extrapolates_in_time(ranking[i].family))
+      sig.push_back(i);
+  std::vector<std::vector<std::size_t>> trials;
+  for (std::size_t i : sig) trials.push_back({i});
+  if (sig.size() == 2 && additive_counterpart(ranking[sig[0]].family) != ranking[sig[1]].family &&
+      additive_counterpart(ranking[sig[1]].family) != ranking[sig[0]].family)
+    trials.push_back(sig);
+  const AcceptanceRound round = validator_.round(now);
+  for (const auto& trial_set : trials) {
+    FamilyScore again = ranking[trial_set[0]];
+    std::string names = again.family;
+    for (std::size_t k = 1; k < trial_set.size(); ++k) {
+      const auto& other = ranking[trial_set[k]];
+      again.best.terms.insert(again.best.terms.end(), other.best.terms.begin(), other.best.terms.end());
+      names += " with " + other.family;
+    }
+    const std::vector<double> x_base = c_.x_base;
+    models::ModelPtr base = base_->clone();
+    std::vector<EffectTerm> trial = terms_;
+    trial.insert(trial.end(), again.best.terms.begin(), again.best.terms.end());
+    Level lv;
+    fit_terms(c_, trial, lv, 0, n_);
+    backfitter_.refit_without(trial, lv, base);
+    validator_.score(again, terms_, now, false);
+    c_.x_base = x_base;  // the refit was a trial: add_effect backfits for real
+    const Verdict v = judge_alone(again, o_.acceptance, round);
+    log("  " + names + " validated with the base refitted without it: " +
+        (v.pass ? "passes" : std::string(rule_name(v.rule)) + ": " + v.reason));
+    if (!v.pass) continue;
+    ranking[trial_set[0]].verdict = "kept: validated with the base refitted without " + names;
+    return static_cast<int>(trial_set[0]);
+  }
+  return -1;
+}
+
 // One round: every significant family is validated (competing explanations are compared on data they were not
 // fitted on), the policy picks at most one. False when none is added.
 bool Loop::step(int step) {
@@ -293,7 +378,9 @@ bool Loop::step(int step) {
   for (auto& s : ranking)
     if (s.available && s.significant) validator_.score(s, terms_, now, form_now);
   std::vector<FamilyScore> competitors;
-  const int w = choose_effect(ranking, o_.acceptance, validator_.round(now), &competitors);
+  int w = choose_effect(ranking, o_.acceptance, validator_.round(now), &competitors);
+  if (w < 0) w = joint_pair(ranking, now);
+  if (w < 0) w = after_one_refit(ranking, now);
   if (w < 0) {
     res_.final_ranking = ranking;
     return false;
@@ -330,7 +417,59 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   res_.effects.push_back(std::move(e));
 }
 
+// The last step: each added effect's variant (signal, lag, low-pass, a gain's form) chosen again given all the others
+// (each was chosen while the later ones were still in its residual), kept where it validates better; then all terms
+// refitted together.
+void Loop::rechoose_jointly() {
+  if (effect_first_.size() < 2) return;
+  ResidualOptions no_null = o_;
+  no_null.permutations = 0;  // accepted effects: only their variants are chosen again
+  for (std::size_t q = 0; q < effect_first_.size(); ++q) {
+    const std::size_t first = effect_first_[q];
+    const std::size_t last = q + 1 < effect_first_.size() ? effect_first_[q + 1] : terms_.size();
+    std::vector<EffectTerm> others(terms_.begin(), terms_.begin() + static_cast<long>(first));
+    others.insert(others.end(), terms_.begin() + static_cast<long>(last), terms_.end());
+    Level lv;
+    fit_terms(c_, others, lv, 0, n_);
+    const std::vector<double> p_o = corrected(c_, others, lv), r_o = residual_of(c_, others, lv);
+    const FoundEffect& e = res_.effects[q];
+    FamilyScore again = score_family(traits_of(e.family).id, c_, others, lv, r_o, p_o, no_null, rng_);
+    if (!again.available) continue;
+    const Val base_val = validator_.validate(others);
+    validator_.score(again, others, base_val, is_gain_family(e.family));
+    validator_.finalise_time_constants(again, others);
+    std::vector<EffectTerm> now_terms = others, new_terms = others;
+    now_terms.insert(now_terms.end(), terms_.begin() + static_cast<long>(first), terms_.begin() + static_cast<long>(last));
+    new_terms.insert(new_terms.end(), again.best.terms.begin(), again.best.terms.end());
+    const double mse_now = validator_.validate(now_terms).mse, mse_new = validator_.validate(new_terms).mse;
+    std::ostringstream os;
+    os << "  " << e.family << " chosen again given the other effects: validation MSE " << mse_new << " nm² (was "
+       << mse_now << " nm²)";
+    if (!(mse_new < mse_now)) {
+      log(os.str() + ", kept as it was");
+      continue;
+    }
+    log(os.str() + ", changed");
+    std::vector<EffectTerm> rebuilt(terms_.begin(), terms_.begin() + static_cast<long>(first));
+    rebuilt.insert(rebuilt.end(), again.best.terms.begin(), again.best.terms.end());
+    rebuilt.insert(rebuilt.end(), terms_.begin() + static_cast<long>(last), terms_.end());
+    const long shift = static_cast<long>(again.best.terms.size()) - static_cast<long>(last - first);
+    for (std::size_t k = q + 1; k < effect_first_.size(); ++k)
+      effect_first_[k] = static_cast<std::size_t>(static_cast<long>(effect_first_[k]) + shift);
+    terms_ = std::move(rebuilt);
+    res_.effects[q].parameters = again.best.parameters;
+    res_.effects[q].labels = again.best.labels;
+    fit_terms(c_, terms_, level_, 0, n_);
+  }
+  fit_terms(c_, terms_, level_, 0, n_);
+}
+
 void Loop::finish() {
+  if (effect_first_.size() >= 2) {
+    rechoose_jointly();
+    backfitter_.refit_all(terms_, level_, base_);
+    rechoose_jointly();
+  }
   // Parameters from the final joint fit.
   for (std::size_t q = 0; q < res_.effects.size(); ++q) {
     const std::size_t first = effect_first_[q];
@@ -359,6 +498,27 @@ ResidualResult Loop::run() {
 }
 
 }  // namespace
+
+void add_fused_positions(io::Dataset& train, io::Dataset& test,
+                         const std::map<std::string, std::shared_ptr<const models::Model>>& models,
+                         const std::string& own_axis, bool warm_start, const std::function<void(const std::string&)>& log) {
+  const bool continues = warm_start && continues_in_time(train, test);
+  for (const auto& [axis, model] : models) {
+    if (!model) throw std::invalid_argument("the other-axis model for axis " + axis + " is empty");
+    if (axis == own_axis) throw std::invalid_argument("an other-axis model was given for the modelled axis " + axis);
+    if (!train.has_axis(axis) || !test.has_axis(axis))
+      throw io::DataError("an other-axis model was given for axis " + axis + ", which TRAIN or TEST does not have");
+    std::vector<double> ft = fused_position(*model, train, axis);
+    std::vector<double> fs = fused_position(*model, test, axis, continues ? &train : nullptr);
+    const bool fuses = model->meta.estimator && !model->meta.estimator.IsNull();
+    if (log) log("axis " + axis + " enters through its fused position (" + (fuses ? "its model with its encoder" : "its model alone") + ")");
+    const std::string col = io::fused_position_column(axis);
+    for (io::Dataset* d : {&train, &test})
+      if (d->find_aux(col)) throw io::DataError(d->source_or_data() + " already has a column " + col);
+    train.aux.push_back({col, std::move(ft)});
+    test.aux.push_back({col, std::move(fs)});
+  }
+}
 
 ResidualResult trace_residual(const models::Model& base, const io::Dataset& train, const io::Dataset& test,
                               const ResidualOptions& o) {

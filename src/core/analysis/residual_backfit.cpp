@@ -99,6 +99,18 @@ bool Backfitter::choose_again(FamilyScore& winner, std::vector<EffectTerm>& term
   return form_changed;
 }
 
+void Backfitter::refit_without(std::vector<EffectTerm>& terms, Level& level, models::ModelPtr& base) {
+  if (!o_.refit_base || terms.empty()) return;
+  refit_once(terms, level, {}, 1.0, base);
+  fit_terms(c_, terms, level, 0, c_.x_base.size());
+}
+
+void Backfitter::refit_all(std::vector<EffectTerm>& terms, Level& level, models::ModelPtr& base) {
+  if (!o_.refit_base || terms.empty()) return;
+  refit_without(terms, level, base);
+  if (o_.log) o_.log("  last step: base refitted without every effect term's part");
+}
+
 void Backfitter::run(FamilyScore& winner, std::vector<EffectTerm>& terms, std::size_t first, Level& level,
                      models::ModelPtr& base) {
   if (!o_.refit_base) return;

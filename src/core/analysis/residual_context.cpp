@@ -42,6 +42,8 @@ EffectTerm make_term(const std::string& family, const std::string& type, const s
   t.signal = signal;
   t.lag_s = lag_s;
   t.time_constant_s = tau_s;
+  // a sensor effect's term acts on the readings only (the estimator's reading model), never on the stage position
+  t.acts_on = is_reading_family(family) ? models::kActsOnReadings : models::kActsOnPosition;
   return t;
 }
 

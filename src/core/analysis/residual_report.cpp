@@ -357,9 +357,11 @@ void md_effects(std::ostream& f, const ReportParts& p) {
     f << ".\n";
     if (e.in_readings)
       f << "   It belongs to the model of what the encoder reads, not to the feedforward: the stage position (and the "
-           "error against the truth above) leaves it out. The model file carries it as a term like any other, so "
-           "the predictor adds it to its predicted position: subtract it from the readings instead where the tip "
-           "must be positioned.\n";
+           "error against the truth above) leaves it out. The model file marks its terms `acts_on: readings`: the "
+           "predictor leaves them out of the predicted position, the drift forecast and the feedforward, and its "
+           "estimator expects each reading to be the stage position plus this term.\n";
+    else
+      f << "   The predictor puts it in the predicted position, the drift forecast and the feedforward.\n";
     for (const auto& c : e.competitors)
       f << "   - competing explanation **" << c.family << "** (" << c.parameters << " parameters, validation −"
         << 100 * c.validation_gain << " %): not taken, " << c.verdict << ".\n";

@@ -2,13 +2,18 @@
 // run blind on each (analysis/residual_sensitivity.h).
 #include "piezo_compensation/analysis/residual_sensitivity.h"
 
+#include <algorithm>
 #include <chrono>
+#include <map>
+#include <memory>
 #include <cmath>
 #include <random>
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/estimator_fit.h"
 #include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/simulator_config.h"
@@ -48,8 +53,10 @@ io::Dataset simulate(const sim::SimulatorConfig& cfg, double hours, std::uint64_
 }
 
 // A temperature the stage may feel: a first-order Gauss–Markov wander (σ 0.5 °C, correlation 400 s; a periodic one
-// would make the circular-shift null as wide as its period allows), felt through a 20-s delay and a 60-s low-pass.
-void temperature(const io::Dataset& d, std::uint64_t seed, std::vector<double>& t, std::vector<double>& felt) {
+// would make the circular-shift null as wide as its period allows), felt through a delay and a first-order low-pass
+// (the sensitivity stages: 20 s and 60 s).
+void temperature(const io::Dataset& d, std::uint64_t seed, std::vector<double>& t, std::vector<double>& felt,
+                 double delay_s = 20.0, double lag_s = 60.0) {
   std::mt19937_64 rng(seed * 7919 + 13);
   std::normal_distribution<double> g(0.0, 1.0);
   const double fs = d.sample_rate_hz(), rho = std::exp(-1.0 / (400.0 * fs));
@@ -60,8 +67,8 @@ void temperature(const io::Dataset& d, std::uint64_t seed, std::vector<double>& 
     w = rho * w + 0.5 * std::sqrt(1.0 - rho * rho) * g(rng);
     t[i] = 22.0 + w;
   }
-  const std::size_t lag = static_cast<std::size_t>(20.0 * fs);
-  const double a = std::exp(-1.0 / (60.0 * fs));
+  const std::size_t lag = static_cast<std::size_t>(delay_s * fs);
+  const double a = std::exp(-1.0 / (lag_s * fs));
   double lp = t[0];
   for (std::size_t i = 0; i < d.size(); ++i) felt[i] = lp = a * lp + (1 - a) * t[i >= lag ? i - lag : 0];
 }
@@ -168,7 +175,163 @@ std::string added_text(const std::vector<FoundEffect>& effects) {
   return s.empty() ? "nothing" : s;
 }
 
+// The comparison's stage: c from the stage file (or the default simulator), a driven with c's physics and coarse steps.
+sim::StageConfig comparison_stage(const ComparisonOptions& o) {
+  sim::StageConfig st;
+  if (!o.stage_path.empty()) st = sim::load_stage(o.stage_path);
+  else st.simulator = sim::default_simulator_config();
+  st.axes = {"a", "c"};
+  const std::string name = st.simulator.axes[0].name;
+  st.simulator.axes[0] = st.simulator.axes[2];
+  st.simulator.axes[0].name = name;
+  st.simulator.axes[0].encoder_quantisation_nm = o.encoder_step_a_nm;
+  return st;
+}
+
+bool planted(const ComparisonOptions& o, const char* name) {
+  return std::find(o.effects.begin(), o.effects.end(), name) != o.effects.end();
+}
+
+io::Dataset comparison_data(const ComparisonOptions& o, bool with_effects, double& sigma_nm) {
+  sim::StageConfig st = comparison_stage(o);
+  sigma_nm = reading_sigma_nm(st.simulator);
+  const double rms = o.size_sigma * sigma_nm;
+  std::mt19937_64 rng(o.seed * 104729 + 7);
+  std::uniform_real_distribution<double> u(0.0, 1.0);
+  if (with_effects && planted(o, "periodic")) {
+    sim::enable_effect(st.simulator, "encoder_periodic");
+    st.simulator.encoder_periodic.amplitude_nm = std::sqrt(2.0) * rms;
+    st.simulator.encoder_periodic.period_nm = 250.0 + 200.0 * u(rng);
+    st.simulator.encoder_periodic.phase_rad = kTwoPiS * u(rng);
+  }
+  if (with_effects && planted(o, "cross_axis")) {
+    const io::Dataset clean = sim::simulate_stage(st, o.seed, o.hours * 3600.0);
+    const double s = sd_of(clean.axis("a").true_position_nm);
+    sim::enable_effect(st.simulator, "cross_axis");
+    st.simulator.cross_axis.gain = s > 0 ? rms / s : 0.0;
+  }
+  io::Dataset d = sim::simulate_stage(st, o.seed, o.hours * 3600.0);
+  // The room's temperature: a 2-h cycle of 0.9 °C and a random walk, felt through a first-order lag.
+  std::vector<double> t(d.size()), felt(d.size());
+  {
+    std::mt19937_64 trng(o.seed * 7919 + 29);
+    std::normal_distribution<double> g(0.0, 1.0);
+    const double phase = kTwoPiS * u(rng), a = std::exp(-1.0 / (o.gain_lag_s * d.sample_rate_hz()));
+    double w = 0.0;
+    for (std::size_t i = 0; i < d.size(); ++i) {
+      w += 0.0006 * g(trng);
+      t[i] = 22.0 + 0.9 * std::sin(kTwoPiS * d.time_s[i] / 7200.0 + phase) + w;
+      felt[i] = i == 0 ? t[0] : a * felt[i - 1] + (1.0 - a) * t[i];
+    }
+  }
+  if (with_effects && planted(o, "gain")) plant_thermal(d, true, rms, felt);
+  if (with_effects && planted(o, "slips")) {
+    std::vector<double> dy(d.size(), 0.0);
+    for (std::size_t i = 0; i < d.size(); ++i)
+      dy[i] = (i >= d.size() * 8 / 10 ? 60.0 : 0.0) + (i >= d.size() * 9 / 10 ? -45.0 : 0.0);
+    add_motion(d, dy);
+  }
+  d.aux.push_back({"temperature_c", t});
+  return d;
+}
+
+// The base of `axis` fitted on TRAIN's fit part; with `estimator`, its error filter identified on the validation part.
+models::ModelPtr fit_axis(const ComparisonOptions& o, const io::Dataset& train, std::size_t n_fit, const std::string& axis,
+                          bool estimator) {
+  const io::Dataset fit = train.slice(0, n_fit), val = train.slice(n_fit, train.size());
+  training::FitRequest req;
+  req.train = &fit;
+  req.validation = &val;
+  req.axis = axis;
+  req.seed = o.seed;
+  models::ModelPtr m = training::fit_model(o.base_kind, req);
+  if (estimator) m->meta.estimator = identify_estimator(*m, train, axis, n_fit).to_yaml();
+  return m;
+}
+
+ComparisonRun compare_once(const ComparisonOptions& o, bool with_effects, double& sigma_nm) {
+  const io::Dataset d = comparison_data(o, with_effects, sigma_nm);
+  const std::size_t cut = static_cast<std::size_t>(static_cast<double>(d.size()) * o.train_fraction);
+  io::Dataset train = d.slice(0, cut), test = d.slice(cut, d.size());
+  ResidualOptions ro;
+  ro.axis = "c";
+  ro.permutations = o.permutations;
+  ro.seed = o.seed;
+  ro.log = o.loop_log;
+  const std::size_t n_fit =
+      static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - ro.validation_fraction)));
+  if (o.fused_other_axis) {
+    std::map<std::string, std::shared_ptr<const models::Model>> others;
+    others["a"] = fit_axis(o, train, n_fit, "a", true);
+    add_fused_positions(train, test, others, "c", ro.warm_start, o.loop_log);
+    if (o.loop_log) {
+      std::ostringstream os;
+      os << "a's fused position against its truth: MAE TRAIN "
+         << error_stats(train.find_aux("a_fused_position_nm")->values, train.axis("a").true_position_nm).mae_nm
+         << " nm, TEST " << error_stats(test.find_aux("a_fused_position_nm")->values, test.axis("a").true_position_nm).mae_nm
+         << " nm (its readings: " << error_stats(test.axis("a").position_nm, test.axis("a").true_position_nm).mae_nm << " nm)";
+      o.loop_log(os.str());
+    }
+  }
+  const models::ModelPtr base = fit_axis(o, train, n_fit, "c", false);
+  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) {
+    training::FitRequest r;
+    r.train = &f;
+    r.validation = &v;
+    r.axis = "c";
+    r.seed = o.seed;
+    r.options = training::refit_options(previous, r.options);
+    return training::fit_model(o.base_kind, r);
+  };
+  const ResidualResult res = trace_residual(*base, train, test, ro);
+  return ComparisonRun{res.before_test_truth.mae_nm, res.after_test_truth.mae_nm, res.effects};
+}
+
+void effect_lines(std::ostringstream& f, const std::vector<FoundEffect>& effects) {
+  if (effects.empty()) f << "  nothing added\n";
+  for (const auto& e : effects) {
+    f << "  " << e.family << (e.in_readings ? " (sensor effect: in the readings)" : " (stage effect)") << ":";
+    for (const auto& [k, v] : e.labels) f << " " << k << "=" << v;
+    for (const auto& [k, v] : e.parameters) f << " " << k << "=" << v;
+    f << "\n";
+  }
+}
+
 }  // namespace
+
+ComparisonResult run_comparison(const ComparisonOptions& o) {
+  for (const auto& e : o.effects)
+    if (e != "cross_axis" && e != "gain" && e != "periodic" && e != "slips")
+      throw std::invalid_argument("unknown planted effect '" + e + "' (valid: cross_axis, gain, periodic, slips)");
+  if (!(o.hours >= 0.5) || !(o.train_fraction > 0.3 && o.train_fraction < 0.95) || !(o.size_sigma > 0) ||
+      !(o.gain_lag_s > 0) || !(o.encoder_step_a_nm >= 0))
+    throw std::invalid_argument("comparison: hours ≥ 0.5, train fraction in (0.3, 0.95), size, gain lag > 0, step ≥ 0");
+  const auto t0 = std::chrono::steady_clock::now();
+  ComparisonResult r;
+  r.with_effects = compare_once(o, true, r.noise_sigma_nm);
+  r.clean = o.effects.empty() ? r.with_effects : compare_once(o, false, r.noise_sigma_nm);
+  r.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  return r;
+}
+
+std::string comparison_text(const ComparisonResult& r, const ComparisonOptions& o) {
+  std::ostringstream f;
+  f.precision(4);
+  f << "stage " << (o.stage_path.empty() ? "default simulator" : o.stage_path) << ", axes a (" << o.encoder_step_a_nm
+    << "-nm steps) and c, " << o.hours << " h, seed " << o.seed << ", base " << o.base_kind << ", a "
+    << (o.fused_other_axis ? "through its fused position" : "through its readings and voltage") << "\n";
+  f << "planted:";
+  for (const auto& e : o.effects) f << " " << e;
+  if (o.effects.empty()) f << " nothing";
+  f << " (" << o.size_sigma << " σ each, σ " << r.noise_sigma_nm << " nm; gain lag " << o.gain_lag_s << " s)\n";
+  f << "with effects: TEST MAE vs truth " << r.with_effects.before_truth_nm << " -> " << r.with_effects.after_truth_nm << " nm\n";
+  effect_lines(f, r.with_effects.effects);
+  f << "clean stage: TEST MAE vs truth " << r.clean.before_truth_nm << " -> " << r.clean.after_truth_nm << " nm\n";
+  effect_lines(f, r.clean.effects);
+  f << "ratio (with effects / clean, after the loop): " << r.with_effects.after_truth_nm / r.clean.after_truth_nm << "\n";
+  f << r.seconds << " s wall\n";
+  return f.str();
+}
 
 const char* sensitivity_family_name(SensitivityFamily f) {
   switch (f) {

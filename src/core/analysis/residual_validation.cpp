@@ -109,6 +109,41 @@ double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate
   return ss / static_cast<double>(rows);
 }
 
+// A delay L and a first-order low-pass τ are told apart only by the shape of the response: over slow signals
+// both shift it by about L + τ, so a coarse grid confounds them (a 90-s first-order lag read as 120 s of delay and
+// a 35-s low-pass). Keeping the mean delay L + τ, the split between them is chosen on the joint fit's RMS over
+// rows [0, rows): L' = k·L for k in {0, ¼, ½, ¾}, τ' = τ + (1 − k)·L, within max_time_constant_s. True when it moved.
+bool Validator::split_delay(FamilyScore& s, const std::vector<EffectTerm>& fixed, std::size_t rows, std::size_t q) const {
+  const EffectTerm& t0 = s.best.terms[q];
+  if (!(t0.lag_s > 0.0) || t0.signal == models::kSignalPosition || t0.type == "sincos") return false;
+  double best_ms = train_ms(fixed, s.best, rows);
+  Candidate best = s.best;
+  for (double k : {0.0, 0.25, 0.5, 0.75}) {
+    Candidate alt = s.best;
+    EffectTerm& t = alt.terms[q];
+    const double tau = t.time_constant_s + (1.0 - k) * t.lag_s;
+    if (max_time_constant_s() > 0.0 && tau > max_time_constant_s()) continue;
+    t.lag_s = k * t.lag_s;
+    t.time_constant_s = tau;
+    t.center.clear(), t.scale.clear(), t.weight.clear();
+    const double ms = train_ms(fixed, alt, rows);
+    if (ms < best_ms * (1.0 - 1e-4)) best_ms = ms, best = alt;
+  }
+  if (best.terms[q].lag_s == t0.lag_s) return false;
+  if (log_) {
+    std::ostringstream os;
+    os << "    " << s.family << ": delay " << t0.lag_s << " s + low-pass " << t0.time_constant_s << " s -> "
+       << best.terms[q].lag_s << " s + " << best.terms[q].time_constant_s << " s (the same mean delay)";
+    log_(os.str());
+  }
+  s.best = best;
+  if (s.best.terms.size() == 1 || q == 0) {
+    s.best.parameters["lag_s"] = s.best.terms[q].lag_s;
+    s.best.parameters["time_constant_s"] = s.best.terms[q].time_constant_s;
+  }
+  return true;
+}
+
 // The grid's low-pass is a factor ~3 off at worst (a 20-s thermal lag read through 30 s leaves a phase error of
 // ~11° on a 200-s cycle, ~10 nm on a 90-nm swing): each term's time constant is refined by a pattern search in
 // log τ (factor 2, then √2, … down to 1.1; within a factor `span` of where it starts) on the RMS of the joint fit
@@ -121,6 +156,7 @@ bool Validator::refine_time_constants(FamilyScore& s, const std::vector<EffectTe
                                       double span) const {
   bool refined = false;
   for (std::size_t q = 0; q < s.best.terms.size(); ++q) {
+    refined = split_delay(s, fixed, rows, q) || refined;
     if (!(s.best.terms[q].time_constant_s > 0.0)) continue;
     const double tau0 = s.best.terms[q].time_constant_s;
     const double tau_max = std::max(tau0, std::min(span * tau0, max_time_constant_s()));
@@ -190,8 +226,57 @@ void Validator::log_score(const FamilyScore& s) const {
   log_(os.str());
 }
 
+// Another axis enters through its best-known position (its fused column); its voltage only where it explains more
+// on validation than that position with the same lag and low-pass.
+void Validator::prefer_fused_position(FamilyScore& s, const std::vector<EffectTerm>& fixed, Val& v) const {
+  const auto sig = s.best.labels.find("signal");
+  if (sig == s.best.labels.end()) return;
+  const std::string volt = sig->second, suffix = "_voltage_v";
+  if (volt.size() <= suffix.size() || volt.compare(volt.size() - suffix.size(), suffix.size(), suffix) != 0) return;
+  const std::string fused = io::fused_position_column(volt.substr(0, volt.size() - suffix.size()));
+  if (std::find(c_.other_axes.begin(), c_.other_axes.end(), fused) == c_.other_axes.end()) return;
+  // Only the terms on that voltage change; a gain on the fused position standardises it by TRAIN's mean and SD.
+  double mu = 0.0, sd = 1.0;
+  {
+    models::InputResolver col(*c_.data, {fused}, c_.axis);
+    std::vector<double> sv(c_.x_base.size());
+    for (std::size_t i = 0; i < sv.size(); ++i) col.fill(i, &sv[i]);
+    mu = mean_of(sv, 0, sv.size());
+    double var = 0;
+    for (double x : sv) var += (x - mu) * (x - mu);
+    sd = std::sqrt(var / static_cast<double>(std::max<std::size_t>(1, sv.size())));
+    if (!(sd > 0)) return;
+  }
+  Candidate alt = s.best;
+  alt.terms.clear();
+  for (EffectTerm t : s.best.terms) {
+    if (t.signal == volt && t.type == "play") continue;  // a play's threshold is in volts
+    if (t.signal == volt) {
+      t.signal = fused;
+      if (t.is_gain()) t.pre_center = mu, t.pre_scale = sd;
+      t.center.clear(), t.scale.clear(), t.weight.clear();
+    }
+    alt.terms.push_back(t);
+  }
+  alt.labels["signal"] = fused;
+  alt.parameters.erase("play_threshold_v");
+  const Val va = score_candidate(*this, fixed, alt);
+  if (log_) {
+    std::ostringstream os;
+    os << "    " << s.family << " on " << fused << ": validation MSE " << va.mse << " nm² (" << volt << ": " << v.mse
+       << " nm²)";
+    log_(os.str());
+  }
+  if (va.mse <= v.mse) {
+    s.best = alt;
+    v = va;
+  }
+}
+
 void Validator::score(FamilyScore& s, const std::vector<EffectTerm>& fixed, const Val& now, bool choose_form) const {
   Val v = score_candidate(*this, fixed, s.best);
+  if (traits_of(s.family).id == Family::kCrossAxis || traits_of(s.family).id == Family::kCrossAxisGain)
+    prefer_fused_position(s, fixed, v);
   if (is_gain_family(s.family) && choose_form) choose_gain_form(s, fixed, v);
   if (refine_time_constants(s, fixed, n_fit_, 4.0)) v = score_candidate(*this, fixed, s.best);
   fill_sizes(s, v, now);

@@ -36,10 +36,18 @@ void AxisCompensator::set_estimator_for(const models::Model& model) {
   estimator_status_ = nm.describe();
 }
 
+double AxisCompensator::sensor_part(const models::ModelInput& in) const {
+  if (!sensor_terms_) return 0.0;
+  const double s = augmented_->sensor_part_nm(in);
+  return std::isfinite(s) ? s : 0.0;
+}
+
+// The estimator's reading model: the reading is the stage position plus what the sensor terms expect the encoder
+// to add (u.sensor_nm); the fused estimate is the stage's.
 void AxisCompensator::track(double predicted_nm, double measured_nm, bool measured_valid, bool ok, SampleUpdate& u) {
   u.fused_nm = predicted_nm;
   if (filter_) {
-    filter_->step(predicted_nm, measured_nm, measured_valid);
+    filter_->step(predicted_nm, measured_nm, measured_valid, u.sensor_nm);
     u.fused_nm = filter_->fused_nm();
     u.fused_sigma_nm = filter_->sigma_nm();
   }
@@ -54,12 +62,14 @@ void AxisCompensator::check_model(const models::Model& model) {
 }
 
 void AxisCompensator::set_inputs_for(const models::Model& model) {
+  augmented_ = dynamic_cast<models::AugmentedModel*>(model_.get());
+  if (augmented_) augmented_->set_stage_position(true);  // the feedforward positions the stage, not the readings
+  sensor_terms_ = augmented_ && augmented_->has_sensor_terms();
   const std::vector<std::string> names = model.aux_inputs();
   aux_now_.assign(names.size(), std::numeric_limits<double>::quiet_NaN());
   time_index_.clear();
   for (std::size_t k = 0; k < names.size(); ++k)
     if (names[k] == "time_s") time_index_.push_back(k);
-  augmented_ = dynamic_cast<const models::AugmentedModel*>(&model);
 }
 
 std::vector<double> AxisCompensator::next_inputs() const {
@@ -126,8 +136,9 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
   }
   record_start_row(applied_v, measured_nm, measured_valid);
   const models::ModelInput in{applied_v, aux_now_.empty() ? nullptr : aux_now_.data()};
-  const double p = model_->predict(in);
+  const double p = model_->predict(in);  // the stage position (set_inputs_for)
   u.base_predicted_nm = augmented_ ? augmented_->base_prediction(in) : p;
+  u.sensor_nm = sensor_part(in);
   last_applied_v_ = applied_v;
   if (!std::isfinite(p) || !in_range(p)) {
     std::ostringstream s;
@@ -144,7 +155,8 @@ SampleUpdate AxisCompensator::on_sample(double applied_v, double measured_nm, bo
     track(x0, measured_nm, measured_valid, false, u);
     return u;
   }
-  model_->commit(in, config_.position_feedback && measured_valid ? measured_nm : p);
+  // one-step: the reading less what the sensor adds to it is the stage position the model is committed with
+  model_->commit(in, config_.position_feedback && measured_valid ? measured_nm - u.sensor_nm : p);
   last_predicted_nm_ = p;
   u.predicted_nm = p;
   track(p, measured_nm, measured_valid, true, u);
@@ -197,7 +209,7 @@ void AxisCompensator::start_from_window(double applied_v) {
   for (std::size_t i = 0; i + 1 < window_.size(); ++i) {
     const models::ModelInput in{ax.voltage_v[i], inputs.at(i)};
     const double p = model_->predict(in);
-    model_->commit(in, config_.position_feedback && std::isfinite(ax.position_nm[i]) ? ax.position_nm[i] : p);
+    model_->commit(in, config_.position_feedback && std::isfinite(ax.position_nm[i]) ? ax.position_nm[i] - sensor_part(in) : p);
     last_predicted_nm_ = p;
   }
   last_applied_v_ = applied_v;

@@ -31,6 +31,9 @@ void LiveInputs::add_voltage(const std::string& axis, std::uint32_t seq, double 
 void LiveInputs::add_reading(const std::string& axis, std::uint32_t seq, double position_nm) {
   keep(readings_[axis], seq, position_nm);
 }
+void LiveInputs::add_fused(const std::string& axis, std::uint32_t seq, double fused_nm) {
+  keep(fused_[axis], seq, fused_nm);
+}
 void LiveInputs::add_aux(const std::string& name, double value, double stamp_s, double time_s) {
   auto& q = aux_[name];
   // usually appended; a message stamped before the last one goes to its place (a sensor's messages may overtake)
@@ -45,6 +48,10 @@ const std::deque<LiveInputs::Report>* LiveInputs::voltages(const std::string& ax
 const std::deque<LiveInputs::Report>* LiveInputs::readings(const std::string& axis) const {
   auto it = readings_.find(axis);
   return it == readings_.end() ? nullptr : &it->second;
+}
+const std::deque<LiveInputs::Report>* LiveInputs::fused(const std::string& axis) const {
+  auto it = fused_.find(axis);
+  return it == fused_.end() ? nullptr : &it->second;
 }
 const LiveInputs::Aux* LiveInputs::aux(const std::string& name, double stamp_s) const {
   auto it = aux_.find(name);
@@ -105,12 +112,14 @@ bool InputFeeder::fill(const LiveInputs& live, const io::PairedSample& sample, d
   std::vector<double> cross(sources_.size(), std::nan(""));
   for (std::size_t k = 0; k < sources_.size(); ++k) {
     const auto& s = sources_[k];
-    if (s.kind != Kind::kAxisVoltage && s.kind != Kind::kAxisPosition) continue;
+    if (s.kind != Kind::kAxisVoltage && s.kind != Kind::kAxisPosition && s.kind != Kind::kAxisFused) continue;
     if (s.kind == Kind::kAxisVoltage && s.axis == own_axis_) {
       cross[k] = sample.voltage_v;
       continue;
     }
-    const auto* q = s.kind == Kind::kAxisVoltage ? live.voltages(s.axis) : live.readings(s.axis);
+    const auto* q = s.kind == Kind::kAxisVoltage  ? live.voltages(s.axis)
+                    : s.kind == Kind::kAxisFused ? live.fused(s.axis)
+                                                 : live.readings(s.axis);
     const std::uint32_t want = s.kind == Kind::kAxisVoltage ? sample.sequence : sample.sequence - 1;
     const LiveInputs::Report* r = nullptr;
     const io::ReportMatch m = q ? io::match_report(*q, want, give_up, by_seq, &r)
@@ -129,6 +138,7 @@ bool InputFeeder::fill(const LiveInputs& live, const io::PairedSample& sample, d
         break;
       case Kind::kAxisVoltage:
       case Kind::kAxisPosition:
+      case Kind::kAxisFused:
         fresh = cross[k];
         if (!std::isfinite(fresh)) why = s.name + ": no value from axis " + s.axis + " yet";
         break;

@@ -340,7 +340,8 @@ void ErrorFilter::set_state(const FilterState& s) {
   have_level_ = false;
 }
 
-void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
+void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid, double reading_offset_nm) {
+  if (!std::isfinite(reading_offset_nm)) throw std::invalid_argument("ErrorFilter::step: the reading offset is not finite");
   const double dp = started_ ? std::abs(predicted_nm - last_p_) : 0.0;
   last_p_ = predicted_nm;
   started_ = true;
@@ -348,7 +349,7 @@ void ErrorFilter::step(double predicted_nm, double measured_nm, bool valid) {
   predict(dp, x_, P_);
   if (have_level_) predict(dp, level_x_, level_free_P_);
   if (!valid || !std::isfinite(measured_nm) || !track_level(measured_nm, predicted_nm) ||
-      !take_reading(measured_nm - predicted_nm, measured_nm)) {
+      !take_reading(measured_nm - predicted_nm - reading_offset_nm, measured_nm)) {
     ++since_reading_;
     return;
   }

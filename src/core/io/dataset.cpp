@@ -9,6 +9,7 @@ namespace piezo::io {
 std::string voltage_column(const std::string& axis) { return axis + "_voltage_v"; }
 std::string position_column(const std::string& axis) { return axis + "_position_nm"; }
 std::string true_position_column(const std::string& axis) { return axis + "_true_position_nm"; }
+std::string fused_position_column(const std::string& axis) { return axis + "_fused_position_nm"; }
 
 namespace {
 std::string where(const Dataset& d) { return d.source.empty() ? std::string("data set") : d.source; }

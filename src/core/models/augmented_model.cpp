@@ -82,6 +82,7 @@ std::string EffectTerm::name() const {
   if (type == "sincos") os << ", period " << fmt(period) << (signal == kSignalTime ? " s" : signal == kSignalPosition ? " nm" : "");
   if (time_constant_s > 0) os << ", low-pass " << fmt(time_constant_s) << " s";
   if (is_gain()) os << ", scales " << scales;
+  if (in_readings()) os << ", in the readings";
   os << ")";
   return os.str();
 }
@@ -101,6 +102,7 @@ YAML::Node EffectTerm::to_yaml() const {
     n["scales"] = scales;
     n["reference"] = reference;
   }
+  if (in_readings()) n["acts_on"] = acts_on;
   for (double c : center) n["center"].push_back(c);
   for (double s : scale) n["scale"].push_back(s);
   for (double w : weight) n["weight"].push_back(w);
@@ -111,7 +113,7 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
   if (!n.IsMap()) throw std::runtime_error("augmented model: a term is not a map");
   for (const auto& kv : n) {
     static const char* known[] = {"type", "signal", "family", "lag_s", "time_constant_s", "threshold", "period",
-                                  "pre_center", "pre_scale", "center", "scale", "weight", "scales", "reference"};
+                                  "pre_center", "pre_scale", "center", "scale", "weight", "scales", "reference", "acts_on"};
     const std::string k = kv.first.as<std::string>();
     if (std::find_if(std::begin(known), std::end(known), [&](const char* s) { return k == s; }) == std::end(known))
       throw std::runtime_error("augmented model term: unknown key '" + k + "'");
@@ -129,6 +131,9 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
   t.pre_scale = yaml_num(n, "pre_scale", 1.0);
   if (n["scales"]) t.scales = n["scales"].as<std::string>();
   t.reference = yaml_num(n, "reference", 0.0);
+  if (n["acts_on"]) t.acts_on = n["acts_on"].as<std::string>();
+  if (t.acts_on != kActsOnPosition && t.acts_on != kActsOnReadings)
+    throw std::runtime_error("augmented model term " + t.name() + ": 'acts_on' must be position or readings, got '" + t.acts_on + "'");
   t.center = yaml_vec(n, "center");
   t.scale = yaml_vec(n, "scale");
   t.weight = yaml_vec(n, "weight");
@@ -166,6 +171,7 @@ struct TermConst {
   TermKind kind = TermKind::linear;
   bool on_position = false;    // the term reads the (corrected) position
   bool scales_voltage = false; // a gain scales the voltage, not the base output
+  bool in_readings = false;    // a sensor term (acts_on: readings)
   std::size_t regressors = 1;
 };
 }  // namespace effect_stream
@@ -245,9 +251,11 @@ struct EffectTermStream::Impl {
 
   // One pass over all terms: raw regressors into out (may be null), returns the correction; commits if asked.
   // Non-position terms first, then position terms at the corrected position.
-  double run(double v, double x_base, const double* cols, double* out, std::vector<TermState>* commit) const {
+  double run(double v, double x_base, const double* cols, double* out, std::vector<TermState>* commit,
+             double* readings = nullptr) const {
     double local[3] = {0, 0, 0};
     double corr = offset_nm;
+    if (readings) *readings = 0.0;
     for (int pass = 0; pass < 2; ++pass) {
       const double x_eff = x_base + corr;
       for (std::size_t i = 0; i < terms.size(); ++i) {
@@ -275,10 +283,13 @@ struct EffectTermStream::Impl {
           st.decay = next.decay;
           st.fresh = false;
         }
+        double part = 0.0;
         for (std::size_t r = 0; r < consts[i].regressors; ++r) {
           const double z = (o[r] - (r < t.center.size() ? t.center[r] : 0.0)) / (r < t.scale.size() ? t.scale[r] : 1.0);
-          corr += (r < t.weight.size() ? t.weight[r] : 0.0) * z;
+          part += (r < t.weight.size() ? t.weight[r] : 0.0) * z;
         }
+        corr += part;
+        if (readings && consts[i].in_readings) *readings += part;
       }
     }
     return corr;
@@ -298,6 +309,7 @@ EffectTermStream::EffectTermStream(std::vector<EffectTerm> terms, double sample_
     c.regressors = t.num_regressors();
     c.on_position = t.signal == kSignalPosition;
     c.scales_voltage = t.scales == kSignalVoltage;
+    c.in_readings = t.in_readings();
     if (!is_builtin_signal(t.signal)) {
       auto it = std::find(impl_->columns.begin(), impl_->columns.end(), t.signal);
       if (it == impl_->columns.end()) {
@@ -353,13 +365,13 @@ void EffectTermStream::standardised(double v, double x, const double* cols, doub
   }
 }
 
-double EffectTermStream::correction(double v, double x, const double* cols) const {
-  return impl_->run(v, x, cols, nullptr, nullptr);
+double EffectTermStream::correction(double v, double x, const double* cols, double* readings_nm) const {
+  return impl_->run(v, x, cols, nullptr, nullptr, readings_nm);
 }
 
-double EffectTermStream::commit(double v, double x, const double* cols) {
+double EffectTermStream::commit(double v, double x, const double* cols, double* readings_nm) {
   // Each term reads only its own state before writing it, so the update can be in place.
-  return impl_->run(v, x, cols, nullptr, &impl_->states);
+  return impl_->run(v, x, cols, nullptr, &impl_->states, readings_nm);
 }
 
 void EffectTermStream::raw_and_commit(double v, double x, const double* cols, double* out) {
@@ -391,7 +403,8 @@ AugmentedModel::AugmentedModel(const AugmentedModel& o)
       sample_rate_hz_(o.sample_rate_hz_),
       n_base_aux_(o.n_base_aux_),
       aux_names_(o.aux_names_),
-      col_index_(o.col_index_) {}
+      col_index_(o.col_index_),
+      stage_position_(o.stage_position_) {}
 
 void AugmentedModel::split(const ModelInput& in, std::vector<double>& base_aux, std::vector<double>& cols) const {
   base_aux.assign(n_base_aux_, 0.0);
@@ -444,7 +457,22 @@ double AugmentedModel::predict(const ModelInput& in) const {
   split(in, ba, cols);
   ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
   const double x = base_->predict(bi);
-  return x + stream_.correction(in.voltage_v, x, cols.data());
+  double readings = 0.0;
+  const double corr = stream_.correction(in.voltage_v, x, cols.data(), &readings);
+  return x + corr - (stage_position_ ? readings : 0.0);
+}
+
+double AugmentedModel::sensor_part_nm(const ModelInput& in) const {
+  std::vector<double> ba, cols;
+  split(in, ba, cols);
+  ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
+  double readings = 0.0;
+  stream_.correction(in.voltage_v, base_->predict(bi), cols.data(), &readings);
+  return readings;
+}
+
+bool AugmentedModel::has_sensor_terms() const {
+  return std::any_of(stream_.terms().begin(), stream_.terms().end(), [](const EffectTerm& t) { return t.in_readings(); });
 }
 
 void AugmentedModel::commit(const ModelInput& in, double position_nm) {
@@ -452,7 +480,9 @@ void AugmentedModel::commit(const ModelInput& in, double position_nm) {
   split(in, ba, cols);
   ModelInput bi{in.voltage_v, ba.empty() ? nullptr : ba.data()};
   const double x = base_->predict(bi);
-  const double corr = stream_.commit(in.voltage_v, x, cols.data());  // the stream reads x, not the base's state
+  double readings = 0.0;
+  // the stream reads x, not the base's state
+  const double corr = stream_.commit(in.voltage_v, x, cols.data(), &readings) - (stage_position_ ? readings : 0.0);
   base_->commit(bi, position_nm - corr);
   if (base_trace_) base_trace_->push_back(x);
 }

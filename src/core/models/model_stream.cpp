@@ -38,6 +38,12 @@ InputSource classify_input(const std::string& name, const std::string& own_axis,
       s.axis = ax;
       return s;
     }
+    if (name == io::fused_position_column(ax)) {
+      if (ax == own_axis) throw io::DataError("column " + name + " is the modelled axis' own fused position and cannot be a model input");
+      s.kind = InputSource::Kind::kAxisFused;
+      s.axis = ax;
+      return s;
+    }
     if (name == io::voltage_column(ax)) {
       s.kind = InputSource::Kind::kAxisVoltage;
       s.axis = ax;
@@ -65,13 +71,18 @@ InputResolver::InputResolver(const io::Dataset& data, const std::vector<std::str
       case InputSource::Kind::kAxisVoltage: col = &data.axis(s.axis).voltage_v; break;
       case InputSource::Kind::kAxisPosition: col = &data.axis(s.axis).position_nm; break;
       case InputSource::Kind::kAux:
+      case InputSource::Kind::kAxisFused:
         if (const io::AuxSignal* a = data.find_aux(name)) col = &a->values;
         break;
     }
+    if (!col && s.kind == InputSource::Kind::kAxisFused)
+      throw io::DataError(data.source_or_data() + ": the model reads " + name + ", axis " + s.axis +
+                          "'s fused position, a column derived from that axis' model and readings "
+                          "(analysis::add_fused_positions; piezo residual --other-model " + s.axis + "=FILE)");
     if (!col) throw io::DataError(data.source_or_data() + ": the model reads column " + name + ", which the data does not have");
     sources_.push_back(s);
     cols_.push_back(col);
-    lagged_.push_back(s.kind == InputSource::Kind::kAxisPosition);
+    lagged_.push_back(s.kind == InputSource::Kind::kAxisPosition || s.kind == InputSource::Kind::kAxisFused);
   }
   row_.resize(cols_.size());
 }
