@@ -26,6 +26,7 @@ constexpr double kPatienceS = 60.0;
 
 struct Counts {
   int encoder = 0, voltage = 0, prediction = 0, fallback = 0, model_predicted = 0, fused = 0, model_only = 0;
+  double last_fused_nm = NAN, last_measured_nm = NAN, last_predicted_nm = NAN;
   double last_sigma_nm = std::nan("");
   std::string last_status, model;
   std::vector<double> voltages;
@@ -88,6 +89,9 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
                      m->fused_position_sigma > 0.0;
           k.model_only += m->hold_trim_state == "model_only";
           k.last_sigma_nm = m->fused_position_sigma * 1e9;
+          k.last_fused_nm = m->fused_position * 1e9;
+          k.last_measured_nm = m->measured_position * 1e9;
+          k.last_predicted_nm = m->predicted_position * 1e9;
           k.last_status = m->status;
           k.model = m->model;
         }));
@@ -142,7 +146,13 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
       EXPECT_NE(k.model.find("mm3e_sim_" + a), std::string::npos) << "shipped default model, got " << k.model;
       EXPECT_EQ(k.fused, k.prediction) << "a fused position with a finite σ on every prediction";
       EXPECT_EQ(k.model_only, 0) << "the shipped model's estimator fuses the encoder";
-      std::printf("axis %s: %d predictions fused, last 1σ %.1f nm\n", a.c_str(), k.fused, k.last_sigma_nm);
+      std::printf("axis %s: %d predictions fused, last: measured %.1f nm, predicted %.1f nm, fused %.1f nm, 1σ %.1f nm\n",
+                  a.c_str(), k.fused, k.last_measured_nm, k.last_predicted_nm, k.last_fused_nm, k.last_sigma_nm);
+      // The fused position sits where the readings put it: within the reading's cell (half a 250 nm step on a and
+      // b) and 3σ of its own and of the noise before the quantiser.
+      const double half_cell_nm = a == "c" ? 0.0 : 125.0;
+      EXPECT_LE(std::abs(k.last_fused_nm - k.last_measured_nm), half_cell_nm + 3.0 * k.last_sigma_nm + 3.0 * 21.0)
+          << "fused far from the readings";
     }
   }
 }
