@@ -100,6 +100,10 @@ struct StreamResult {
 // keep_diverging), io::DataError on missing columns.
 StreamResult stream_model(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o = {});
 
+// The model's free-run prediction over `data`: a clone run from each recording's rest, a diverging run kept (not
+// thrown). How the fits, model selection and the output map score a model without a start estimate.
+std::vector<double> free_run_prediction(const Model& model, const io::Dataset& data, const std::string& axis);
+
 // Each recording's zero as the data show it against a prediction: per recording of `data`, the mean of measured −
 // predicted over its rows from `from` on (0 for a recording with no such row). A fit profiles it out of its training
 // positions, the residual loop out of TRAIN's residual, model selection out of its scores.

@@ -287,14 +287,7 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
   const std::size_t scored = data.size() > score_from ? data.size() - score_from : 0;
   const std::size_t block = block_rows(o, rate, scored);
   const std::size_t hold_end = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(o.hold_end_s * rate)));
-  const models::StreamOptions so = free_run();
-  std::vector<double> warm;
-  if (warm_free_run) {
-    warm = *warm_free_run;
-  } else {
-    auto m = model.clone();
-    warm = models::stream_model(*m, data, axis, so).prediction;
-  }
+  std::vector<double> warm = warm_free_run ? *warm_free_run : models::free_run_prediction(model, data, axis);
   take_out_recording_zeros(data, axis, score_from, warm);
   const auto holds = voltage_holds(data, axis, score_from, o);
   take_out_hold_zeros(data, axis, holds, o.hold_zero_s * rate, warm);
@@ -313,8 +306,7 @@ SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::s
 std::vector<double> carry_over_errors(const models::Model& half_fit, const io::Dataset& train, std::size_t half,
                                       const std::string& axis, const SlowScoreOptions& o) {
   if (half >= train.size()) return {};
-  auto m = half_fit.clone();
-  std::vector<double> p = models::stream_model(*m, train, axis, free_run()).prediction;
+  std::vector<double> p = models::free_run_prediction(half_fit, train, axis);
   take_out_recording_zeros(train, axis, half, p);
   const auto& y = train.axis(axis).position_nm;
   const std::size_t block = block_rows(o, train.size() > 1 ? train.sample_rate_hz() : 1.0, train.size() - half);

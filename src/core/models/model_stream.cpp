@@ -197,6 +197,14 @@ StreamResult stream_model(Model& model, const io::Dataset& data, const std::stri
   return r;
 }
 
+std::vector<double> free_run_prediction(const Model& model, const io::Dataset& data, const std::string& axis) {
+  StreamOptions so;
+  so.mode = PredictionMode::kFreeRun;
+  so.keep_diverging = true;
+  auto m = model.clone();
+  return stream_model(*m, data, axis, so).prediction;
+}
+
 std::vector<double> recording_offsets(const io::Dataset& data, const std::string& axis, const std::vector<double>& predicted_nm,
                                       std::size_t from) {
   const auto& y = data.axis(axis).position_nm;

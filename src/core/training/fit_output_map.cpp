@@ -32,20 +32,11 @@ constexpr int kMapPasses = 2;
 // Fewer moving blocks than this and validation cannot tell a map from noise: auto keeps the plain model.
 constexpr std::size_t kMinCompareBlocks = 4;
 
-// The model's free-run prediction over `data` (each recording from its own rest).
-std::vector<double> free_run(const models::Model& model, const io::Dataset& data, const std::string& axis) {
-  models::StreamOptions so;
-  so.mode = models::PredictionMode::kFreeRun;
-  so.keep_diverging = true;
-  auto m = model.clone();
-  return models::stream_model(*m, data, axis, so).prediction;
-}
-
 // The hysteresis output H of every row: the same plays and weights without bias, creep or map.
 std::vector<double> map_input_series(const PiCreepModel& m, const io::Dataset& data, const std::string& axis) {
   const PiCreepModel h(m.thresholds_v(), m.weights(), 0.0, models::CreepParams{}, m.sample_rate_hz(), m.knots_v(),
                        m.has_input_map());
-  return free_run(h, data, axis);
+  return models::free_run_prediction(h, data, axis);
 }
 
 // The absolute free-run errors of the rows in blocks that move (`block` rows, cut at recording starts; a block
@@ -55,7 +46,7 @@ std::vector<double> map_input_series(const PiCreepModel& m, const io::Dataset& d
 // set.
 std::vector<double> moving_block_errors(const models::Model& model, const io::Dataset& data, const std::string& axis,
                                         std::size_t block) {
-  const std::vector<double> pred = free_run(model, data, axis);
+  const std::vector<double> pred = models::free_run_prediction(model, data, axis);
   const auto& y = data.axis(axis).position_nm;
   const auto& v = data.axis(axis).voltage_v;
   const auto [vmin, vmax] = std::minmax_element(v.begin(), v.end());
@@ -84,7 +75,7 @@ std::vector<double> moving_block_errors(const models::Model& model, const io::Da
 OutputMap fit_map(const PiCreepModel& model, const io::Dataset& data, const std::string& axis) {
   PiCreepModel plain = model;
   plain.set_output_map(OutputMap{});
-  const std::vector<double> pred = free_run(plain, data, axis), H = map_input_series(plain, data, axis);
+  const std::vector<double> pred = models::free_run_prediction(plain, data, axis), H = map_input_series(plain, data, axis);
   const auto& y = data.axis(axis).position_nm;
   const auto [lo, hi] = std::minmax_element(H.begin(), H.end());
   OutputMap map;

@@ -47,11 +47,7 @@ constexpr int kRecordingOffsetPasses = 2;
 
 // Each recording's mean of measured − predicted, the model run free from each recording's own rest.
 std::vector<double> recording_residuals(const models::Model& model, const io::Dataset& data, const std::string& axis) {
-  models::StreamOptions so;
-  so.mode = models::PredictionMode::kFreeRun;
-  so.keep_diverging = true;
-  auto m = model.clone();
-  return models::recording_offsets(data, axis, models::stream_model(*m, data, axis, so).prediction);
+  return models::recording_offsets(data, axis, models::free_run_prediction(model, data, axis));
 }
 
 // Each recording's intercept of y ≈ Σ_{p≤3} a_p·v^p + c_r, centred over the recordings.
