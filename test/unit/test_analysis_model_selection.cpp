@@ -708,3 +708,39 @@ TEST(ModelChoice, EachRecordingsZeroIsNotScored) {
   one.recordings.clear();  // the same rows as one recording: its zero is one, the others' differences are scored
   EXPECT_GT(analysis::slow_score(exact, one, 0, "c").moves_nm, 200.0);
 }
+
+// Several recordings: each hold is scored from the zero of its own first hold_zero_s. A model exact on the moves
+// whose only error in the holds is their level (the tip parks 100 or 200 nm off the voltage's line) scores that
+// level as nothing; the creep that follows (30 nm over 300 s, τ 100 s) is what is left. With hold_zero_s = 0 the
+// levels count again, less what each recording's zero takes of them.
+TEST(ModelChoice, EachHoldIsScoredFromItsOwnStartWhenZerosAreUnknown) {
+  std::vector<io::Dataset> parts;
+  for (int k = 0; k < 2; ++k) {
+    io::Dataset d;
+    io::AxisSeries& c = d.add_axis("c");
+    for (int i = 0; i < 9000; ++i) {  // 600 s of moves, then a 300-s hold at 10 V, at 10 Hz
+      const bool hold = i >= 6000;
+      const double v = hold ? 10.0 : 10.0 * std::sin(i / 300.0);
+      const double th = hold ? (i - 6000) / 10.0 : 0.0;
+      const double level = hold ? 100.0 * (k + 1) : 0.0, creep = hold ? 30.0 * (1.0 - std::exp(-th / 100.0)) : 0.0;
+      d.time_s.push_back(i / 10.0);
+      c.voltage_v.push_back(v);
+      c.position_nm.push_back(100.0 * v + 300.0 * k + level + creep);
+    }
+    d.source = "rec" + std::to_string(k);
+    parts.push_back(d);
+  }
+  const io::Dataset joined = io::join_recordings(parts);
+  const FakeModel exact_moves(100.0, 0.0, YAML::Node());
+  analysis::SlowScoreOptions o;
+  o.cold_starts = 1;
+  const analysis::SlowScore s = analysis::slow_score(exact_moves, joined, 0, "c", o);
+  o.hold_zero_s = 0.0;
+  const analysis::SlowScore level = analysis::slow_score(exact_moves, joined, 0, "c", o);
+  std::printf("[hold zeros] holds %.1f nm, hold ends %.1f nm; scored against the recording's zero: %.1f, %.1f nm\n",
+              s.holds_nm, s.hold_ends_nm, level.holds_nm, level.hold_ends_nm);
+  // the creep from the hold's first 5 s (mean 0.7 nm) to its last 30 s (mean 28.3 nm)
+  EXPECT_NEAR(s.hold_ends_nm, 27.5, 1.5);
+  EXPECT_LT(s.holds_nm, 27.5);
+  EXPECT_GT(level.hold_ends_nm, s.hold_ends_nm + 50.0);  // two thirds of 100 and 200 nm, with the creep
+}

@@ -218,6 +218,43 @@ TEST(PiModel, FitTakesTheOutputMapWhereTheLoopIsBent) {
   EXPECT_EQ(plain, 0.0);
 }
 
+// The fitted map never bends a branch flatter than kMinMapSlope (0.2, training/fit_output_map.cpp): on a stage whose
+// bend folds its branch back (slope −0.6 at the low end of its range) the least-squares map is shrunk towards the
+// identity until its smallest slope is 0.2. And auto needs at least 4 moving 5-min blocks of validation to take a
+// map: 15 min of it (3 blocks) keeps plain PI on a stage the map clearly helps, 45 min (9 blocks) takes it.
+TEST(PiModel, TheFittedMapStaysIncreasingAndAutoNeedsFourMovingBlocks) {
+  auto fit = [](double bend, std::size_t val_rows, const char* option) {
+    const std::size_t train_rows = 30000;
+    const auto v = testdata::random_walk_v(train_rows + val_rows, 11);
+    PiCreepModel truth = make_pi();
+    io::Dataset d = testdata::make_dataset(truth, v, 11.0, 5.0, 3);
+    auto& c = d.axis("c");
+    const auto [lo, hi] = std::minmax_element(c.true_position_nm.begin(), c.true_position_nm.end());
+    const double mid = 0.5 * (*lo + *hi), half = 0.5 * (*hi - *lo);
+    for (std::size_t i = 0; i < v.size(); ++i) {  // a bend of the position itself: bend·half·z², z on its range
+      const double z = (c.true_position_nm[i] - mid) / half, q = bend * half * z * z;
+      c.true_position_nm[i] += q, c.position_nm[i] += q;
+    }
+    const io::Dataset train = d.slice(0, train_rows), val = d.slice(train_rows, train_rows + val_rows);
+    training::FitRequest req;
+    req.train = &train;
+    req.validation = &val;
+    req.options["output_map"] = option;
+    return training::fit_model("pi", req);
+  };
+  const auto folded = fit(0.8, 6000, "on");  // dS/dp = 1 + 1.6·z: −0.6 at z = −1
+  const auto* pi = dynamic_cast<const PiCreepModel*>(folded.get());
+  ASSERT_TRUE(pi);
+  std::printf("folding bend: fitted map slope at least %.3f\n", pi->output_map().min_slope());
+  EXPECT_FALSE(pi->output_map().empty());
+  EXPECT_GE(pi->output_map().min_slope(), 0.2 - 1e-9);
+  EXPECT_LT(pi->output_map().min_slope(), 0.2 + 1e-3);  // shrunk to the floor, not past it
+  const auto short_val = fit(0.1, 9900, "auto");  // 15 min at 11 Hz: 3 blocks of 5 min
+  EXPECT_EQ(short_val->meta.validation.at("fit_output_map"), 0.0);
+  const auto long_val = fit(0.1, 30000, "auto");  // 45 min: 9 blocks
+  EXPECT_EQ(long_val->meta.validation.at("fit_output_map"), 1.0);
+}
+
 TEST(Nnls, MatchesBruteForceOnSmallProblem) {
   // min ½xᵀGx − cᵀx, x0 free, x1..x2 ≥ 0: compare with enumerating all active sets.
   Eigen::MatrixXd A(6, 3);
