@@ -11,6 +11,7 @@
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/c_export.h"
+#include "piezo_compensation/models/linear_model.h"
 #include "piezo_compensation/models/pi_model.h"
 #include "test_residual_common.h"
 
@@ -28,6 +29,30 @@ pm::EffectTerm make(const std::string& type, const std::string& signal, std::siz
   t.scale.assign(k, 1.0);
   t.weight.assign(k, 1.0);
   return t;
+}
+
+// Writes `header` and a C program `main_c` that includes it, compiles them with the C compiler (warnings are
+// errors), runs the program on `input` and puts what it printed into `out`.
+void run_exported_c(const std::string& name, const std::string& header, const std::string& main_c,
+                    const std::string& input, std::string& out) {
+  const std::string dir = ::testing::TempDir();
+  const std::string hdr = dir + name + ".h", src = dir + name + ".c", exe = dir + name, in = dir + name + "_in.txt";
+  std::ofstream(hdr) << header;
+  std::ofstream(src) << "#include <stdio.h>\n#include \"" << hdr << "\"\n" << main_c;
+  std::ofstream(in) << input;
+  const std::string cc = PIEZO_C_COMPILER;
+  const std::string build_cmd = cc + " -std=c99 -Wall -Wextra -Werror -pedantic -O2 -o " + exe + " " + src + " -lm 2>&1";
+  FILE* p = popen(build_cmd.c_str(), "r");
+  ASSERT_NE(p, nullptr);
+  out.clear();
+  char buf[4096];
+  while (std::size_t n = fread(buf, 1, sizeof buf, p)) out.append(buf, n);
+  ASSERT_EQ(pclose(p), 0) << out;
+  p = popen((exe + " < " + in).c_str(), "r");
+  ASSERT_NE(p, nullptr);
+  out.clear();
+  while (std::size_t n = fread(buf, 1, sizeof buf, p)) out.append(buf, n);
+  ASSERT_EQ(pclose(p), 0);
 }
 }  // namespace
 
@@ -225,41 +250,25 @@ TEST(ResidualAugmented, C99ExportOfEveryTermTypeMatchesCpp) {
   const std::vector<std::string> names = m.aux_inputs();
   pm::InputResolver inputs(d, names, "c");
 
-  const std::string dir = ::testing::TempDir();
-  const std::string hdr = dir + "pz_aug.h", src = dir + "pz_aug.c", exe = dir + "pz_aug", in = dir + "pz_aug_in.txt";
-  std::ofstream(hdr) << pm::export_c99(m, "pz");
-  std::ofstream(src) << "#include <stdio.h>\n#include \"" << hdr << "\"\n"
-                     << "int main(void) { pz_state one, fr; double v, d, aux[pz_NAUX]; int k, first = 1;\n"
-                     << "  while (scanf(\"%lf %lf\", &v, &d) == 2) {\n"
-                     << "    for (k = 0; k < pz_NAUX; ++k) if (scanf(\"%lf\", &aux[k]) != 1) return 1;\n"
-                     << "    if (first) { pz_init(&one, v, d); pz_init(&fr, v, d); first = 0; }\n"
-                     << "    printf(\"%.17g %.17g\\n\", pz_step(&one, v, d, aux), pz_step(&fr, v, NAN, aux)); }\n"
-                     << "  return 0; }\n";
-  const std::string cc = PIEZO_C_COMPILER;
-  const std::string build_cmd = cc + " -std=c99 -Wall -Wextra -Werror -pedantic -O2 -o " + exe + " " + src + " -lm 2>&1";
-  FILE* p = popen(build_cmd.c_str(), "r");
-  ASSERT_NE(p, nullptr);
-  std::string out;
-  char buf[4096];
-  while (std::size_t n = fread(buf, 1, sizeof buf, p)) out.append(buf, n);
-  ASSERT_EQ(pclose(p), 0) << out;
   const std::size_t rows = 3000;
   const auto& ax = d.axis("c");
-  {
-    std::ofstream f(in);
-    f.precision(17);
-    for (std::size_t i = 0; i < rows; ++i) {
-      f << ax.voltage_v[i] << " " << ax.position_nm[i];
-      const double* a = inputs.at(i);
-      for (std::size_t k = 0; k < names.size(); ++k) f << " " << a[k];
-      f << "\n";
-    }
+  std::ostringstream input;
+  input.precision(17);
+  for (std::size_t i = 0; i < rows; ++i) {
+    input << ax.voltage_v[i] << " " << ax.position_nm[i];
+    const double* a = inputs.at(i);
+    for (std::size_t k = 0; k < names.size(); ++k) input << " " << a[k];
+    input << "\n";
   }
-  p = popen((exe + " < " + in).c_str(), "r");
-  ASSERT_NE(p, nullptr);
-  out.clear();
-  while (std::size_t n = fread(buf, 1, sizeof buf, p)) out.append(buf, n);
-  pclose(p);
+  const std::string main_c =
+      "int main(void) { pz_state one, fr; double v, d, aux[pz_NAUX]; int k, first = 1;\n"
+      "  while (scanf(\"%lf %lf\", &v, &d) == 2) {\n"
+      "    for (k = 0; k < pz_NAUX; ++k) if (scanf(\"%lf\", &aux[k]) != 1) return 1;\n"
+      "    if (first) { pz_init(&one, v, d); pz_init(&fr, v, d); first = 0; }\n"
+      "    printf(\"%.17g %.17g\\n\", pz_step(&one, v, d, aux), pz_step(&fr, v, NAN, aux)); }\n"
+      "  return 0; }\n";
+  std::string out;
+  ASSERT_NO_FATAL_FAILURE(run_exported_c("pz_aug", pm::export_c99(m, "pz"), main_c, input.str(), out));
   std::istringstream res(out);
   pm::StreamOptions so;
   so.mode = pm::PredictionMode::kOneStep;
@@ -281,4 +290,93 @@ TEST(ResidualAugmented, C99ExportOfEveryTermTypeMatchesCpp) {
   auto b2 = base.clone();
   const auto base_pred = pm::stream_model(*b2, d.slice(0, rows), "c").prediction;
   EXPECT_GT(std::fabs(base_pred[2000] - cpp_free[2000]), 1.0);
+}
+
+// The C99 export of an augmented model with sensor terms (acts_on: readings): pz_predict gives what the encoder
+// reads (C++ predict()), pz_predict_position the stage position (predict() with set_stage_position(true)),
+// pz_sensor_part_nm what the sensor terms add (sensor_part_nm()), in one-step and free-run. The base reads its
+// last position, so what pz_commit hands it counts: the C++ stage-position model is committed as the compensator
+// does (the reading less the sensor part). A sensor term on the temperature moves the corrected position the
+// position terms read.
+TEST(ResidualAugmented, C99ExportSeparatesSensorTermsAsCpp) {
+  piezo::features::FeatureSpec spec;
+  piezo::features::FeatureDef volt, last;
+  volt.type = "voltage";
+  last.type = "lagged_position", last.lag_s = 1 / 11.0;
+  spec.features = {volt, last};
+  Eigen::VectorXd w(2);
+  w << 2.5, 0.5;
+  pm::LinearModel base(spec, 11.0, w, 10.0);
+  std::vector<pm::EffectTerm> terms = {make("sincos", "position", 2), make("linear", "temperature_c", 1),
+                                       make("linear", "voltage", 1, 2.0, 20.0), make("sincos", "position", 2)};
+  terms[0].period = 350.0, terms[0].acts_on = pm::kActsOnReadings, terms[0].family = "position_periodic";
+  terms[0].weight = {20.0, -12.0};  // the encoder's interpolation error [nm]
+  terms[1].acts_on = pm::kActsOnReadings, terms[1].center = {22.0}, terms[1].scale = {0.5}, terms[1].weight = {8.0};
+  terms[2].center = {40.0}, terms[2].scale = {20.0}, terms[2].weight = {3.0};
+  terms[3].period = 900.0, terms[3].weight = {5.0, 4.0};  // a stage term on the position
+  const pm::AugmentedModel m(base.clone(), terms, 3.0, 11.0);
+  const std::vector<std::string> names = m.aux_inputs();
+  ASSERT_EQ(names, (std::vector<std::string>{"temperature_c"}));
+
+  const std::size_t rows = 400;
+  std::vector<double> v(rows), temp_c(rows), reading_nm(rows);
+  for (std::size_t i = 0; i < rows; ++i) {
+    const double t = static_cast<double>(i);
+    v[i] = 40.0 + 30.0 * std::sin(6.283185307179586 * t / 150.0) + 10.0 * std::sin(6.283185307179586 * t / 37.0);
+    temp_c[i] = 22.0 + 0.5 * std::sin(t / 50.0);
+    reading_nm[i] = 20.0 + 5.0 * v[i] + 3.0 * std::sin(t / 7.0);
+  }
+  std::ostringstream input;
+  input.precision(17);
+  for (std::size_t i = 0; i < rows; ++i) input << v[i] << " " << reading_nm[i] << " " << temp_c[i] << "\n";
+  const std::string main_c =
+      "static void show(const pz_state* st, double v, const double* aux) {\n"
+      "  printf(\"%.17g %.17g %.17g \", pz_predict(st, v, aux), pz_predict_position(st, v, aux),\n"
+      "         pz_sensor_part_nm(st, v, aux)); }\n"
+      "int main(void) { pz_state one, fr; double v, d, aux[1]; int first = 1;\n"
+      "  while (scanf(\"%lf %lf %lf\", &v, &d, &aux[0]) == 3) {\n"
+      "    if (first) { pz_init(&one, v, d); pz_init(&fr, v, d); first = 0; }\n"
+      "    show(&one, v, aux); show(&fr, v, aux); printf(\"\\n\");\n"
+      "    pz_step(&one, v, d, aux); pz_step(&fr, v, NAN, aux); }\n"
+      "  return 0; }\n";
+  std::string out;
+  ASSERT_NO_FATAL_FAILURE(run_exported_c("pz_aug_sensor", pm::export_c99(m, "pz"), main_c, input.str(), out));
+
+  // C++: per mode (0 one-step, 1 free-run) a model of the readings and one of the stage position.
+  std::unique_ptr<pm::AugmentedModel> reads[2], stage[2];
+  for (int k = 0; k < 2; ++k) {
+    reads[k] = std::make_unique<pm::AugmentedModel>(m);
+    stage[k] = std::make_unique<pm::AugmentedModel>(m);
+    stage[k]->set_stage_position(true);
+    reads[k]->reset(v[0], reading_nm[0]);
+    stage[k]->reset(v[0], reading_nm[0]);
+  }
+  std::istringstream res(out);
+  double worst_read = 0, worst_position = 0, worst_sensor = 0, largest_sensor = 0;
+  std::size_t n = 0;
+  double c[6];
+  while (res >> c[0] >> c[1] >> c[2] >> c[3] >> c[4] >> c[5]) {
+    ASSERT_LT(n, rows);
+    const pm::ModelInput in{v[n], &temp_c[n]};
+    for (int k = 0; k < 2; ++k) {
+      const double read = reads[k]->predict(in), position = stage[k]->predict(in), sensor = stage[k]->sensor_part_nm(in);
+      worst_read = std::max(worst_read, std::fabs(c[3 * k] - read));
+      worst_position = std::max(worst_position, std::fabs(c[3 * k + 1] - position));
+      worst_sensor = std::max(worst_sensor, std::fabs(c[3 * k + 2] - sensor));
+      largest_sensor = std::max(largest_sensor, std::fabs(sensor));
+      reads[k]->commit(in, k == 0 ? reading_nm[n] : read);
+      stage[k]->commit(in, k == 0 ? reading_nm[n] - sensor : position);
+    }
+    ++n;
+  }
+  EXPECT_EQ(n, rows);
+  auto text = [](double x) { std::ostringstream os; os << x; return os.str(); };
+  RecordProperty("max_diff_predict_nm", text(worst_read));
+  RecordProperty("max_diff_predict_position_nm", text(worst_position));
+  RecordProperty("max_diff_sensor_part_nm", text(worst_sensor));
+  RecordProperty("largest_sensor_part_nm", text(largest_sensor));
+  EXPECT_LT(worst_read, 1e-9) << "pz_predict vs predict() [nm]";
+  EXPECT_LT(worst_position, 1e-9) << "pz_predict_position vs predict() of the stage position [nm]";
+  EXPECT_LT(worst_sensor, 1e-9) << "pz_sensor_part_nm vs sensor_part_nm() [nm]";
+  EXPECT_GT(largest_sensor, 10.0) << "the sensor terms must matter for this test to mean anything";
 }

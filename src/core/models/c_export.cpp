@@ -274,7 +274,10 @@ static double PFX_inverse(const PFX_state* st, double target_nm) {
 
 // Effect terms of an augmented model (mirrors models::EffectTermStream): term types 0 linear, 1 play,
 // 2 sincos, 3 rate, 4 powers, 5 gain, 6 gain_quadratic; signal -1 = voltage, -2 = corrected position,
-// >= 0 = index into aux; gains scale the base output (PFX_scales 0) or the voltage (1).
+// >= 0 = index into aux; gains scale the base output (PFX_scales 0) or the voltage (1); PFX_inread 1 = a sensor
+// term (acts_on: readings). PFX_predict is AugmentedModel::predict, PFX_predict_position the same with
+// set_stage_position(true), PFX_sensor_part_nm sensor_part_nm; PFX_commit is AugmentedModel::commit in its default
+// mode (it takes a reading), which leaves the base as the stage-position commit of reading − sensor part does.
 const char* kAugmentedCode = R"C(
 typedef struct {
   PFX_base_state base;
@@ -282,34 +285,22 @@ typedef struct {
   double lp[PFX_NT][3]; double play[PFX_NT]; double prev[PFX_NT]; double decay[PFX_NT]; int fresh[PFX_NT];
 } PFX_state;
 
-static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
-  int i;
-  (void)PFX_base_step;  /* the base's own step/inverse are not needed here */
-#ifdef PFX_base_HAS_INVERSE
-  (void)PFX_base_inverse;
-#endif
-  PFX_base_init(&st->base, voltage_v, position_nm);
-  for (i = 0; i < PFX_RING; ++i) st->ring[i] = 0.0;
-  for (i = 0; i < PFX_NT; ++i) {
-    st->pos[i] = 0; st->lp[i][0] = st->lp[i][1] = st->lp[i][2] = 0.0;
-    st->play[i] = 0.0; st->prev[i] = 0.0; st->decay[i] = 1.0; st->fresh[i] = 1;
-  }
-}
-
 static double PFX_lowpass(const PFX_state* st, int t, int i, double x) {
   if (PFX_alpha[t] <= 0.0) return x;
   return PFX_alpha[t] * (st->fresh[t] ? x : st->lp[t][i]) + (1.0 - PFX_alpha[t]) * x;
 }
 
-/* Correction for the current sample; with commit != 0 the term states advance (each term reads only its own
- * state before writing it). */
-static double PFX_run(PFX_state* st, double v, double x_base, const double* aux, int commit) {
+/* Correction for the current sample (offset + every term); with readings_nm != NULL, the part of it the sensor
+ * terms (PFX_inread) give. Terms on the position read x_base + offset + the terms on other signals, sensor terms
+ * among them. With commit != 0 the term states advance (each term reads only its own state before writing it). */
+static double PFX_run(PFX_state* st, double v, double x_base, const double* aux, int commit, double* readings_nm) {
   double corr = PFX_offset_nm;
   int pass, t, r;
+  if (readings_nm) *readings_nm = 0.0;
   for (pass = 0; pass < 2; ++pass) {
     double x_eff = x_base + corr;
     for (t = 0; t < PFX_NT; ++t) {
-      double s, lagged, q, o[3] = {0.0, 0.0, 0.0}, lpn[3] = {0.0, 0.0, 0.0}, playn = st->play[t], decayn = st->decay[t];
+      double s, lagged, q, part = 0.0, o[3] = {0.0, 0.0, 0.0}, lpn[3] = {0.0, 0.0, 0.0}, playn = st->play[t], decayn = st->decay[t];
       int is_pos = PFX_signal[t] == -2;
       if (is_pos != (pass == 1)) continue;
       s = PFX_signal[t] >= 0 ? aux[PFX_signal[t]] : (is_pos ? x_eff : v);
@@ -352,29 +343,62 @@ static double PFX_run(PFX_state* st, double v, double x_base, const double* aux,
         for (i = 0; i < 3; ++i) st->lp[t][i] = lpn[i];
         st->play[t] = playn; st->prev[t] = s; st->decay[t] = decayn; st->fresh[t] = 0;
       }
-      for (r = 0; r < PFX_nreg[t]; ++r) corr += PFX_w[3 * t + r] * (o[r] - PFX_c[3 * t + r]) / PFX_sc[3 * t + r];
+      for (r = 0; r < PFX_nreg[t]; ++r) part += PFX_w[3 * t + r] * (o[r] - PFX_c[3 * t + r]) / PFX_sc[3 * t + r];
+      corr += part;
+      if (readings_nm && PFX_inread[t]) *readings_nm += part;
     }
   }
   return corr;
 }
 
-/* aux: the values of PFX_AUX_NAMES at this sample, in that order (may be NULL when PFX_NAUX is 0). */
+/* aux: the values of PFX_AUX_NAMES at this sample, in that order (may be NULL when PFX_NAUX is 0).
+ * What the encoder reads: base + offset + every term. */
 static double PFX_predict(const PFX_state* st, double voltage_v, const double* aux) {
   double x = PFX_base_predict(&st->base, voltage_v);
-  return x + PFX_run((PFX_state*)st, voltage_v, x, aux, 0);
+  return x + PFX_run((PFX_state*)st, voltage_v, x, aux, 0, NULL);
 }
 
+/* The stage position: what the encoder reads less the sensor terms (the one to invert for a feedforward). */
+static double PFX_predict_position(const PFX_state* st, double voltage_v, const double* aux) {
+  double x = PFX_base_predict(&st->base, voltage_v), readings_nm;
+  double corr = PFX_run((PFX_state*)st, voltage_v, x, aux, 0, &readings_nm);
+  return x + corr - readings_nm;
+}
+
+/* What the sensor terms add to the readings at this sample (0 without any). */
+static double PFX_sensor_part_nm(const PFX_state* st, double voltage_v, const double* aux) {
+  double x = PFX_base_predict(&st->base, voltage_v), readings_nm;
+  PFX_run((PFX_state*)st, voltage_v, x, aux, 0, &readings_nm);
+  return readings_nm;
+}
+
+/* position_nm is what the encoder read (or PFX_predict's value, free-run): the base is committed with it less
+ * every term's correction. */
 static void PFX_commit(PFX_state* st, double voltage_v, double position_nm, const double* aux) {
   double x = PFX_base_predict(&st->base, voltage_v);
-  double corr = PFX_run(st, voltage_v, x, aux, 0);
+  double corr = PFX_run(st, voltage_v, x, aux, 1, NULL);  /* the terms read x, not the base's state */
   PFX_base_commit(&st->base, voltage_v, position_nm - corr);
-  PFX_run(st, voltage_v, x, aux, 1);
 }
 
 static double PFX_step(PFX_state* st, double voltage_v, double measured_nm, const double* aux) {
   double y = PFX_predict(st, voltage_v, aux);
   PFX_commit(st, voltage_v, isnan(measured_nm) ? y : measured_nm, aux);
   return y;
+}
+
+static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
+  int i;
+  (void)PFX_base_step;  /* the base's own step/inverse are not needed here */
+#ifdef PFX_base_HAS_INVERSE
+  (void)PFX_base_inverse;
+#endif
+  (void)PFX_predict_position; (void)PFX_sensor_part_nm; (void)PFX_step;  /* callers use some of these */
+  PFX_base_init(&st->base, voltage_v, position_nm);
+  for (i = 0; i < PFX_RING; ++i) st->ring[i] = 0.0;
+  for (i = 0; i < PFX_NT; ++i) {
+    st->pos[i] = 0; st->lp[i][0] = st->lp[i][1] = st->lp[i][2] = 0.0;
+    st->play[i] = 0.0; st->prev[i] = 0.0; st->decay[i] = 1.0; st->fresh[i] = 1;
+  }
 }
 )C";
 
@@ -485,7 +509,7 @@ std::string export_c99_augmented(const Model& model, const std::string& prefix) 
     throw std::runtime_error("C export: the base of this augmented model reads auxiliary inputs, which cannot be exported");
   const std::vector<std::string> aux = m->aux_inputs();
   const double rate = m->sample_rate_hz();
-  std::vector<std::string> type, signal, lag, ring0, nreg, scales;
+  std::vector<std::string> type, signal, lag, ring0, nreg, scales, inread;
   std::vector<double> alpha, thr, period, pc, ps, ref, c, sc, w;
   long ring = 0;
   static const char* names[] = {"linear", "play", "sincos", "rate", "powers", "gain", "gain_quadratic"};
@@ -506,6 +530,7 @@ std::string export_c99_augmented(const Model& model, const std::string& prefix) 
     ring += L;
     nreg.push_back(std::to_string(t.num_regressors()));
     scales.push_back(t.scales == kSignalVoltage ? "1" : "0");
+    inread.push_back(t.in_readings() ? "1" : "0");
     alpha.push_back(t.time_constant_s > 0 ? std::exp(-1.0 / (t.time_constant_s * rate)) : 0.0);
     thr.push_back(t.threshold);
     period.push_back(t.period > 0 ? t.period : 1.0);
@@ -524,17 +549,24 @@ std::string export_c99_augmented(const Model& model, const std::string& prefix) 
   std::string hdr = header_open(prefix, model, "base model plus effect terms found by `piezo residual`");
   os << hdr << "/* Terms:";
   for (const auto& t : m->terms()) os << "\n *   " << t.name() << " [" << t.family << "]";
-  os << "\n * API: PFX_predict/commit/step take `aux`, the values of PFX_AUX_NAMES at the sample, in that order. */\n";
+  os << "\n * API: all but PFX_init take `aux`, the values of PFX_AUX_NAMES at the sample, in that order.\n"
+     << " *   PFX_predict (and PFX_step): what the encoder reads, every term in. PFX_predict_position: the stage\n"
+     << " *   position, the sensor terms (acts_on: readings) left out: the one a feedforward inverts.\n"
+     << " *   PFX_sensor_part_nm: what the sensor terms add to the readings (reading = position + sensor part).\n"
+     << " *   PFX_commit takes what the encoder read (PFX_predict's value in free-run) and commits the base with it\n"
+     << " *   less every term, as the C++ AugmentedModel::commit by default; its stage-position mode, given the\n"
+     << " *   reading less the sensor part, leaves the same state. */\n";
   os << "#define PFX_NT " << std::max<std::size_t>(1, m->terms().size()) << "\n#define PFX_RING " << std::max<long>(1, ring)
      << "\n#define PFX_NAUX " << aux.size() << "\n#define PFX_AUX_NAMES \"";
   for (std::size_t i = 0; i < aux.size(); ++i) os << (i ? "," : "") << aux[i];
   os << "\"\nstatic const double PFX_offset_nm = " << num(m->offset_nm()) << ";\n";
   if (m->terms().empty()) {  // keep the tables valid C; no term runs
-    type = {"0"}, signal = {"-1"}, lag = {"0"}, ring0 = {"0"}, nreg = {"0"}, scales = {"0"};
+    type = {"0"}, signal = {"-1"}, lag = {"0"}, ring0 = {"0"}, nreg = {"0"}, scales = {"0"}, inread = {"0"};
     alpha = {0}, thr = {0}, period = {1}, pc = {0}, ps = {1}, ref = {0}, c = {0, 0, 0}, sc = {1, 1, 1}, w = {0, 0, 0};
   }
   os << table("int", "PFX_type", type) << table("int", "PFX_signal", signal) << table("int", "PFX_lag", lag)
      << table("int", "PFX_ring0", ring0) << table("int", "PFX_nreg", nreg) << table("int", "PFX_scales", scales)
+     << table("int", "PFX_inread", inread)
      << table("double", "PFX_alpha", nums(alpha)) << table("double", "PFX_thr", nums(thr))
      << table("double", "PFX_period", nums(period)) << table("double", "PFX_pc", nums(pc))
      << table("double", "PFX_ps", nums(ps)) << table("double", "PFX_ref", nums(ref)) << table("double", "PFX_c", nums(c))
