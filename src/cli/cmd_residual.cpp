@@ -168,12 +168,14 @@ int run(int argc, char** argv) {
   const std::string refit_kind = fs::exists(model_arg) ? (args.flag("refit-base") ? base->kind() : "") : fitted_kind;
   if (!refit_kind.empty()) {
     if (!training::fitter(refit_kind)) throw UsageError("residual: kind '" + refit_kind + "' cannot be refitted");
-    o.refit_base = [&, refit_kind](const io::Dataset& fit_part, const io::Dataset& val_part, const models::Model& previous) {
+    o.refit_base = [&, refit_kind](const io::Dataset& fit_part, const io::Dataset& val_part, const models::Model& previous,
+                                   bool same_structure) {
       training::FitRequest r;
       r.train = &fit_part;
       r.validation = &val_part;
       r.axis = axis;
-      r.options = training::refit_options(previous, fs::exists(model_arg) ? YAML::Node(YAML::NodeType::Map) : fit_options);
+      r.options = training::refit_options(previous, fs::exists(model_arg) ? YAML::Node(YAML::NodeType::Map) : fit_options,
+                                          same_structure);
       r.seed = o.seed;
       return training::fit_model(refit_kind, r);
     };

@@ -75,12 +75,12 @@ inline std::string physics_base_kind(const std::string& default_kind = "pi_creep
 // `previous` (optional): the base a backfitting round replaces; the refit starts from its creep law.
 inline models::ModelPtr fit_physics_base(const io::Dataset& fit, const io::Dataset& val,
                                          const std::string& default_kind = "pi_creep_lti",
-                                         const models::Model* previous = nullptr) {
+                                         const models::Model* previous = nullptr, bool same_structure = false) {
   training::FitRequest req;
   req.train = &fit;
   req.validation = &val;
   req.axis = "c";
-  if (previous) req.options = training::refit_options(*previous, req.options);
+  if (previous) req.options = training::refit_options(*previous, req.options, same_structure);
   return training::fit_model(physics_base_kind(default_kind), req);
 }
 

@@ -108,8 +108,8 @@ inline pa::ResidualOptions options() {
 }
 
 inline models::ModelPtr fit_base(const io::Dataset& fit, const io::Dataset& val,
-                                 const models::Model* previous = nullptr) {
-  return fit_physics_base(fit, val, "preisach_creep_prony", previous);
+                                 const models::Model* previous = nullptr, bool same_structure = false) {
+  return fit_physics_base(fit, val, "preisach_creep_prony", previous, same_structure);
 }
 
 struct Split {
@@ -126,8 +126,8 @@ inline Split split(const io::Dataset& d) {
 inline pa::ResidualResult trace(Gain kind) {
   const Split s = split(with_gain(kind));
   pa::ResidualOptions o = options();
-  o.refit_base = [](const io::Dataset& fit, const io::Dataset& val, const models::Model& previous) {
-    return fit_base(fit, val, &previous);
+  o.refit_base = [](const io::Dataset& fit, const io::Dataset& val, const models::Model& previous, bool same) {
+    return fit_base(fit, val, &previous, same);
   };
   const auto base = fit_base(s.train.slice(0, s.n_fit), s.train.slice(s.n_fit, s.train.size()));
   return pa::trace_residual(*base, s.train, s.test, o);

@@ -32,10 +32,12 @@ TEST(ResidualPreisach, ResidualLoopAddsNothingOnPreisachCreepProtocolData) {
   if (std::getenv("PIEZO_RESIDUAL_VERBOSE")) o.log = [](const std::string& s) { std::cerr << s << "\n"; };
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
-  auto fit = [](const io::Dataset& f, const io::Dataset& v, const models::Model* previous = nullptr) {
-    return test::fit_physics_base(f, v, "preisach_creep_prony", previous);
+  auto fit = [](const io::Dataset& f, const io::Dataset& v, const models::Model* previous = nullptr, bool same = false) {
+    return test::fit_physics_base(f, v, "preisach_creep_prony", previous, same);
   };
-  o.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) { return fit(f, v, &previous); };
+  o.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same) {
+    return fit(f, v, &previous, same);
+  };
   const auto base = fit(train.slice(0, n_fit), train.slice(n_fit, train.size()));
   const analysis::ResidualResult r = analysis::trace_residual(*base, train, test, o);
   std::cout << "residual loop on a " << base->kind() << " base: TEST MAE " << r.before_test.mae_nm << " -> "
@@ -63,12 +65,14 @@ TEST(ResidualPreisach, CreepProtocolWithAPiBaseAddsNoPeriodicSignalOrTimeEffect)
   o.axis = "c";
   o.permutations = 20;
   if (std::getenv("PIEZO_RESIDUAL_VERBOSE")) o.log = [](const std::string& s) { std::cerr << s << "\n"; };
-  auto fit = [](const io::Dataset& f, const io::Dataset& v, const models::Model* previous = nullptr) {
-    return test::fit_physics_base(f, v, "pi_creep_lti", previous);
+  auto fit = [](const io::Dataset& f, const io::Dataset& v, const models::Model* previous = nullptr, bool same = false) {
+    return test::fit_physics_base(f, v, "pi_creep_lti", previous, same);
   };
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
-  o.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) { return fit(f, v, &previous); };
+  o.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same) {
+    return fit(f, v, &previous, same);
+  };
   const auto base = fit(train.slice(0, n_fit), train.slice(n_fit, train.size()));
   const analysis::ResidualResult r = analysis::trace_residual(*base, train, test, o);
   std::cerr << "creep protocol, PI + LTI base: TEST MAE vs truth " << r.before_test_truth.mae_nm << " -> "

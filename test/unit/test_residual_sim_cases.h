@@ -51,15 +51,15 @@ inline pa::ResidualOptions options() {
 }
 
 inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val,
-                                        const piezo::models::Model* previous = nullptr);
+                                        const piezo::models::Model* previous = nullptr, bool same_structure = false);
 inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& train, const pa::ResidualOptions& o) {
   const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   return fit_base(train.slice(0, n_fit), train.slice(n_fit, train.size()));
 }
 
 inline piezo::models::ModelPtr fit_base(const piezo::io::Dataset& fit, const piezo::io::Dataset& val,
-                                        const piezo::models::Model* previous) {
-  return piezo::test::fit_physics_base(fit, val, "pi_creep_lti", previous);
+                                        const piezo::models::Model* previous, bool same_structure) {
+  return piezo::test::fit_physics_base(fit, val, "pi_creep_lti", previous, same_structure);
 }
 
 // The same protocol without an effect: the base's TEST MAE there.
@@ -88,8 +88,9 @@ inline double clean_mae() {
 inline pa::ResidualResult trace(const std::string& effect) {
   const Split s = split(simulate(effect));
   pa::ResidualOptions o = options();
-  o.refit_base = [&](const piezo::io::Dataset& fit, const piezo::io::Dataset& val, const piezo::models::Model& previous) {
-    return fit_base(fit, val, &previous);
+  o.refit_base = [&](const piezo::io::Dataset& fit, const piezo::io::Dataset& val, const piezo::models::Model& previous,
+                     bool same_structure) {
+    return fit_base(fit, val, &previous, same_structure);
   };
   const auto base = fit_base(s.train, o);
   return pa::trace_residual(*base, s.train, s.test, o);

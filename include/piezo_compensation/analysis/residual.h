@@ -95,6 +95,9 @@ struct FoundEffect {
   bool in_readings = false;                   // a sensor effect: in the readings, not in the stage's position
   std::vector<FamilyScore> ranking;           // all families at this step, best first
   std::vector<double> test_prediction;        // TEST prediction after this step
+  // For a term on an auxiliary signal: its first-order lag's profile at the end, (τ [s], TRAIN RMS [nm]), each τ
+  // with the base refitted for it (empty otherwise).
+  std::vector<std::pair<double, double>> lag_profile;
 };
 
 struct ResidualOptions {
@@ -112,9 +115,11 @@ struct ResidualOptions {
   // Refits the base model on TRAIN's fit and validation parts (whose positions are then measurement minus the
   // effect terms): after each added effect the base and the terms are refitted alternately (backfitting), so a
   // base that absorbed part of the effect when first fitted gives it back. Empty = the base stays as given.
-  // `previous` is the base being replaced: a refit may start from its creep law (training::refit_options).
+  // `previous` is the base being replaced: a refit may start from its creep law (training::refit_options); with
+  // `same_structure` it keeps previous' structure too (refit_options(previous, options, true)): the refits of a lag
+  // profile are compared with each other.
   std::function<models::ModelPtr(const io::Dataset& fit_part, const io::Dataset& validation_part,
-                                 const models::Model& previous)>
+                                 const models::Model& previous, bool same_structure)>
       refit_base;
   int backfit_iterations = 2;
   // Refits after a gain family is added (a gain is absorbed by the base more than an additive term; each refit

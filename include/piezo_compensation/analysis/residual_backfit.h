@@ -4,6 +4,7 @@
 #pragma once
 
 #include <random>
+#include <utility>
 #include <vector>
 
 #include "piezo_compensation/analysis/residual_validation.h"
@@ -24,6 +25,11 @@ class Backfitter {
   void refit_all(std::vector<models::EffectTerm>& terms, Level& level, models::ModelPtr& base);
   // The base refitted once on TRAIN with `terms`' part taken out (c.x_base follows), then `terms` on its residual.
   void refit_without(std::vector<models::EffectTerm>& terms, Level& level, models::ModelPtr& base);
+  // terms[q]'s lag as a first-order low-pass, profiled over τ (0 and 10 s … tau_max_s) with the base refitted for
+  // each τ (same structure) and all terms refitted jointly on TRAIN; the best τ's terms, level and base are kept
+  // (c.x_base follows). Returns (τ [s], TRAIN RMS [nm]) for every τ tried. Without refit_base the base stays.
+  std::vector<std::pair<double, double>> profile_lag(std::vector<models::EffectTerm>& terms, std::size_t q, Level& level,
+                                                     models::ModelPtr& base, double tau_max_s);
 
  private:
   // The secant on the size of a gain fitted after each refit (see the .cpp); how many times its part is taken out.
@@ -34,7 +40,15 @@ class Backfitter {
   double gain_kappa(int it, const std::vector<double>& part, Secant& s) const;
   std::vector<double> effect_part(const std::vector<models::EffectTerm>& terms, std::size_t first, const Level& level) const;
   void refit_once(const std::vector<models::EffectTerm>& terms, const Level& level, const std::vector<double>& part,
-                  double kappa, models::ModelPtr& base);
+                  double kappa, models::ModelPtr& base, bool same_structure = false);
+  struct LagTrial {
+    std::vector<models::EffectTerm> terms;
+    Level level;
+    models::ModelPtr base;
+    std::vector<double> x_base;
+    double rms_nm = 0.0;
+  };
+  LagTrial lag_trial(const std::vector<models::EffectTerm>& terms, std::size_t q, const models::Model& base, double tau_s);
   // Chooses the winner's variant again on the refitted base; true when the gain's form changed at the last refit.
   bool choose_again(FamilyScore& winner, std::vector<models::EffectTerm>& terms, std::size_t first, Level& level,
                     bool last);

@@ -63,8 +63,10 @@ models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const F
 
 // The options that refit `previous` on new data (a backfitting round of `piezo residual`): its creep law's time
 // constants (taus_s, t1_s or alpha) as a start refined near it (warm_start) rather than searched over the whole
-// range; the rest is chosen again. Options the caller gave win. Other kinds: `options` unchanged.
-YAML::Node refit_options(const models::Model& previous, const YAML::Node& options);
+// range; the rest is chosen again. With `same_structure`, also its play thresholds, creep input and maps (refits
+// that are compared with each other, as in a lag profile). Options the caller gave win. Other kinds: `options`
+// unchanged.
+YAML::Node refit_options(const models::Model& previous, const YAML::Node& options, bool same_structure = false);
 
 // Non-negative least squares on normal equations: min ½xᵀGx − cᵀx with x_j ≥ 0 where constrained[j]
 // (Lawson–Hanson active set). G must be positive definite on the free set.

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <map>
 #include <numeric>
 #include <sstream>
 #include <stdexcept>
@@ -198,6 +199,10 @@ class Loop {
   void add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranking, std::vector<FamilyScore> competitors);
   void finish();
   void rechoose_jointly();
+  // Effect q's terms on an auxiliary signal: their lag profiled (Backfitter::profile_lag); `winner` while it is
+  // being added (its variant is updated), else res_.effects[q].
+  void profile_lags(std::size_t q, FamilyScore* winner = nullptr);
+  std::vector<std::pair<double, double>> last_profile_;
 
   const ResidualOptions& o_;
   const io::Dataset& train_;
@@ -396,6 +401,8 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   for (const auto& t : winner.best.terms) terms_.push_back(t);
   fit_terms(c_, terms_, level_, 0, n_);
   backfitter_.run(winner, terms_, effect_first_.back(), level_, base_);
+  last_profile_.clear();
+  profile_lags(effect_first_.size() - 1, &winner);
   FoundEffect e;
   e.family = winner.family;
   e.parameters = winner.best.parameters;
@@ -408,6 +415,7 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   e.competitors = std::move(competitors);
   models::AugmentedModel m(base_->clone(), terms_, level_.offset_nm, c_.fs);
   e.test_prediction = run_test(m, level_);
+  e.lag_profile = last_profile_;
   e.test_after = error_stats(e.test_prediction, meas_test_, res_.test_mask);
   e.in_readings = is_reading_family(e.family);
   if (!truth_test_.empty())
@@ -464,11 +472,41 @@ void Loop::rechoose_jointly() {
   fit_terms(c_, terms_, level_, 0, n_);
 }
 
+// The lag of a term on an auxiliary signal (a temperature felt through the mount) as a first-order low-pass, its
+// τ profiled at the end with the base refitted for each τ (Backfitter::profile_lag): chosen on the residual of a
+// base refitted at another lag, a lag confirms itself (docs/closing-the-loop.md, "The lag of a slow signal").
+void Loop::profile_lags(std::size_t q, FamilyScore* winner) {
+  const Family f = traits_of(res_.effects.size() > q ? res_.effects[q].family : winner->family).id;
+  if (f != Family::kAuxSignal && f != Family::kAuxGain) return;
+  const std::size_t first = effect_first_[q];
+  const std::size_t last = q + 1 < effect_first_.size() ? effect_first_[q + 1] : terms_.size();
+  std::map<std::string, double>& params = winner ? winner->best.parameters : res_.effects[q].parameters;
+  std::map<std::string, std::string>& labels = winner ? winner->best.labels : res_.effects[q].labels;
+  for (std::size_t k = first; k < last; ++k) {
+    const double was_lag = terms_[k].lag_s, was_tau = terms_[k].time_constant_s;
+    const auto profile = backfitter_.profile_lag(terms_, k, level_, base_, validator_.max_time_constant_s());
+    std::ostringstream os;
+    os << "  " << (winner ? winner->family : res_.effects[q].family) << " on " << terms_[k].signal
+       << ": first-order lag profiled with the base refitted at each τ (TRAIN RMS):";
+    for (const auto& [tau, rms] : profile) os << " " << tau << " s " << rms << " nm,";
+    os << " was delay " << was_lag << " s + low-pass " << was_tau << " s, now " << terms_[k].time_constant_s << " s";
+    log(os.str());
+    if (k == first) {
+      params["lag_s"] = terms_[k].lag_s;
+      params["time_constant_s"] = terms_[k].time_constant_s;
+      labels["lag_form"] = "first-order, profiled";
+      if (!winner) res_.effects[q].lag_profile = profile;
+      else last_profile_ = profile;
+    }
+  }
+}
+
 void Loop::finish() {
   if (effect_first_.size() >= 2) {
     rechoose_jointly();
     backfitter_.refit_all(terms_, level_, base_);
     rechoose_jointly();
+    for (std::size_t q = 0; q < effect_first_.size(); ++q) profile_lags(q);
   }
   // Parameters from the final joint fit.
   for (std::size_t q = 0; q < res_.effects.size(); ++q) {

@@ -3,6 +3,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
+#include <map>
 #include <sstream>
 #include <stdexcept>
 
@@ -53,14 +55,14 @@ double Backfitter::gain_kappa(int it, const std::vector<double>& part, Secant& s
 }
 
 void Backfitter::refit_once(const std::vector<EffectTerm>& terms, const Level& level, const std::vector<double>& part,
-                            double kappa, models::ModelPtr& base) {
+                            double kappa, models::ModelPtr& base, bool same_structure) {
   const std::size_t n = c_.x_base.size();
   const std::vector<double> p = corrected(c_, terms, level);
   io::Dataset adj = train_;
   auto& pos = adj.axis(o_.axis).position_nm;
   for (std::size_t i = 0; i < n; ++i)
     pos[i] = c_.measured[i] - (p[i] - c_.x_base[i]) - (kappa - 1.0) * (part.empty() ? 0.0 : part[i]);
-  models::ModelPtr nb = o_.refit_base(adj.slice(0, v_.n_fit()), adj.slice(v_.n_fit(), n), *base);
+  models::ModelPtr nb = o_.refit_base(adj.slice(0, v_.n_fit()), adj.slice(v_.n_fit(), n), *base, same_structure);
   if (!nb) throw std::runtime_error("refit_base returned no model");
   models::ModelPtr runner = nb->clone();
   models::StreamOptions so;
@@ -137,6 +139,62 @@ void Backfitter::run(FamilyScore& winner, std::vector<EffectTerm>& terms, std::s
       if (o_.log) o_.log("  the gain's form changed at the last refit: one refit more");
     }
   }
+}
+
+// One trial of a lag profile: term q as a first-order lag τ (no delay), the base refitted once with the same
+// structure on TRAIN without every term's part, the terms refitted on its residual; TRAIN's RMS.
+Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms, std::size_t q, const models::Model& base,
+                                           double tau_s) {
+  LagTrial t;
+  t.terms = terms;
+  EffectTerm& e = t.terms[q];
+  e.lag_s = 0.0;
+  e.time_constant_s = tau_s;
+  e.center.clear(), e.scale.clear(), e.weight.clear();
+  const std::size_t n = c_.x_base.size();
+  fit_terms(c_, t.terms, t.level, 0, n);
+  const std::vector<double> x_was = c_.x_base;
+  t.base = base.clone();
+  if (o_.refit_base) {
+    refit_once(t.terms, t.level, {}, 1.0, t.base, true);
+    fit_terms(c_, t.terms, t.level, 0, n);
+  }
+  const std::vector<double> r = residual_of(c_, t.terms, t.level);
+  double ss = 0.0;
+  for (double x : r) ss += x * x;
+  t.rms_nm = std::sqrt(ss / static_cast<double>(std::max<std::size_t>(1, n)));
+  t.x_base = std::move(c_.x_base);
+  c_.x_base = x_was;
+  return t;
+}
+
+// A lag read off the residual of a base that was refitted with the effect at another lag confirms itself: the base
+// absorbs part of the mismatch, and the profile over τ with that base held fixed has its minimum near the τ it was
+// refitted at. Each τ is therefore judged with the base refitted for it (same structure, so that the trials differ
+// only by τ): τ = 0 and a factor-2 grid from 10 s to `tau_max_s`, then √2 and 2^¼ about the best. The best trial's
+// terms, base and level are kept. Returns the profile, τ ascending.
+std::vector<std::pair<double, double>> Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q,
+                                                               Level& level, models::ModelPtr& base, double tau_max_s) {
+  std::map<double, double> profile;
+  LagTrial best;
+  best.rms_nm = std::numeric_limits<double>::infinity();
+  auto run = [&](double tau) {
+    if (profile.count(tau) || tau > tau_max_s * (1 + 1e-9)) return;
+    LagTrial t = lag_trial(terms, q, *base, tau);
+    profile[tau] = t.rms_nm;
+    if (t.rms_nm < best.rms_nm) best = std::move(t);
+  };
+  run(0.0);
+  for (double tau = 10.0; tau <= tau_max_s; tau *= 2.0) run(tau);
+  for (double f : {std::sqrt(2.0), std::pow(2.0, 0.25)}) {
+    const double at = best.terms[q].time_constant_s;
+    if (at > 0.0) run(at * f), run(at / f);
+  }
+  terms = std::move(best.terms);
+  level = best.level;
+  base = std::move(best.base);
+  c_.x_base = std::move(best.x_base);
+  return {profile.begin(), profile.end()};
 }
 
 }  // namespace piezo::analysis::detail

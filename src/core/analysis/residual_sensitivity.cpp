@@ -156,11 +156,11 @@ std::vector<FoundEffect> run_trial(const Planted* p, const SensitivityOptions& o
   req.seed = seed;
   const models::ModelPtr base = training::fit_model(o.base_kind, req);
   // Backfitting as `piezo residual` does: a base fitted on data that hold the effect has absorbed part of it.
-  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) {
+  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same_structure) {
     training::FitRequest r = req;
     r.train = &f;
     r.validation = &v;
-    r.options = training::refit_options(previous, r.options);
+    r.options = training::refit_options(previous, r.options, same_structure);
     return training::fit_model(o.base_kind, r);
   };
   return trace_residual(*base, train, test, ro).effects;
@@ -274,13 +274,13 @@ ComparisonRun compare_once(const ComparisonOptions& o, bool with_effects, double
     }
   }
   const models::ModelPtr base = fit_axis(o, train, n_fit, "c", false);
-  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous) {
+  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same_structure) {
     training::FitRequest r;
     r.train = &f;
     r.validation = &v;
     r.axis = "c";
     r.seed = o.seed;
-    r.options = training::refit_options(previous, r.options);
+    r.options = training::refit_options(previous, r.options, same_structure);
     return training::fit_model(o.base_kind, r);
   };
   const ResidualResult res = trace_residual(*base, train, test, ro);

@@ -1467,13 +1467,21 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
   return fit_with_output_map(req, map == "on", fit);
 }
 
-YAML::Node refit_options(const models::Model& previous, const YAML::Node& options) {
+YAML::Node refit_options(const models::Model& previous, const YAML::Node& options, bool same_structure) {
   YAML::Node o = options && options.IsMap() ? YAML::Clone(options) : YAML::Node(YAML::NodeType::Map);
   const auto* pc = dynamic_cast<const models::PiCreepModel*>(&previous);
   if (!pc) return o;
-  // Only the law: the play count, creep input and hold weight are chosen again, as the base that absorbed an effect
-  // is not the structure to keep (docs/closing-the-loop.md, backfitting).
   const CreepParams& cp = pc->creep();
+  // Same structure: the previous play thresholds, creep input and maps, so that refits compared with each other
+  // (a lag profile) differ only by the data, not by a structure chosen again on it.
+  if (same_structure) {
+    if (!o["thresholds_v"]) o["thresholds_v"] = pc->thresholds_v();
+    if (!o["creep_input"] && cp.kind != CreepKind::kNone) o["creep_input"] = cp.on_hysteresis ? "hysteresis" : "voltage";
+    if (!o["input_map"] && !pc->preisach()) o["input_map"] = pc->has_input_map() ? "on" : "off";
+    if (!o["output_map"]) o["output_map"] = pc->output_map().empty() ? "off" : "on";
+  }
+  // Otherwise only the law: the play count, creep input and hold weight are chosen again, as the base that absorbed
+  // an effect is not the structure to keep (docs/closing-the-loop.md, backfitting).
   if (o["taus_s"] || o["t1_s"] || o["alpha"]) return o;
   switch (cp.kind) {
     case CreepKind::kLti: o["taus_s"] = cp.taus_s; break;
