@@ -184,9 +184,9 @@ inline void expect_each_step_gains(const char* name, const pa::ResidualResult& r
 }
 
 // Named as a gain of the right family and signal, nothing else added, within `within` × (d)'s MAE vs truth.
-inline void expect_gain(Gain kind, const char* name, const std::string& family, const std::string& signal,
-                        double clean_mae, double within = 1.10) {
-  const pa::ResidualResult r = trace(kind);
+inline pa::ResidualResult expect_gain(Gain kind, const char* name, const std::string& family, const std::string& signal,
+                                      double clean_mae, double within = 1.10) {
+  pa::ResidualResult r = trace(kind);
   print(name, r);
   std::size_t gains = 0;
   for (const auto& e : r.effects) {
@@ -206,6 +206,7 @@ inline void expect_gain(Gain kind, const char* name, const std::string& family, 
   expect_each_step_gains(name, r);
   std::cerr << name << ": " << r.after_test_truth.mae_nm / clean_mae << " × (d)'s " << clean_mae << " nm\n";
   EXPECT_LT(r.after_test_truth.mae_nm, within * clean_mae) << name << ": before " << r.before_test_truth.mae_nm << " nm";
+  return r;
 }
 
 }  // namespace piezo::test::gain

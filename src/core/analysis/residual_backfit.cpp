@@ -171,7 +171,8 @@ Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms,
 // A lag read off the residual of a base that was refitted with the effect at another lag confirms itself: the base
 // absorbs part of the mismatch, and the profile over τ with that base held fixed has its minimum near the τ it was
 // refitted at. Each τ is therefore judged with the base refitted for it (same structure, so that the trials differ
-// only by τ): τ = 0 and a factor-2 grid from 10 s to `tau_max_s`, then √2 and 2^¼ about the best. The best trial's
+// only by τ): τ = 0, the variant's delay + low-pass as one τ, and a factor-2 grid from 10 s to `tau_max_s`, then
+// √2 and 2^¼ about the best. The best trial's
 // terms, base and level are kept. Returns the profile, τ ascending.
 std::vector<std::pair<double, double>> Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q,
                                                                Level& level, models::ModelPtr& base, double tau_max_s) {
@@ -185,6 +186,7 @@ std::vector<std::pair<double, double>> Backfitter::profile_lag(std::vector<Effec
     if (t.rms_nm < best.rms_nm) best = std::move(t);
   };
   run(0.0);
+  run(terms[q].lag_s + terms[q].time_constant_s);  // the variant chosen so far, as one first-order lag
   for (double tau = 10.0; tau <= tau_max_s; tau *= 2.0) run(tau);
   for (double f : {std::sqrt(2.0), std::pow(2.0, 0.25)}) {
     const double at = best.terms[q].time_constant_s;
