@@ -18,5 +18,5 @@ TEST(ResidualGain, StrokeGainDrivenByALaggedTemperatureColumn) {
   EXPECT_EQ(e.parameters.at("lag_s"), 0.0);
   EXPECT_GT(e.parameters.at("time_constant_s"), 285.0 / 2);
   EXPECT_LT(e.parameters.at("time_constant_s"), 285.0 * 2);
-  EXPECT_FALSE(e.lag_profile.empty());
+  EXPECT_FALSE(e.lag_profile.points.empty());
 }

@@ -13,8 +13,12 @@ TEST(ResidualLoop, FindsTemperatureColumn) {
   const pa::FoundEffect& e = o.res.effects.front();
   EXPECT_EQ(e.parameters.at("lag_s"), 0.0);
   EXPECT_NEAR(e.parameters.at("time_constant_s"), 300.0, 60.0);
-  ASSERT_GE(e.lag_profile.size(), 8u);
-  const auto best = std::min_element(e.lag_profile.begin(), e.lag_profile.end(),
+  ASSERT_GE(e.lag_profile.points.size(), 8u);
+  const auto best = std::min_element(e.lag_profile.points.begin(), e.lag_profile.points.end(),
                                      [](const auto& x, const auto& y) { return x.second < y.second; });
   EXPECT_EQ(best->first, e.parameters.at("time_constant_s"));
+  // A 150-nm/°C effect over 2 h of TRAIN tells its lag to within a factor 1.5 (paired 5-min blocks).
+  EXPECT_LE(e.lag_profile.lo_s, e.lag_profile.chosen_s);
+  EXPECT_GE(e.lag_profile.hi_s, e.lag_profile.chosen_s);
+  EXPECT_LT(e.lag_profile.hi_s / e.lag_profile.lo_s, 1.5);
 }

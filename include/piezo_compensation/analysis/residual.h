@@ -79,6 +79,16 @@ struct FamilyScore {
 };
 
 // One accepted effect with its fitted parameters.
+// The profile of a first-order lag τ: for each τ tried, the TRAIN RMS with the base refitted for it and every term
+// refitted jointly (Backfitter::profile_lag). The chosen τ has the lowest; [lo_s, hi_s] spans the τ whose errors are
+// not clearly worse than the chosen one's (paired blocks over TRAIN, training::validation_prefers): the lag the data
+// tell apart from the chosen one lies outside it.
+struct LagProfile {
+  std::vector<std::pair<double, double>> points;  // (τ [s], TRAIN RMS [nm]), τ ascending
+  double chosen_s = 0.0, lo_s = 0.0, hi_s = 0.0;
+  bool empty() const { return points.empty(); }
+};
+
 struct FoundEffect {
   std::string family;
   std::map<std::string, double> parameters;   // incl. fitted amplitudes / gains
@@ -95,9 +105,8 @@ struct FoundEffect {
   bool in_readings = false;                   // a sensor effect: in the readings, not in the stage's position
   std::vector<FamilyScore> ranking;           // all families at this step, best first
   std::vector<double> test_prediction;        // TEST prediction after this step
-  // For a term on an auxiliary signal: its first-order lag's profile at the end, (τ [s], TRAIN RMS [nm]), each τ
-  // with the base refitted for it (empty otherwise).
-  std::vector<std::pair<double, double>> lag_profile;
+  // For a term on an auxiliary signal: its first-order lag's profile (empty otherwise).
+  LagProfile lag_profile;
 };
 
 struct ResidualOptions {

@@ -28,8 +28,8 @@ class Backfitter {
   // terms[q]'s lag as a first-order low-pass, profiled over τ (0 and 10 s … tau_max_s) with the base refitted for
   // each τ (same structure) and all terms refitted jointly on TRAIN; the best τ's terms, level and base are kept
   // (c.x_base follows). Returns (τ [s], TRAIN RMS [nm]) for every τ tried. Without refit_base the base stays.
-  std::vector<std::pair<double, double>> profile_lag(std::vector<models::EffectTerm>& terms, std::size_t q, Level& level,
-                                                     models::ModelPtr& base, double tau_max_s);
+  LagProfile profile_lag(std::vector<models::EffectTerm>& terms, std::size_t q, Level& level, models::ModelPtr& base,
+                         double tau_max_s);
 
  private:
   // The secant on the size of a gain fitted after each refit (see the .cpp); how many times its part is taken out.
@@ -46,6 +46,7 @@ class Backfitter {
     Level level;
     models::ModelPtr base;
     std::vector<double> x_base;
+    std::vector<double> block_ms;  // mean square residual per paired block of TRAIN
     double rms_nm = 0.0;
   };
   LagTrial lag_trial(const std::vector<models::EffectTerm>& terms, std::size_t q, const models::Model& base, double tau_s);

@@ -37,6 +37,7 @@ class Validator {
   std::vector<double> block_mae(const std::vector<double>& abs_err) const;
 
   std::size_t n_fit() const { return n_fit_; }
+  std::size_t paired_block() const { return paired_block_; }
   // The longest low-pass time constant the validation rows can judge: half the validation part [s].
   double max_time_constant_s() const { return 0.5 * static_cast<double>(n_ - n_fit_) / c_.fs; }
   bool has_holds() const { return n_val_hold_ > 0; }

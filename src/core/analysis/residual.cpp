@@ -202,7 +202,7 @@ class Loop {
   // Effect q's terms on an auxiliary signal: their lag profiled (Backfitter::profile_lag); `winner` while it is
   // being added (its variant is updated), else res_.effects[q].
   void profile_lags(std::size_t q, FamilyScore* winner = nullptr);
-  std::vector<std::pair<double, double>> last_profile_;
+  LagProfile last_profile_;
 
   const ResidualOptions& o_;
   const io::Dataset& train_;
@@ -401,7 +401,7 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   for (const auto& t : winner.best.terms) terms_.push_back(t);
   fit_terms(c_, terms_, level_, 0, n_);
   backfitter_.run(winner, terms_, effect_first_.back(), level_, base_);
-  last_profile_.clear();
+  last_profile_ = LagProfile{};
   profile_lags(effect_first_.size() - 1, &winner);
   FoundEffect e;
   e.family = winner.family;
@@ -488,12 +488,15 @@ void Loop::profile_lags(std::size_t q, FamilyScore* winner) {
     std::ostringstream os;
     os << "  " << (winner ? winner->family : res_.effects[q].family) << " on " << terms_[k].signal
        << ": first-order lag profiled with the base refitted at each τ (TRAIN RMS):";
-    for (const auto& [tau, rms] : profile) os << " " << tau << " s " << rms << " nm,";
-    os << " was delay " << was_lag << " s + low-pass " << was_tau << " s, now " << terms_[k].time_constant_s << " s";
+    for (const auto& [tau, rms] : profile.points) os << " " << tau << " s " << rms << " nm,";
+    os << " was delay " << was_lag << " s + low-pass " << was_tau << " s, now " << profile.chosen_s
+       << " s (not clearly worse: " << profile.lo_s << " … " << profile.hi_s << " s)";
     log(os.str());
     if (k == first) {
       params["lag_s"] = terms_[k].lag_s;
       params["time_constant_s"] = terms_[k].time_constant_s;
+      params["time_constant_lo_s"] = profile.lo_s;
+      params["time_constant_hi_s"] = profile.hi_s;
       labels["lag_form"] = "first-order, profiled";
       if (!winner) res_.effects[q].lag_profile = profile;
       else last_profile_ = profile;

@@ -1,6 +1,8 @@
 // Backfitting base and effect terms after an effect is added.
 #include "piezo_compensation/analysis/residual_backfit.h"
 
+#include "piezo_compensation/training/fit_common.h"
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -160,8 +162,14 @@ Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms,
     fit_terms(c_, t.terms, t.level, 0, n);
   }
   const std::vector<double> r = residual_of(c_, t.terms, t.level);
+  const std::size_t b = v_.paired_block();
   double ss = 0.0;
-  for (double x : r) ss += x * x;
+  for (std::size_t i = 0; i < r.size(); ++i) {
+    ss += r[i] * r[i];
+    if (i % b == 0) t.block_ms.push_back(0.0);
+    t.block_ms.back() += r[i] * r[i] / static_cast<double>(b);
+  }
+  if (r.size() % b) t.block_ms.pop_back();  // a partial last block
   t.rms_nm = std::sqrt(ss / static_cast<double>(std::max<std::size_t>(1, n)));
   t.x_base = std::move(c_.x_base);
   c_.x_base = x_was;
@@ -174,15 +182,15 @@ Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms,
 // only by τ): τ = 0, the variant's delay + low-pass as one τ, and a factor-2 grid from 10 s to `tau_max_s`, then
 // √2 and 2^¼ about the best. The best trial's
 // terms, base and level are kept. Returns the profile, τ ascending.
-std::vector<std::pair<double, double>> Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q,
-                                                               Level& level, models::ModelPtr& base, double tau_max_s) {
-  std::map<double, double> profile;
+LagProfile Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q, Level& level, models::ModelPtr& base,
+                                   double tau_max_s) {
+  std::map<double, std::pair<double, std::vector<double>>> tried;  // τ → (RMS, block mean squares)
   LagTrial best;
   best.rms_nm = std::numeric_limits<double>::infinity();
   auto run = [&](double tau) {
-    if (profile.count(tau) || tau > tau_max_s * (1 + 1e-9)) return;
+    if (tried.count(tau) || tau > tau_max_s * (1 + 1e-9)) return;
     LagTrial t = lag_trial(terms, q, *base, tau);
-    profile[tau] = t.rms_nm;
+    tried[tau] = {t.rms_nm, t.block_ms};
     if (t.rms_nm < best.rms_nm) best = std::move(t);
   };
   run(0.0);
@@ -192,11 +200,17 @@ std::vector<std::pair<double, double>> Backfitter::profile_lag(std::vector<Effec
     const double at = best.terms[q].time_constant_s;
     if (at > 0.0) run(at * f), run(at / f);
   }
+  LagProfile p;
+  p.chosen_s = p.lo_s = p.hi_s = best.terms[q].time_constant_s;
+  for (const auto& [tau, fit] : tried) {
+    p.points.emplace_back(tau, fit.first);
+    if (!training::validation_prefers(best.block_ms, fit.second, 1)) p.lo_s = std::min(p.lo_s, tau), p.hi_s = std::max(p.hi_s, tau);
+  }
   terms = std::move(best.terms);
   level = best.level;
   base = std::move(best.base);
   c_.x_base = std::move(best.x_base);
-  return {profile.begin(), profile.end()};
+  return p;
 }
 
 }  // namespace piezo::analysis::detail
