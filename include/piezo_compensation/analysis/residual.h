@@ -80,9 +80,9 @@ struct FamilyScore {
 
 // One accepted effect with its fitted parameters.
 // The profile of a first-order lag τ: for each τ tried, the TRAIN RMS with the base refitted for it and every term
-// refitted jointly (Backfitter::profile_lag). The chosen τ has the lowest; [lo_s, hi_s] spans the τ whose errors are
-// not clearly worse than the chosen one's (paired blocks over TRAIN, training::validation_prefers): the lag the data
-// tell apart from the chosen one lies outside it.
+// refitted jointly (Backfitter::profile_lag). The chosen τ has the lowest; [lo_s, hi_s] spans the τ whose errors on
+// the validation part (terms fitted on the fit part) are not clearly worse than the chosen one's (paired 5-min
+// blocks, training::validation_prefers): a lag the data tell apart from the chosen one lies outside it.
 struct LagProfile {
   std::vector<std::pair<double, double>> points;  // (τ [s], TRAIN RMS [nm]), τ ascending
   double chosen_s = 0.0, lo_s = 0.0, hi_s = 0.0;

@@ -46,7 +46,7 @@ class Backfitter {
     Level level;
     models::ModelPtr base;
     std::vector<double> x_base;
-    std::vector<double> block_ms;  // mean square residual per paired block of TRAIN
+    std::vector<double> validation_sq;  // squared errors on the validation part, the terms fitted on the fit part
     double rms_nm = 0.0;
   };
   LagTrial lag_trial(const std::vector<models::EffectTerm>& terms, std::size_t q, const models::Model& base, double tau_s);

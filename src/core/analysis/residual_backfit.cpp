@@ -162,15 +162,16 @@ Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms,
     fit_terms(c_, t.terms, t.level, 0, n);
   }
   const std::vector<double> r = residual_of(c_, t.terms, t.level);
-  const std::size_t b = v_.paired_block();
   double ss = 0.0;
-  for (std::size_t i = 0; i < r.size(); ++i) {
-    ss += r[i] * r[i];
-    if (i % b == 0) t.block_ms.push_back(0.0);
-    t.block_ms.back() += r[i] * r[i] / static_cast<double>(b);
-  }
-  if (r.size() % b) t.block_ms.pop_back();  // a partial last block
+  for (double x : r) ss += x * x;
   t.rms_nm = std::sqrt(ss / static_cast<double>(std::max<std::size_t>(1, n)));
+  // The same terms fitted on the fit part only, their errors on the validation part (for the interval).
+  std::vector<EffectTerm> on_fit = t.terms;
+  Level lv;
+  fit_terms(c_, on_fit, lv, 0, v_.n_fit());
+  const std::vector<double> rv = residual_of(c_, on_fit, lv);
+  t.validation_sq.reserve(n - v_.n_fit());
+  for (std::size_t i = v_.n_fit(); i < n; ++i) t.validation_sq.push_back(rv[i] * rv[i]);
   t.x_base = std::move(c_.x_base);
   c_.x_base = x_was;
   return t;
@@ -184,13 +185,13 @@ Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms,
 // terms, base and level are kept. Returns the profile, τ ascending.
 LagProfile Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q, Level& level, models::ModelPtr& base,
                                    double tau_max_s) {
-  std::map<double, std::pair<double, std::vector<double>>> tried;  // τ → (RMS, block mean squares)
+  std::map<double, std::pair<double, std::vector<double>>> tried;  // τ → (TRAIN RMS, validation squared errors)
   LagTrial best;
   best.rms_nm = std::numeric_limits<double>::infinity();
   auto run = [&](double tau) {
     if (tried.count(tau) || tau > tau_max_s * (1 + 1e-9)) return;
     LagTrial t = lag_trial(terms, q, *base, tau);
-    tried[tau] = {t.rms_nm, t.block_ms};
+    tried[tau] = {t.rms_nm, t.validation_sq};
     if (t.rms_nm < best.rms_nm) best = std::move(t);
   };
   run(0.0);
@@ -204,7 +205,7 @@ LagProfile Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q
   p.chosen_s = p.lo_s = p.hi_s = best.terms[q].time_constant_s;
   for (const auto& [tau, fit] : tried) {
     p.points.emplace_back(tau, fit.first);
-    if (!training::validation_prefers(best.block_ms, fit.second, 1)) p.lo_s = std::min(p.lo_s, tau), p.hi_s = std::max(p.hi_s, tau);
+    if (!training::validation_prefers(best.validation_sq, fit.second, v_.paired_block())) p.lo_s = std::min(p.lo_s, tau), p.hi_s = std::max(p.hi_s, tau);
   }
   terms = std::move(best.terms);
   level = best.level;
