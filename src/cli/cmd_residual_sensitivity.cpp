@@ -26,6 +26,7 @@ int run_compare(const Args& args) {
   o.stage_path = args.str("stage");
   o.size_sigma = args.num("size");
   o.gain_lag_s = args.num("gain-lag-s");
+  o.temperature_wander_c = args.num("temperature-wander-c");
   o.encoder_step_a_nm = args.num("step-a-nm");
   o.fused_other_axis = !args.flag("no-fused");
   o.hours = args.num("hours");
@@ -64,6 +65,7 @@ int run(int argc, char** argv) {
       .option("stage", "FILE", "with --compare: a stage file (config/stages) for axis c; a gets c's physics", "")
       .option("size", "SIGMA", "with --compare: each effect's RMS over σ", "1.5")
       .option("gain-lag-s", "S", "with --compare: the stroke gain's first-order temperature lag", "90")
+      .option("temperature-wander-c", "C", "with --compare: SD of a 400-s Gauss-Markov wander added to the room's temperature", "0")
       .option("step-a-nm", "NM", "with --compare: axis a's encoder step", "250")
       .option("no-fused", "", "with --compare: axis a enters through its readings and voltage, not its fused position")
       .option("quiet", "", "no line per trial on stderr")

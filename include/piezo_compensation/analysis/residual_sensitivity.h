@@ -76,6 +76,9 @@ struct ComparisonOptions {
   std::vector<std::string> effects;
   double size_sigma = 1.5;
   double gain_lag_s = 90.0;
+  // The room's temperature is a 2-h cycle of 0.9 °C and a slow random walk; this adds a Gauss–Markov wander of
+  // this SD [°C] with a 400-s correlation time: content on the time scale of the lag, which the cycle lacks.
+  double temperature_wander_c = 0.0;
   // Axis a's model (the base kind fitted on a, its estimator identified on TRAIN's validation part) gives the loop
   // a's fused position (add_fused_positions); false: a enters through its readings and voltage only.
   bool fused_other_axis = true;

@@ -211,16 +211,19 @@ io::Dataset comparison_data(const ComparisonOptions& o, bool with_effects, doubl
     st.simulator.cross_axis.gain = s > 0 ? rms / s : 0.0;
   }
   io::Dataset d = sim::simulate_stage(st, o.seed, o.hours * 3600.0);
-  // The room's temperature: a 2-h cycle of 0.9 °C and a random walk, felt through a first-order lag.
+  // The room's temperature: a 2-h cycle of 0.9 °C and a random walk (and the optional wander), felt through a
+  // first-order lag.
   std::vector<double> t(d.size()), felt(d.size());
   {
-    std::mt19937_64 trng(o.seed * 7919 + 29);
+    std::mt19937_64 trng(o.seed * 7919 + 29), wrng(o.seed * 6271 + 3);
     std::normal_distribution<double> g(0.0, 1.0);
     const double phase = kTwoPiS * u(rng), a = std::exp(-1.0 / (o.gain_lag_s * d.sample_rate_hz()));
-    double w = 0.0;
+    const double rho = std::exp(-1.0 / (400.0 * d.sample_rate_hz()));
+    double w = 0.0, gm = o.temperature_wander_c * g(wrng);
     for (std::size_t i = 0; i < d.size(); ++i) {
       w += 0.0006 * g(trng);
-      t[i] = 22.0 + 0.9 * std::sin(kTwoPiS * d.time_s[i] / 7200.0 + phase) + w;
+      gm = rho * gm + o.temperature_wander_c * std::sqrt(1.0 - rho * rho) * g(wrng);
+      t[i] = 22.0 + 0.9 * std::sin(kTwoPiS * d.time_s[i] / 7200.0 + phase) + w + gm;
       felt[i] = i == 0 ? t[0] : a * felt[i - 1] + (1.0 - a) * t[i];
     }
   }
@@ -304,8 +307,9 @@ ComparisonResult run_comparison(const ComparisonOptions& o) {
     if (e != "cross_axis" && e != "gain" && e != "periodic" && e != "slips")
       throw std::invalid_argument("unknown planted effect '" + e + "' (valid: cross_axis, gain, periodic, slips)");
   if (!(o.hours >= 0.5) || !(o.train_fraction > 0.3 && o.train_fraction < 0.95) || !(o.size_sigma > 0) ||
-      !(o.gain_lag_s > 0) || !(o.encoder_step_a_nm >= 0))
-    throw std::invalid_argument("comparison: hours ≥ 0.5, train fraction in (0.3, 0.95), size, gain lag > 0, step ≥ 0");
+      !(o.gain_lag_s > 0) || !(o.encoder_step_a_nm >= 0) || !(o.temperature_wander_c >= 0))
+    throw std::invalid_argument(
+        "comparison: hours ≥ 0.5, train fraction in (0.3, 0.95), size, gain lag > 0, step ≥ 0, wander ≥ 0");
   const auto t0 = std::chrono::steady_clock::now();
   ComparisonResult r;
   r.with_effects = compare_once(o, true, r.noise_sigma_nm);
@@ -323,7 +327,9 @@ std::string comparison_text(const ComparisonResult& r, const ComparisonOptions& 
   f << "planted:";
   for (const auto& e : o.effects) f << " " << e;
   if (o.effects.empty()) f << " nothing";
-  f << " (" << o.size_sigma << " σ each, σ " << r.noise_sigma_nm << " nm; gain lag " << o.gain_lag_s << " s)\n";
+  f << " (" << o.size_sigma << " σ each, σ " << r.noise_sigma_nm << " nm; gain lag " << o.gain_lag_s << " s";
+  if (o.temperature_wander_c > 0) f << "; temperature wander " << o.temperature_wander_c << " °C";
+  f << ")\n";
   f << "with effects: TEST MAE vs truth " << r.with_effects.before_truth_nm << " -> " << r.with_effects.after_truth_nm << " nm\n";
   effect_lines(f, r.with_effects.effects);
   f << "clean stage: TEST MAE vs truth " << r.clean.before_truth_nm << " -> " << r.clean.after_truth_nm << " nm\n";

@@ -226,8 +226,8 @@ void Validator::log_score(const FamilyScore& s) const {
   log_(os.str());
 }
 
-// Another axis enters through its best-known position (its fused column); its voltage only where it explains more
-// on validation than that position with the same lag and low-pass.
+// Another axis enters through its best-known position (its fused column); its voltage only where it explains clearly
+// more on validation than that position with the same lag and low-pass.
 void Validator::prefer_fused_position(FamilyScore& s, const std::vector<EffectTerm>& fixed, Val& v) const {
   const auto sig = s.best.labels.find("signal");
   if (sig == s.best.labels.end()) return;
@@ -267,7 +267,9 @@ void Validator::prefer_fused_position(FamilyScore& s, const std::vector<EffectTe
        << " nm²)";
     log_(os.str());
   }
-  if (va.mse <= v.mse) {
+  // The fused position is the coupling's physical form; the voltage (with a play for the other axis' hysteresis,
+  // one regressor more) stays only where its validation errors are clearly lower (paired blocks).
+  if (!training::validation_prefers(v.abs_err, va.abs_err, paired_block_)) {
     s.best = alt;
     v = va;
   }
