@@ -108,6 +108,39 @@ TEST(CreepModels, LtiWarmStartRefinesFromThePreviousTimeConstants) {
   }
 }
 
+// The refits of a lag profile are compared with each other, so they keep the previous model's structure
+// (refit_options(previous, options, true)): its play thresholds, creep input and maps, even where a validation part
+// would choose others. Without the flag they are chosen again.
+TEST(CreepModels, SameStructureRefitKeepsThresholdsCreepInputAndMaps) {
+  CreepParams cp;
+  cp.kind = CreepKind::kLti;
+  cp.on_hysteresis = true;
+  cp.taus_s = {30.0, 1500.0};
+  cp.gains_nm_per_v = {0.05, 0.05};
+  const std::vector<double> coarse = {0.0, 25.0};
+  const PiCreepModel previous(coarse, {8.0, 2.0}, 10.0, cp, 11.0);
+  const YAML::Node again = training::refit_options(previous, YAML::Node(), false);
+  EXPECT_FALSE(again["thresholds_v"] || again["creep_input"] || again["input_map"] || again["output_map"]);
+  const YAML::Node same = training::refit_options(previous, YAML::Node(), true);
+  EXPECT_EQ(same["thresholds_v"].as<std::vector<double>>(), coarse);
+  EXPECT_EQ(same["creep_input"].as<std::string>(), "hysteresis");
+  EXPECT_EQ(same["input_map"].as<std::string>(), "off");
+  EXPECT_EQ(same["output_map"].as<std::string>(), "off");
+  // A fit with a validation part keeps them: the data (six plays) would choose more than two.
+  const io::Dataset d = generate(cp, 2.0);
+  const std::size_t cut = d.size() * 3 / 4;
+  const io::Dataset fit_part = d.slice(0, cut), val_part = d.slice(cut, d.size());
+  training::FitRequest req;
+  req.train = &fit_part;
+  req.validation = &val_part;
+  req.options = same;
+  const auto kept = training::fit_model("pi_creep_lti", req);
+  EXPECT_EQ(dynamic_cast<const PiCreepModel&>(*kept).thresholds_v(), coarse);
+  req.options = again;
+  const auto chosen = training::fit_model("pi_creep_lti", req);
+  EXPECT_GT(dynamic_cast<const PiCreepModel&>(*chosen).thresholds_v().size(), coarse.size());
+}
+
 TEST(CreepModels, LtiOnTheHysteresisOutputRecoversByAlternatingLeastSquares) {
   CreepParams cp;
   cp.kind = CreepKind::kLti;
