@@ -14,6 +14,7 @@
 #include "training_rows.h"
 #include "plot_script.h"
 #include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/estimator_fit.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/analysis/residual_report.h"
 #include "piezo_compensation/models/model_file.h"
@@ -51,6 +52,26 @@ std::map<std::string, std::shared_ptr<const models::Model>> other_axis_models(co
   return out;
 }
 
+// Every other axis with readings in TRAIN and TEST enters the cross-axis families through its fused position: its
+// --other-model file, or a model of `kind` fitted on TRAIN's fit part with its error filter identified on the rest
+// (analysis::fit_axis_model). With --other-readings only the files given: the others enter through their readings.
+void add_other_axes(const Args& args, io::Dataset& train, io::Dataset& test, const std::string& axis, std::size_t n_fit,
+                    const std::string& kind, const analysis::ResidualOptions& o) {
+  auto models = other_axis_models(args.list("other-model"));
+  if (!args.flag("other-readings"))
+    for (const auto& ax : train.axes) {
+      if (ax.name == axis || models.count(ax.name) || !test.has_axis(ax.name)) continue;
+      o.log("axis " + ax.name + ": fitting " + kind + " on TRAIN's first part and its error filter on the rest, for "
+            "its fused position (--other-readings: its readings instead)");
+      try {
+        models[ax.name] = analysis::fit_axis_model(train, n_fit, ax.name, kind, o.seed, true);
+      } catch (const std::exception& e) {  // an axis that did not move, or too few rows: it keeps its readings
+        o.log("axis " + ax.name + ": no model (" + e.what() + "); it enters through its readings");
+      }
+    }
+  analysis::add_fused_positions(train, test, models, axis, o.warm_start, o.log);
+}
+
 int run(int argc, char** argv) {
   Args args("residual",
             "Close the loop: fit (or load) a model on TRAIN, trace its residual to effect families (time_drift,\n"
@@ -79,7 +100,10 @@ int run(int argc, char** argv) {
       .option("mid-history", "", "TRAIN starts on a stage already in use (a ~snapshot): fit the decay of the base's "
               "unknown initial creep state alongside the effects (not put in the model)")
       .option("other-model", "AXIS=FILE", "another axis' model file (with its estimator block): that axis enters the "
-              "cross-axis families through its fused position, not its raw readings", "", true)
+              "cross-axis families through its fused position, not its raw readings; other axes without one get a "
+              "model fitted on TRAIN", "", true)
+      .option("other-readings", "", "other axes without --other-model enter through their readings and voltage "
+              "(no model fitted for them)")
       .option("no-plots", "", "skip the PNGs")
       .required("out", "DIR", "output directory");
   allow_training_rows_option(args);
@@ -125,14 +149,15 @@ int run(int argc, char** argv) {
       if (!f.empty()) o.families.push_back(f);
   }
   o.log = [](const std::string& s) { std::cerr << "residual: " << s << "\n"; };
-  analysis::add_fused_positions(train, test, other_axis_models(args.list("other-model")), axis, o.warm_start, o.log);
+  const std::string model_arg = args.str("model");
+  const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
+  const bool kind_given = model_arg != "auto" && !fs::exists(model_arg) && training::fitter(model_arg);
+  add_other_axes(args, train, test, axis, n_fit, kind_given ? model_arg : "pi_creep_lti", o);
 
   // Base model: a file, or a kind fitted on TRAIN's first part (the rest validates it).
-  const std::string model_arg = args.str("model");
   models::ModelPtr base;
   training::FitRequest req;
   YAML::Node fit_options = parse_sets(args.list("set"));
-  const std::size_t n_fit = static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - o.validation_fraction)));
   std::string fitted_kind = model_arg, selection_md;  // auto: the chosen kind, refitted while backfitting
   if (model_arg == "auto") {
     const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -25,5 +26,11 @@ estimation::NoiseModel identify_estimator(const models::Model& model, const io::
 // Throws io::DataError when `data` lacks the axis, std::invalid_argument for a broken estimator block.
 std::vector<double> fused_position(const models::Model& model, const io::Dataset& data, const std::string& axis,
                                    const io::Dataset* warmup = nullptr);
+
+// A model of `axis`: `kind` fitted on rows [0, n_fit) of `train` (the rest validates it); with `estimator`, its
+// error filter identified on the rest (identify_estimator) and written to its estimator block, as fused_position
+// reads it.
+models::ModelPtr fit_axis_model(const io::Dataset& train, std::size_t n_fit, const std::string& axis,
+                                const std::string& kind, std::uint64_t seed, bool estimator);
 
 }  // namespace piezo::analysis

@@ -4,6 +4,7 @@
 
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/training/fitters.h"
 
 namespace piezo::analysis {
 
@@ -50,6 +51,20 @@ std::vector<double> fused_position(const models::Model& model, const io::Dataset
   if (!nm.fuse) return pd;
   const estimation::FilterTrace t = estimation::run_filter(nm, data.sample_period_s(), p, y);
   return std::vector<double>(t.fused_nm.begin() + static_cast<long>(first), t.fused_nm.end());
+}
+
+models::ModelPtr fit_axis_model(const io::Dataset& train, std::size_t n_fit, const std::string& axis,
+                                const std::string& kind, std::uint64_t seed, bool estimator) {
+  if (n_fit == 0 || n_fit >= train.size()) throw std::invalid_argument("fit_axis_model: no fit or no validation rows");
+  const io::Dataset fit = train.slice(0, n_fit), val = train.slice(n_fit, train.size());
+  training::FitRequest req;
+  req.train = &fit;
+  req.validation = &val;
+  req.axis = axis;
+  req.seed = seed;
+  models::ModelPtr m = training::fit_model(kind, req);
+  if (estimator) m->meta.estimator = identify_estimator(*m, train, axis, n_fit).to_yaml();
+  return m;
 }
 
 }  // namespace piezo::analysis

@@ -238,19 +238,6 @@ io::Dataset comparison_data(const ComparisonOptions& o, bool with_effects, doubl
   return d;
 }
 
-// The base of `axis` fitted on TRAIN's fit part; with `estimator`, its error filter identified on the validation part.
-models::ModelPtr fit_axis(const ComparisonOptions& o, const io::Dataset& train, std::size_t n_fit, const std::string& axis,
-                          bool estimator) {
-  const io::Dataset fit = train.slice(0, n_fit), val = train.slice(n_fit, train.size());
-  training::FitRequest req;
-  req.train = &fit;
-  req.validation = &val;
-  req.axis = axis;
-  req.seed = o.seed;
-  models::ModelPtr m = training::fit_model(o.base_kind, req);
-  if (estimator) m->meta.estimator = identify_estimator(*m, train, axis, n_fit).to_yaml();
-  return m;
-}
 
 ComparisonRun compare_once(const ComparisonOptions& o, bool with_effects, double& sigma_nm) {
   const io::Dataset d = comparison_data(o, with_effects, sigma_nm);
@@ -265,7 +252,7 @@ ComparisonRun compare_once(const ComparisonOptions& o, bool with_effects, double
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - ro.validation_fraction)));
   if (o.fused_other_axis) {
     std::map<std::string, std::shared_ptr<const models::Model>> others;
-    others["a"] = fit_axis(o, train, n_fit, "a", true);
+    others["a"] = fit_axis_model(train, n_fit, "a", o.base_kind, o.seed, true);
     add_fused_positions(train, test, others, "c", ro.warm_start, o.loop_log);
     if (o.loop_log) {
       std::ostringstream os;
@@ -276,7 +263,7 @@ ComparisonRun compare_once(const ComparisonOptions& o, bool with_effects, double
       o.loop_log(os.str());
     }
   }
-  const models::ModelPtr base = fit_axis(o, train, n_fit, "c", false);
+  const models::ModelPtr base = fit_axis_model(train, n_fit, "c", o.base_kind, o.seed, false);
   ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same_structure) {
     training::FitRequest r;
     r.train = &f;
