@@ -102,6 +102,8 @@ void cross_axis(const Context& c, const Adder& add) {
     for (double lag : {0.0, 0.5, 1.0, 2.0, 5.0, 10.0})
       for (double tau : {0.0, 2.0, 10.0, 60.0})
         add({make_term(add.family, "linear", col, lag, tau)}, {{"lag_s", lag}, {"time_constant_s", tau}}, {{"signal", col}});
+    // The other axis' hysteresis seen from its voltage (a 10-V play); its positions already carry it.
+    if (!io::is_voltage_column(col)) continue;
     EffectTerm play = make_term(add.family, "play", col);
     play.threshold = 10.0;
     add({make_term(add.family, "linear", col), play}, {{"lag_s", 0.0}, {"play_threshold_v", 10.0}}, {{"signal", col}});

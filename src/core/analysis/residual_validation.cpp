@@ -231,9 +231,9 @@ void Validator::log_score(const FamilyScore& s) const {
 void Validator::prefer_fused_position(FamilyScore& s, const std::vector<EffectTerm>& fixed, Val& v) const {
   const auto sig = s.best.labels.find("signal");
   if (sig == s.best.labels.end()) return;
-  const std::string volt = sig->second, suffix = "_voltage_v";
-  if (volt.size() <= suffix.size() || volt.compare(volt.size() - suffix.size(), suffix.size(), suffix) != 0) return;
-  const std::string fused = io::fused_position_column(volt.substr(0, volt.size() - suffix.size()));
+  const std::string volt = sig->second;
+  if (!io::is_voltage_column(volt)) return;
+  const std::string fused = io::fused_position_column(volt.substr(0, volt.size() - std::string("_voltage_v").size()));
   if (std::find(c_.other_axes.begin(), c_.other_axes.end(), fused) == c_.other_axes.end()) return;
   // Only the terms on that voltage change; a gain on the fused position standardises it by TRAIN's mean and SD.
   double mu = 0.0, sd = 1.0;
