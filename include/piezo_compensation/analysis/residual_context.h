@@ -45,6 +45,12 @@ struct Level {
 double mean_of(const std::vector<double>& v, std::size_t a, std::size_t b);
 double mae_of(const std::vector<double>& r, std::size_t a, std::size_t b);
 double span_of(const std::vector<double>& v);
+// A signal over TRAIN as the terms read it (models::InputResolver): its mean and (population) SD, the centre and
+// scale a gain term standardises it by.
+struct SignalStats {
+  double mean = 0.0, sd = 0.0;
+};
+SignalStats signal_stats(const Context& c, const std::string& signal);
 bool reads_position(const std::vector<models::EffectTerm>& terms);
 models::EffectTerm make_term(const std::string& family, const std::string& type, const std::string& signal,
                              double lag_s = 0.0, double tau_s = 0.0);

@@ -142,7 +142,8 @@ double median_step_s(const std::vector<double>& time_s);
 
 // Column name helpers.
 std::string voltage_column(const std::string& axis);        // "<axis>_voltage_v"
-bool is_voltage_column(const std::string& column);          // ends in "_voltage_v"
+bool is_voltage_column(const std::string& column);          // "<axis>_voltage_v" for some axis
+std::string voltage_column_axis(const std::string& column); // its axis; empty when not a voltage column
 std::string position_column(const std::string& axis);       // "<axis>_position_nm"
 std::string true_position_column(const std::string& axis);  // "<axis>_true_position_nm"
 // "<axis>_fused_position_nm": an axis' fused position (its model with its encoder, estimation/error_filter.h), a

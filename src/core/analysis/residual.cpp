@@ -199,10 +199,12 @@ class Loop {
   void add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranking, std::vector<FamilyScore> competitors);
   void finish();
   void rechoose_jointly();
-  // Effect q's terms on an auxiliary signal: their lag profiled (Backfitter::profile_lag); `winner` while it is
-  // being added (its variant is updated), else res_.effects[q].
-  void profile_lags(std::size_t q, FamilyScore* winner = nullptr);
-  LagProfile last_profile_;
+  // Effect q's terms on an auxiliary signal: their lag profiled (Backfitter::profile_lag), the effect's parameters
+  // and labels updated; the first such term's profile (empty for other families).
+  LagProfile profile_lags(std::size_t q, const std::string& family, std::map<std::string, double>& parameters,
+                          std::map<std::string, std::string>& labels);
+  // One past effect q's last term.
+  std::size_t effect_end(std::size_t q) const { return q + 1 < effect_first_.size() ? effect_first_[q + 1] : terms_.size(); }
 
   const ResidualOptions& o_;
   const io::Dataset& train_;
@@ -295,24 +297,35 @@ std::vector<FamilyScore> Loop::rank(int step) {
   return ranking;
 }
 
+// The significant families that name a physical signal (not an operating point, not a line in time), in ranking
+// order (best explained variance first), at most `limit`: the candidates of joint_pair and after_one_refit.
+std::vector<std::size_t> significant_physical(const std::vector<FamilyScore>& ranking, std::size_t limit) {
+  std::vector<std::size_t> sig;
+  for (std::size_t i = 0; i < ranking.size() && sig.size() < limit; ++i)
+    if (ranking[i].available && ranking[i].significant && !is_operating_point_family(ranking[i].family) &&
+        !extrapolates_in_time(ranking[i].family))
+      sig.push_back(i);
+  return sig;
+}
+
+// A gain family and the additive family on the same signal are one effect's two forms, never a pair.
+bool same_signal_forms(const std::string& a, const std::string& b) {
+  return additive_counterpart(a) == b || additive_counterpart(b) == a;
+}
+
 // Two effects at once each leave the other's residual, and the base's distortion by both, in the validation of
 // the other: each alone may then fail its rules though the two together pass them. When no family passes alone,
 // the significant physical families are validated in pairs (the two strongest by explained variance first, not a
 // gain with its own additive family); the stronger of the first pair that passes every rule of a single family is
 // added, and the next round judges the other on the backfitted base. -1 when no pair passes.
 int Loop::joint_pair(std::vector<FamilyScore>& ranking, const Val& now) {
-  std::vector<std::size_t> sig;
-  for (std::size_t i = 0; i < ranking.size(); ++i)
-    if (ranking[i].available && ranking[i].significant && !is_operating_point_family(ranking[i].family) &&
-        !extrapolates_in_time(ranking[i].family))
-      sig.push_back(i);
+  const std::vector<std::size_t> sig = significant_physical(ranking, 3);
   if (sig.size() < 2) return -1;
-  if (sig.size() > 3) sig.resize(3);  // ranking is sorted by explained variance
   const AcceptanceRound round = validator_.round(now);
   for (std::size_t a = 0; a < sig.size(); ++a)
     for (std::size_t b = a + 1; b < sig.size(); ++b) {
       const FamilyScore &x = ranking[sig[a]], &y = ranking[sig[b]];
-      if (additive_counterpart(x.family) == y.family || additive_counterpart(y.family) == x.family) continue;
+      if (same_signal_forms(x.family, y.family)) continue;
       FamilyScore pair = x;
       for (const auto& t : y.best.terms) pair.best.terms.push_back(t);
       validator_.score(pair, terms_, now, false);
@@ -334,16 +347,10 @@ int Loop::joint_pair(std::vector<FamilyScore>& ranking, const Val& now) {
 // is added (of a pair, the stronger; the next round judges the other). -1 when none.
 int Loop::after_one_refit(std::vector<FamilyScore>& ranking, const Val& now) {
   if (!o_.refit_base) return -1;
-  std::vector<std::size_t> sig;
-  for (std::size_t i = 0; i < ranking.size() && sig.size() < 2; ++i)
-    if (ranking[i].available && ranking[i].significant && !is_operating_point_family(ranking[i].family) &&
-        !extrapolates_in_time(ranking[i].family))
-      sig.push_back(i);
+  const std::vector<std::size_t> sig = significant_physical(ranking, 2);
   std::vector<std::vector<std::size_t>> trials;
   for (std::size_t i : sig) trials.push_back({i});
-  if (sig.size() == 2 && additive_counterpart(ranking[sig[0]].family) != ranking[sig[1]].family &&
-      additive_counterpart(ranking[sig[1]].family) != ranking[sig[0]].family)
-    trials.push_back(sig);
+  if (sig.size() == 2 && !same_signal_forms(ranking[sig[0]].family, ranking[sig[1]].family)) trials.push_back(sig);
   const AcceptanceRound round = validator_.round(now);
   for (const auto& trial_set : trials) {
     FamilyScore again = ranking[trial_set[0]];
@@ -401,8 +408,8 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   for (const auto& t : winner.best.terms) terms_.push_back(t);
   fit_terms(c_, terms_, level_, 0, n_);
   backfitter_.run(winner, terms_, effect_first_.back(), level_, base_);
-  last_profile_ = LagProfile{};
-  profile_lags(effect_first_.size() - 1, &winner);
+  const LagProfile lag_profile =
+      profile_lags(effect_first_.size() - 1, winner.family, winner.best.parameters, winner.best.labels);
   FoundEffect e;
   e.family = winner.family;
   e.parameters = winner.best.parameters;
@@ -415,7 +422,7 @@ void Loop::add_effect(FamilyScore& winner, const std::vector<FamilyScore>& ranki
   e.competitors = std::move(competitors);
   models::AugmentedModel m(base_->clone(), terms_, level_.offset_nm, c_.fs);
   e.test_prediction = run_test(m, level_);
-  e.lag_profile = last_profile_;
+  e.lag_profile = lag_profile;
   e.test_after = error_stats(e.test_prediction, meas_test_, res_.test_mask);
   e.in_readings = is_reading_family(e.family);
   if (!truth_test_.empty())
@@ -434,7 +441,7 @@ void Loop::rechoose_jointly() {
   no_null.permutations = 0;  // accepted effects: only their variants are chosen again
   for (std::size_t q = 0; q < effect_first_.size(); ++q) {
     const std::size_t first = effect_first_[q];
-    const std::size_t last = q + 1 < effect_first_.size() ? effect_first_[q + 1] : terms_.size();
+    const std::size_t last = effect_end(q);
     std::vector<EffectTerm> others(terms_.begin(), terms_.begin() + static_cast<long>(first));
     others.insert(others.end(), terms_.begin() + static_cast<long>(last), terms_.end());
     Level lv;
@@ -475,33 +482,31 @@ void Loop::rechoose_jointly() {
 // The lag of a term on an auxiliary signal (a temperature felt through the mount) as a first-order low-pass, its
 // τ profiled at the end with the base refitted for each τ (Backfitter::profile_lag): chosen on the residual of a
 // base refitted at another lag, a lag confirms itself (docs/closing-the-loop.md, "The lag of a slow signal").
-void Loop::profile_lags(std::size_t q, FamilyScore* winner) {
-  const Family f = traits_of(res_.effects.size() > q ? res_.effects[q].family : winner->family).id;
-  if (f != Family::kAuxSignal && f != Family::kAuxGain) return;
-  const std::size_t first = effect_first_[q];
-  const std::size_t last = q + 1 < effect_first_.size() ? effect_first_[q + 1] : terms_.size();
-  std::map<std::string, double>& params = winner ? winner->best.parameters : res_.effects[q].parameters;
-  std::map<std::string, std::string>& labels = winner ? winner->best.labels : res_.effects[q].labels;
+LagProfile Loop::profile_lags(std::size_t q, const std::string& family, std::map<std::string, double>& parameters,
+                              std::map<std::string, std::string>& labels) {
+  LagProfile first_profile;
+  const Family f = traits_of(family).id;
+  if (f != Family::kAuxSignal && f != Family::kAuxGain) return first_profile;
+  const std::size_t first = effect_first_[q], last = effect_end(q);
   for (std::size_t k = first; k < last; ++k) {
     const double was_lag = terms_[k].lag_s, was_tau = terms_[k].time_constant_s;
-    const auto profile = backfitter_.profile_lag(terms_, k, level_, base_, validator_.max_time_constant_s());
+    const LagProfile profile = backfitter_.profile_lag(terms_, k, level_, base_, validator_.max_time_constant_s());
     std::ostringstream os;
-    os << "  " << (winner ? winner->family : res_.effects[q].family) << " on " << terms_[k].signal
+    os << "  " << family << " on " << terms_[k].signal
        << ": first-order lag profiled with the base refitted at each τ (TRAIN RMS):";
     for (const auto& [tau, rms] : profile.points) os << " " << tau << " s " << rms << " nm,";
     os << " was delay " << was_lag << " s + low-pass " << was_tau << " s, now " << profile.chosen_s
        << " s (not clearly worse: " << profile.lo_s << " … " << profile.hi_s << " s)";
     log(os.str());
-    if (k == first) {
-      params["lag_s"] = terms_[k].lag_s;
-      params["time_constant_s"] = terms_[k].time_constant_s;
-      params["time_constant_lo_s"] = profile.lo_s;
-      params["time_constant_hi_s"] = profile.hi_s;
-      labels["lag_form"] = "first-order, profiled";
-      if (!winner) res_.effects[q].lag_profile = profile;
-      else last_profile_ = profile;
-    }
+    if (k != first) continue;
+    parameters["lag_s"] = terms_[k].lag_s;
+    parameters["time_constant_s"] = terms_[k].time_constant_s;
+    parameters["time_constant_lo_s"] = profile.lo_s;
+    parameters["time_constant_hi_s"] = profile.hi_s;
+    labels["lag_form"] = "first-order, profiled";
+    first_profile = profile;
   }
+  return first_profile;
 }
 
 void Loop::finish() {
@@ -509,12 +514,16 @@ void Loop::finish() {
     rechoose_jointly();
     backfitter_.refit_all(terms_, level_, base_);
     rechoose_jointly();
-    for (std::size_t q = 0; q < effect_first_.size(); ++q) profile_lags(q);
+    for (std::size_t q = 0; q < effect_first_.size(); ++q) {
+      FoundEffect& e = res_.effects[q];
+      LagProfile p = profile_lags(q, e.family, e.parameters, e.labels);
+      if (!p.empty()) e.lag_profile = std::move(p);
+    }
   }
   // Parameters from the final joint fit.
   for (std::size_t q = 0; q < res_.effects.size(); ++q) {
     const std::size_t first = effect_first_[q];
-    const std::size_t last = q + 1 < effect_first_.size() ? effect_first_[q + 1] : terms_.size();
+    const std::size_t last = effect_end(q);
     describe(terms_, first, last - first, res_.effects[q]);
   }
   auto model = std::make_unique<models::AugmentedModel>(base_->clone(), terms_, level_.offset_nm, c_.fs);

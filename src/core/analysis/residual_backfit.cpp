@@ -181,8 +181,7 @@ Backfitter::LagTrial Backfitter::lag_trial(const std::vector<EffectTerm>& terms,
 // absorbs part of the mismatch, and the profile over τ with that base held fixed has its minimum near the τ it was
 // refitted at. Each τ is therefore judged with the base refitted for it (same structure, so that the trials differ
 // only by τ): τ = 0, the variant's delay + low-pass as one τ, and a factor-2 grid from 10 s to `tau_max_s`, then
-// √2 and 2^¼ about the best. The best trial's
-// terms, base and level are kept. Returns the profile, τ ascending.
+// √2 and 2^¼ about the best. The best trial's terms, base and level are kept.
 LagProfile Backfitter::profile_lag(std::vector<EffectTerm>& terms, std::size_t q, Level& level, models::ModelPtr& base,
                                    double tau_max_s) {
   std::map<double, std::pair<double, std::vector<double>>> tried;  // τ → (TRAIN RMS, validation squared errors)

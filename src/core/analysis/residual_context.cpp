@@ -28,6 +28,18 @@ double span_of(const std::vector<double>& v) {
   return *hi - *lo;
 }
 
+SignalStats signal_stats(const Context& c, const std::string& signal) {
+  models::InputResolver col(*c.data, {signal}, c.axis);
+  std::vector<double> sv(c.x_base.size());
+  for (std::size_t i = 0; i < sv.size(); ++i) col.fill(i, &sv[i]);
+  SignalStats st;
+  st.mean = mean_of(sv, 0, sv.size());
+  double var = 0;
+  for (double x : sv) var += (x - st.mean) * (x - st.mean);
+  st.sd = std::sqrt(var / static_cast<double>(std::max<std::size_t>(1, sv.size())));
+  return st;
+}
+
 bool reads_position(const std::vector<EffectTerm>& terms) {
   for (const auto& t : terms)
     if (t.signal == models::kSignalPosition) return true;

@@ -138,13 +138,7 @@ void gain(Family family, const Context& c, const Adder& add) {
     if (sigs.empty()) add.fc.note = "no auxiliary column in the data";
   }
   for (const auto& sig : sigs) {
-    models::InputResolver col(*c.data, {sig}, c.axis);
-    std::vector<double> sv(c.x_base.size());
-    for (std::size_t i = 0; i < sv.size(); ++i) col.fill(i, &sv[i]);
-    const double mu = mean_of(sv, 0, sv.size());
-    double var = 0;
-    for (double x : sv) var += (x - mu) * (x - mu);
-    const double sd = std::sqrt(var / static_cast<double>(std::max<std::size_t>(1, sv.size())));
+    const auto [mu, sd] = signal_stats(c, sig);
     if (!(sd > 0)) continue;
     for (double lag : lags)
       for (double tau : taus) {

@@ -109,9 +109,8 @@ void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size
       if (t.signal == models::kSignalTime) {
         e.parameters["drift_nm_per_h"] = w(0) * 3600.0;
       } else {
-        const std::string unit = t.signal == models::kSignalVoltage || t.signal.find("_voltage_v") != std::string::npos
-                                     ? "nm_per_v"
-                                     : "nm_per_unit";
+        const std::string unit =
+            t.signal == models::kSignalVoltage || io::is_voltage_column(t.signal) ? "nm_per_v" : "nm_per_unit";
         e.parameters[pre + (t.type == "play" ? "play_gain_" : "gain_") + unit] = w(0);
       }
     } else if (t.type == "rate") {

@@ -52,23 +52,28 @@ io::Dataset simulate(const sim::SimulatorConfig& cfg, double hours, std::uint64_
   return s.run(proto->program());
 }
 
-// A temperature the stage may feel: a first-order Gauss–Markov wander (σ 0.5 °C, correlation 400 s; a periodic one
-// would make the circular-shift null as wide as its period allows), felt through a delay and a first-order low-pass
-// (the sensitivity stages: 20 s and 60 s).
-void temperature(const io::Dataset& d, std::uint64_t seed, std::vector<double>& t, std::vector<double>& felt,
-                 double delay_s = 20.0, double lag_s = 60.0) {
-  std::mt19937_64 rng(seed * 7919 + 13);
+// Adds a first-order Gauss–Markov wander of SD `sd` and correlation time `corr_s` to x (started at its stationary
+// spread).
+void add_gauss_markov(std::vector<double>& x, double sd, double corr_s, double fs, std::mt19937_64& rng) {
   std::normal_distribution<double> g(0.0, 1.0);
-  const double fs = d.sample_rate_hz(), rho = std::exp(-1.0 / (400.0 * fs));
-  t.resize(d.size());
-  felt.resize(d.size());
-  double w = 0.5 * g(rng);
-  for (std::size_t i = 0; i < d.size(); ++i) {
-    w = rho * w + 0.5 * std::sqrt(1.0 - rho * rho) * g(rng);
-    t[i] = 22.0 + w;
+  const double rho = std::exp(-1.0 / (corr_s * fs));
+  double w = sd * g(rng);
+  for (double& v : x) {
+    w = rho * w + sd * std::sqrt(1.0 - rho * rho) * g(rng);
+    v += w;
   }
-  const std::size_t lag = static_cast<std::size_t>(delay_s * fs);
-  const double a = std::exp(-1.0 / (lag_s * fs));
+}
+
+// A temperature the stage may feel: a first-order Gauss–Markov wander (σ 0.5 °C, correlation 400 s; a periodic one
+// would make the circular-shift null as wide as its period allows), felt through a 20-s delay and a 60-s low-pass.
+void temperature(const io::Dataset& d, std::uint64_t seed, std::vector<double>& t, std::vector<double>& felt) {
+  std::mt19937_64 rng(seed * 7919 + 13);
+  const double fs = d.sample_rate_hz();
+  t.assign(d.size(), 22.0);
+  felt.resize(d.size());
+  add_gauss_markov(t, 0.5, 400.0, fs, rng);
+  const std::size_t lag = static_cast<std::size_t>(20.0 * fs);
+  const double a = std::exp(-1.0 / (60.0 * fs));
   double lp = t[0];
   for (std::size_t i = 0; i < d.size(); ++i) felt[i] = lp = a * lp + (1 - a) * t[i >= lag ? i - lag : 0];
 }
@@ -136,6 +141,24 @@ bool names(const FoundEffect& e, SensitivityFamily f) {
   return false;
 }
 
+// The base of axis ro.axis fitted on TRAIN's first part, and the refit backfitting uses, as `piezo residual` does
+// (a base fitted on data that hold the effect has absorbed part of it).
+models::ModelPtr loop_base(const io::Dataset& train, ResidualOptions& ro, const std::string& kind) {
+  const std::size_t n_fit =
+      static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - ro.validation_fraction)));
+  ro.refit_base = [kind, axis = ro.axis, seed = ro.seed](const io::Dataset& f, const io::Dataset& v,
+                                                          const models::Model& previous, bool same_structure) {
+    training::FitRequest r;
+    r.train = &f;
+    r.validation = &v;
+    r.axis = axis;
+    r.seed = seed;
+    r.options = training::refit_options(previous, r.options, same_structure);
+    return training::fit_model(kind, r);
+  };
+  return fit_axis_model(train, n_fit, ro.axis, kind, ro.seed, false);
+}
+
 std::vector<FoundEffect> run_trial(const Planted* p, const SensitivityOptions& o, std::uint64_t seed, double& sigma_nm) {
   const io::Dataset d = make_stage(p, o.hours, seed, sigma_nm);
   const std::size_t cut = static_cast<std::size_t>(static_cast<double>(d.size()) * o.train_fraction);
@@ -146,23 +169,7 @@ std::vector<FoundEffect> run_trial(const Planted* p, const SensitivityOptions& o
   ro.max_effects = 3;
   ro.seed = seed;
   ro.log = o.loop_log;
-  const std::size_t n_fit =
-      static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - ro.validation_fraction)));
-  const io::Dataset fit = train.slice(0, n_fit), val = train.slice(n_fit, train.size());
-  training::FitRequest req;
-  req.train = &fit;
-  req.validation = &val;
-  req.axis = "c";
-  req.seed = seed;
-  const models::ModelPtr base = training::fit_model(o.base_kind, req);
-  // Backfitting as `piezo residual` does: a base fitted on data that hold the effect has absorbed part of it.
-  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same_structure) {
-    training::FitRequest r = req;
-    r.train = &f;
-    r.validation = &v;
-    r.options = training::refit_options(previous, r.options, same_structure);
-    return training::fit_model(o.base_kind, r);
-  };
+  const models::ModelPtr base = loop_base(train, ro, o.base_kind);
   return trace_residual(*base, train, test, ro).effects;
 }
 
@@ -263,16 +270,7 @@ ComparisonRun compare_once(const ComparisonOptions& o, bool with_effects, double
       o.loop_log(os.str());
     }
   }
-  const models::ModelPtr base = fit_axis_model(train, n_fit, "c", o.base_kind, o.seed, false);
-  ro.refit_base = [&](const io::Dataset& f, const io::Dataset& v, const models::Model& previous, bool same_structure) {
-    training::FitRequest r;
-    r.train = &f;
-    r.validation = &v;
-    r.axis = "c";
-    r.seed = o.seed;
-    r.options = training::refit_options(previous, r.options, same_structure);
-    return training::fit_model(o.base_kind, r);
-  };
+  const models::ModelPtr base = loop_base(train, ro, o.base_kind);
   const ResidualResult res = trace_residual(*base, train, test, ro);
   return ComparisonRun{res.before_test_truth.mae_nm, res.after_test_truth.mae_nm, res.effects};
 }

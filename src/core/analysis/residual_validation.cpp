@@ -231,22 +231,13 @@ void Validator::log_score(const FamilyScore& s) const {
 void Validator::prefer_fused_position(FamilyScore& s, const std::vector<EffectTerm>& fixed, Val& v) const {
   const auto sig = s.best.labels.find("signal");
   if (sig == s.best.labels.end()) return;
-  const std::string volt = sig->second;
-  if (!io::is_voltage_column(volt)) return;
-  const std::string fused = io::fused_position_column(volt.substr(0, volt.size() - std::string("_voltage_v").size()));
+  const std::string volt = sig->second, other = io::voltage_column_axis(volt);
+  if (other.empty()) return;
+  const std::string fused = io::fused_position_column(other);
   if (std::find(c_.other_axes.begin(), c_.other_axes.end(), fused) == c_.other_axes.end()) return;
   // Only the terms on that voltage change; a gain on the fused position standardises it by TRAIN's mean and SD.
-  double mu = 0.0, sd = 1.0;
-  {
-    models::InputResolver col(*c_.data, {fused}, c_.axis);
-    std::vector<double> sv(c_.x_base.size());
-    for (std::size_t i = 0; i < sv.size(); ++i) col.fill(i, &sv[i]);
-    mu = mean_of(sv, 0, sv.size());
-    double var = 0;
-    for (double x : sv) var += (x - mu) * (x - mu);
-    sd = std::sqrt(var / static_cast<double>(std::max<std::size_t>(1, sv.size())));
-    if (!(sd > 0)) return;
-  }
+  const auto [mu, sd] = signal_stats(c_, fused);
+  if (!(sd > 0)) return;
   Candidate alt = s.best;
   alt.terms.clear();
   for (EffectTerm t : s.best.terms) {

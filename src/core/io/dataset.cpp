@@ -7,10 +7,12 @@
 namespace piezo::io {
 
 std::string voltage_column(const std::string& axis) { return axis + "_voltage_v"; }
-bool is_voltage_column(const std::string& column) {
+std::string voltage_column_axis(const std::string& column) {
   static const std::string suffix = "_voltage_v";
-  return column.size() > suffix.size() && column.compare(column.size() - suffix.size(), suffix.size(), suffix) == 0;
+  if (column.size() <= suffix.size() || column.compare(column.size() - suffix.size(), suffix.size(), suffix) != 0) return {};
+  return column.substr(0, column.size() - suffix.size());
 }
+bool is_voltage_column(const std::string& column) { return !voltage_column_axis(column).empty(); }
 std::string position_column(const std::string& axis) { return axis + "_position_nm"; }
 std::string true_position_column(const std::string& axis) { return axis + "_true_position_nm"; }
 std::string fused_position_column(const std::string& axis) { return axis + "_fused_position_nm"; }
