@@ -225,14 +225,14 @@ io::Dataset comparison_data(const ComparisonOptions& o, bool with_effects, doubl
     std::mt19937_64 trng(o.seed * 7919 + 29), wrng(o.seed * 6271 + 3);
     std::normal_distribution<double> g(0.0, 1.0);
     const double phase = kTwoPiS * u(rng), a = std::exp(-1.0 / (o.gain_lag_s * d.sample_rate_hz()));
-    const double rho = std::exp(-1.0 / (400.0 * d.sample_rate_hz()));
-    double w = 0.0, gm = o.temperature_wander_c * g(wrng);
+    double w = 0.0;
     for (std::size_t i = 0; i < d.size(); ++i) {
       w += 0.0006 * g(trng);
-      gm = rho * gm + o.temperature_wander_c * std::sqrt(1.0 - rho * rho) * g(wrng);
-      t[i] = 22.0 + 0.9 * std::sin(kTwoPiS * d.time_s[i] / 7200.0 + phase) + w + gm;
-      felt[i] = i == 0 ? t[0] : a * felt[i - 1] + (1.0 - a) * t[i];
+      t[i] = 22.0 + 0.9 * std::sin(kTwoPiS * d.time_s[i] / 7200.0 + phase) + w;
     }
+    // Its own generator and distribution: the walk above is the same with or without the wander.
+    add_gauss_markov(t, o.temperature_wander_c, 400.0, d.sample_rate_hz(), wrng);
+    for (std::size_t i = 0; i < d.size(); ++i) felt[i] = i == 0 ? t[0] : a * felt[i - 1] + (1.0 - a) * t[i];
   }
   if (with_effects && planted(o, "gain")) plant_thermal(d, true, rms, felt);
   if (with_effects && planted(o, "slips")) {
