@@ -1,4 +1,5 @@
 // `piezo residual`: close the loop on measured data — find what the model misses, add it, report before/after.
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <filesystem>
@@ -54,11 +55,16 @@ std::map<std::string, std::shared_ptr<const models::Model>> other_axis_models(co
 
 // Every other axis with readings in TRAIN and TEST enters the cross-axis families through its fused position: its
 // --other-model file, or a model of `kind` fitted on TRAIN's fit part with its error filter identified on the rest
-// (analysis::fit_axis_model). With --other-readings only the files given: the others enter through their readings.
+// (analysis::fit_axis_model). With --other-readings, or when --families leaves both cross-axis families out, only the
+// files given: the others enter through their readings.
 void add_other_axes(const Args& args, io::Dataset& train, io::Dataset& test, const std::string& axis, std::size_t n_fit,
                     const std::string& kind, const analysis::ResidualOptions& o) {
   auto models = other_axis_models(args.list("other-model"));
-  if (!args.flag("other-readings"))
+  const auto searched = [&o](const char* f) {
+    return o.families.empty() || std::find(o.families.begin(), o.families.end(), f) != o.families.end();
+  };
+  // Only the cross-axis families read another axis: without them no model is fitted for it.
+  if (!args.flag("other-readings") && (searched("cross_axis") || searched("cross_axis_gain")))
     for (const auto& ax : train.axes) {
       if (ax.name == axis || models.count(ax.name) || !test.has_axis(ax.name)) continue;
       o.log("axis " + ax.name + ": fitting " + kind + " on TRAIN's first part and its error filter on the rest, for "
