@@ -3,6 +3,7 @@
 // them and the launch files.
 #pragma once
 
+#include <string>
 #include <vector>
 
 #include "piezo_compensation/ros/params.h"
@@ -26,5 +27,12 @@ const params::NodeInterface& monitor_interface();  // src/ros/monitor.cpp
 
 // In the order of the reference: the driver, the simulated device, the predictor, the recorder, the monitor, the demo.
 std::vector<const params::NodeInterface*> node_interfaces();
+
+// A parameter the reference lists as standard (every other one is advanced), with one line of why an operator sets
+// it. `piezo ros-interface` fails when one names a parameter its node does not declare.
+struct StandardParam {
+  std::string node, name, why;
+};
+const std::vector<StandardParam>& standard_params();
 
 }  // namespace piezo
