@@ -27,11 +27,7 @@ NanoControlSim::NanoControlSim(ros::NodeHandle nh, ros::NodeHandle pnh, const pa
   }
   sim::ManipulatorSimulator* s = &simulator;
   device_ = std::make_unique<nanocontrol::SimDevice>(
-      options_.device, [s, this](const std::array<double, 3>& v, double dt) {
-        sim::StepResult r = s->step(v, dt);
-        publish_sample(r);
-        return r;
-      });
+      options_.device, [s](const std::array<double, 3>& v, double dt) { return s->step(v, dt); });
   using piezo_compensation::AxisVoltage;
   using piezo_compensation::EncoderPosition;
   for (int i = 0; i < 3; ++i) {
@@ -65,7 +61,7 @@ std::string NanoControlSim::describe() const {
   return "nanocontrol pseudo-terminal " + options_.link_path + " -> " + pty_->slave_path();
 }
 
-void NanoControlSim::publish_sample(const sim::StepResult& s) {
+void NanoControlSim::publish_sample(const nanocontrol::SimDevice::Answer& a) {
   const ros::Time stamp = ros::Time::now();
   for (int i = 0; i < 3; ++i) {
     piezo_compensation::EncoderPosition msg;
@@ -73,14 +69,14 @@ void NanoControlSim::publish_sample(const sim::StepResult& s) {
     msg.header.frame_id = options_.frame_id;
     msg.axis = std::string(1, static_cast<char>('a' + i));
     msg.sequence = samples_;
-    msg.position = s.axes[i].true_position_nm * 1e-9;
+    msg.position = a.sample_truth_nm[i] * 1e-9;
     msg.valid = true;
     truth_pub_[i].publish(msg);
   }
   sensor_msgs::Temperature t;
   t.header.stamp = stamp;
   t.header.frame_id = options_.frame_id;
-  t.temperature = s.temperature_c;
+  t.temperature = device_->last_sample() ? device_->last_sample()->temperature_c : 0.0;
   temperature_pub_.publish(t);
   ++samples_;
 }
@@ -116,6 +112,7 @@ void NanoControlSim::serve(int fd) {
     lock.lock();
     if (!pty_->present() || pty_->master_fd() != fd) return;
     const nanocontrol::SimDevice::Answer a = device_->handle(*line, nc_sim_mono_s());
+    if (a.sample_closed) publish_sample(a);
     if (a.set_point && a.axis >= 0) {
       piezo_compensation::AxisVoltage msg;
       msg.header.stamp = ros::Time::now();

@@ -44,6 +44,10 @@ class SimDevice {
     bool set_point = false;     // the command was a set point that was applied
     int axis = -1;              // ... on this simulator axis (-1: a channel the manipulator does not use)
     double voltage_v = 0.0;     // ... at this voltage
+    // A `fine16 ?` after counter reads closes a sample as the driver takes one: the mean true position [nm] of the
+    // plant at those reads (evaluation only).
+    bool sample_closed = false;
+    std::array<double, 3> sample_truth_nm{};
   };
   // One command line (without its CR) at time now_s [s, any monotonic clock].
   Answer handle(const std::string& line, double now_s);
@@ -70,6 +74,8 @@ class SimDevice {
   bool error_next_set_point_ = false;
   std::optional<SimFault> next_;
   std::uint64_t commands_ = 0;
+  std::array<double, 3> truth_sum_nm_{};
+  int truth_reads_ = 0;
   Answer* answer_ = nullptr;
 };
 

@@ -1,7 +1,9 @@
 // mm3e_sim with ~transport nanocontrol: the simulated NanoControl (nanocontrol::SimDevice over the node's
 // simulator) answering on a pseudo-terminal at ~port, in real time, with the fault injections of
-// docs/nanocontrol.md. Publishes <axis>/true_position at each plant step and <axis>/device_set_point for every
-// set point the controller took, so a test sees each voltage that reached it.
+// docs/nanocontrol.md. Publishes <axis>/true_position once per sample as the driver takes it (counter reads closed
+// by a `fine16 ?`: the mean true position at those reads, numbered as the driver numbers its samples while no
+// reply is lost) and <axis>/device_set_point for every set point the controller took, so a test sees each voltage
+// that reached it.
 #pragma once
 
 #include <ros/ros.h>
@@ -40,7 +42,7 @@ class NanoControlSim {
  private:
   void run();
   void serve(int fd);
-  void publish_sample(const sim::StepResult& s);
+  void publish_sample(const nanocontrol::SimDevice::Answer& a);
   bool inject(nanocontrol::SimFault fault, std_srvs::Trigger::Response& res);
   bool on_port_lost(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
 

@@ -101,7 +101,11 @@ std::string SimDevice::reply(const std::string& line) {
   if (cmd == "version" && w.size() == 1) return "o\t" + config_.version;
   if (cmd == "knbus" && w.size() == 2 && w[1] == "?") return "o\t1 0 0";
   if (cmd == "stop" && w.size() == 1) return "o\t";
-  if (cmd == "counterread" && w.size() == 1) return "o\t" + counters_text();
+  if (cmd == "counterread" && w.size() == 1) {
+    for (int i = 0; i < 3 && last_; ++i) truth_sum_nm_[i] += last_->axes[i].true_position_nm;
+    ++truth_reads_;
+    return "o\t" + counters_text();
+  }
   if (cmd == "counterreset" && w.size() == 1) {
     counter_offset_.fill(0);
     const std::string now = counters_text();
@@ -110,6 +114,12 @@ std::string SimDevice::reply(const std::string& line) {
     return "o\t";
   }
   if ((cmd == "fine16" || cmd == "fineu") && w.size() == 2 && w[1] == "?") {
+    if (truth_reads_ > 0) {
+      answer_->sample_closed = true;
+      for (int i = 0; i < 3; ++i) answer_->sample_truth_nm[i] = truth_sum_nm_[i] / truth_reads_;
+      truth_sum_nm_.fill(0.0);
+      truth_reads_ = 0;
+    }
     std::ostringstream os;
     for (int c = 0; c < kChannelCount; ++c)
       os << (c ? " " : "")
