@@ -2,8 +2,9 @@
 // reconnects and counters apply as on the CAN bus. Below DriverCore this adapter turns the set-point frames it
 // writes into `fine16 <channel> <counts>` commands, one reply each, and turns each sample into the report frames
 // DriverCore reads: per sample N `counterread`s (their mean and scatter: one encoder report per axis), one
-// `fine16 ?` (the applied voltages as read back: one voltage report per axis) and a heartbeat (fault while an i
-// reply is latched). The frames never leave the process; their layout is frame_protocol().
+// `fine16 ?` (the applied voltages as read back: one voltage report per axis) and a heartbeat (fault in the first
+// sample after an i reply, which DriverCore holds every axis on). The frames never leave the process; their layout
+// is frame_protocol().
 //
 // Threads: send() runs on DriverCore's command/tick threads, receive() on its receive thread; each exchange holds
 // the port for its command and reply only, so a set point waits at most for one exchange of a sample.

@@ -107,6 +107,7 @@ class NanoControlTransport final : public can::Transport {
   std::atomic<bool> open_{false};
   std::atomic<std::uint64_t> garbled_{0};
   std::uint32_t sequence_ = 0;
+  bool breakdown_reported_ = false;  // the latched breakdown went out in a heartbeat
   double next_sample_s_ = 0.0, last_sample_s_ = -1.0;
 };
 
@@ -115,6 +116,7 @@ void NanoControlTransport::open() {
   failed_.clear();
   port_.open(o_.port, o_.baud);
   state_.reset();
+  breakdown_reported_ = false;
   lines_.clear();
   Exchange e;
   try {
@@ -256,9 +258,14 @@ bool NanoControlTransport::sample(std::vector<can::ReceivedFrame>& out) {
     snap_.counters.last_garbled = std::string("`counterread`: ") + e.what();
     return false;
   }
+  // A breakdown is reported once, in the first sample after it: DriverCore then holds every axis until ~recover,
+  // and the latch keeps set points off the line until the reopen ~recover makes. A heartbeat saying fault on
+  // every sample would trip the axes again with the sample that is under way when ~recover comes.
+  const bool report_breakdown = state_.counters().breakdown && !breakdown_reported_;
+  breakdown_reported_ = state_.counters().breakdown;
   can::Heartbeat hb;
-  hb.state = state_.counters().breakdown ? can::DeviceState::kFault : can::DeviceState::kOperational;
-  hb.fault_flags = state_.counters().breakdown ? 0x07 : 0x00;
+  hb.state = report_breakdown ? can::DeviceState::kFault : can::DeviceState::kOperational;
+  hb.fault_flags = report_breakdown ? 0x07 : 0x00;
   hb.counter = static_cast<std::uint16_t>(seq);
   frames.push_back({codec_.encode(hb), stamp_s});
   out.insert(out.end(), frames.begin(), frames.end());
