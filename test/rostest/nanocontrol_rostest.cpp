@@ -282,9 +282,11 @@ TEST(NanoControl, PortLostReconnectsAndRebaselinesFromTheReadBack) {
   ASSERT_TRUE(b.drive(2, 20.0));
   const auto sp = b.set_points(2);
   ASSERT_GT(sp.size(), before);
-  // from the read-back 8 V, one frame step (max_frame_step_v 5 V) at a time
-  EXPECT_LE(sp[before], 8.0 + 5.0 + 1e-6);
-  for (std::size_t k = before + 1; k < sp.size(); ++k) EXPECT_LE(std::abs(sp[k] - sp[k - 1]), 5.0 + 1e-6);
+  // from the read-back 8 V, one frame step (max_frame_step_v 5 V) at a time, each rounded to the nearest DAC count
+  // (half a count: 1.22 mV)
+  const double count_v = 0.5 / 409.6 + 1e-9;
+  EXPECT_LE(sp[before], 8.0 + 5.0 + 2 * count_v);
+  for (std::size_t k = before + 1; k < sp.size(); ++k) EXPECT_LE(std::abs(sp[k] - sp[k - 1]), 5.0 + 2 * count_v);
   b.expect_within_limits(-kLimitV, kLimitV);
 }
 
