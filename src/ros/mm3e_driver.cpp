@@ -8,6 +8,7 @@
 #include "piezo_compensation/EncoderPosition.h"
 #include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/mm3e_params.h"
+#include "piezo_compensation/ros/nanocontrol_params.h"
 
 namespace piezo::mm3e {
 
@@ -28,7 +29,8 @@ const params::NodeInterface& driver_interface() {
   static const NodeInterface t = [] {
     NodeInterface n;
     n.node = "mm3e_driver";
-    n.summary = "one manipulator's CAN bus: voltage commands out (clamped, slew-limited, watchdog), reports in";
+    n.summary = "one manipulator's CAN bus or NanoControl serial port: voltage commands out (clamped, slew-limited, "
+                "watchdog), reports in";
     n.params = transport_params(47100, 47101);
     const std::vector<ParamDef> rest = {
         text("frame_prefix", "", "header frame_id of every message is <prefix>base"),
@@ -72,6 +74,8 @@ const params::NodeInterface& driver_interface() {
             .rule("> 0 needs sync_mode"),
     };
     n.params.insert(n.params.end(), rest.begin(), rest.end());
+    const auto serial = nanocontrol_driver_params();
+    n.params.insert(n.params.end(), serial.begin(), serial.end());
     const auto protocol = protocol_params();
     n.params.insert(n.params.end(), protocol.begin(), protocol.end());
     using D = TopicDef::Direction;
@@ -80,7 +84,8 @@ const params::NodeInterface& driver_interface() {
          "voltage the controller applied [V], stamped with the CAN receive time, with its sample sequence"},
         {"<axis>/encoder", "piezo_compensation/EncoderPosition", D::kPublishes, "measured position [m], stamped, sequence"},
         {"<axis>/command", "piezo_compensation/VoltageCommand", D::kSubscribes, "voltage to apply [V] (queue 1)"},
-        {"/diagnostics", "diagnostic_msgs/DiagnosticArray", D::kPublishes, "bus and per-axis status"},
+        {"/diagnostics", "diagnostic_msgs/DiagnosticArray", D::kPublishes,
+         "bus and per-axis status; with nanocontrol also the serial link (refusals, timeouts, breakdown, reading σ)"},
     };
     n.services = {
         {"~halt", "std_srvs/Trigger", "hold every axis at its applied voltage and refuse commands until ~recover"},
@@ -149,14 +154,24 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   heartbeat_period_s_ = config.protocol.heartbeat_period_s;
   const TransportParams transport = read_transport(r);
   // The real controller samples on its own clock: counting slew time in SYNCs would turn V/s into V/command.
-  if (sync_mode_ && transport.kind == "socketcan")
+  if (sync_mode_ && transport.kind != "udp")
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
-                                " is for the simulated device over udp only; it is refused on socketcan (the slew "
-                                "limit would count commands, not seconds)");
+                                " is for the simulated device over udp only; it is refused on " + transport.kind +
+                                " (the slew limit would count commands, not seconds)");
+  const bool serial = transport.kind == "nanocontrol";
+  const nanocontrol::LinkOptions link = read_link_options(r, lim.min_voltage_v, lim.max_voltage_v, serial);
+  if (serial) {
+    // the set points and reports go through the NanoControl adapter below DriverCore; its frames stay in-process
+    config.protocol = nanocontrol::frame_protocol();
+    sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
+    heartbeat_period_s_ = config.protocol.heartbeat_period_s;
+  }
   const std::string prefix = r.text("frame_prefix");
   frame_id_ = prefix + "base";
   std::string hardware_id = r.text("hardware_id");
-  if (hardware_id.empty()) hardware_id = "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
+  if (hardware_id.empty())
+    hardware_id = serial ? "nanocontrol@" + link.port
+                         : "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
   r.warn_unknown("mm3e_driver");
 
   can::DriverCallbacks cb;
@@ -190,7 +205,14 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
       ROS_INFO_STREAM("mm3e_driver: " << text);
   };
   const can::Codec codec(config.protocol);
-  core_ = std::make_unique<can::DriverCore>(config, transport_factory(transport, codec.driver_filters()), cb);
+  if (serial) {
+    link_monitor_ = std::make_shared<nanocontrol::LinkMonitor>();
+    auto monitor = link_monitor_;
+    core_ = std::make_unique<can::DriverCore>(
+        config, [link, monitor] { return nanocontrol::make_transport(link, monitor); }, cb);
+  } else {
+    core_ = std::make_unique<can::DriverCore>(config, transport_factory(transport, codec.driver_filters()), cb);
+  }
 
   for (int i = 0; i < can::kAxisCount; ++i) {
     const std::string axis = can::kAxisNames[i];
@@ -205,6 +227,12 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
 
   updater_.setHardwareID(hardware_id);
   updater_.add("bus", this, &DriverNode::diagnose_bus);
+  if (link_monitor_)
+    updater_.add("nanocontrol", [this](diagnostic_updater::DiagnosticStatusWrapper& s) {
+      const nanocontrol::LinkMonitor::Snapshot snap = link_monitor_->snapshot();
+      diagnose_link(snap, last_link_counters_, s);
+      last_link_counters_ = snap.counters;
+    });
   for (int i = 0; i < can::kAxisCount; ++i)
     updater_.add(std::string("axis ") + can::kAxisNames[i],
                  [this, i](diagnostic_updater::DiagnosticStatusWrapper& s) { diagnose_axis(i, s); });

@@ -36,8 +36,9 @@ std::vector<params::ParamDef> protocol_params() {
 std::vector<params::ParamDef> transport_params(int default_local_port, int default_remote_port) {
   return {
       params::text("transport", "socketcan",
-                   "socketcan (a real bus or vcan) or udp (the same frames over loopback, for kernels without CAN)",
-                   {"socketcan", "udp"}),
+                   "socketcan (a real bus or vcan), udp (the same frames over loopback, for kernels without CAN) or "
+                   "nanocontrol (a Kleindiek NanoControl's serial line protocol, docs/nanocontrol.md)",
+                   {"socketcan", "udp", "nanocontrol"}),
       params::text("interface", "can0", "SocketCAN interface (socketcan only)").rule("1..15 characters"),
       params::text("udp_host", "127.0.0.1", "IPv4 address of both UDP ends (udp only)"),
       params::integer("udp_local_port", "port", default_local_port, 1, 65535, "this node receives frames here (udp only)"),
@@ -71,6 +72,7 @@ can::ProtocolConfig read_protocol(params::ParamReader& r) {
 }
 
 std::string TransportParams::describe() const {
+  if (kind == "nanocontrol") return "nanocontrol";
   return kind == "udp" ? "udp " + host + ":" + std::to_string(local_port) : interface;
 }
 
@@ -90,6 +92,8 @@ TransportParams read_transport(params::ParamReader& r) {
 
 std::function<std::unique_ptr<can::Transport>()> transport_factory(const TransportParams& params,
                                                                    const std::vector<can_filter>& filters) {
+  if (params.kind == "nanocontrol")  // a serial port, not frames: nanocontrol::make_transport / the pseudo-terminal
+    throw std::logic_error("transport_factory: nanocontrol has no CAN frame transport");
   if (params.kind == "udp") {
     can::UdpOptions o;
     o.host = params.host;

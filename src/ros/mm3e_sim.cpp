@@ -14,6 +14,8 @@
 #include "piezo_compensation/can/lockstep.h"
 #include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/mm3e_params.h"
+#include "piezo_compensation/ros/mm3e_sim_nanocontrol.h"
+#include "piezo_compensation/ros/nanocontrol_params.h"
 #include "piezo_compensation/sim/simulator_config.h"
 
 namespace piezo::mm3e {
@@ -43,7 +45,8 @@ const params::NodeInterface& sim_interface() {
   static const NodeInterface t = [] {
     NodeInterface n;
     n.node = "mm3e_sim";
-    n.summary = "the simulated MM3E controller on the same CAN protocol; optional owner of /clock";
+    n.summary = "the simulated MM3E controller on the same CAN protocol, or a simulated NanoControl on a "
+                "pseudo-terminal; optional owner of /clock (CAN only)";
     n.params = transport_params(47101, 47100);
     const std::vector<ParamDef> rest = {
         text("frame_prefix", "", "header frame_id of true_position is <prefix>base"),
@@ -71,6 +74,8 @@ const params::NodeInterface& sim_interface() {
               "periodic_disturbance, ..."),
     };
     n.params.insert(n.params.end(), rest.begin(), rest.end());
+    const auto serial = nanocontrol_sim_params();
+    n.params.insert(n.params.end(), serial.begin(), serial.end());
     const auto protocol = protocol_params();
     n.params.insert(n.params.end(), protocol.begin(), protocol.end());
     using D = TopicDef::Direction;
@@ -80,6 +85,8 @@ const params::NodeInterface& sim_interface() {
         {"temperature", "sensor_msgs/Temperature", D::kPublishes,
          "the simulated sensor's temperature [°C] (the thermal_drift effect; ambient while it is off)"},
         {"/clock", "rosgraph_msgs/Clock", D::kPublishes, "simulated time, with publish_clock"},
+        {"<axis>/device_set_point", "piezo_compensation/AxisVoltage", D::kPublishes,
+         "nanocontrol: every set point the simulated controller took [V], as it took it"},
     };
     n.services = {
         {"~inject_bus_off", "std_srvs/Trigger", "the device goes silent for fault_silence_s (a bus-off)"},
@@ -88,6 +95,13 @@ const params::NodeInterface& sim_interface() {
         {"~inject_stuck_amplifier", "std_srvs/SetBool", "the amplifier ignores set points (true) or follows again"},
         {"~set_thermal_drift", "std_srvs/SetBool", "switch the thermal_drift effect on or off mid-run"},
         {"~inject_closed_port", "std_srvs/SetBool", "the device's UDP port refuses frames (true) or takes them again"},
+        {"~inject_error_reply", "std_srvs/Trigger", "nanocontrol: the next set point is refused with an e reply"},
+        {"~inject_breakdown", "std_srvs/Trigger", "nanocontrol: the next command is answered i (piezo voltage breakdown)"},
+        {"~inject_lost_reply", "std_srvs/Trigger", "nanocontrol: the next command is carried out and never answered"},
+        {"~inject_garbled_reply", "std_srvs/Trigger", "nanocontrol: the next command is answered with bytes that are no reply"},
+        {"~inject_partial_reply", "std_srvs/Trigger", "nanocontrol: the next command is answered with half a line, no CR"},
+        {"~inject_port_lost", "std_srvs/SetBool",
+         "nanocontrol: the pseudo-terminal vanishes (true: the driver sees EIO, ~port is removed) or comes back"},
     };
     return n;
   }();
@@ -130,6 +144,13 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   const std::string sim_config_path = r.text("simulator_config");
   frame_id_ = r.text("frame_prefix") + "base";
   const TransportParams transport = read_transport(r);
+  const std::string link_path = r.text("port");
+  const nanocontrol::SimDeviceConfig serial_device = read_sim_device(r, initial);
+  const double reply_delay_s = r.number("reply_delay_s");
+  const bool serial = transport.kind == "nanocontrol";
+  if (serial && publish_clock_)  // the NanoControl answers in real time; nothing there counts samples
+    throw std::invalid_argument("parameter " + pnh_.resolveName("publish_clock") +
+                                " is for the CAN device; the simulated NanoControl runs in real time");
 
   sim::SimulatorConfig sim_config = sim_config_path.empty() ? sim::default_simulator_config()
                                                             : load_device_physics(sim_config_path);
@@ -142,6 +163,14 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
   }
   r.warn_unknown("mm3e_sim");
   simulator_ = std::make_unique<sim::ManipulatorSimulator>(sim_config, static_cast<std::uint64_t>(seed));
+  if (serial) {
+    NanoControlSim::Options o{link_path, serial_device, reply_delay_s, frame_id_};
+    nano_ = std::make_unique<NanoControlSim>(nh_, pnh_, iface, o, *simulator_, mutex_);
+    thermal_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_thermal_drift"), &SimNode::on_thermal, this);
+    ROS_INFO_STREAM("mm3e_sim: simulated NanoControl on " << nano_->describe() << ", reply after " << reply_delay_s
+                                                          << " s");
+    return;
+  }
   sim::ManipulatorSimulator* s = simulator_.get();
   device_ = std::make_unique<can::DeviceCore>(
       config, [s](const std::array<double, 3>& v, double dt) { return s->step(v, dt); });
@@ -174,6 +203,7 @@ SimNode::SimNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh) {
 SimNode::~SimNode() {
   running_ = false;
   if (thread_.joinable()) thread_.join();
+  nano_.reset();
 }
 
 void SimNode::send_all(const std::vector<can_frame>& frames) {

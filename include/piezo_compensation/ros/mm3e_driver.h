@@ -1,6 +1,7 @@
 // The mm3e_driver node: ROS face of can::DriverCore (docs/driver.md). Per axis it publishes <axis>/voltage and
 // <axis>/encoder, takes <axis>/command (queue 1), enforces one commander per axis, reports the bus through
-// diagnostic_updater and offers ~halt and ~recover.
+// diagnostic_updater and offers ~halt and ~recover. With ~transport nanocontrol the same core drives a Kleindiek
+// NanoControl on a serial port (docs/nanocontrol.md).
 #pragma once
 
 #include <diagnostic_updater/diagnostic_updater.h>
@@ -15,6 +16,7 @@
 #include "piezo_compensation/VoltageCommand.h"
 #include "piezo_compensation/can/driver_core.h"
 #include "piezo_compensation/can/lockstep.h"
+#include "piezo_compensation/nanocontrol/transport.h"
 
 namespace piezo::mm3e {
 
@@ -39,6 +41,8 @@ class DriverNode {
   std::string frame_id_;
   bool stamp_with_receive_time_ = true;
   std::unique_ptr<can::DriverCore> core_;
+  std::shared_ptr<nanocontrol::LinkMonitor> link_monitor_;  // transport nanocontrol only
+  nanocontrol::LinkCounters last_link_counters_;            // at the previous diagnostics update
   std::array<ros::Publisher, can::kAxisCount> voltage_pub_, encoder_pub_;
   std::array<ros::Subscriber, can::kAxisCount> command_sub_;
   std::array<bool, can::kAxisCount> multiple_commanders_{};

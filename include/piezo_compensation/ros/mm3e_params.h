@@ -25,7 +25,7 @@ std::vector<params::ParamDef> transport_params(int default_local_port, int defau
 can::ProtocolConfig read_protocol(params::ParamReader& reader);
 
 struct TransportParams {
-  std::string kind = "socketcan";  // socketcan | udp
+  std::string kind = "socketcan";  // socketcan | udp | nanocontrol (the driver and the simulated device build that one)
   std::string interface = "can0";
   std::string host = "127.0.0.1";
   int local_port = 0;

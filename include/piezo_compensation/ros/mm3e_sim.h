@@ -1,7 +1,8 @@
 // The mm3e_sim node: a simulated MM3E controller on the same CAN protocol (can::DeviceCore backed by
 // sim::ManipulatorSimulator), over SocketCAN or UDP. Publishes <axis>/true_position for evaluation and, with
 // ~publish_clock, /clock at ~time_scale × real time so a demo runs faster than real time, or (~sync_mode) one
-// period per SYNC frame from the driver, as fast as the host asks (docs/driver.md, docs/recorder.md).
+// period per SYNC frame from the driver, as fast as the host asks (docs/driver.md, docs/recorder.md). With
+// ~transport nanocontrol it is a simulated Kleindiek NanoControl on a pseudo-terminal instead (docs/nanocontrol.md).
 #pragma once
 
 #include <ros/ros.h>
@@ -19,6 +20,8 @@
 #include "piezo_compensation/sim/manipulator_simulator.h"
 
 namespace piezo::mm3e {
+
+class NanoControlSim;
 
 class SimNode {
  public:
@@ -52,6 +55,7 @@ class SimNode {
   std::unique_ptr<sim::ManipulatorSimulator> simulator_;
   std::unique_ptr<can::DeviceCore> device_;
   std::unique_ptr<can::Transport> transport_;
+  std::unique_ptr<NanoControlSim> nano_;  // ~transport nanocontrol: the serial device instead of the CAN one
   std::string transport_name_;
   std::mutex mutex_;  // device_ and transport_ between the loop and the fault services
   std::array<ros::Publisher, can::kAxisCount> truth_pub_;
