@@ -54,3 +54,11 @@ endif()
 piezo_slow_tests(test_hold_trim)  # simulates 8 h of the foreign stage and runs the shipped Preisach model over it
 # Resuming a model on the run before's recorded history (compensation/resume.h, the predictor's ~resume_from).
 piezo_unit_test(test_compensation_resume test/unit/test_compensation_resume.cpp)
+# The model-file checks, the transport rule for a model fitted on simulated data, and the data origin it is decided from.
+piezo_unit_test(test_compensation_model_check test/unit/test_compensation_model_check.cpp)
+# The real-hardware launch refuses to start without model_file_a/b/c, naming the missing one; each launch tells the
+# predictor its transport (roslaunch parses only: no roscore).
+if(CATKIN_ENABLE_TESTING)
+  add_test(NAME launch_model_files COMMAND ${CMAKE_CURRENT_SOURCE_DIR}/scripts/check-launch-models ${CMAKE_CURRENT_SOURCE_DIR})
+  piezo_test_budget(launch_model_files)
+endif()
