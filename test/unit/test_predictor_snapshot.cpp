@@ -297,7 +297,8 @@ TEST(SnapshotReload, TheInMemoryHistoryIsTheBagsDataSet) {
     }
     ASSERT_EQ(in_memory.aux.size(), 1u);
     EXPECT_EQ(in_memory.aux[0].values, from_bag.aux[0].values);
-    EXPECT_EQ(in_memory.size() + (gap ? 1u : 0u), s.axes.at("c").readings.size());
+    EXPECT_EQ(in_memory.size(), s.axes.at("a").readings.size());
+    if (gap) EXPECT_LT(in_memory.size(), s.axes.at("c").readings.size()) << "the sample a lost has a row";
   }
 }
 
