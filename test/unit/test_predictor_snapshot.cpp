@@ -420,7 +420,7 @@ TEST(SnapshotBag, RefusesADirectoryItCannotCreate) {
   }
 }
 
-// Issue 18: `piezo residual` finds a stroke gain in a snapshot bag. The simulated device (default physics, a
+// `piezo residual` finds a stroke gain in a snapshot bag. The simulated device (default physics, a
 // random walk on c) with a stroke that scales by 5 %/°C with the temperature through a 30 s low-pass (the
 // simulator has no gain effect: it is applied to its positions here), heard as the predictor hears it and written
 // by the ~snapshot writer; base = the clean model the live_loop rostest starts with.

@@ -105,7 +105,7 @@ class PredictorNode {
   std::unique_ptr<tf2_ros::TransformBroadcaster> tf_;
   // Handles on /tf and /diagnostics (the broadcaster's and the updater's publications, shared in this process),
   // only to ask whether anyone listens: with nobody there, the per-sample tf + markers and the per-ROS-second
-  // diagnostics are not built at all (under lock-step sim time that is ~1 600 and ~140 times a wall second).
+  // diagnostics are not built at all (under lock-step sim time, many times a wall second).
   ros::Publisher tf_probe_, diag_probe_;
   std::unique_ptr<diagnostic_updater::Updater> diag_;
   ros::Timer diag_timer_;
