@@ -23,7 +23,7 @@ piezo_rostest(test/rostest/predictor_params.test test/rostest/predictor_params.c
 piezo_unit_test(test_compensation_watch test/unit/test_compensation_watch.cpp)
 piezo_ros_unit_test(test_predictor_snapshot test/unit/test_predictor_snapshot.cpp)
 piezo_rostest(test/rostest/live_loop.test test/rostest/live_loop.cpp DEPENDS piezo_predictor mm3e_sim mm3e_driver)
-# Issue 25 live: hold trim on the foreign stage, lock-step (~20 s of wall each); needs the model fitted on that stage.
+# Live: hold trim on the foreign stage, lock-step (~20 s of wall each); needs the model fitted on that stage.
 if(EXISTS ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml)
   piezo_rostest(test/rostest/hold_trim.test test/rostest/hold_trim_check.cpp
                 DEPENDS piezo_demo piezo_predictor mm3e_sim mm3e_driver)
@@ -36,7 +36,7 @@ else()
 endif()
 if(CATKIN_ENABLE_TESTING)
   # `piezo track`: the files it writes, a model file without an estimator block refused with one line, and
-  # --identify-on/--write-model adding the block (issue 25).
+  # --identify-on/--write-model adding the block.
   add_test(NAME cli_track_smoke COMMAND sh -c
     "set -e; d=$(mktemp -d); \
      $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/mm3e_foreign_hold_stage.yaml --seed 104 --duration 2400 --out $d/s.csv; \
@@ -54,3 +54,11 @@ endif()
 piezo_slow_tests(test_hold_trim)  # simulates 8 h of the foreign stage and runs the shipped Preisach model over it
 # Resuming a model on the run before's recorded history (compensation/resume.h, the predictor's ~resume_from).
 piezo_unit_test(test_compensation_resume test/unit/test_compensation_resume.cpp)
+# The model-file checks, the transport rule for a model fitted on simulated data, and the data origin it is decided from.
+piezo_unit_test(test_compensation_model_check test/unit/test_compensation_model_check.cpp)
+# The real-hardware launch refuses to start without model_file_a/b/c, naming the missing one; each launch tells the
+# predictor its transport (roslaunch parses only: no roscore).
+if(CATKIN_ENABLE_TESTING)
+  add_test(NAME launch_model_files COMMAND ${CMAKE_CURRENT_SOURCE_DIR}/scripts/check-launch-models ${CMAKE_CURRENT_SOURCE_DIR})
+  piezo_test_budget(launch_model_files)
+endif()

@@ -14,10 +14,10 @@ if(CATKIN_ENABLE_TESTING)
      $<TARGET_FILE:piezo> simulate --protocol sawtooth --seed 2 --effect thermal_drift --out $d/s.bag; \
      $<TARGET_FILE:piezo> info $d/s.bag | grep -q 'aux: temperature_c'; \
      $<TARGET_FILE:piezo> simulate --protocol noise --axes c --duration 30 --out $d/n.csv; \
-     test $(wc -l < $d/n.csv) -eq 331; \
+     head -1 $d/n.csv | grep -qx '# origin: simulated'; test $(wc -l < $d/n.csv) -eq 332; \
      ! $<TARGET_FILE:piezo> simulate --protocol nosuch --out $d/x.csv 2>/dev/null; \
      $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/lowvolt_preisach_creep.yaml --duration 2 --out $d/st.csv; \
-     test $(wc -l < $d/st.csv) -eq 401; \
+     test $(wc -l < $d/st.csv) -eq 402; \
      ! $<TARGET_FILE:piezo> simulate --stage ${CMAKE_CURRENT_SOURCE_DIR}/config/stages/mm3e_pi.yaml --protocol noise --out $d/x.csv 2>/dev/null; \
      rm -rf $d")
   piezo_test_budget(cli_simulate_smoke)

@@ -27,7 +27,9 @@ def simulate(data_dir, protocol, seed, extra=()):
     cmd = [os.path.join(ROOT, "scripts", "piezo"), "simulate", "--protocol", protocol, "--seed", str(seed),
            "--out", out, *extra]
     subprocess.run(cmd, check=True, stdout=sys.stderr)
-    return np.genfromtxt(out, delimiter=",", names=True)
+    with open(out) as f:  # a data file may start with its origin line (`# origin: simulated`)
+        skip = 1 if f.readline().startswith("#") else 0
+    return np.genfromtxt(out, delimiter=",", names=True, skip_header=skip)
 
 
 def loop_metrics(v, y):

@@ -217,6 +217,7 @@ int run(int argc, char** argv) {
   const fs::path out = args.str("out");
   fs::create_directories(out);
   res.model->meta.time_clock = train.time_clock;  // the predictor feeds time_s only on the clock the data used
+  if (io::is_simulated(train)) res.model->meta.fitted_on = models::kFittedOnSimulated;  // its terms are the simulator's
   if (!selection_md.empty()) std::ofstream(out / "model_choice.md") << "# Base model choice\n\n" << selection_md;
   analysis::ResidualReportContext ctx;
   ctx.axis = axis;

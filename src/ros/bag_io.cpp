@@ -6,6 +6,7 @@
 #include <ros/time.h>
 #include <rosbag/bag.h>
 #include <rosbag/view.h>
+#include <std_msgs/String.h>
 #include <roslz4/lz4s.h>
 #include <bzlib.h>
 
@@ -21,7 +22,7 @@
 
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/dataset.h"
-#include "piezo_compensation/io/sequence_pairer.h"
+#include "piezo_compensation/io/message_rows.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
 
@@ -44,87 +45,6 @@ ros::Time stamp_of(double t_s) {
 ros::Time bag_time(double t_s) {
   const ros::Time t = stamp_of(t_s);
   return t < ros::TIME_MIN ? ros::TIME_MIN : t;  // rosbag refuses time 0
-}
-
-struct Sample {
-  double t = 0.0;
-  std::uint32_t seq = 0;
-  double value = 0.0;
-  bool valid = true;
-};
-
-// Messages of one topic, sorted by stamp.
-struct Series {
-  std::vector<Sample> samples;
-  void index() {
-    std::stable_sort(samples.begin(), samples.end(), [](const Sample& a, const Sample& b) { return a.t < b.t; });
-  }
-  const Sample* latest(double t, double period_s) const {
-    auto it = std::upper_bound(samples.begin(), samples.end(), t + 1e-9,
-                               [](double x, const Sample& s) { return x < s.t; });
-    if (it != samples.begin()) return &*(it - 1);
-    // Nothing before t: accept the first message if it comes within one sample period.
-    if (!samples.empty() && samples.front().t - t <= period_s) return &samples.front();
-    return nullptr;
-  }
-};
-
-// One axis' paired samples (in sequence order), indexed by sequence for the join across axes.
-struct Paired {
-  std::vector<io::PairedSample> samples;
-  std::vector<std::pair<std::uint32_t, std::uint32_t>> by_seq;  // (sequence, index), sorted
-  std::uint64_t dropped = 0;
-  // The sample with this sequence number within one period of t (a restart or a wrap reuses numbers), or null.
-  // Never a neighbour: a sample this axis lost has no value to give.
-  const io::PairedSample* match(std::uint32_t seq, double t, double period_s) const {
-    auto it = std::lower_bound(by_seq.begin(), by_seq.end(), seq,
-                               [](const auto& e, std::uint32_t s) { return e.first < s; });
-    for (; it != by_seq.end() && it->first == seq; ++it)
-      if (std::fabs(samples[it->second].stamp_s - t) <= period_s) return &samples[it->second];
-    return nullptr;
-  }
-};
-
-Paired pair_axis(const Series& voltage, const Series& encoder, const Series& truth, bool with_truth) {
-  io::PairerOptions o;
-  o.with_truth = with_truth;
-  io::SequencePairer pairer(o);
-  Paired out;
-  out.samples.reserve(encoder.samples.size());
-  const auto take = [&](std::vector<io::PairedSample>&& ps) {
-    for (auto& p : ps) out.samples.push_back(p);
-  };
-  // merge the three streams by stamp; on equal stamps the reports go before the reading
-  std::size_t iv = 0, ie = 0, it = 0;
-  const double inf = std::numeric_limits<double>::infinity();
-  while (ie < encoder.samples.size() || iv < voltage.samples.size() || (with_truth && it < truth.samples.size())) {
-    const double tv = iv < voltage.samples.size() ? voltage.samples[iv].t : inf;
-    const double tt = with_truth && it < truth.samples.size() ? truth.samples[it].t : inf;
-    const double te = ie < encoder.samples.size() ? encoder.samples[ie].t : inf;
-    if (tv <= tt && tv <= te) {
-      const Sample& s = voltage.samples[iv++];
-      take(pairer.add_voltage(s.seq, s.value, s.t));
-    } else if (tt <= te) {
-      const Sample& s = truth.samples[it++];
-      take(pairer.add_truth(s.seq, s.value, s.t));
-    } else {
-      const Sample& s = encoder.samples[ie++];
-      take(pairer.add_reading(s.seq, s.value, s.valid, s.t));
-    }
-  }
-  take(pairer.flush());
-  out.dropped = pairer.counters().dropped_samples;
-  out.by_seq.resize(out.samples.size());
-  for (std::size_t i = 0; i < out.samples.size(); ++i)
-    out.by_seq[i] = {out.samples[i].sequence, static_cast<std::uint32_t>(i)};
-  std::stable_sort(out.by_seq.begin(), out.by_seq.end(), [](const auto& a, const auto& b) { return a.first < b.first; });
-  return out;
-}
-
-std::string row_col(const std::string& path, std::size_t row, const std::string& col) {
-  std::ostringstream os;
-  os << path << ": row " << row + 2 << ", column " << col << ": ";
-  return os.str();
 }
 
 std::string detect_ns(rosbag::Bag& bag, const std::string& path) {
@@ -385,17 +305,10 @@ void check_bag_file(const std::string& path) { BagFileCheck(path).run(); }
 
 namespace {
 
-// The messages of one manipulator's data topics in a bag, each topic sorted by stamp.
-struct BagMessages {
-  Series voltage[3], encoder[3], truth[3];
-  bool has_topic[3][3] = {};  // [axis][voltage, encoder, true_position]
-  std::map<std::string, Series> aux;
-  std::vector<std::pair<double, std::pair<int, int>>> markers;  // stamp → (segment, phase)
-  bool has_axis(int k) const { return has_topic[k][1]; }
-};
-
-void read_messages(rosbag::Bag& bag, const std::string& path, const std::string& ns, BagMessages& out) {
-  std::map<std::string, int> topic_kind;  // 0..8 axis topics, 9 aux, 10 phase
+// The messages of one manipulator's data topics in a bag (io/message_rows.h makes the rows).
+void read_messages(rosbag::Bag& bag, const std::string& path, const std::string& ns, io::RecordedMessages& out,
+                   std::string& origin) {
+  std::map<std::string, int> topic_kind;  // 0..8 axis topics, 9 aux, 10 phase, 11 data origin
   for (int k = 0; k < 3; ++k) {
     topic_kind[join_ns(ns, std::string(io::kAxisNames[k]) + "/voltage")] = k * 3 + 0;
     topic_kind[join_ns(ns, std::string(io::kAxisNames[k]) + "/encoder")] = k * 3 + 1;
@@ -403,6 +316,7 @@ void read_messages(rosbag::Bag& bag, const std::string& path, const std::string&
   }
   topic_kind[join_ns(ns, "aux")] = 9;
   topic_kind[join_ns(ns, "protocol_phase")] = 10;
+  topic_kind[join_ns(ns, "data_origin")] = 11;
   std::vector<std::string> topics;
   for (const auto& kv : topic_kind) topics.push_back(kv.first);
   rosbag::View view(bag, rosbag::TopicQuery(topics));
@@ -413,8 +327,7 @@ void read_messages(rosbag::Bag& bag, const std::string& path, const std::string&
     const std::string where = path + ": topic " + m.getTopic() + ", message " + std::to_string(n_msg);
     if (kind < 9) {
       const int k = kind / 3, what = kind % 3;
-      out.has_topic[k][what] = true;
-      Sample s;
+      io::StampedValue s;
       if (what == 0) {
         auto msg = instantiate<piezo_compensation::AxisVoltage>(m, path);
         s = {msg->header.stamp.toSec(), msg->sequence, msg->voltage, true};
@@ -423,12 +336,17 @@ void read_messages(rosbag::Bag& bag, const std::string& path, const std::string&
         s = {msg->header.stamp.toSec(), msg->sequence, msg->position * kNmPerM, static_cast<bool>(msg->valid)};
       }
       if (!std::isfinite(s.value)) throw io::DataError(where + ": value is not finite");
-      (what == 0 ? out.voltage[k] : what == 1 ? out.encoder[k] : out.truth[k]).samples.push_back(s);
+      io::AxisMessages& ax = out.axes[k];
+      (what == 0 ? ax.voltage : what == 1 ? ax.encoder : ax.truth).push_back(s);
     } else if (kind == 9) {
       auto msg = instantiate<piezo_compensation::AuxSignal>(m, path);
       if (msg->name.empty()) throw io::DataError(where + ": aux signal without a name");
       if (!std::isfinite(msg->value)) throw io::DataError(where + ": aux signal " + msg->name + " is not finite");
-      out.aux[msg->name].samples.push_back({msg->header.stamp.toSec(), 0, msg->value, true});
+      out.aux[msg->name].push_back({msg->header.stamp.toSec(), 0, msg->value, true});
+    } else if (kind == 11) {
+      origin = instantiate<std_msgs::String>(m, path)->data;
+      if (origin != io::kOriginSimulated && origin != io::kOriginRecorded)
+        throw io::DataError(where + ": data origin '" + origin + "': expected simulated or recorded");
     } else {
       auto msg = instantiate<piezo_compensation::ProtocolPhase>(m, path);
       int phase = 0;
@@ -442,156 +360,6 @@ void read_messages(rosbag::Bag& bag, const std::string& path, const std::string&
   }
 }
 
-// Every axis with messages has both voltage and encoder messages; returns the first such axis.
-int first_axis(const BagMessages& b, const std::string& path, const std::string& ns) {
-  int first = -1;
-  for (int k = 0; k < 3; ++k) {
-    if (b.has_topic[k][1] != b.has_topic[k][0])
-      throw io::DataError(path + ": axis " + io::kAxisNames[k] + " has " + (b.has_topic[k][1] ? "encoder" : "voltage") +
-                          " messages but no " + (b.has_topic[k][1] ? join_ns(ns, std::string(io::kAxisNames[k]) + "/voltage")
-                                                                    : join_ns(ns, std::string(io::kAxisNames[k]) + "/encoder")));
-    if (b.has_topic[k][1] && first < 0) first = k;
-  }
-  if (first < 0) throw io::DataError(path + ": no encoder messages under namespace '" + ns + "'");
-  return first;
-}
-
-// The rows of the data set: samples of the first axis joined with every other axis' sample of the same sequence.
-struct BagRows {
-  Paired paired[3];
-  int first = 0;
-  std::vector<std::uint32_t> candidates;  // the first axis' samples with a reading
-  std::vector<std::uint32_t> row_of;      // row → sample of the first axis
-  double period = 1.0;
-  const io::PairedSample* partner(int k, std::uint32_t i) const {
-    const io::PairedSample& row = paired[first].samples[i];
-    return k == first ? &row : paired[k].match(row.sequence, row.stamp_s, period);
-  }
-  double t(std::size_t r) const { return paired[first].samples[row_of[r]].stamp_s; }
-};
-
-// rows: the first axis' samples that have a reading (lost readings have no row) and whose sample every other
-// axis has. A sample another axis lost is not filled from a neighbour: its row is left out, so the time column
-// shows the gap as when the first axis lost it, which the offline tools step over as one sample (io::TimeBase);
-// at the ends (one axis started or stopped a sample later) that cuts the rows without a partner.
-void join_rows(const BagMessages& b, const std::string& path, BagRows& rows) {
-  const int first = rows.first;
-  const auto& samples = rows.paired[first].samples;
-  for (std::uint32_t i = 0; i < samples.size(); ++i)
-    if (!samples[i].reading_lost) rows.candidates.push_back(i);
-  const auto& cand = rows.candidates;
-  if (cand.size() >= 2)
-    rows.period = (samples[cand.back()].stamp_s - samples[cand.front()].stamp_s) / static_cast<double>(cand.size() - 1);
-  if (!(rows.period > 0.0)) rows.period = 1.0;
-  std::size_t matched[3] = {};
-  for (std::uint32_t i : cand) {
-    bool complete = true;
-    for (int k = 0; k < 3; ++k) {
-      if (!b.has_axis(k)) continue;
-      const io::PairedSample* e = rows.partner(k, i);
-      if (e) ++matched[k];
-      if (!e || e->reading_lost) complete = false;
-    }
-    if (complete) rows.row_of.push_back(i);
-  }
-  for (int k = 0; k < 3; ++k)
-    if (b.has_axis(k) && k != first && !cand.empty() && matched[k] == 0)
-      throw io::DataError(path + ": axis " + io::kAxisNames[k] + ": none of its " +
-                          std::to_string(rows.paired[k].samples.size()) + " samples has the sequence number of a reading of axis " +
-                          io::kAxisNames[first] + " within one sample period (" + std::to_string(rows.period) +
-                          " s) of it: the axes were not recorded together");
-}
-
-// Each step of the rows longer than the sample clock (the median step of the first axis' readings; a gap does not
-// move it) as one line naming where, how many samples and which axes lost them.
-std::vector<std::string> describe_gaps(const BagMessages& b, const BagRows& rows, const std::string& path) {
-  std::vector<std::string> out;
-  const std::size_t n = rows.row_of.size();
-  if (n < 2) return out;
-  const auto& first = rows.paired[rows.first].samples;
-  std::vector<double> reading_s;
-  for (std::uint32_t i : rows.candidates) reading_s.push_back(first[i].stamp_s);
-  const double clock_s = io::median_step_s(reading_s);
-  for (std::size_t r = 1; clock_s > 0.0 && r < n; ++r) {
-    const double step = rows.t(r) - rows.t(r - 1);
-    const long missing = std::lround(step / clock_s) - 1;
-    if (missing < 1) continue;  // jitter
-    // who lost them: per axis, the steps in between without a reading of it (stamps within half a step)
-    const io::PairedSample& before = first[rows.row_of[r - 1]];
-    long lacking[3] = {};
-    for (int k = 0; k < 3; ++k) {
-      if (!b.has_axis(k)) continue;
-      long heard = 0;
-      for (const auto& e : rows.paired[k].samples)
-        heard += !e.reading_lost && e.stamp_s > before.stamp_s + 0.5 * clock_s && e.stamp_s < rows.t(r) - 0.5 * clock_s;
-      lacking[k] = std::max(0L, missing - heard);
-    }
-    std::ostringstream os;
-    os << path << ": " << missing << " sample(s) missing after t = " << std::fixed << std::setprecision(6)
-       << before.stamp_s << " s (row " << r + 1 << ", sequence " << before.sequence << "): ";
-    std::string sep;
-    for (int k = 0; k < 3; ++k)
-      if (lacking[k] > 0) os << sep << "axis " << io::kAxisNames[k] << " lost " << lacking[k], sep = ", ";
-    os << "; a model steps over them as one sample, nothing is filled in";
-    out.push_back(os.str());
-  }
-  return out;
-}
-
-// Each axis' columns from its paired samples at the rows.
-void fill_axes(const BagMessages& b, const BagRows& rows, const std::string& path, io::Dataset& d) {
-  const std::size_t n = rows.row_of.size();
-  for (int k = 0; k < 3; ++k) {
-    if (!b.has_axis(k)) continue;
-    auto& ax = d.add_axis(io::kAxisNames[k]);
-    const bool with_truth = b.has_topic[k][2];
-    if (with_truth) ax.true_position_nm.resize(n);
-    for (std::size_t i = 0; i < n; ++i) {
-      const io::PairedSample* e = rows.partner(k, rows.row_of[i]);
-      if (!e->measured)
-        throw io::DataError(row_col(path, i, io::position_column(io::kAxisNames[k])) + "encoder reading flagged invalid");
-      ax.position_nm[i] = e->position_nm;
-      ax.voltage_v[i] = e->voltage_v;
-      if (with_truth) {
-        if (!std::isfinite(e->truth_nm))
-          throw io::DataError(row_col(path, i, io::true_position_column(io::kAxisNames[k])) + "no message at or before t=" +
-                              std::to_string(rows.t(i)) + " s");
-        ax.true_position_nm[i] = e->truth_nm;
-      }
-    }
-    if (rows.paired[k].dropped > 0)
-      throw io::DataError(path + ": axis " + io::kAxisNames[k] + ": " + std::to_string(rows.paired[k].dropped) +
-                          " encoder reading(s) with no voltage message at or before them");
-  }
-}
-
-// Aux columns (the latest value at each row) and the protocol markers in force at each row.
-void fill_aux_and_markers(const BagMessages& b, const BagRows& rows, const std::string& path, io::Dataset& d) {
-  const std::size_t n = rows.row_of.size();
-  for (const auto& kv : b.aux) {
-    io::AuxSignal s{kv.first, std::vector<double>(n)};
-    for (std::size_t i = 0; i < n; ++i) {
-      const Sample* x = kv.second.latest(rows.t(i), rows.period);
-      if (!x) throw io::DataError(row_col(path, i, kv.first) + "no aux message at or before t=" +
-                                  std::to_string(rows.t(i)) + " s");
-      s.values[i] = x->value;
-    }
-    d.aux.push_back(std::move(s));
-  }
-  const auto& markers = b.markers;
-  if (markers.empty()) return;
-  d.segment.resize(n);
-  d.phase.resize(n);
-  if (markers.front().first - rows.t(0) > rows.period)
-    throw io::DataError(row_col(path, 0, "phase") + "the first protocol_phase marker comes after the first sample");
-  std::size_t m = 0;
-  for (std::size_t i = 0; i < n; ++i) {
-    while (m + 1 < markers.size() && markers[m + 1].first <= rows.t(i) + 1e-9) ++m;
-    d.segment[i] = markers[m].second.first;
-    d.phase[i] = markers[m].second.second;
-  }
-}
-
 io::Dataset read_bag_impl(const std::string& path, const BagOptions& options, std::vector<std::uint32_t>* row_sequences) {
   check_bag_file(path);
   rosbag::Bag bag;
@@ -601,38 +369,20 @@ io::Dataset read_bag_impl(const std::string& path, const BagOptions& options, st
     throw io::DataError(path + ": cannot open bag: " + e.what() + " (a bag cut short may be fixed by `rosbag reindex`)");
   }
   const std::string ns = options.ns.empty() ? detect_ns(bag, path) : options.ns;
-  BagMessages b;
+  io::RecordedMessages b;
+  b.source = path;
+  b.ns = ns;
+  std::string origin;
   try {
-    read_messages(bag, path, ns, b);
+    read_messages(bag, path, ns, b, origin);
   } catch (const rosbag::BagException& e) {
     throw io::DataError(path + ": broken bag: " + e.what());
   }
-  BagRows rows;
-  rows.first = first_axis(b, path, ns);
-  for (int k = 0; k < 3; ++k) b.voltage[k].index(), b.encoder[k].index(), b.truth[k].index();
-  for (auto& kv : b.aux) kv.second.index();
-  std::stable_sort(b.markers.begin(), b.markers.end(), [](const auto& x, const auto& y) { return x.first < y.first; });
-  // Each axis' voltage, reading and truth paired by the one rule the live nodes use (io/sequence_pairer.h),
-  // fed in receive order as the predictor would have seen them.
-  for (int k = 0; k < 3; ++k) {
-    if (!b.has_axis(k)) continue;
-    rows.paired[k] = pair_axis(b.voltage[k], b.encoder[k], b.truth[k], b.has_topic[k][2]);
-    b.voltage[k] = Series(), b.encoder[k] = Series(), b.truth[k] = Series();  // free what the pairing consumed
-  }
-  join_rows(b, path, rows);
-  if (options.gaps) *options.gaps = describe_gaps(b, rows, path);
-  const std::size_t n = rows.row_of.size();
-  io::Dataset d;
-  d.source = path;
-  d.time_clock = "ros";  // stamps are ROS time (sim time under use_sim_time)
-  d.time_s.resize(n);
-  for (std::size_t i = 0; i < n; ++i) d.time_s[i] = rows.t(i);
-  if (row_sequences) {
-    row_sequences->resize(n);
-    for (std::size_t i = 0; i < n; ++i) (*row_sequences)[i] = rows.paired[rows.first].samples[rows.row_of[i]].sequence;
-  }
-  fill_axes(b, rows, path, d);
-  fill_aux_and_markers(b, rows, path, d);
+  io::MessageRowOptions o;
+  o.gaps = options.gaps;
+  o.row_sequences = row_sequences;
+  io::Dataset d = io::dataset_from_messages(std::move(b), o);
+  d.origin = origin;
   return d;
 }
 
@@ -648,6 +398,12 @@ io::Dataset read_bag(const std::string& path, const BagOptions& options, std::ve
   }
 }
 
+void write_data_origin(rosbag::Bag& bag, const std::string& ns, const std::string& origin, const ros::Time& when) {
+  std_msgs::String m;
+  m.data = origin;
+  bag.write(join_ns(ns, "data_origin"), when, m);
+}
+
 void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options) {
   data.validate();
   if (data.empty()) throw io::DataError(path + ": nothing to write (empty data set)");
@@ -659,6 +415,7 @@ void write_bag(const std::string& path, const io::Dataset& data, const BagOption
     bag.open(path, rosbag::bagmode::Write);
     bag.setCompression(rosbag::compression::LZ4);
     const std::string frame = "base";
+    if (!data.origin.empty()) write_data_origin(bag, options.ns, data.origin, bag_time(data.time_s.front()));
     int last_segment = -1, last_phase = -1;
     for (std::size_t i = 0; i < data.size(); ++i) {
       const ros::Time stamp = stamp_of(data.time_s[i]);

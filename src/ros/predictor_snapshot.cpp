@@ -1,5 +1,6 @@
 // The predictor's ~snapshot: the buffered last minutes written as a bag in the layout `piezo residual` and
-// `piezo eval` read as they are (ros/data_file.h: <ns>/<axis>/voltage, <ns>/<axis>/encoder, <ns>/aux).
+// `piezo eval` read as they are (ros/data_file.h: <ns>/<axis>/voltage, <ns>/<axis>/encoder, <ns>/aux,
+// <ns>/data_origin).
 #include <piezo_compensation/AuxSignal.h>
 #include <piezo_compensation/AxisVoltage.h>
 #include <piezo_compensation/EncoderPosition.h>
@@ -14,14 +15,13 @@
 #include <cstring>
 #include <ctime>
 #include <filesystem>
+#include <iomanip>
 #include <fstream>
 #include <map>
 #include <sstream>
 #include <stdexcept>
 #include <unistd.h>
 
-#include "piezo_compensation/compensation/base_handover.h"
-#include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/ros/predictor.h"
 
@@ -34,52 +34,6 @@ namespace {
 std::string topic(const std::string& ns, const std::string& rest) {
   if (ns.empty() || ns == "/") return "/" + rest;
   return (ns.front() == '/' ? ns : "/" + ns) + (ns.back() == '/' ? "" : "/") + rest;
-}
-
-// AugmentedModel::set_base_trace for one scope: the trace is cleared on every way out (a stream that throws too).
-class BaseTraceScope {
- public:
-  BaseTraceScope(models::AugmentedModel* m, std::vector<double>* trace) : m_(m) {
-    if (m_) m_->set_base_trace(trace);
-  }
-  ~BaseTraceScope() {
-    if (m_) m_->set_base_trace(nullptr);
-  }
-  BaseTraceScope(const BaseTraceScope&) = delete;
-  BaseTraceScope& operator=(const BaseTraceScope&) = delete;
-
- private:
-  models::AugmentedModel* m_;
-};
-
-// The running base's recorded prediction per row of `d` (NaN where none). Row i is the sample with sequence
-// number row_seq[i] on every axis (the reader's pairing); a sample another axis lost has no row, so matching by
-// index would shift every later row. A controller restart reuses numbers: of equal numbers, the axis' reading on
-// the sample clock nearest the row, and the prediction stamped nearest its receive stamp (the same stamp).
-std::vector<double> running_base_per_row(const compensation::Snapshot::Axis& ax, const io::Dataset& d,
-                                         const std::vector<std::uint32_t>& row_seq) {
-  constexpr double kSameSampleS = 1.0;  // as SnapshotBuffer::take pairs a report with its reading
-  std::vector<double> base(d.size(), std::nan(""));
-  if (row_seq.size() != d.size()) return base;
-  // the one with number `seq` whose stamp(x) is nearest t, within kSameSampleS, or null
-  const auto nearest = [](const auto& by_seq, std::uint32_t seq, double t, auto stamp) {
-    const auto [lo, hi] = by_seq.equal_range(seq);
-    decltype(lo->second) found = nullptr;
-    double best = kSameSampleS;
-    for (auto it = lo; it != hi; ++it)
-      if (const double dt = std::fabs(stamp(*it->second) - t); dt <= best) best = dt, found = it->second;
-    return found;
-  };
-  std::multimap<std::uint32_t, const compensation::SnapshotReading*> readings;
-  std::multimap<std::uint32_t, const compensation::SnapshotPrediction*> predictions;
-  for (const auto& r : ax.readings) readings.emplace(r.sequence, &r);
-  for (const auto& p : ax.base_predictions) predictions.emplace(p.sequence, &p);
-  for (std::size_t i = 0; i < d.size(); ++i) {
-    const auto* r = nearest(readings, row_seq[i], d.time_s[i], [](const auto& x) { return x.stamp_s; });
-    const auto* p = r ? nearest(predictions, row_seq[i], r->received_s, [](const auto& x) { return x.stamp_s; }) : nullptr;
-    if (p) base[i] = p->base_nm;
-  }
-  return base;
 }
 
 }  // namespace
@@ -111,12 +65,13 @@ std::string snapshot_path(const std::string& dir, double end_stamp_s) {
 }
 
 void write_snapshot_bag(const std::string& path, const std::string& ns, const compensation::Snapshot& s,
-                        const std::string& frame_id) {
+                        const std::string& frame_id, const std::string& origin) {
   if (!ros::Time::isValid()) ros::Time::init();
   const std::string tmp = path + ".part";  // a reader never sees half a bag
   try {
     rosbag::Bag bag(tmp, rosbag::bagmode::Write);
     bag.setCompression(rosbag::compression::LZ4);
+    if (!origin.empty()) ros_io::write_data_origin(bag, ns, origin, ros::Time(std::max(s.begin_s, 1e-9)));
     // header stamp: the sample clock; record time: when the message was heard
     const auto put = [&](const std::string& t, double stamp_s, double received_s, auto& m) {
       m.header.stamp = ros::Time(stamp_s);
@@ -124,8 +79,7 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
       bag.write(topic(ns, t), ros::Time(received_s), m);
     };
     // In record-time order across the streams, as `rosbag record` writes: a reader walks the bag in time, and
-    // with the streams one after the other every message read switched chunk and decompressed it again (a
-    // 20-min snapshot took 12.5 s to read instead of 0.1 s).
+    // with the streams one after the other every message read switched chunk and decompresses it again.
     std::vector<std::function<void()>> writes;
     std::vector<std::pair<double, std::size_t>> order;
     const auto add = [&](double record_s, std::function<void()> w) {
@@ -172,48 +126,49 @@ void write_snapshot_bag(const std::string& path, const std::string& ns, const co
   if (ec) throw std::runtime_error(path + ": cannot write bag: " + ec.message());
 }
 
-std::string warm_model(models::Model& model, const std::string& axis, const compensation::Snapshot& s,
-                       const std::string& ns, const models::Model* running, std::string* handover) {
-  if (!s.axes.count(axis)) return "axis " + axis + " not in the buffer";
-  // through a bag and the one reader, so the warm-up pairs and aligns samples exactly as `piezo residual` did
-  const fs::path tmp = fs::temp_directory_path() / ("piezo_warmup_" + std::to_string(::getpid()) + ".bag");
-  try {
-    write_snapshot_bag(tmp.string(), ns, s, "base");
-    std::vector<std::uint32_t> row_seq;
-    const io::Dataset d = ros_io::read_bag(tmp.string(), {}, &row_seq);
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    // on failure the reload resets it (cold)
-    auto* aug = dynamic_cast<models::AugmentedModel*>(&model);
-    const bool hand_over = running && aug && handover;
-    std::vector<double> warm, warm_base;  // the hand-over takes the base part from this one stream
-    {
-      const BaseTraceScope trace(hand_over ? aug : nullptr, &warm_base);
-      warm = models::stream_model(model, d, axis, models::StreamOptions{}).prediction;
-    }
-    if (hand_over) {
-      const auto& ax = s.axes.at(axis);
-      const std::vector<double> base = running_base_per_row(ax, d, row_seq);
-      const compensation::BaseHandover h = compensation::hand_over_base(*aug, *running, d, axis, warm, warm_base, base);
-      std::ostringstream os;
-      if (h.done)
-        os << "base state from the running model, offset " << std::showpos << h.offset_change_nm << std::noshowpos
-           << " nm on " << h.samples << " samples";
-      else
-        os << "base warmed from rest (" << h.why << ")";
-      // readings of this axis without a row: samples another axis lost or has not yet (the reader fills none); the
-      // rest are matched by sequence number, so they cost only their own rows
-      if (ax.readings.size() > d.size())
-        os << " (" << ax.readings.size() - d.size() << " of " << axis << "'s " << ax.readings.size()
-           << " readings have no row, their sample missing on another axis; rows matched by sequence number)";
-      *handover = os.str();
-    }
-  } catch (const std::exception& e) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
-    return e.what();
+void PredictorNode::setup_snapshot() {
+  compensation::SnapshotOptions so;
+  so.duration_s = s_.snapshot_duration_s;
+  so.max_messages = static_cast<std::size_t>(s_.snapshot_max_messages);
+  so.expected_rate_hz = 0.0;  // the fastest axis' step rate
+  for (const auto& a : axes_) {
+    so.axes.push_back(a->logic->axis());
+    so.expected_rate_hz = std::max(so.expected_rate_hz, step_rate_hz(s_, a->logic->compensator().model()));
   }
-  return "";
+  if (!(so.expected_rate_hz > 0.0)) so.expected_rate_hz = kFallbackSampleRateHz;
+  for (const auto& [name, topic] : s_.aux_topics) so.aux.push_back(name);
+  snapshot_ = std::make_unique<compensation::SnapshotBuffer>(so);
+}
+
+bool PredictorNode::on_snapshot(std_srvs::Trigger::Request&, std_srvs::Trigger::Response& res) {
+  try {
+    // the offline tools refuse a time column with missing samples: a stretch without one is written
+    const auto& so = snapshot_->options();
+    const compensation::SnapshotStretch cut =
+        compensation::gap_free_stretch(snapshot_->take(), so.prefer_recent_fraction, so.min_fraction);
+    const compensation::Snapshot& snap = cut.snapshot;
+    const std::string path = snapshot_path(snapshot_directory(s_.snapshot_dir), snap.end_s);
+    write_snapshot_bag(path, nh_.getNamespace(), snap, s_.frame_prefix + "base", data_origin());
+    std::size_t readings = 0;
+    for (const auto& [axis, a] : snap.axes) readings += a.readings.size();
+    std::ostringstream os;
+    os << path << " (" << std::fixed << std::setprecision(1) << snap.end_s - snap.begin_s << " s, "
+       << snap.axes.size() << " axes, " << readings << " readings, " << snap.aux.size() << " aux signals, "
+       << std::setprecision(4) << snap.period_s * 1e3 << " ms sample clock, receive stamps within "
+       << snap.max_restamp_s * 1e3 << " ms of it";
+    if (snap.invalid_readings > 0) os << ", " << snap.invalid_readings << " invalid readings left out";
+    os << ")";
+    if (!cut.message.empty()) os << "; " << cut.message;
+    res.success = true;
+    res.message = os.str();
+    if (cut.message.empty()) ROS_INFO("snapshot: %s", res.message.c_str());
+    else ROS_WARN("snapshot: %s", res.message.c_str());
+  } catch (const std::exception& e) {
+    res.success = false;
+    res.message = std::string("no snapshot written: ") + e.what();
+    ROS_ERROR("%s", res.message.c_str());
+  }
+  return true;
 }
 
 }  // namespace piezo::predictor

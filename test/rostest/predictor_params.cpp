@@ -1,5 +1,5 @@
 // piezo_predictor's parameters: every wrong type and out-of-range value stops it with one error naming the
-// resolved parameter (issue 15); a misspelt private parameter is listed, not ignored silently.
+// resolved parameter; a misspelt private parameter is listed, not ignored silently.
 #include <gtest/gtest.h>
 #include <ros/ros.h>
 #include <rosgraph_msgs/Log.h>
@@ -46,6 +46,8 @@ TEST(PredictorParams, WrongTypeAndOutOfRangeAreNamed) {
       {"resume_save_period_s", XmlRpc::XmlRpcValue(1e9)},
       {"resume_save_period_s", XmlRpc::XmlRpcValue(0.01)},  // each save writes the whole buffer
       {"resume_save_to", XmlRpc::XmlRpcValue(3)},
+      {"transport", XmlRpc::XmlRpcValue("usb")},
+      {"allow_simulated_model", XmlRpc::XmlRpcValue("yes")},
   };
   int k = 0;
   for (const auto& [param, value] : cases) {
@@ -190,6 +192,7 @@ TEST(PredictorParams, AModelOfAnotherAxisIsRefusedForThatAxis) {
   axes[0] = "a", axes[1] = "c";
   pnh.setParam("axes", axes);
   pnh.setParam("model_file", c_model);  // one path for both axes
+  pnh.setParam("transport", "simulated");  // the model was fitted on simulated data
   pnh.setParam("snapshot_duration_s", 0.0);
   pnh.setParam("drift_async", false);
   {
@@ -204,7 +207,48 @@ TEST(PredictorParams, AModelOfAnotherAxisIsRefusedForThatAxis) {
   EXPECT_NE(msg.find("model fitted for axis c, loaded for axis a"), std::string::npos) << msg;
   EXPECT_NE(msg.find("fallback"), std::string::npos) << msg;
   EXPECT_EQ(warnings.size(), 1u) << "expected one deprecation WARN for one path given for two axes";
-  for (const auto& p : {"axes", "model_file", "snapshot_duration_s", "drift_async"}) pnh.deleteParam(p);
+  for (const auto& p : {"axes", "model_file", "transport", "snapshot_duration_s", "drift_async"}) pnh.deleteParam(p);
+}
+
+// A model fitted on simulated data (training.fitted_on: simulated) on a real transport (~transport's default): the
+// node keeps the axis uncorrected with one ERROR naming the file and ~allow_simulated_model; with it true the model
+// runs, with a WARN.
+TEST(PredictorParams, ASimulatedModelIsRefusedOnARealTransport) {
+  const std::string model = std::string(PIEZO_SOURCE_DIR) + "/test/rostest/pi_creep_model_c.yaml";
+  std::vector<rosgraph_msgs::Log> errors, warnings;
+  ros::NodeHandle nh;
+  ros::Subscriber sub = nh.subscribe<rosgraph_msgs::Log>("/rosout", 100, [&](const rosgraph_msgs::Log::ConstPtr& m) {
+    if (m->msg.find("simulated data") == std::string::npos) return;
+    (m->level == rosgraph_msgs::Log::ERROR ? errors : warnings).push_back(*m);
+  });
+  for (int i = 0; i < 50 && sub.getNumPublishers() == 0; ++i) ros::WallDuration(0.05).sleep();
+  for (const bool allow : {false, true}) {
+    SCOPED_TRACE(allow ? "allowed" : "refused");
+    errors.clear(), warnings.clear();
+    const std::string at = allow ? "/mm_real_allowed" : "/mm_real";
+    ros::NodeHandle ns(at), pnh(at + "/predictor");
+    XmlRpc::XmlRpcValue axes;
+    axes[0] = "c";
+    pnh.setParam("axes", axes);
+    pnh.setParam("model_file", model);
+    pnh.setParam("snapshot_duration_s", 0.0);
+    pnh.setParam("drift_async", false);
+    if (allow) pnh.setParam("allow_simulated_model", true);
+    {
+      piezo::predictor::PredictorNode node(ns, pnh);
+      for (int i = 0; i < 100 && errors.empty() && warnings.empty(); ++i) ros::spinOnce(), ros::WallDuration(0.05).sleep();
+      ros::WallDuration(0.2).sleep();
+      ros::spinOnce();
+    }
+    const auto& got = allow ? warnings : errors;
+    ASSERT_EQ(got.size(), 1u);
+    EXPECT_EQ((allow ? errors : warnings).size(), 0u);
+    EXPECT_NE(got[0].msg.find(model), std::string::npos) << got[0].msg;
+    EXPECT_NE(got[0].msg.find(at + "/predictor/allow_simulated_model"), std::string::npos) << got[0].msg;
+    if (!allow) EXPECT_NE(got[0].msg.find("fallback"), std::string::npos) << got[0].msg;
+    for (const auto& p : {"axes", "model_file", "snapshot_duration_s", "drift_async", "allow_simulated_model"})
+      pnh.deleteParam(p);
+  }
 }
 
 int main(int argc, char** argv) {

@@ -11,6 +11,7 @@
 
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/models/augmented_model.h"
+#include "piezo_compensation/compensation/reload_warmup.h"
 #include "piezo_compensation/compensation/snapshot_buffer.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/protocols/protocol.h"
@@ -267,13 +268,46 @@ TEST(SnapshotBag, AGapIsCutOutAndTheStretchWrittenReadsAsItIs) {
   }
 }
 
+// The warm-up's data set, made in memory from the snapshot (compensation/reload_warmup.h), is the data set its
+// ~snapshot bag reads as: the same rows and sequence numbers, the same columns, across a gap and a wrap.
+TEST(SnapshotReload, TheInMemoryHistoryIsTheBagsDataSet) {
+  const std::string dir = ::testing::TempDir() + "snapshot_memory";
+  std::filesystem::create_directories(dir);
+  for (const bool gap : {false, true}) {
+    SCOPED_TRACE(gap ? "a gap on a" : "no gap");
+    compensation::SnapshotBuffer b({60.0, 100000});
+    feed(b, 1.7e9, 11 * 120, 4294966000u, [&](const char* axis, std::size_t i) { return gap && axis[0] == 'a' && i == 1000; });
+    const compensation::Snapshot s = b.take();
+    const std::string path = dir + (gap ? "/gap.bag" : "/whole.bag");
+    predictor::write_snapshot_bag(path, "/mm1", s, "base", io::kOriginSimulated);
+    std::vector<std::uint32_t> bag_seq, mem_seq;
+    const io::Dataset from_bag = ros_io::read_bag(path, {}, &bag_seq);
+    const io::Dataset in_memory = compensation::snapshot_dataset(s, &mem_seq);
+    EXPECT_EQ(from_bag.origin, io::kOriginSimulated);
+    ASSERT_EQ(in_memory.size(), from_bag.size());
+    EXPECT_EQ(mem_seq, bag_seq);
+    EXPECT_EQ(in_memory.time_clock, from_bag.time_clock);
+    ASSERT_EQ(in_memory.axes.size(), from_bag.axes.size());
+    for (std::size_t i = 0; i < from_bag.size(); ++i) {
+      ASSERT_NEAR(in_memory.time_s[i], from_bag.time_s[i], 1e-6) << "row " << i;  // the bag keeps nanoseconds
+      for (std::size_t k = 0; k < from_bag.axes.size(); ++k) {
+        ASSERT_EQ(in_memory.axes[k].voltage_v[i], from_bag.axes[k].voltage_v[i]) << "row " << i;
+        ASSERT_NEAR(in_memory.axes[k].position_nm[i], from_bag.axes[k].position_nm[i], 1e-9) << "row " << i;
+      }
+    }
+    ASSERT_EQ(in_memory.aux.size(), 1u);
+    EXPECT_EQ(in_memory.aux[0].values, from_bag.aux[0].values);
+    EXPECT_EQ(in_memory.size(), s.axes.at("a").readings.size());
+    if (gap) EXPECT_LT(in_memory.size(), s.axes.at("c").readings.size()) << "the sample a lost has a row";
+  }
+}
+
 // ~reload_model onto the running base (compensation/base_handover.h) when another axis lost a sample in the window:
 // the reader makes no row of it, so the rows and this axis' readings no longer line up by index. Stage c is the
 // base + 20 nm; the running base has seen it since rest and its predictions are buffered per sample. With the rows
 // matched to the predictions by sequence number the fresh model takes the running base and finds the 20 nm, as
-// with no sample lost; matched by index (before) the hand-over found no prediction and the base was warmed from
-// rest (33 nm off after the reload). Across a controller restart that reuses numbers inside the window, matching by
-// number alone takes the other sample's prediction (20 nm off); of equal numbers the one on the row's stamp is taken.
+// with no sample lost. Across a controller restart that reuses numbers inside the window, of equal numbers the
+// prediction on the row's stamp is taken.
 TEST(SnapshotReload, AnotherAxisLosingASampleStillHandsOverTheRunningBase) {
   const double fs = 11.0, t0 = 1.7e9, window_s = 180.0;
   const std::size_t n_hist = 3000, n_win = 1980, n_after = 1500, lost_at = n_hist + 700;  // n_win: window_s × fs
@@ -336,7 +370,7 @@ TEST(SnapshotReload, AnotherAxisLosingASampleStillHandsOverTheRunningBase) {
   ASSERT_TRUE(whole.gaps.empty());
   models::AugmentedModel ref(test::make_pi_creep(fs), {}, off, fs);
   std::string ref_how;
-  ASSERT_EQ(predictor::warm_model(ref, "c", whole, "/mm1", run_base.get(), &ref_how), "");
+  ASSERT_EQ(compensation::warm_model(ref, "c", whole, run_base.get(), &ref_how), "");
   std::vector<double> ref_after;
   const double ref_worst = after(ref, &ref_after);
   std::cout << "[snapshot reload] no sample lost: " << ref_how << ", worst error after it " << ref_worst << " nm\n";
@@ -350,16 +384,16 @@ TEST(SnapshotReload, AnotherAxisLosingASampleStillHandsOverTheRunningBase) {
     EXPECT_EQ(s.gaps[0].axis, "a");
     models::AugmentedModel fresh(test::make_pi_creep(fs), {}, off, fs);
     std::string how;
-    ASSERT_EQ(predictor::warm_model(fresh, "c", s, "/mm1", run_base.get(), &how), "");
+    ASSERT_EQ(compensation::warm_model(fresh, "c", s, run_base.get(), &how), "");
     std::cout << "[snapshot reload] " << name << ": " << how << "\n";
     EXPECT_NE(how.find("base state from the running model"), std::string::npos) << how;
     EXPECT_NE(how.find("1 of c's " + std::to_string(s.axes.at("c").readings.size()) + " readings have no row"),
               std::string::npos) << how;
     std::vector<double> got_after;
     const double worst = after(fresh, &got_after);
-    // warmed from rest over the same window (the fallback before): the window's cold start stays in it
+    // warmed from rest over the same window: the window's cold start stays in it
     models::AugmentedModel rest(test::make_pi_creep(fs), {}, off, fs);
-    ASSERT_EQ(predictor::warm_model(rest, "c", s, "/mm1"), "");
+    ASSERT_EQ(compensation::warm_model(rest, "c", s), "");
     const double rest_worst = after(rest, nullptr);
     double diff = 0.0;
     for (std::size_t i = 0; i < got_after.size(); ++i) diff = std::max(diff, std::abs(got_after[i] - ref_after[i]));
@@ -386,7 +420,7 @@ TEST(SnapshotBag, RefusesADirectoryItCannotCreate) {
   }
 }
 
-// Issue 18: `piezo residual` finds a stroke gain in a snapshot bag. The simulated device (default physics, a
+// `piezo residual` finds a stroke gain in a snapshot bag. The simulated device (default physics, a
 // random walk on c) with a stroke that scales by 5 %/°C with the temperature through a 30 s low-pass (the
 // simulator has no gain effect: it is applied to its positions here), heard as the predictor hears it and written
 // by the ~snapshot writer; base = the clean model the live_loop rostest starts with.

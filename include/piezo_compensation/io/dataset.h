@@ -55,6 +55,10 @@ struct Dataset {
   // The source for an error message: the file, or "data" for a data set built in memory.
   std::string source_or_data() const { return source.empty() ? std::string("data") : source; }
   std::string time_clock;            // "ros": time_s are ROS time stamps (bags the nodes wrote); "": own time base
+  // Who made the data: kOriginSimulated (the simulator: `piezo simulate`, the simulated device's ~snapshot),
+  // kOriginRecorded (a real device), "" (the file does not say). Written to and read from the file's header:
+  // CSV `# origin: simulated` before the column names, a bag's <ns>/data_origin message.
+  std::string origin;
   std::vector<double> time_s;
   std::vector<AxisSeries> axes;      // in the order a, b, c among those present
   std::vector<AuxSignal> aux;        // auxiliary signals, in file order
@@ -95,6 +99,12 @@ struct Dataset {
   // Checks internal consistency (sizes, finite values, increasing time); throws DataError naming what.
   void validate() const;
 };
+
+inline constexpr const char* kOriginSimulated = "simulated";
+inline constexpr const char* kOriginRecorded = "recorded";
+// Whether the data is the simulator's: its origin when it says, else whether an axis has the simulator's ground
+// truth (a sign only: a real device has none). What a fit stores as the model's fitted_on.
+bool is_simulated(const Dataset& data);
 
 // Several data sets as the recordings of one (RecordingMark): the same axes required (a DataError naming the file and
 // the axis otherwise); an aux column, a true position or the segment/phase markers that not every part has are left

@@ -32,6 +32,10 @@ struct TrainingSpan {
   std::string fingerprint;
 };
 
+// ModelMeta::fitted_on: what the training data was (io::data_origin at fit time; the file's training.fitted_on).
+inline constexpr const char* kFittedOnSimulated = "simulated";
+inline constexpr const char* kFittedOnRecorded = "recorded";
+
 // Facts about a fitted model, stored in the model file beside the weights.
 struct ModelMeta {
   std::string axis = "c";
@@ -39,6 +43,9 @@ struct ModelMeta {
   std::string training_fingerprint;            // hash of the training data (see io::fingerprint)
   std::string training_source;                 // file(s) it was fitted on
   std::vector<TrainingSpan> trained_on;        // each training recording (empty: an older model file)
+  // "simulated" or "recorded" (kFittedOn*); "" = not known (a model file written before the field): the predictor
+  // refuses a simulated model on a real transport (compensation/model_check.h).
+  std::string fitted_on;
   std::string time_clock;                      // what the training data's time_s was: "ros" (ROS time stamps,
                                                // a bag the nodes wrote) or "" (the data file's own time base)
   // The applied voltage's range in the training data [V] (NaN: not known): where a history the model has not seen

@@ -8,6 +8,13 @@
 
 #include "piezo_compensation/io/dataset.h"
 
+namespace rosbag {
+class Bag;
+}
+namespace ros {
+class Time;
+}
+
 namespace piezo::ros_io {
 
 // Bag layout (docs/data_formats.md), under an optional manipulator namespace `ns` ("" or e.g. "/mm1"):
@@ -16,6 +23,8 @@ namespace piezo::ros_io {
 //   <ns>/<axis>/true_position  piezo_compensation/EncoderPosition  simulator ground truth [m] (optional)
 //   <ns>/aux                   piezo_compensation/AuxSignal        auxiliary signals (optional)
 //   <ns>/protocol_phase        piezo_compensation/ProtocolPhase    segment/phase markers (optional)
+//   <ns>/data_origin           std_msgs/String                     "simulated" or "recorded" (io::Dataset::origin;
+//                                                                  optional)
 // One data row per encoder reading of the first axis whose sample (same sequence number, within one sample
 // period) every other axis has; a sample an axis lost is never filled from a neighbour (docs/data_formats.md).
 struct BagOptions {
@@ -34,6 +43,8 @@ io::Dataset read_bag(const std::string& path, const BagOptions& options = {},
 // reads; docs/security.md): throws io::DataError naming the file and the record. read_bag calls it.
 void check_bag_file(const std::string& path);
 void write_bag(const std::string& path, const io::Dataset& data, const BagOptions& options = {});
+// The one <ns>/data_origin message (io::Dataset::origin) into an open bag, at `when`.
+void write_data_origin(rosbag::Bag& bag, const std::string& ns, const std::string& origin, const ros::Time& when);
 
 // Dispatch on the extension: ".bag" → bag, anything else → CSV. Throws io::DataError with one clear line.
 // notes (optional): what the reader found and left as it is (a bag's gaps).

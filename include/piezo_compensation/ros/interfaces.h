@@ -15,7 +15,7 @@ const params::NodeInterface& driver_interface();  // src/ros/mm3e_driver.cpp
 const params::NodeInterface& sim_interface();     // src/ros/mm3e_sim.cpp
 }  // namespace mm3e
 namespace predictor {
-const params::NodeInterface& predictor_interface();  // src/ros/predictor.cpp
+const params::NodeInterface& predictor_interface();  // src/ros/predictor_params.cpp
 const params::NodeInterface& demo_interface();       // src/ros/demo_interface.cpp (the node: src/nodes/piezo_demo_node.cpp)
 }  // namespace predictor
 namespace ros_nodes {

@@ -54,8 +54,22 @@ Dataset read_csv(const std::string& path) {
     return true;
   };
 
+  // `# origin: simulated` (Dataset::origin) before the column names; no other comment lines
+  Dataset d;
   std::string_view header;
   next_line(header);
+  std::size_t header_row = 1;
+  while (!header.empty() && header.front() == '#') {
+    const std::string c = trim(header.substr(1));
+    const std::string key = "origin:";
+    const std::string value = c.rfind(key, 0) == 0 ? trim(std::string_view(c).substr(key.size())) : std::string();
+    if (value != kOriginSimulated && value != kOriginRecorded)
+      throw DataError(path + ": row " + std::to_string(header_row) + ": expected '# origin: simulated' or '# origin: "
+                      "recorded' (the only comment line a data file may have, before the column names)");
+    d.origin = value;
+    if (!next_line(header)) throw DataError(path + ": no header row after row " + std::to_string(header_row));
+    ++header_row;
+  }
   std::vector<std::string> names;
   {
     std::size_t start = 0;
@@ -67,16 +81,16 @@ Dataset read_csv(const std::string& path) {
     }
   }
 
-  Dataset d;
   d.source = path;
   std::vector<ColumnSlot> slots;
   bool have_time = false;
   bool have_v[3] = {false, false, false}, have_p[3] = {false, false, false};
   for (std::size_t c = 0; c < names.size(); ++c) {
     const std::string& n = names[c];
-    if (n.empty()) throw DataError(path + ": row 1, column " + std::to_string(c + 1) + ": empty column name");
+    const std::string at = path + ": row " + std::to_string(header_row) + ", column ";
+    if (n.empty()) throw DataError(at + std::to_string(c + 1) + ": empty column name");
     for (std::size_t k = 0; k < c; ++k)
-      if (names[k] == n) throw DataError(path + ": row 1, column " + n + ": duplicate column name");
+      if (names[k] == n) throw DataError(at + n + ": duplicate column name");
     ColumnSlot s{Target::kAux, -1, n};
     if (n == "time_s") {
       s.target = Target::kTime;
@@ -140,7 +154,7 @@ Dataset read_csv(const std::string& path) {
   }
 
   std::string_view line;
-  std::size_t row = 1;
+  std::size_t row = header_row;
   while (next_line(line)) {
     ++row;
     if (trim(line).empty()) {
@@ -192,7 +206,8 @@ void write_csv(const std::string& path, const Dataset& d) {
   {
     std::unique_ptr<FILE, int (*)(FILE*)> f(std::fopen(tmp.c_str(), "w"), &std::fclose);
     if (!f) throw DataError(path + ": cannot open for writing");
-    std::string line = "time_s";
+    std::string line = d.origin.empty() ? std::string() : "# origin: " + d.origin + "\n";
+    line += "time_s";
     for (const auto& a : d.axes) {
       line += "," + voltage_column(a.name) + "," + position_column(a.name);
       if (a.has_truth()) line += "," + true_position_column(a.name);

@@ -121,6 +121,7 @@ Dataset Dataset::slice(std::size_t begin, std::size_t end) const {
   Dataset out;
   out.source = source;
   out.time_clock = time_clock;
+  out.origin = origin;
   out.time_s = cut(time_s);
   for (const auto& a : axes) {
     AxisSeries s;
@@ -176,6 +177,11 @@ Dataset Dataset::recording(std::size_t k) const {
   return out;
 }
 
+bool is_simulated(const Dataset& data) {
+  if (!data.origin.empty()) return data.origin == kOriginSimulated;
+  return std::any_of(data.axes.begin(), data.axes.end(), [](const AxisSeries& a) { return a.has_truth(); });
+}
+
 Dataset join_recordings(const std::vector<Dataset>& parts, std::vector<std::string>* notes) {
   if (parts.empty()) throw DataError("no data to join");
   if (parts.size() == 1) return parts[0];
@@ -197,6 +203,11 @@ Dataset join_recordings(const std::vector<Dataset>& parts, std::vector<std::stri
   Dataset out;
   out.source = first.source_or_data() + " and " + std::to_string(parts.size() - 1) + " more";
   out.time_clock = first.time_clock;
+  // simulated when any part is (its truth may be left out below), recorded when every part says so
+  if (std::any_of(parts.begin(), parts.end(), [](const Dataset& p) { return is_simulated(p); }))
+    out.origin = kOriginSimulated;
+  else if (in_all([](const Dataset& p) { return p.origin == kOriginRecorded; }))
+    out.origin = kOriginRecorded;
   std::vector<std::string> aux_names;
   for (const auto& x : first.aux) {
     if (in_all([&](const Dataset& p) { return p.find_aux(x.name) != nullptr; })) aux_names.push_back(x.name);
@@ -275,6 +286,7 @@ void Dataset::append(const Dataset& other) {
   segment.insert(segment.end(), other.segment.begin(), other.segment.end());
   phase.insert(phase.end(), other.phase.begin(), other.phase.end());
   time_s.insert(time_s.end(), other.time_s.begin(), other.time_s.end());
+  if (is_simulated(other) && !is_simulated(*this)) origin = kOriginSimulated;
 }
 
 void Dataset::validate() const {

@@ -57,6 +57,7 @@ YAML::Node model_to_file_yaml(const Model& m) {
     n["fingerprint"] = t.fingerprint;
     root["training"]["recordings"].push_back(n);
   }
+  if (!m.meta.fitted_on.empty()) root["training"]["fitted_on"] = m.meta.fitted_on;
   if (!m.meta.time_clock.empty()) root["training"]["time_clock"] = m.meta.time_clock;
   if (std::isfinite(m.meta.train_voltage_min_v) && std::isfinite(m.meta.train_voltage_max_v)) {
     root["training"]["voltage_min_v"] = m.meta.train_voltage_min_v;
@@ -143,6 +144,12 @@ ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) 
           }
           m->meta.trained_on.push_back(sp);
         }
+      }
+      if (const YAML::Node f = t["fitted_on"]) {
+        const std::string on = f.IsScalar() ? f.Scalar() : std::string();
+        if (on != kFittedOnSimulated && on != kFittedOnRecorded)
+          throw top_err("training.fitted_on", "expected simulated or recorded");
+        m->meta.fitted_on = on;
       }
       if (t["time_clock"]) m->meta.time_clock = t["time_clock"].as<std::string>();
       if (t["voltage_min_v"] || t["voltage_max_v"]) {

@@ -215,6 +215,7 @@ io::Dataset ManipulatorSimulator::run(const io::Dataset& program) {
   }
   io::Dataset out;
   out.source = program.source;
+  out.origin = io::kOriginSimulated;
   out.time_s = program.time_s;
   out.segment = program.segment;
   out.phase = program.phase;

@@ -130,7 +130,11 @@ models::ModelPtr fit_model(const std::string& kind, const FitRequest& request) {
   const util::FlushSubnormals flush;  // decaying creep-filter states: see util/flush_subnormals.h
   const bool recordings = request.train && request.train->recording_count() > 1;
   models::ModelPtr m = recordings ? fit_recordings(fit, request) : fit(request);
-  if (m && request.train) m->meta.trained_on = models::training_spans(*request.train, request.axis);
+  if (m && request.train) {
+    m->meta.trained_on = models::training_spans(*request.train, request.axis);
+    // the predictor refuses a model of the simulator's physics on a real transport (compensation/model_check.h)
+    m->meta.fitted_on = io::is_simulated(*request.train) ? models::kFittedOnSimulated : models::kFittedOnRecorded;
+  }
   // Where the training keeps the linear states: the start estimate's prior on a recording it has not seen.
   // A failure here leaves the model without a prior (the start estimate then uses the candidates'), not unfitted.
   if (m && m->meta.state_prior.empty()) {
