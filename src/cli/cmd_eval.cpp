@@ -1,6 +1,7 @@
 // `piezo eval`: several model files on test (and creep) data → report.md, report.json and PNG plots.
 #include <cstdlib>
 #include <filesystem>
+#include <fstream>
 #include <iostream>
 #include <set>
 
@@ -9,6 +10,7 @@
 #include "training_rows.h"
 #include "plot_script.h"
 #include "piezo_compensation/analysis/eval_report.h"
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
@@ -114,6 +116,12 @@ int run(int argc, char** argv) {
   bar.finish();
   analysis::write_eval_report(out.string(), ctx, evals, test, creep.empty() ? nullptr : &creep);
   std::cout << analysis::eval_markdown(ctx, evals).substr(0, std::string::npos);
+  // The errors `piezo fit --model auto` chooses by, on the test recordings (each run free from its own rest).
+  std::vector<std::pair<std::string, const models::Model*>> named;
+  for (std::size_t k = 0; k < ms.size(); ++k) named.emplace_back(fs::path(paths[k]).stem().string(), ms[k].get());
+  const std::string use = analysis::use_error_table(named, test, ctx.axis);
+  std::cout << "\n## Moves and hold creep (free run from each recording's rest, 5-s means, no zero needed)\n\n" << use;
+  std::ofstream((out / "use_errors.md").string()) << use;
   if (!args.flag("no-plots")) run_plot_script("eval", "eval_plots.py", {out.string()});
   std::cout << "\nwrote " << (out / "report.md").string() << ", report.json and plots\n";
   return 0;

@@ -71,18 +71,19 @@ int run(int argc, char** argv) {
                    "The validation part (--validation FILE or the last 1 − split of --data, held out by time) gives the\n"
                    "validation metrics stored in the file. A fit that fails a sanity gate (free-run validation error\n"
                    "not finite or above 25 % of the position range, parameters far outside what the data supports)\n"
-                   "is refused with one error. Kinds: auto (fit the candidates, choose by the slow part of the free-run error), " + kinds);
+                   "is refused with one error. Kinds: auto (fit the candidates, choose by the errors of moves and hold creep), " + kinds);
   args.files("data", "FILE", "training data (CSV or bag); several files are separate recordings, each with its own\n"
              "history and zero (docs/data_formats.md, \"Several recordings\")", true)
       .files("validation", "FILE", "separate validation data (else --split is used)", false)
       .option("split", "FRACTION", "training fraction of --data when no --validation is given (several recordings:\n"
               "the fraction of the recordings, the last ones held out whole)", "0.8")
       .option("axis", "a|b|c", "axis to model", "c")
-      .required("model", "KIND", "model kind, or auto: linear on lasso features, pi, every pi_creep_* and preisach* kind, kan, run\n"
-                "free on the validation part and scored by 30-s block means on moves, holds, hold ends, a cold\n"
-                "fold and a carry-over fold (fitted again on the training part's first half, scored on its second);\n"
-                "within the noise the fewer parameters win; the table and the reason are printed and stored")
-      .option("auto-extra", "KIND", "with --model auto: also try this kind (e.g. dense, lstm; kan is a default candidate)", "", true)
+      .required("model", "KIND", "model kind, or auto: every invertible physical kind (PI and Preisach, with and\n"
+                "without creep, each as fitted and with the output map), run free on the held-out part and scored on\n"
+                "the errors of the predicted 10-s and 60-s changes of the moves and of the creep in each hold from its\n"
+                "start; the fewest parameters within the noise of the best; the table and the reason are printed and stored")
+      .option("auto-extra", "KIND", "with --model auto: also try this kind (linear on lasso features, dense, lstm, kan;\n"
+              "they may read other columns: not for a residual loop's base)", "", true)
       .option("features", "SET", "study | candidates | physics | voltage_history | lasso (lasso on the candidates, λ_1se survivors) | voltage_lasso (the same among the candidates that read no position; the neural kinds' default)")
       .option("tune", "N", "hyperparameter search with N trials (kinds that support it)", "0")
       .option("time-budget-s", "T", "stop tuning/training after T (seconds, or 90min, 2h; 0 = none)", "0")
@@ -170,7 +171,11 @@ int run(int argc, char** argv) {
   models::ModelPtr model;
   if (auto_kind) {
     analysis::SelectionRequest sr = selection_request_of(req, score_data, split_at);
-    sr.candidates = analysis::default_candidates(args.list("auto-extra"));
+    try {
+      sr.candidates = analysis::default_candidates(args.list("auto-extra"));
+    } catch (const std::invalid_argument& e) {
+      throw UsageError(std::string("fit: ") + e.what());
+    }
     sr.progress = req.progress;
     if (!req.validation) throw UsageError("fit: --model auto needs validation data (--split < 1 or --validation)");
     analysis::Selection sel = analysis::select_model(sr);

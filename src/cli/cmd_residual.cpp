@@ -91,7 +91,9 @@ int run(int argc, char** argv) {
       .option("data", "FILE", "one data file split by time instead of --train/--test")
       .option("split", "FRACTION", "with --data: the first FRACTION is TRAIN", "0.7")
       .option("axis", "NAME", "axis to model", "c")
-      .required("model", "KIND|FILE", "model kind to fit on TRAIN, auto (choose by validation), or a model file")
+      .required("model", "KIND|FILE", "model kind to fit on TRAIN, auto (the documented path: the\n"
+                "physical kinds reading only this axis's voltage, chosen on TRAIN's validation part as `piezo fit --model\n"
+                "auto` chooses), or a model file")
       .option("set", "KEY=VALUE", "hyperparameter of the fitted kind", "", true)
       .option("mode", "MODE", "free-run or one-step", "free-run")
       .option("families", "LIST", "comma-separated effect families to consider (default all)")
@@ -166,15 +168,11 @@ int run(int argc, char** argv) {
   YAML::Node fit_options = parse_sets(args.list("set"));
   std::string fitted_kind = model_arg, selection_md;  // auto: the chosen kind, refitted while backfitting
   if (model_arg == "auto") {
-    const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
-    analysis::SelectionRequest sr = analysis::selection_request(fit_part, &val_part, train, n_fit, axis);
-    sr.seed = o.seed;
-    analysis::Selection sel = analysis::select_model(sr);
-    selection_md = analysis::selection_table(sel);
+    analysis::ModelCandidate chosen;
+    base = analysis::fit_auto(train, n_fit, axis, o.seed, &chosen, &selection_md);
     std::cerr << "residual: model choice\n" << selection_md;
-    fitted_kind = sel.table[sel.best].candidate.kind;
-    if (sel.table[sel.best].candidate.options) fit_options = sel.table[sel.best].candidate.options;
-    base = std::move(sel.model);
+    fitted_kind = chosen.kind;
+    if (chosen.options) fit_options = chosen.options;
   } else if (fs::exists(model_arg)) {
     base = models::load_model(model_arg);
     if (base->kind() == "augmented") throw UsageError("residual: " + model_arg + " is already augmented; start from its base model");

@@ -58,7 +58,7 @@ int run(int argc, char** argv) {
       .option("clean-trials", "N", "stages without an effect", "20")
       .option("hours", "H", "length of each stage", "6")
       .option("seed", "N", "first seed (trial t uses seed + t)", "1000")
-      .option("base", "KIND", "base model kind fitted on each stage", "pi_creep_lti")
+      .option("base", "KIND", "base model kind fitted on each stage (auto: chosen per stage as `piezo residual --model auto`)", "auto")
       .option("permutations", "N", "circular-shift draws per family", "20")
       .option("compare", "LIST", "instead of the table: one stage with these effects (cross_axis, gain, periodic, "
               "slips; 'none' for a clean stage) against the same stage without them, the loop run on both")

@@ -79,10 +79,16 @@ const std::map<std::string, std::string> kKnownFailing = {
     {"mm3e_preisach_creep/pi_creep_fractional separate", not_carried_over("58.68, 1.52× 38.52", "1.53")},
 };
 
+bool output_map_label(const std::string& l) {
+  const std::string tail = " + output map";
+  return l.size() > tail.size() && l.compare(l.size() - tail.size(), tail.size(), tail) == 0;
+}
+
 std::string matrix_header() {
   std::string md = "| stage | noise floor σ [nm] (MAE) | range [nm] |";
   std::vector<std::string> labels;
-  for (const auto& c : analysis::default_candidates(kNeural)) labels.push_back(c.label);
+  for (const auto& c : analysis::default_candidates(kNeural))
+    if (!output_map_label(c.label)) labels.push_back(c.label);
   for (const auto& l : labels) md += " " + l + " |";
   md += " auto |\n|---|---|---|";
   for (std::size_t k = 0; k <= labels.size(); ++k) md += "---|";
@@ -213,23 +219,17 @@ StageFit fit_stage(const std::string& name, const sim::StageConfig& stage, bool 
   return f;
 }
 
-// The row auto adds for its first choice with the output map (analysis::select_model): a variant, not a kind.
-bool output_map_row(const analysis::CandidateResult& r) {
-  const std::string tail = " + output map";
-  const std::string& l = r.candidate.label;
-  return l.size() > tail.size() && l.compare(l.size() - tail.size(), tail.size(), tail) == 0;
-}
+// A kind's output-map variant among auto's candidates (analysis::default_candidates): a variant, not a kind.
+bool output_map_row(const analysis::CandidateResult& r) { return output_map_label(r.candidate.label); }
 
 // What `piezo fit --model auto` chooses: choose_candidate (the call select_model makes) over auto's own
-// candidates, the first default_candidates() of the table, and its output-map variant; dense and lstm are scored
-// beside them, not offered.
+// candidates, the first default_candidates() of the table; the neural kinds are scored beside them, not offered.
 std::size_t auto_choice(const analysis::Selection& sel) {
   const std::size_t n = std::min(analysis::default_candidates().size(), sel.table.size());
   std::vector<analysis::ChoiceEntry> entries;
-  std::vector<std::size_t> rows;  // the table row of each entry: auto's candidates, then its output-map variant
-  for (std::size_t k = 0; k < sel.table.size(); ++k) {
+  std::vector<std::size_t> rows;  // the table row of each entry
+  for (std::size_t k = 0; k < n; ++k) {
     const auto& r = sel.table[k];
-    if (k >= n && !output_map_row(r)) continue;
     entries.push_back({r.candidate.label, r.parameters, r.refused.empty() && r.slow.valid() ? &r.slow : nullptr});
     rows.push_back(k);
   }
@@ -299,12 +299,9 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
     swept = std::max(swept, e.swept);
     const double ratio = sep[k] / continuation_mae(r);
     const bool ok = ratio <= kSeparateRatio;
-    // and the identification check `piezo fit` prints (docs/models.md, "Checking a model")
-    const analysis::Identification id = analysis::identification(r.slow, sel.block_noise_nm);
-    const std::string id_text = id.checked() ? figure(id.ratio()) + "×" : std::string("–");
     char buf[200];
-    std::snprintf(buf, sizeof buf, " %.4g (%.2f×)%s; whole %.4g (%.2f×); rest %.4g; identification %s |", sep[k],
-                  ratio, ok ? "" : " **>1.5×**", e.whole, e.whole / continuation_mae(r), e.rest, id_text.c_str());
+    std::snprintf(buf, sizeof buf, " %.4g (%.2f×)%s; whole %.4g (%.2f×); rest %.4g |", sep[k],
+                  ratio, ok ? "" : " **>1.5×**", e.whole, e.whole / continuation_mae(r), e.rest);
     md += buf;
     if (!ok)
       check.fail(name + "/" + r.candidate.label + " separate",
@@ -334,7 +331,8 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
 std::string separate_header() {
   std::string md = "| stage |";
   std::size_t n = 0;
-  for (const auto& c : analysis::default_candidates(kNeural)) md += " " + c.label + " |", ++n;
+  for (const auto& c : analysis::default_candidates(kNeural))
+    if (!output_map_label(c.label)) md += " " + c.label + " |", ++n;
   md += " auto (its choice) |\n|---|";
   for (std::size_t k = 0; k <= n; ++k) md += "---|";
   return md + "\n";

@@ -27,7 +27,7 @@ estimation::NoiseModel identify_estimator(const models::Model& model, const io::
 std::vector<double> fused_position(const models::Model& model, const io::Dataset& data, const std::string& axis,
                                    const io::Dataset* warmup = nullptr);
 
-// A model of `axis`: `kind` fitted on rows [0, n_fit) of `train` (the rest validates it); with `estimator`, its
+// A model of `axis`: `kind` (or auto: analysis::fit_auto) fitted on rows [0, n_fit) of `train` (the rest validates it); with `estimator`, its
 // error filter identified on the rest (identify_estimator) and written to its estimator block, as fused_position
 // reads it.
 models::ModelPtr fit_axis_model(const io::Dataset& train, std::size_t n_fit, const std::string& axis,

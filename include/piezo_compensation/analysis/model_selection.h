@@ -1,6 +1,7 @@
-// Model choice for any stage (issue 11): validation scores held out by time, sanity gates that refuse a fit
-// the data cannot support, and `--model auto` (fit the candidate kinds, score each free-run on the slow part of its
-// error, choose for the use with the noise taken out: issue 26).
+// Model choice for any stage: validation scores on held-out data, sanity gates that refuse a fit the data cannot
+// support, and `--model auto`: fit the candidate kinds, run each free over the held-out recordings, score it on the
+// errors the use cares about (moves at 10 s and 60 s, hold creep), and take the fewest parameters within the noise of
+// the best.
 // Knows nothing of the simulator: every threshold comes from the data the model was fitted and scored on.
 #pragma once
 
@@ -64,60 +65,26 @@ void check_fit_sanity(const models::Model& model, const ValidationScore* score, 
 YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axis, const training::ProgressFn& progress,
                                 std::string* report = nullptr, std::size_t* kept = nullptr);
 
-// The slow part of the error (issue 26): the scores `--model auto` chooses by. The error of 30-s block means
-// (predicted − measured), whose white reading noise averages away (σ/√n per block: ≈ 1.2 nm for 21 nm readings at
-// 11 Hz), in five columns:
-//  - moves: the blocks outside holds; holds: the blocks inside holds (a hold: the voltage unchanged, within
-//    hold_tolerance_v, for at least hold_min_s; found from the voltage, no phase markers needed);
-//  - hold ends: per hold, the mean error of its last hold_end_s (where the user parks the tip);
-//  - cold fold: the held-out part run on its own, as a separate recording would start: the model reset at rest
-//    at a start, its blocks after a window of cold_window_s; cold_starts such runs, started over the first half of
-//    the part;
-//  - carry-over: the kind fitted again on the training part's first half, scored on its second (carry_fold).
-// overall: the weighted geometric mean of (column + noise_nm) over the columns present, less noise_nm (hold ends
-// count hold_end_weight, the cold fold cold_weight, the carry-over carry_weight, moves and holds 1): a column counts by its ratio between
-// candidates, not by its scale (a cold fold of 500 nm from the unknown start state does not drown moves of 0.3 nm), and a difference under the noise
-// of a block mean counts little.
-// On a short validation part (under min_blocks blocks) the block shrinks to 1/min_blocks of it (at least one
-// sample), so a 10-s tail of a 200-Hz recording is scored in 32 blocks of 62 samples: more pairs for the paired
-// block test than eighths gave.
+// The errors the use cares about, the scores `--model auto` chooses by. Readings and prediction are averaged over
+// windows of mean_s (5 s: white reading noise averages away), per recording, from its own first row:
+//  - moves at move_short_s and move_long_s (10 s, 60 s): for every pair of windows that far apart, both outside the
+//    holds and in one recording, the predicted change minus the measured change. No zero is needed: an offset, a
+//    recording's unknown encoder zero, cancels;
+//  - hold creep: in each hold (the voltage unchanged, within hold_tolerance_v, for at least hold_min_s; found from
+//    the voltage), the predicted change from the hold's first window to each later window minus the measured one:
+//    the drift after a tip is parked, wherever the hold's level sits.
+// Each column is the mean |error| of its entries; overall is the geometric mean of (column + noise) over the columns
+// present, less the noise (a column counts by its ratio between candidates, not by its scale).
 struct SlowScoreOptions {
-  double block_s = 30.0;
+  double mean_s = 5.0;
+  double move_short_s = 10.0;
+  double move_long_s = 60.0;
   double hold_min_s = 60.0;
   double hold_tolerance_v = 1e-6;
-  double hold_end_s = 30.0;
-  // Hold ends weigh as much as the other four columns together (1 + 1 + 0.25 + 1): half of the overall where all
-  // five columns are present (more without the carry-over fold), the parked tip the choice is for; the carry-over
-  // fold, a fit on half the recording, must not outvote them (docs/models.md, "`--model auto`: the choice rule").
-  double hold_end_weight = 3.25;
-  // The cold fold: cold_starts runs from rest, started at 0, 1/8, 2/8, … of the held-out part (their blocks
-  // pooled), each scored after cold_window_s (at most a fifth of the part), weighted cold_weight in overall.
-  // A quarter: a few starts of one part measure the start-state handling less surely than the continuation
-  // measures the model (at 1 and 0.5 the 10-s tail's cold fold chose the KAN on 50-µm stages where it is 1.5× the
-  // best kind on the continuation and 4× on a separate recording, docs/models.md).
-  // cold_start_estimate: the window also fixes the start estimate (models::StreamOptions::anchor_s), as a new
-  // recording would be started. Off: the offset it fits today absorbs the start-state error of the window and
-  // keeps it after the state has converged (cold fold ×10 on mm3e_preisach, docs/models.md).
-  double cold_window_s = 30.0;
-  int cold_starts = 4;
-  double cold_weight = 0.25;
-  bool cold_start_estimate = false;
-  // The carry-over fold (select_model; issue 26, a model that holds on the next recording): each candidate fitted
-  // again on the first half of the training part alone and run free through that half into the second half, which
-  // it has not seen: its block errors there are the column "carry-over", weighted carry_weight in overall. It
-  // measures what the continuation's short tail cannot: whether the kind, fitted on this much of this stage, carries
-  // over to motion it was not fitted on (a separate recording of the stage: docs/models.md). Costs one more fit on
-  // half the data per candidate (neural kinds: another time_budget_s); skipped when the training part has fewer than
-  // 4·min_blocks rows, and for every candidate when one candidate's half fit fails (compared on the same columns).
-  bool carry_fold = true;
-  double carry_weight = 1.0;
-  // Several recordings (each zero unknown): a hold's rows are scored from the zero of its own first hold_zero_s,
-  // as an operator parks a tip where the encoder says it is: the holds and hold ends columns then score the drift
-  // after parking (the creep), not how the hold's level sits against the recording's mean, which the moves column
-  // scores (docs/models.md, "`--model auto`: the choice rule").
-  double hold_zero_s = 5.0;
-  int min_blocks = 32;
-  double noise_nm = 0.0;  // noise of a block mean [nm]; 0: select_model estimates it (σ of a reading / √rows)
+  // The paired test between two candidates runs over blocks of block_s of entries (entries within a minute are
+  // correlated: one slow error shows in every pair that spans it).
+  double block_s = 60.0;
+  double noise_nm = 0.0;  // noise of a difference of two window means [nm]; 0: select_model estimates it
 };
 
 // Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s, none
@@ -128,44 +95,44 @@ struct VoltageHold {
 std::vector<VoltageHold> voltage_holds(const io::Dataset& data, const std::string& axis, std::size_t from,
                                        const SlowScoreOptions& o = {});
 
-// Per column, |mean error| of each block [nm], in time order (same rows for every candidate on the same data,
-// so two candidates' vectors pair entry by entry).
+// Per column, the |error| of each entry [nm] in time order (the same entries for every candidate scored on the same
+// data, so two candidates' vectors pair entry by entry). hold_end_creep: per hold, the signed creep error from its
+// first window to its last (predicted − measured), the figure an operator reads per hold.
 struct SlowErrors {
-  std::vector<double> moves, holds, hold_ends, cold, carry;
+  std::vector<double> move_short, move_long, hold_creep;
+  std::vector<double> hold_end_creep;
 };
-// Block errors of `prediction` against `reference` on rows [from, reference.size()) (moves, holds, hold ends;
-// `cold` is left empty). block = samples per block; partial blocks of at least half a block count.
-SlowErrors slow_errors(const std::vector<double>& prediction, const std::vector<double>& reference,
-                       const std::vector<VoltageHold>& holds, std::size_t from, std::size_t block,
-                       std::size_t hold_end);
-// Block errors of `prediction` on all rows (the cold fold's column).
-std::vector<double> block_errors(const std::vector<double>& prediction, const std::vector<double>& reference,
-                                 std::size_t block);
+// The entries of `prediction` against `reference` on data's rows [from, end) (the windows and pairs above).
+SlowErrors use_errors(const std::vector<double>& prediction, const std::vector<double>& reference,
+                      const io::Dataset& data, const std::string& axis, std::size_t from,
+                      const SlowScoreOptions& o = {});
 
 struct SlowScore {
   SlowErrors blocks;
-  double moves_nm = NAN, holds_nm = NAN, hold_ends_nm = NAN, worst_hold_end_nm = NAN, cold_nm = NAN, carry_nm = NAN,
-         overall_nm = NAN;
-  double hold_ends_truth_nm = NAN, worst_hold_end_truth_nm = NAN;  // vs the true position (simulated data)
-  double block_s = NAN;  // the block used (block_s, or shorter on a short validation part)
+  double move_short_nm = NAN, move_long_nm = NAN, hold_creep_nm = NAN, worst_hold_creep_nm = NAN, overall_nm = NAN;
+  double hold_creep_truth_nm = NAN;  // the hold creep column against the true position (simulated data)
+  std::size_t block = 1;             // entries per block of the paired test
+  double noise_nm = 0.0;             // noise of one entry (SlowScoreOptions::noise_nm)
   bool valid() const { return std::isfinite(overall_nm); }
 };
-// Column means and the overall figure of `blocks` (truth figures left as they are).
+// Column means and the overall figure of `blocks`.
 SlowScore summarise_slow(const SlowErrors& blocks, const SlowScoreOptions& o = {});
-// Scores `model` free-run on data[score_from, end): warm (run from rest at row 0 through the history before
-// score_from, as `warm_free_run` when given: the free-run prediction of all rows) and cold (see cold_window_s). Runs models only through models::stream_model.
+// Scores `model` run free from rest over `data` (as `warm_free_run` when given: the free-run prediction of all rows)
+// on rows [score_from, end). Runs models only through models::stream_model.
 SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
                      const std::string& axis, const SlowScoreOptions& o = {},
                      const std::vector<double>* warm_free_run = nullptr);
-// The carry-over fold's block errors (SlowScoreOptions::carry_fold): `half_fit`, fitted on train's first `half`
-// rows, run free from rest over all of train; |mean error| of blocks over rows [half, end) (a 30-s block, at most
-// 1/min_blocks of those rows). Runs the model only through models::stream_model.
-std::vector<double> carry_over_errors(const models::Model& half_fit, const io::Dataset& train, std::size_t half,
-                                      const std::string& axis, const SlowScoreOptions& o = {});
+
+// Markdown: per model, its use errors run free from rest over every recording of `test` (each from its own first row):
+// 10-s and 60-s moves, hold creep (mean), and each hold's creep error from its first window to its last (signed,
+// predicted − measured), as `piezo eval` prints them.
+std::string use_error_table(const std::vector<std::pair<std::string, const models::Model*>>& models,
+                            const io::Dataset& test, const std::string& axis, const SlowScoreOptions& o = {});
 
 // The choice among scored candidates. best_overall: the lowest overall; chosen: of the candidates within the
-// noise of it (no column on which it is clearly better by training::validation_prefers over the paired block
-// errors), the one with the fewest parameters (ties: lower overall). reason: one line.
+// noise of it, the one with the fewest parameters (ties: lower overall). reason: one line. Clearly worse on a column:
+// the paired test over blocks (training::validation_prefers) prefers the best, and the column's mean is higher by
+// more than the noise of one entry (a consistent difference smaller than the reading noise is no difference to a user).
 struct ChoiceEntry {
   std::string label;
   std::size_t parameters = 0;
@@ -175,7 +142,7 @@ struct Choice {
   std::size_t chosen = SIZE_MAX, best_overall = SIZE_MAX;
   std::string reason;
 };
-// Whether `other` is within the noise of `best`: on no column does the paired block test prefer `best`.
+// Whether `other` is within the noise of `best`: on no column is it clearly worse.
 // `worse` (optional) receives the names of the columns where it is clearly worse.
 bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std::string>* worse = nullptr);
 Choice choose_candidate(const std::vector<ChoiceEntry>& entries);
@@ -186,21 +153,23 @@ struct ModelCandidate {
   YAML::Node options;  // kind options (null = defaults); for the lasso linear filled in during selection
   bool lasso_features = false;
 };
-// linear on lasso-selected features, pi, and every registered pi_creep_* and preisach* kind; `extra_kinds` (e.g. dense,
-// lstm, kan) are added with default options.
+// Every registered kind whose auto_candidacy is kDefault (models/registry.h), each as fitted and with the output map;
+// `extra_kinds` (kinds marked kExtra or kDefault; `linear` on lasso-selected features, `kan` on a fixed step budget)
+// are added. Throws std::invalid_argument for a kind `--model auto` cannot try.
 std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& extra_kinds = {});
 
 struct SelectionRequest {
   const io::Dataset* train = nullptr;       // fitting part
   const io::Dataset* validation = nullptr;  // validation part handed to the fits (early stopping); may be null
-  const io::Dataset* score_data = nullptr;  // data scored (train + validation, or the validation file)
+  const io::Dataset* score_data = nullptr;  // data scored (train + validation, or the validation recordings)
   std::size_t score_from = 0;
   std::string axis = "c";
-  std::vector<ModelCandidate> candidates;        // empty = default_candidates()
+  std::vector<ModelCandidate> candidates;   // empty = default_candidates()
   double time_budget_s = 0.0;               // per candidate (neural kinds)
   SlowScoreOptions slow;
   std::uint64_t seed = 1;
   int threads = 2;
+  bool identify = true;                     // run the identification check on the chosen candidate
   training::ProgressFn progress;
 };
 
@@ -216,41 +185,38 @@ struct CandidateResult {
   double fit_s = 0.0;
   std::size_t parameters = 0;
   std::string refused;  // non-empty: the fit threw or failed a gate (the message)
-  std::string cold_start_off;  // non-empty: not chosen, its cold start is off by too much (cold_start_exclusions)
   // The fitted model (null when refused), so a caller can run every candidate on other data (the stage matrix's
   // separate recording); Selection::model is a copy of the chosen one with the figures stored.
   std::shared_ptr<const models::Model> model;
 };
 
-// Whether the training recording identifies a kind (issue 26, a model that holds on the next recording): the
-// carry-over fold's slow error (the kind fitted again on the training part's first half, run free into its second
-// half) against the full fit's on the validation part's moves, each with the block noise added,
-//   ratio = (carry-over + noise) / (moves + noise).
+// Whether the training recording identifies a kind: the kind fitted again on the training part's first half and run
+// free into its second half, its overall use error there (carry-over) against the full fit's on the validation part,
+// each with the noise added,
+//   ratio = (carry-over + noise) / (validation + noise).
 // Over kCarryOverAdvised, half the recording does not predict its other half: the recording is too short or too
-// narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part
-// says (measured on the stage matrix: docs/models.md, "Checking a model").
+// narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part says.
 constexpr double kCarryOverAdvised = 2.0;
 struct Identification {
-  double carry_nm = NAN, moves_nm = NAN, noise_nm = 0.0;
+  double carry_nm = NAN, validation_nm = NAN, noise_nm = 0.0;
   std::string unchecked;  // why there is no ratio (empty when there is one)
-  double ratio() const { return (carry_nm + noise_nm) / (moves_nm + noise_nm); }
+  double ratio() const { return (carry_nm + noise_nm) / (validation_nm + noise_nm); }
   bool checked() const { return std::isfinite(ratio()); }
   bool flagged() const { return checked() && ratio() > kCarryOverAdvised; }
   // One line: the two figures, the ratio and, over kCarryOverAdvised, what it means and what to do; or why it was
   // not checked.
   std::string describe(const std::string& label, double train_s) const;
 };
-// From a candidate's slow score (its carry-over column; not checked when the fold did not run or the validation
-// part has no moves).
-Identification identification(const SlowScore& score, double block_noise_nm);
-// The noise of a block mean on the request's validation part (σ of a reading / √rows per block); NaN when the part is
-// too short for a noise figure or missing.
+// From the two overall figures (not checked when either is missing).
+Identification identification(double carry_nm, double validation_nm, double noise_nm);
+// The noise of a difference of two window means on the request's validation part (√2 σ of a reading / √rows per
+// window); NaN when the part is too short for a noise figure or missing.
 double estimate_block_noise(const SelectionRequest& request);
-// For one kind fitted outside select_model (`piezo fit --model KIND`): `fitted`'s slow score on the validation part
-// and the carry-over fold (one more fit of the kind, with the candidate's options, on the training part's first
-// half). Never throws: a failure is the `unchecked` reason.
+// The carry-over check of `fitted` (its slow score on the validation part: `validation`, or computed when null):
+// one more fit of the candidate's kind, with its options, on the training part's first half (whole recordings when
+// there are several). Never throws: a failure is the `unchecked` reason.
 Identification check_identification(const SelectionRequest& request, const ModelCandidate& candidate,
-                                    const models::Model& fitted);
+                                    const models::Model& fitted, const SlowScore* validation = nullptr);
 
 // The warning a loader gives for a model file whose stored identification check (validation carry_over_ratio) is
 // over kCarryOverAdvised, naming the file and the ratio; empty when it has none or it is within (the predictor logs
@@ -260,33 +226,30 @@ std::string unidentified_model_warning(const models::Model& model, const std::st
 struct Selection {
   models::ModelPtr model;  // the winner, validation figures stored; null when every candidate was refused
   std::size_t best = 0;    // index into table: the chosen candidate
-  std::size_t best_overall = 0;  // index of the lowest overall slow error (== best unless a simpler one was within noise)
+  std::size_t best_overall = 0;  // index of the lowest overall (== best unless a simpler one was within noise)
   std::vector<CandidateResult> table;
   DataScale scale;         // of the training part
   std::string reason;      // one line: why the chosen candidate
-  double block_noise_nm = NAN;  // estimated noise of one block mean (σ of a reading / √samples per block)
+  double block_noise_nm = NAN;  // estimated noise of a difference of two window means
   SlowScoreOptions slow_options;
   Identification identification;  // of the chosen candidate (its ratio stored as validation carry_over_ratio)
 };
-// The carry-over column counts only when every scored candidate (not refused, a valid slow score) has it: when one
-// lacks it (its half fit failed), it is dropped from every candidate and their scores summarised again, so no
-// candidate is compared on fewer columns than another (the carry-over is often the largest; select_model calls it).
-void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o);
-// A model whose cold start is far off is no model to park a tip with, whatever its other columns: a candidate
-// whose cold fold is over kMaxColdFoldFraction of the position range is not chosen when another candidate's is
-// within it. Per score (null: not scored), "" or the reason it is left out.
-constexpr double kMaxColdFoldFraction = 0.10;
-std::vector<std::string> cold_start_exclusions(const std::vector<const SlowScore*>& scores, double position_range_nm);
 
 // Fits every candidate, scores it free-run on the validation part (the gates: score_validation), refuses the ones
-// failing a gate, scores the rest on the slow part of the error (slow_score) and chooses by choose_candidate.
-// Throws FitRejected (listing each candidate's reason) when none passes.
+// failing a gate, scores the rest on the use errors (slow_score) and chooses by choose_candidate; then checks the
+// chosen one's identification. Throws FitRejected (listing each candidate's reason) when none passes.
 Selection select_model(const SelectionRequest& request);
 
-// Markdown table: kind, parameters, moves, holds, hold ends, cold fold, overall [nm], status; then the reason line.
+// `--model auto` on one training part cut by rows, as `piezo residual` runs it: candidates fitted on rows [0, n_fit),
+// the rest their validation and scored after the model has run through the fit part. The chosen model (selection
+// stored); *chosen (optional) receives the chosen candidate (kind and options, for refits), *table the table.
+models::ModelPtr fit_auto(const io::Dataset& train, std::size_t n_fit, const std::string& axis, std::uint64_t seed,
+                          ModelCandidate* chosen = nullptr, std::string* table = nullptr);
+
+// Markdown table: kind, parameters, moves at 10 s and 60 s, hold creep, worst hold creep, overall [nm], status;
+// then the rule and the reason line.
 std::string selection_table(const Selection& selection);
-// {criterion, chosen, chosen_kind, reason, block_s, position_range_nm, candidates: [...]} for the model file's
-// `selection:`.
+// {criterion, chosen, chosen_kind, reason, ..., candidates: [...]} for the model file's `selection:`.
 YAML::Node selection_yaml(const Selection& selection);
 
 }  // namespace piezo::analysis

@@ -14,11 +14,17 @@
 
 namespace piezo::models {
 
+// Whether `piezo fit --model auto` tries a kind: kDefault, always (an invertible physical kind that reads only the
+// axis's own voltage); kExtra, only when named with --auto-extra (neural kinds, linear on lasso features: they may
+// read other columns, and a base that reads one hides the effect the residual loop must find); kNever.
+enum class AutoCandidacy { kNever, kDefault, kExtra };
+
 struct ModelKind {
   std::string name;          // "linear", "dense", ...
   std::string description;   // one line for --help
   std::function<ModelPtr(const YAML::Node& model_node)> load;   // from the file's `model:` node; throws on bad keys
   std::function<std::string(const Model&, const std::string& prefix)> export_c99;  // may be empty
+  AutoCandidacy auto_candidacy = AutoCandidacy::kNever;
 };
 
 // Adds (or replaces) a kind at run time, by an explicit call (a test's own model, a program's extra kind); call it

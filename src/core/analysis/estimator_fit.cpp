@@ -2,6 +2,7 @@
 
 #include <stdexcept>
 
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/training/fitters.h"
@@ -56,6 +57,11 @@ std::vector<double> fused_position(const models::Model& model, const io::Dataset
 models::ModelPtr fit_axis_model(const io::Dataset& train, std::size_t n_fit, const std::string& axis,
                                 const std::string& kind, std::uint64_t seed, bool estimator) {
   if (n_fit == 0 || n_fit >= train.size()) throw std::invalid_argument("fit_axis_model: no fit or no validation rows");
+  if (kind == "auto") {
+    models::ModelPtr m = fit_auto(train, n_fit, axis, seed);
+    if (estimator) m->meta.estimator = identify_estimator(*m, train, axis, n_fit).to_yaml();
+    return m;
+  }
   const io::Dataset fit = train.slice(0, n_fit), val = train.slice(n_fit, train.size());
   training::FitRequest req;
   req.train = &fit;

@@ -10,7 +10,6 @@
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_stream.h"
-#include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/training/fit_common.h"
 #include "piezo_compensation/training/fitters.h"
 #include "piezo_compensation/training/lasso.h"
@@ -115,7 +114,7 @@ ValidationScore score_validation(const models::Model& model, const io::Dataset& 
   return score_validation_series(model, data, score_from, axis, p);
 }
 
-// ---- the slow part of the error (issue 26) ----
+// ---- the errors the use cares about ----
 
 std::vector<VoltageHold> voltage_holds(const io::Dataset& d, const std::string& axis, std::size_t from,
                                        const SlowScoreOptions& o) {
@@ -133,22 +132,6 @@ std::vector<VoltageHold> voltage_holds(const io::Dataset& d, const std::string& 
 }
 
 namespace {
-// |mean(prediction − reference)| over each block of rows [b, e) (partial last block kept when ≥ half a block).
-void add_blocks(const std::vector<double>& p, const std::vector<double>& r, std::size_t b, std::size_t e,
-                std::size_t block, std::vector<double>& out) {
-  block = std::max<std::size_t>(block, 1);
-  e = std::min({e, p.size(), r.size()});
-  for (std::size_t s = b; s < e; s += block) {
-    const std::size_t t = std::min(e, s + block);
-    if (2 * (t - s) < block) break;
-    double sum = 0;
-    std::size_t n = 0;
-    for (std::size_t k = s; k < t; ++k)
-      if (std::isfinite(p[k]) && std::isfinite(r[k])) sum += p[k] - r[k], ++n;
-    if (n) out.push_back(std::fabs(sum / double(n)));
-  }
-}
-
 double mean_of(const std::vector<double>& v) {
   if (v.empty()) return NAN;
   double s = 0;
@@ -156,162 +139,138 @@ double mean_of(const std::vector<double>& v) {
   return s / double(v.size());
 }
 double max_of(const std::vector<double>& v) { return v.empty() ? NAN : *std::max_element(v.begin(), v.end()); }
-}  // namespace
 
-std::vector<double> block_errors(const std::vector<double>& p, const std::vector<double>& r, std::size_t block) {
-  std::vector<double> out;
-  add_blocks(p, r, 0, std::min(p.size(), r.size()), block, out);
-  return out;
+// Means over consecutive windows of mean_s of one recording's rows [b, e), from the time of row b. A window with
+// fewer than half its expected rows (a gap in the host clock) has NaN means. hold: the hold every row of the window
+// lies in (-1: none, or rows of several); walk: no row of the window in a hold.
+struct Windows {
+  std::vector<double> p, y;
+  std::vector<long> hold;
+  std::vector<char> walk;
+};
+Windows window_means(const std::vector<double>& p, const std::vector<double>& y, const std::vector<double>& t,
+                     std::size_t b, std::size_t e, const std::vector<VoltageHold>& holds, double mean_s, double rate) {
+  Windows w;
+  const double min_rows = 0.5 * mean_s * rate;
+  std::size_t h = 0;
+  for (std::size_t i = b; i < e;) {
+    const auto k = static_cast<std::size_t>(std::max(0.0, (t[i] - t[b]) / mean_s));
+    while (w.p.size() < k) w.p.push_back(NAN), w.y.push_back(NAN), w.hold.push_back(-1), w.walk.push_back(0);
+    const double end_t = t[b] + double(k + 1) * mean_s;
+    double sp = 0, sy = 0;
+    std::size_t n = 0, j = i;
+    long hold = -2;
+    bool walk = true;
+    for (; j < e && (j == i || t[j] < end_t); ++j) {
+      while (h < holds.size() && holds[h].end <= j) ++h;
+      const long hj = h < holds.size() && holds[h].begin <= j ? static_cast<long>(h) : -1;
+      if (hj >= 0) walk = false;
+      hold = hold == -2 || hold == hj ? hj : -1;
+      if (std::isfinite(p[j]) && std::isfinite(y[j])) sp += p[j], sy += y[j], ++n;
+    }
+    const bool ok = double(n) >= min_rows && n > 0;
+    w.p.push_back(ok ? sp / double(n) : NAN);
+    w.y.push_back(ok ? sy / double(n) : NAN);
+    w.hold.push_back(hold < 0 ? -1 : hold);
+    w.walk.push_back(walk ? 1 : 0);
+    i = j;
+  }
+  return w;
 }
 
-SlowErrors slow_errors(const std::vector<double>& p, const std::vector<double>& r,
-                       const std::vector<VoltageHold>& holds, std::size_t from, std::size_t block,
-                       std::size_t hold_end) {
-  SlowErrors e;
-  const std::size_t n = std::min(p.size(), r.size());
-  std::size_t at = std::min(from, n);
-  for (const auto& h : holds) {
-    const std::size_t hb = std::max(h.begin, at), he = std::min(h.end, n);
-    if (hb >= he) continue;
-    add_blocks(p, r, at, hb, block, e.moves);
-    add_blocks(p, r, hb, he, block, e.holds);
-    // The last hold_end rows of the hold (within the scored rows), one figure per hold.
-    std::vector<double> end;
-    const std::size_t w = std::max<std::size_t>(hold_end, 1);
-    add_blocks(p, r, he - std::min(w, he - hb), he, w, end);
-    if (!end.empty()) e.hold_ends.push_back(end.back());
-    at = he;
+// The moves and hold creep entries of one recording's windows.
+void add_entries(const Windows& w, std::size_t short_lag, std::size_t long_lag, SlowErrors& e) {
+  const std::size_t n = w.p.size();
+  auto change_error = [&](std::size_t a, std::size_t b) { return (w.p[b] - w.p[a]) - (w.y[b] - w.y[a]); };
+  for (std::size_t i = 0; i < n; ++i) {
+    if (!w.walk[i] || !std::isfinite(w.p[i])) continue;
+    for (const auto& [lag, out] : {std::pair<std::size_t, std::vector<double>*>{short_lag, &e.move_short},
+                                   {long_lag, &e.move_long}})
+      if (i + lag < n && w.walk[i + lag] && std::isfinite(w.p[i + lag])) out->push_back(std::fabs(change_error(i, i + lag)));
   }
-  add_blocks(p, r, at, n, block, e.moves);
+  for (std::size_t i = 0; i < n;) {
+    if (w.hold[i] < 0 || !std::isfinite(w.p[i])) {
+      ++i;
+      continue;
+    }
+    const std::size_t first = i;
+    double last = NAN;
+    for (++i; i < n && w.hold[i] == w.hold[first]; ++i)
+      if (std::isfinite(w.p[i])) {
+        last = change_error(first, i);
+        e.hold_creep.push_back(std::fabs(last));
+      }
+    if (std::isfinite(last)) e.hold_end_creep.push_back(last);
+  }
+}
+
+// Rows per window and entries per block of the paired test.
+std::size_t entries_per_block(const SlowScoreOptions& o) {
+  return std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(o.block_s / o.mean_s)));
+}
+}  // namespace
+
+SlowErrors use_errors(const std::vector<double>& p, const std::vector<double>& r, const io::Dataset& data,
+                      const std::string& axis, std::size_t from, const SlowScoreOptions& o) {
+  if (!(o.mean_s > 0) || !(o.move_short_s >= o.mean_s) || !(o.move_long_s >= o.mean_s))
+    throw std::invalid_argument("use errors: the window (mean_s) must be positive and no longer than the moves");
+  SlowErrors e;
+  const auto holds = voltage_holds(data, axis, from, o);
+  const double rate = data.size() > 1 ? data.sample_rate_hz() : 1.0;
+  const auto lag = [&](double s) { return static_cast<std::size_t>(std::lround(s / o.mean_s)); };
+  const std::size_t n = std::min({p.size(), r.size(), data.size()});
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [rb, re] = data.recording_rows(k);
+    const std::size_t b = std::max(rb, from), end = std::min(re, n);
+    if (b >= end) continue;
+    add_entries(window_means(p, r, data.time_s, b, end, holds, o.mean_s, rate), lag(o.move_short_s),
+                lag(o.move_long_s), e);
+  }
   return e;
 }
 
 SlowScore summarise_slow(const SlowErrors& b, const SlowScoreOptions& o) {
   SlowScore s;
   s.blocks = b;
-  s.moves_nm = mean_of(b.moves);
-  s.holds_nm = mean_of(b.holds);
-  s.hold_ends_nm = mean_of(b.hold_ends);
-  s.worst_hold_end_nm = max_of(b.hold_ends);
-  s.cold_nm = mean_of(b.cold);
-  s.carry_nm = mean_of(b.carry);
-  // Weighted geometric mean of (column + noise), less the noise: a column counts by its ratio between
-  // candidates, not by its scale (a cold fold of 500 nm next to moves of 0.3 nm does not drown the moves), and
-  // differences below the noise of a block mean count little.
+  s.block = entries_per_block(o);
+  s.noise_nm = o.noise_nm;
+  s.move_short_nm = mean_of(b.move_short);
+  s.move_long_nm = mean_of(b.move_long);
+  s.hold_creep_nm = mean_of(b.hold_creep);
+  std::vector<double> ends;
+  for (double x : b.hold_end_creep) ends.push_back(std::fabs(x));
+  s.worst_hold_creep_nm = max_of(ends);
   const double eps = std::max(o.noise_nm, 1e-3);
-  double sum = 0, w = 0;
-  for (const auto& [x, wt] : {std::pair<double, double>{s.moves_nm, 1.0}, {s.holds_nm, 1.0},
-                              {s.hold_ends_nm, o.hold_end_weight}, {s.cold_nm, o.cold_weight},
-                              {s.carry_nm, o.carry_weight}})
-    if (std::isfinite(x)) sum += wt * std::log(x + eps), w += wt;
-  s.overall_nm = w > 0 ? std::exp(sum / w) - eps : NAN;
+  double sum = 0;
+  int n = 0;
+  for (double x : {s.move_short_nm, s.move_long_nm, s.hold_creep_nm})
+    if (std::isfinite(x)) sum += std::log(x + eps), ++n;
+  s.overall_nm = n > 0 ? std::exp(sum / n) - eps : NAN;
   return s;
 }
-
-namespace {
-// Rows per block: block_s at the data's rate, at most a 1/min_blocks share of the `scored` rows, at least one (the
-// slow score's blocks, the carry-over fold's and the block noise select_model estimates).
-std::size_t block_rows(const SlowScoreOptions& o, double rate_hz, std::size_t scored) {
-  return std::max<std::size_t>(1, std::min<std::size_t>(static_cast<std::size_t>(std::lround(o.block_s * rate_hz)),
-                                                        scored / std::max<std::size_t>(1, o.min_blocks)));
-}
-
-// How every column runs a model: free, a diverging prediction kept finite.
-models::StreamOptions free_run() {
-  models::StreamOptions so;
-  so.mode = models::PredictionMode::kFreeRun;
-  so.keep_diverging = true;
-  return so;
-}
-
-// The held-out part as recordings of their own, as a model meets a new one: reset at rest at a start, scored
-// after a window of cold_window_s (at most a fifth of the part), to the part's end; with cold_start_estimate the
-// window also fixes the start estimate (models::StreamOptions::anchor_s). Several starts (cold_starts, spread
-// over the part's first half): one start state is one draw, and on a 10-s part one lucky draw decided (the KAN
-// on the 50-µm stages: docs/models.md).
-std::vector<double> cold_fold(const models::Model& model, const io::Dataset& tail, const std::string& axis,
-                              const SlowScoreOptions& o, std::size_t block) {
-  models::StreamOptions so = free_run();
-  const double span_s = tail.size() > 1 ? tail.time_s.back() - tail.time_s.front() : 0.0;
-  const double window_s = std::min(o.cold_window_s, span_s / 5.0);
-  if (o.cold_start_estimate) so.anchor_s = window_s;
-  const std::size_t starts = static_cast<std::size_t>(std::max(1, o.cold_starts));
-  std::vector<double> out;
-  for (std::size_t k = 0; k < starts; ++k) {
-    const io::Dataset part = tail.slice(tail.size() * k / (2 * starts), tail.size());
-    auto m = model.clone();
-    const models::StreamResult r = models::stream_model(*m, part, axis, so);
-    const auto& y = part.axis(axis).position_nm;
-    std::size_t from = r.first_scored;
-    while (from < y.size() && part.time_s[from] - part.time_s[0] < window_s) ++from;
-    const auto f = static_cast<std::ptrdiff_t>(from);
-    const auto e = block_errors(std::vector<double>(r.prediction.begin() + f, r.prediction.end()),
-                                std::vector<double>(y.begin() + f, y.end()), block);
-    out.insert(out.end(), e.begin(), e.end());
-  }
-  return out;
-}
-}  // namespace
-
-namespace {
-// Several recordings: each one's zero is unknown to any model (an encoder reset per run), so it is taken out of
-// `pred` (the mean of measured − predicted over its rows from `from` on) and the blocks score the rest.
-void take_out_recording_zeros(const io::Dataset& data, const std::string& axis, std::size_t from, std::vector<double>& pred) {
-  if (data.recording_count() < 2) return;
-  const std::vector<double> d = models::recording_offsets(data, axis, pred, from);
-  for (std::size_t k = 0; k < d.size(); ++k) {
-    const auto [rb, re] = data.recording_rows(k);
-    for (std::size_t i = rb; i < re; ++i) pred[i] += d[k];
-  }
-}
-
-// Several recordings: each hold's rows shifted by the mean of measured − predicted over its first `window` rows.
-void take_out_hold_zeros(const io::Dataset& data, const std::string& axis, const std::vector<VoltageHold>& holds,
-                         double window, std::vector<double>& pred) {
-  if (data.recording_count() < 2 || !(window >= 1.0)) return;
-  const auto& y = data.axis(axis).position_nm;
-  for (const auto& h : holds) {
-    const std::size_t e = std::min(h.end, pred.size()), z = std::min(e, h.begin + static_cast<std::size_t>(window));
-    if (z <= h.begin) continue;
-    double d = 0;
-    for (std::size_t i = h.begin; i < z; ++i) d += (y[i] - pred[i]) / static_cast<double>(z - h.begin);
-    for (std::size_t i = h.begin; i < e; ++i) pred[i] += d;
-  }
-}
-}  // namespace
 
 SlowScore slow_score(const models::Model& model, const io::Dataset& data, std::size_t score_from,
                      const std::string& axis, const SlowScoreOptions& o, const std::vector<double>* warm_free_run) {
   const auto& ax = data.axis(axis);
-  const double rate = data.size() > 1 ? data.sample_rate_hz() : 1.0;
-  const std::size_t scored = data.size() > score_from ? data.size() - score_from : 0;
-  const std::size_t block = block_rows(o, rate, scored);
-  const std::size_t hold_end = std::max<std::size_t>(1, static_cast<std::size_t>(std::lround(o.hold_end_s * rate)));
-  std::vector<double> warm = warm_free_run ? *warm_free_run : models::free_run_prediction(model, data, axis);
-  take_out_recording_zeros(data, axis, score_from, warm);
-  const auto holds = voltage_holds(data, axis, score_from, o);
-  take_out_hold_zeros(data, axis, holds, o.hold_zero_s * rate, warm);
-  SlowErrors e = slow_errors(warm, ax.position_nm, holds, score_from, block, hold_end);
-  if (score_from < data.size()) e.cold = cold_fold(model, data.slice(score_from, data.size()), axis, o, block);
-  SlowScore s = summarise_slow(e, o);
-  s.block_s = double(block) / rate;
-  if (ax.has_truth()) {
-    const SlowErrors t = slow_errors(warm, ax.true_position_nm, holds, score_from, block, hold_end);
-    s.hold_ends_truth_nm = mean_of(t.hold_ends);
-    s.worst_hold_end_truth_nm = max_of(t.hold_ends);
-  }
+  const std::vector<double> p = warm_free_run ? *warm_free_run : models::free_run_prediction(model, data, axis);
+  SlowScore s = summarise_slow(use_errors(p, ax.position_nm, data, axis, score_from, o), o);
+  if (ax.has_truth()) s.hold_creep_truth_nm = mean_of(use_errors(p, ax.true_position_nm, data, axis, score_from, o).hold_creep);
   return s;
 }
 
-std::vector<double> carry_over_errors(const models::Model& half_fit, const io::Dataset& train, std::size_t half,
-                                      const std::string& axis, const SlowScoreOptions& o) {
-  if (half >= train.size()) return {};
-  std::vector<double> p = models::free_run_prediction(half_fit, train, axis);
-  take_out_recording_zeros(train, axis, half, p);
-  const auto& y = train.axis(axis).position_nm;
-  const std::size_t block = block_rows(o, train.size() > 1 ? train.sample_rate_hz() : 1.0, train.size() - half);
-  const auto h = static_cast<std::ptrdiff_t>(half);
-  return block_errors(std::vector<double>(p.begin() + h, p.end()), std::vector<double>(y.begin() + h, y.end()), block);
+std::string use_error_table(const std::vector<std::pair<std::string, const models::Model*>>& ms,
+                            const io::Dataset& test, const std::string& axis, const SlowScoreOptions& o) {
+  std::ostringstream os;
+  os << "| model | 10-s moves [nm] | 60-s moves [nm] | hold creep [nm] | creep error per hold, first to last " << fmt(o.mean_s)
+     << " s [nm] |\n|---|---:|---:|---:|---|\n";
+  for (const auto& [name, m] : ms) {
+    const SlowScore s = slow_score(*m, test, 0, axis, o);
+    std::string holds;
+    for (double x : s.blocks.hold_end_creep) holds += (holds.empty() ? "" : ", ") + fmt(x, 3);
+    os << "| " << name << " | " << fmt(s.move_short_nm, 3) << " | " << fmt(s.move_long_nm, 3) << " | "
+       << fmt(s.hold_creep_nm, 3) << " | " << (holds.empty() ? "no hold" : holds) << " |\n";
+  }
+  return os.str();
 }
 
 namespace {
@@ -320,11 +279,9 @@ struct Column {
   const std::vector<double> SlowErrors::*v;
   double SlowScore::*mean;
 };
-const Column kColumns[] = {{"moves", &SlowErrors::moves, &SlowScore::moves_nm},
-                           {"holds", &SlowErrors::holds, &SlowScore::holds_nm},
-                           {"hold ends", &SlowErrors::hold_ends, &SlowScore::hold_ends_nm},
-                           {"cold fold", &SlowErrors::cold, &SlowScore::cold_nm},
-                           {"carry-over", &SlowErrors::carry, &SlowScore::carry_nm}};
+const Column kColumns[] = {{"10-s moves", &SlowErrors::move_short, &SlowScore::move_short_nm},
+                           {"60-s moves", &SlowErrors::move_long, &SlowScore::move_long_nm},
+                           {"hold creep", &SlowErrors::hold_creep, &SlowScore::hold_creep_nm}};
 }  // namespace
 
 bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std::string>* worse) {
@@ -333,9 +290,8 @@ bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std
     const auto& a = best.blocks.*c.v;
     const auto& b = other.blocks.*c.v;
     if (a.empty() || b.empty()) continue;
-    // Per block (block = 1 entry): the paired test over the columns' block errors; under four blocks the lower
-    // mean decides, as the test does.
-    if (training::validation_prefers(a, b, 1)) {
+    const double margin = (other.*c.mean) - (best.*c.mean);
+    if (margin > best.noise_nm && training::validation_prefers(a, b, std::max(best.block, std::size_t{1}))) {
       within = false;
       if (worse) worse->push_back(c.name);
     }
@@ -343,21 +299,32 @@ bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std
   return within;
 }
 
-std::vector<std::string> cold_start_exclusions(const std::vector<const SlowScore*>& scores, double position_range_nm) {
-  std::vector<std::string> out(scores.size());
-  const double limit = kMaxColdFoldFraction * position_range_nm;
-  if (!(limit > 0)) return out;
-  const bool any_within = std::any_of(scores.begin(), scores.end(), [&](const SlowScore* s) {
-    return s && std::isfinite(s->cold_nm) && s->cold_nm <= limit;
-  });
-  if (!any_within) return out;
-  for (std::size_t k = 0; k < scores.size(); ++k)
-    if (scores[k] && std::isfinite(scores[k]->cold_nm) && scores[k]->cold_nm > limit)
-      out[k] = "cold start off: cold fold " + std::to_string(std::lround(scores[k]->cold_nm)) + " nm > " +
-               fmt(100 * kMaxColdFoldFraction, 2) + " % of the position range (" +
-               std::to_string(std::lround(position_range_nm)) + " nm)";
-  return out;
+namespace {
+std::string nm(double x) { return std::isfinite(x) ? fmt(x, 3) + " nm" : std::string("–"); }
+
+// Why the chosen candidate (the lowest overall) is not one with fewer parameters: the best of those, and the columns
+// on which it is clearly worse.
+std::string why_not_simpler(const std::vector<ChoiceEntry>& en, std::size_t chosen) {
+  const ChoiceEntry& c = en[chosen];
+  std::size_t s = SIZE_MAX;
+  for (std::size_t k = 0; k < en.size(); ++k)
+    if (en[k].score && en[k].score->valid() && en[k].parameters < c.parameters &&
+        (s == SIZE_MAX || en[k].score->overall_nm < en[s].score->overall_nm))
+      s = k;
+  if (s == SIZE_MAX) return "; no candidate has fewer parameters";
+  std::vector<std::string> worse;
+  within_noise(*c.score, *en[s].score, &worse);
+  std::ostringstream r;
+  r << "; " << en[s].label << " (" << en[s].parameters << " parameters) is clearly worse on";
+  for (std::size_t i = 0; i < worse.size(); ++i) {
+    double v = NAN, mine = NAN;
+    for (const auto& col : kColumns)
+      if (worse[i] == col.name) v = (*en[s].score).*col.mean, mine = (*c.score).*col.mean;
+    r << (i ? "," : "") << " " << worse[i] << " (" << nm(v) << " vs " << nm(mine) << ")";
+  }
+  return r.str();
 }
+}  // namespace
 
 Choice choose_candidate(const std::vector<ChoiceEntry>& en) {
   Choice ch;
@@ -377,48 +344,13 @@ Choice choose_candidate(const std::vector<ChoiceEntry>& en) {
     if (simpler && within_noise(*b.score, *c.score)) ch.chosen = k;
   }
   const ChoiceEntry& c = en[ch.chosen];
-  auto nm = [](double x) { return std::isfinite(x) ? fmt(x, 3) + " nm" : std::string("–"); };
   std::ostringstream r;
-  if (ch.chosen != ch.best_overall) {
-    r << c.label << ": within the noise of " << b.label << " on every column (overall " << nm(c.score->overall_nm)
-      << " vs " << nm(b.score->overall_nm) << ") with " << c.parameters << " instead of " << b.parameters
-      << " parameters";
-  } else {
-    const bool ends = std::isfinite(c.score->hold_ends_nm);
-    r << c.label << ": lowest overall slow error " << nm(c.score->overall_nm);
-    if (ends) r << ", hold ends " << nm(c.score->hold_ends_nm);
-    // The best simpler candidate, and where it falls short.
-    std::size_t s = SIZE_MAX;
-    for (std::size_t k = 0; k < en.size(); ++k)
-      if (en[k].score && en[k].score->valid() && en[k].parameters < c.parameters &&
-          (s == SIZE_MAX || en[k].score->overall_nm < en[s].score->overall_nm))
-        s = k;
-    if (s != SIZE_MAX) {
-      std::vector<std::string> worse;
-      within_noise(*c.score, *en[s].score, &worse);
-      std::vector<std::string> ok;
-      for (const auto& col : kColumns)
-        if (!(c.score->blocks.*col.v).empty() && !(en[s].score->blocks.*col.v).empty() &&
-            std::find(worse.begin(), worse.end(), col.name) == worse.end())
-          ok.push_back(col.name);
-      r << "; " << en[s].label << " (" << en[s].parameters << " parameters)";
-      if (!ok.empty()) {
-        r << " within noise on ";
-        for (std::size_t i = 0; i < ok.size(); ++i) r << (i ? (i + 1 == ok.size() ? " and " : ", ") : "") << ok[i];
-        r << " but";
-      } else {
-        r << ":";
-      }
-      for (std::size_t i = 0; i < worse.size(); ++i) {
-        double v = NAN;
-        for (const auto& col : kColumns)
-          if (worse[i] == col.name) v = (*en[s].score).*col.mean;
-        r << (i ? "," : "") << " " << nm(v) << " on " << worse[i];
-      }
-    } else {
-      r << "; no candidate has fewer parameters";
-    }
-  }
+  if (ch.chosen != ch.best_overall)
+    r << c.label << ": within the noise of " << b.label << " (lowest overall " << nm(b.score->overall_nm)
+      << ") on every column, overall " << nm(c.score->overall_nm) << ", with " << c.parameters << " instead of "
+      << b.parameters << " parameters";
+  else
+    r << c.label << ": lowest overall " << nm(c.score->overall_nm) << why_not_simpler(en, ch.chosen);
   ch.reason = r.str();
   return ch;
 }
@@ -498,19 +430,19 @@ YAML::Node lasso_linear_options(const io::Dataset& train, const std::string& axi
 
 std::vector<ModelCandidate> default_candidates(const std::vector<std::string>& extra_kinds) {
   std::vector<ModelCandidate> c;
-  c.push_back({"linear (lasso features)", "linear", YAML::Node(), true});
-  c.push_back({"pi", "pi", YAML::Node(), false});
   for (const auto& k : models::model_kind_names())
-    if (k.rfind("pi_creep_", 0) == 0) c.push_back({k, k, YAML::Node(), false});
-  for (const auto& k : models::model_kind_names())
-    if (k.rfind("preisach", 0) == 0) c.push_back({k, k, YAML::Node(), false});
-  // The KAN on its default features, on a fixed step budget (deterministic, bounded time); why it is a candidate:
-  // docs/models.md, "The stage matrix".
-  c.push_back({"kan", "kan", YAML::Load("{steps: 800, patience: 0}"), false});
+    if (models::model_kind(k).auto_candidacy == models::AutoCandidacy::kDefault) {
+      c.push_back({k, k, YAML::Node(), false});
+      c.push_back({k + " + output map", k, YAML::Load("{output_map: on}"), false});
+    }
   for (const auto& k : extra_kinds) {
-    models::model_kind(k);  // throws listing the known kinds
-    const bool dup = std::any_of(c.begin(), c.end(), [&](const ModelCandidate& x) { return x.label == k; });
-    if (!dup) c.push_back({k, k, YAML::Node(), false});
+    if (models::model_kind(k).auto_candidacy == models::AutoCandidacy::kNever)  // model_kind throws for unknown kinds
+      throw std::invalid_argument("--auto-extra " + k + ": not a kind --model auto can fit on its own");
+    const bool dup = std::any_of(c.begin(), c.end(), [&](const ModelCandidate& x) { return x.kind == k; });
+    if (dup) continue;
+    if (k == "linear") c.push_back({"linear (lasso features)", "linear", YAML::Node(), true});
+    else if (k == "kan") c.push_back({"kan", "kan", YAML::Load("{steps: 800, patience: 0}"), false});
+    else c.push_back({k, k, YAML::Node(), false});
   }
   return c;
 }
@@ -527,15 +459,6 @@ SelectionRequest selection_request(const io::Dataset& train, const io::Dataset* 
 }
 
 namespace {
-// `s` summarised again from `blocks` (its block length and truth figures kept).
-void rescore(SlowScore& s, const SlowErrors& blocks, const SlowScoreOptions& o) {
-  SlowScore t = summarise_slow(blocks, o);
-  t.block_s = s.block_s;
-  t.hold_ends_truth_nm = s.hold_ends_truth_nm;
-  t.worst_hold_end_truth_nm = s.worst_hold_end_truth_nm;
-  s = t;
-}
-
 training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidate& c, const io::Dataset& train,
                                  const io::Dataset* validation, training::LassoFeatureCache* lasso_cache) {
   training::FitRequest fr;
@@ -550,87 +473,73 @@ training::FitRequest fit_request(const SelectionRequest& rq, const ModelCandidat
   return fr;
 }
 
-// The carry-over fold of one candidate (SlowScoreOptions::carry_fold): the kind fitted again on rows [0, half) of
-// the training part alone (their last fifth the fit's validation when the selection has one; the lasso candidate's
-// features chosen again on them), scored on the second half. A fit that fails or returns nothing there leaves the
-// column empty (align_carry_over then drops it for every candidate).
-void add_carry_over(const SelectionRequest& rq, const ModelCandidate& c, const SlowScoreOptions& o, SlowScore& s,
-                    training::LassoFeatureCache* lasso_cache) {
-  const io::Dataset& train = *rq.train;
+// The row where the training part's second half starts: its middle, or with several recordings the start of the
+// recording nearest it (whole recordings on either side).
+std::size_t half_row(const io::Dataset& train) {
   std::size_t half = train.size() / 2;
-  if (train.recording_count() > 1) {  // whole recordings on either side: the recording starting nearest the middle
-    std::size_t best = 0;
-    for (std::size_t k = 1; k < train.recording_count(); ++k) {
-      const std::size_t b = train.recording_rows(k).first;
-      if (best == 0 || (b > half ? b - half : half - b) < (best > half ? best - half : half - best)) best = b;
-    }
-    half = best;
+  if (train.recording_count() < 2) return half;
+  std::size_t best = 0;
+  for (std::size_t k = 1; k < train.recording_count(); ++k) {
+    const std::size_t b = train.recording_rows(k).first;
+    if (best == 0 || (b > half ? b - half : half - b) < (best > half ? best - half : half - best)) best = b;
   }
-  if (!o.carry_fold || half < 2 * static_cast<std::size_t>(std::max(1, o.min_blocks))) return;
-  const io::Dataset first = train.slice(0, half);
-  const std::size_t fit_rows = rq.validation ? half * 4 / 5 : half;
-  const io::Dataset fit_part = first.slice(0, fit_rows), val_part = first.slice(fit_rows, half);
-  SlowErrors b = s.blocks;
-  try {
-    ModelCandidate half_c = c;
-    if (c.lasso_features) {  // the features chosen again on the half; the candidate's other options kept
-      half_c.options = c.options && c.options.IsMap() ? YAML::Clone(c.options) : YAML::Node(YAML::NodeType::Map);
-      half_c.options["features"] = lasso_linear_options(fit_part, rq.axis, {})["features"];
-    }
-    const models::ModelPtr m =
-        training::fit_model(c.kind, fit_request(rq, half_c, fit_part, rq.validation ? &val_part : nullptr, lasso_cache));
-    if (!m) return;
-    b.carry = carry_over_errors(*m, train, half, rq.axis, o);
-  } catch (const std::exception&) {
-    return;
-  }
-  rescore(s, b, o);
+  return best;
 }
-
 }  // namespace
 
 double estimate_block_noise(const SelectionRequest& rq) {
   if (rq.slow.noise_nm > 0.0) return rq.slow.noise_nm;
   if (!rq.score_data || rq.score_data->size() <= rq.score_from) return NAN;
-  // The noise of a block mean, from the validation part's readings (σ/√samples per block).
   try {
     const io::Dataset tail = rq.score_data->slice(rq.score_from, rq.score_data->size());
     const NoiseFloor nf = estimate_noise_floor(tail, rq.axis);
     const double rate = tail.size() > 1 ? tail.sample_rate_hz() : 1.0;
-    const double rows = static_cast<double>(block_rows(rq.slow, rate, tail.size()));
-    return std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
+    const double rows = std::max(1.0, rq.slow.mean_s * rate);
+    return std::sqrt(2.0) * std::max(nf.sigma_nm, nf.quantisation_nm / std::sqrt(12.0)) / std::sqrt(rows);
   } catch (const std::exception&) {
     return NAN;  // too few samples for a noise figure
   }
 }
 
-Identification identification(const SlowScore& s, double block_noise_nm) {
+Identification identification(double carry_nm, double validation_nm, double noise_nm) {
   Identification id;
-  if (s.blocks.carry.empty()) {
-    id.unchecked = "no carry-over figure (a training part too short for the fold, or a half fit that failed)";
-    return id;
-  }
-  id.carry_nm = s.carry_nm;
-  id.moves_nm = s.moves_nm;
-  id.noise_nm = std::isfinite(block_noise_nm) && block_noise_nm > 0.0 ? block_noise_nm : 0.0;
-  if (!id.checked()) id.unchecked = "no moves in the validation part to compare with";
+  id.carry_nm = carry_nm;
+  id.validation_nm = validation_nm;
+  id.noise_nm = std::isfinite(noise_nm) && noise_nm > 0.0 ? noise_nm : 0.0;
+  if (!std::isfinite(carry_nm)) id.unchecked = "no carry-over figure (a training part too short for the fold)";
+  else if (!std::isfinite(validation_nm)) id.unchecked = "no use error on the validation part to compare with";
   return id;
 }
 
-Identification check_identification(const SelectionRequest& rq, const ModelCandidate& c, const models::Model& fitted) {
+Identification check_identification(const SelectionRequest& rq, const ModelCandidate& c, const models::Model& fitted,
+                                    const SlowScore* validation) {
   Identification id;
   if (!rq.train || !rq.score_data || rq.score_data->size() <= rq.score_from) {
     id.unchecked = "no validation part";
     return id;
   }
   try {
-    SlowScoreOptions o = rq.slow;
-    o.carry_fold = true;
     const double noise = estimate_block_noise(rq);
+    SlowScoreOptions o = rq.slow;
     if (std::isfinite(noise) && noise > 0.0) o.noise_nm = noise;
-    SlowScore s = slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
-    add_carry_over(rq, c, o, s, nullptr);
-    return identification(s, noise);
+    const SlowScore v = validation ? *validation : slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
+    const io::Dataset& train = *rq.train;
+    const std::size_t half = half_row(train);
+    if (half < 4 || double(train.size() - half) < 2.0 * o.move_long_s * train.sample_rate_hz())
+      return identification(NAN, v.overall_nm, noise);
+    const io::Dataset first = train.slice(0, half);
+    const std::size_t fit_rows = rq.validation ? half * 4 / 5 : half;
+    const io::Dataset fit_part = first.slice(0, fit_rows), val_part = first.slice(fit_rows, half);
+    ModelCandidate half_c = c;
+    if (c.lasso_features) {  // the features chosen again on the half; the candidate's other options kept
+      half_c.options = c.options && c.options.IsMap() ? YAML::Clone(c.options) : YAML::Node(YAML::NodeType::Map);
+      half_c.options["features"] = lasso_linear_options(fit_part, rq.axis, {})["features"];
+    }
+    const models::ModelPtr m =
+        training::fit_model(c.kind, fit_request(rq, half_c, fit_part, rq.validation ? &val_part : nullptr, nullptr));
+    if (!m) throw std::runtime_error("the half fit returned no model");
+    const SlowScore carry = slow_score(*m, train, half, rq.axis, o);
+    return identification(carry.overall_nm, v.overall_nm, noise);
   } catch (const std::exception& e) {
     id.unchecked = std::string("the check failed: ") + e.what();
     return id;
@@ -641,8 +550,8 @@ std::string Identification::describe(const std::string& label, double train_s) c
   if (!checked()) return "identification of " + label + ": not checked: " + (unchecked.empty() ? "no ratio" : unchecked);
   std::ostringstream os;
   os << "identification of " << label << ": fitted on the training part's first half it is " << fmt(carry_nm, 3)
-     << " nm off (block means) on the second half, the whole fit " << fmt(moves_nm, 3)
-     << " nm on the validation part's moves (block noise " << fmt(noise_nm, 2) << " nm): " << fmt(ratio(), 3) << "x";
+     << " nm off (overall use error) on the second half, the whole fit " << fmt(validation_nm, 3)
+     << " nm on the validation part (noise " << fmt(noise_nm, 2) << " nm): " << fmt(ratio(), 3) << "x";
   if (!flagged()) {
     os << " (<= " << fmt(kCarryOverAdvised) << ": the recording identifies it)";
   } else {
@@ -659,19 +568,6 @@ std::string unidentified_model_warning(const models::Model& model, const std::st
   return "model file " + path + ": its training recording did not identify it (fitted on the first half, " +
          fmt(c->second, 3) + "x worse on the second than on validation): expect larger errors than its validation "
          "figures; refit on a longer recording";
-}
-
-void align_carry_over(std::vector<CandidateResult>& table, const SlowScoreOptions& o) {
-  bool all = true;
-  for (const auto& r : table)
-    if (r.refused.empty() && r.slow.valid() && r.slow.blocks.carry.empty()) all = false;
-  if (all) return;
-  for (auto& r : table)
-    if (!r.slow.blocks.carry.empty()) {
-      SlowErrors b = r.slow.blocks;
-      b.carry.clear();
-      rescore(r.slow, b, o);
-    }
 }
 
 namespace {
@@ -693,46 +589,13 @@ CandidateResult fit_candidate(const SelectionRequest& rq, const ModelCandidate& 
     SeriesPrediction p;
     r.score = score_validation_series(*m, *rq.score_data, rq.score_from, rq.axis, p);
     r.refused = sanity_problem(*m, &r.score, sel.scale);
-    if (r.refused.empty()) {
-      r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
-      add_carry_over(rq, r.candidate, sel.slow_options, r.slow, &lasso_cache);
-    }
+    if (r.refused.empty()) r.slow = slow_score(*m, *rq.score_data, rq.score_from, rq.axis, sel.slow_options, &p.free_run);
   } catch (const std::exception& e) {
     r.refused = "kind " + r.candidate.kind + " refused: the fit failed: " + e.what();
   }
   r.fit_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   if (r.refused.empty()) r.model = std::move(m);
   return r;
-}
-
-// The choice over the table as it stands: carry-over aligned, cold starts far off excluded (recorded per row).
-Choice choose_from(Selection& sel) {
-  align_carry_over(sel.table, sel.slow_options);
-  std::vector<const SlowScore*> scored;
-  for (const auto& r : sel.table) scored.push_back(r.refused.empty() && r.slow.valid() ? &r.slow : nullptr);
-  const std::vector<std::string> cold_off = cold_start_exclusions(scored, sel.scale.position_range_nm);
-  std::vector<ChoiceEntry> entries;
-  for (std::size_t k = 0; k < sel.table.size(); ++k) {
-    sel.table[k].cold_start_off = cold_off[k];
-    entries.push_back({sel.table[k].candidate.label, sel.table[k].parameters, cold_off[k].empty() ? scored[k] : nullptr});
-  }
-  return choose_candidate(entries);
-}
-
-// The chosen PI or Preisach kind with its output map (the loop's static bend, models/pi_model.h), when it was fitted
-// without one: a further candidate, chosen by the same rule (its two more parameters lose to the plain kind within
-// the noise).
-bool output_map_candidate(const CandidateResult& chosen, ModelCandidate& out) {
-  if (!chosen.model || !dynamic_cast<const models::PiCreepModel*>(chosen.model.get())) return false;
-  const auto it = chosen.model->meta.validation.find("fit_output_map");
-  if (it != chosen.model->meta.validation.end() && it->second > 0) return false;
-  if (chosen.candidate.options && chosen.candidate.options.IsMap() && chosen.candidate.options["output_map"]) return false;
-  out = chosen.candidate;
-  out.label += " + output map";
-  out.options = chosen.candidate.options && chosen.candidate.options.IsMap() ? YAML::Clone(chosen.candidate.options)
-                                                                            : YAML::Node(YAML::NodeType::Map);
-  out.options["output_map"] = "on";
-  return true;
 }
 }  // namespace
 
@@ -746,77 +609,84 @@ Selection select_model(const SelectionRequest& rq) {
   sel.block_noise_nm = estimate_block_noise(rq);
   if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
   const std::vector<ModelCandidate> cands = rq.candidates.empty() ? default_candidates() : rq.candidates;
-  // The neural candidates' voltage_lasso is resolved once on the training part and once on its half (the fold's own).
-  training::LassoFeatureCache lasso_cache;
+  training::LassoFeatureCache lasso_cache;  // the neural candidates' voltage_lasso, resolved once
   for (std::size_t k = 0; k < cands.size(); ++k) {
     if (rq.progress) rq.progress(double(k), double(cands.size()), "fitting " + cands[k].label);
     sel.table.push_back(fit_candidate(rq, cands[k], sel, lasso_cache));
   }
-  Choice ch = choose_from(sel);
-  ModelCandidate mapped;
-  if (ch.chosen != SIZE_MAX && output_map_candidate(sel.table[ch.chosen], mapped)) {
-    if (rq.progress) rq.progress(double(cands.size()), double(cands.size()), "fitting " + mapped.label);
-    sel.table.push_back(fit_candidate(rq, mapped, sel, lasso_cache));
-    ch = choose_from(sel);
-  }
+  std::vector<ChoiceEntry> entries;
+  for (const auto& r : sel.table)
+    entries.push_back({r.candidate.label, r.parameters, r.refused.empty() && r.slow.valid() ? &r.slow : nullptr});
+  const Choice ch = choose_candidate(entries);
   if (ch.chosen == SIZE_MAX) {
     std::string why = "model selection: every candidate was refused:";
     for (const auto& r : sel.table)
-      why += "\n  " + (r.refused.empty() ? r.candidate.label + ": no slow-error score (too few validation samples)"
+      why += "\n  " + (r.refused.empty() ? r.candidate.label + ": no use-error score (too few validation samples)"
                                           : r.refused);
     throw FitRejected(why);
   }
   sel.best = ch.chosen;
   sel.best_overall = ch.best_overall;
   sel.reason = ch.reason;
-  sel.model = sel.table[sel.best].model->clone();
-  store_validation(sel.table[sel.best].score, *sel.model);
-  sel.identification = identification(sel.table[sel.best].slow, sel.block_noise_nm);
+  const CandidateResult& chosen = sel.table[sel.best];
+  sel.model = chosen.model->clone();
+  store_validation(chosen.score, *sel.model);
+  if (rq.identify) {
+    SelectionRequest id_rq = rq;
+    id_rq.slow = sel.slow_options;
+    sel.identification = check_identification(id_rq, chosen.candidate, *chosen.model, &chosen.slow);
+  } else {
+    sel.identification.unchecked = "not asked for";
+  }
   if (sel.identification.checked()) sel.model->meta.validation["carry_over_ratio"] = sel.identification.ratio();
   sel.model->meta.selection = selection_yaml(sel);
   return sel;
 }
 
+models::ModelPtr fit_auto(const io::Dataset& train, std::size_t n_fit, const std::string& axis, std::uint64_t seed,
+                          ModelCandidate* chosen, std::string* table) {
+  if (n_fit == 0 || n_fit >= train.size()) throw std::invalid_argument("--model auto: no fit or no validation rows");
+  const io::Dataset fit_part = train.slice(0, n_fit), val_part = train.slice(n_fit, train.size());
+  SelectionRequest rq = selection_request(fit_part, &val_part, train, n_fit, axis);
+  rq.seed = seed;
+  Selection sel = select_model(rq);
+  if (chosen) *chosen = sel.table[sel.best].candidate;
+  if (table) *table = selection_table(sel);
+  return std::move(sel.model);
+}
+
 namespace {
 std::string cell(double x) { return std::isfinite(x) ? fmt(x, 3) : std::string("–"); }
 
-// Whether the carry-over fold scored the candidates (off, a short training part, or a half fit that failed: not).
-bool carry_ran(const Selection& s) {
-  return std::any_of(s.table.begin(), s.table.end(), [](const CandidateResult& r) { return !r.slow.blocks.carry.empty(); });
+std::string rule_text(const SlowScoreOptions& o) {
+  return "each candidate fitted on the training part and run free over the held-out part, scored on the errors of "
+         "the predicted change over " + fmt(o.move_short_s) + " s and " + fmt(o.move_long_s) + " s of the moves "
+         "and of the creep in each hold from its start (" + fmt(o.mean_s) + "-s means, no zero needed); the fewest "
+         "parameters among the candidates no column of which is clearly worse (paired test over " + fmt(o.block_s) +
+         "-s blocks) than the lowest overall (geometric mean of the columns)";
 }
 }  // namespace
 
 std::string selection_table(const Selection& s) {
   std::ostringstream os;
   const auto& o = s.slow_options;
-  const double block_s = s.table.empty() || !std::isfinite(s.table[s.best].slow.block_s) ? o.block_s
-                                                                                         : s.table[s.best].slow.block_s;
-  os << "Model choice (`--model auto`): each candidate fitted on the training part and run free over the validation\n"
-        "part; scored on the slow part of the error, |mean(predicted - measured)| of " << fmt(block_s) << "-s blocks";
-  if (std::isfinite(s.block_noise_nm)) os << " (reading noise of a block mean ~" << fmt(s.block_noise_nm, 2) << " nm)";
-  os << ":\nmoves, holds (voltage unchanged >= " << fmt(o.hold_min_s) << " s), hold ends (last " << fmt(o.hold_end_s)
-     << " s of each hold), cold fold\n(the validation part alone, " << o.cold_starts << " starts from rest, scored after "
-     << fmt(o.cold_window_s) << " s at most" << (o.cold_start_estimate ? " with the start estimate there" : "")
-     << ")" << (carry_ran(s) ? ", carry-over\n(fitted again on the training part's first half, scored on its second half)" : "")
-     << "; overall = weighted geometric mean of (column + block noise), less the\n"
-        "noise (hold ends x" << fmt(o.hold_end_weight) << ", cold fold x" << fmt(o.cold_weight)
-     << (carry_ran(s) ? ", carry-over x" + fmt(o.carry_weight) : std::string()) << "). Lowest overall, then the fewest parameters\namong the candidates within the noise "
-        "of it (paired block test on every column). Position range "
-     << fmt(s.scale.position_range_nm, 4) << " nm.\n\n";
-  os << "| kind | parameters | moves [nm] | holds [nm] | hold ends [nm] | cold fold [nm] | carry-over [nm] | overall [nm] | status |\n";
-  os << "|---|---:|---:|---:|---:|---:|---:|---:|---|\n";
+  os << "Model choice (`--model auto`): " << rule_text(o) << ". Holds: the voltage unchanged >= " << fmt(o.hold_min_s)
+     << " s";
+  if (std::isfinite(s.block_noise_nm)) os << "; noise of a change of " << fmt(o.mean_s) << "-s means ~" << fmt(s.block_noise_nm, 2) << " nm";
+  os << ".\n\n| kind | parameters | 10-s moves [nm] | 60-s moves [nm] | hold creep [nm] | worst hold creep end [nm] | "
+        "overall [nm] | free-run MAE [nm] | status |\n|---|---:|---:|---:|---:|---:|---:|---:|---|\n";
   for (std::size_t k = 0; k < s.table.size(); ++k) {
     const auto& r = s.table[k];
     const auto& w = r.slow;
-    std::string status = r.refused.empty() ? r.cold_start_off : r.refused;
+    std::string status = r.refused;
     if (status.empty()) {
       if (s.model && k == s.best) status = "**chosen**";
       else if (k == s.best_overall) status = "lowest overall";
     }
-    os << "| " << r.candidate.label << " | " << r.parameters << " | " << cell(w.moves_nm) << " | " << cell(w.holds_nm)
-       << " | " << cell(w.hold_ends_nm) << " | " << cell(w.cold_nm) << " | " << cell(w.carry_nm) << " | "
-       << cell(w.overall_nm) << " | " << status
-       << " |\n";
+    os << "| " << r.candidate.label << " | " << r.parameters << " | " << cell(w.move_short_nm) << " | "
+       << cell(w.move_long_nm) << " | " << cell(w.hold_creep_nm) << " | " << cell(w.worst_hold_creep_nm) << " | "
+       << cell(w.overall_nm) << " | " << cell(r.score.finite && r.score.free_run.valid() ? r.score.free_run.mae_nm : NAN)
+       << " | " << status << " |\n";
   }
   if (!s.reason.empty()) os << "\nChoice: " << s.reason << "\n";
   return os.str();
@@ -825,26 +695,19 @@ std::string selection_table(const Selection& s) {
 YAML::Node selection_yaml(const Selection& s) {
   YAML::Node n;
   const auto& o = s.slow_options;
-  n["criterion"] = "slow part of the error: |mean(predicted - measured)| of " + fmt(o.block_s) +
-                   "-s blocks on moves, holds, hold ends (x" + fmt(o.hold_end_weight) +
-                   ") and a cold fold (x" + fmt(o.cold_weight) + ", " + std::to_string(o.cold_starts) + " starts from rest, scored after at most " +
-                   fmt(o.cold_window_s) + " s" + (o.cold_start_estimate ? " with the start estimate there" : "") + ")" +
-                   (carry_ran(s) ? " and a carry-over fold (x" + fmt(o.carry_weight) + ", the kind fitted again on the training part's first half, scored on its second half)" : std::string()) +
-                   "; overall = weighted geometric mean of (column + block noise) less the noise; "
-                   "lowest overall, then the fewest parameters within the noise of it "
-                   "(paired block test on every column), among the candidates passing the gates";
+  n["criterion"] = rule_text(o) + ", among the candidates passing the gates";
   if (!s.table.empty()) {
     n["chosen"] = s.table[s.best].candidate.label;
     n["chosen_kind"] = s.table[s.best].candidate.kind;
     n["lowest_overall"] = s.table[s.best_overall].candidate.label;
   }
   n["reason"] = s.reason;
-  n["block_s"] = s.table.empty() || !std::isfinite(s.table[s.best].slow.block_s) ? o.block_s
-                                                                                : s.table[s.best].slow.block_s;
+  n["mean_s"] = o.mean_s;
+  n["move_short_s"] = o.move_short_s;
+  n["move_long_s"] = o.move_long_s;
   n["hold_min_s"] = o.hold_min_s;
-  n["hold_end_s"] = o.hold_end_s;
-  n["hold_end_weight"] = o.hold_end_weight;
-  if (std::isfinite(s.block_noise_nm)) n["block_noise_nm"] = s.block_noise_nm;
+  n["block_s"] = o.block_s;
+  if (std::isfinite(s.block_noise_nm)) n["noise_nm"] = s.block_noise_nm;
   n["position_range_nm"] = s.scale.position_range_nm;
   YAML::Node rows(YAML::NodeType::Sequence);
   for (const auto& r : s.table) {
@@ -856,15 +719,12 @@ YAML::Node selection_yaml(const Selection& s) {
     auto put = [&](const char* key, double x) {
       if (std::isfinite(x)) row[key] = x;
     };
-    put("moves_nm", w.moves_nm);
-    put("holds_nm", w.holds_nm);
-    put("hold_ends_nm", w.hold_ends_nm);
-    put("worst_hold_end_nm", w.worst_hold_end_nm);
-    put("cold_fold_nm", w.cold_nm);
-    put("carry_over_nm", w.carry_nm);
+    put("move_10s_nm", w.move_short_nm);
+    put("move_60s_nm", w.move_long_nm);
+    put("hold_creep_nm", w.hold_creep_nm);
+    put("worst_hold_creep_end_nm", w.worst_hold_creep_nm);
     put("overall_nm", w.overall_nm);
-    put("hold_ends_vs_truth_nm", w.hold_ends_truth_nm);
-    put("worst_hold_end_vs_truth_nm", w.worst_hold_end_truth_nm);
+    put("hold_creep_vs_truth_nm", w.hold_creep_truth_nm);
     if (r.score.finite && r.score.free_run.valid()) {
       row["free_run_mae_nm"] = r.score.free_run.mae_nm;
       row["free_run_max_nm"] = r.score.free_run.max_nm;

@@ -12,6 +12,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/protocols/protocol.h"
@@ -146,17 +147,20 @@ bool names(const FoundEffect& e, SensitivityFamily f) {
 models::ModelPtr loop_base(const io::Dataset& train, ResidualOptions& ro, const std::string& kind) {
   const std::size_t n_fit =
       static_cast<std::size_t>(std::lround(static_cast<double>(train.size()) * (1.0 - ro.validation_fraction)));
-  ro.refit_base = [kind, axis = ro.axis, seed = ro.seed](const io::Dataset& f, const io::Dataset& v,
-                                                          const models::Model& previous, bool same_structure) {
+  ModelCandidate fitted{kind, kind, YAML::Node(), false};
+  models::ModelPtr base = kind == "auto" ? fit_auto(train, n_fit, ro.axis, ro.seed, &fitted)
+                                         : fit_axis_model(train, n_fit, ro.axis, kind, ro.seed, false);
+  ro.refit_base = [fitted, axis = ro.axis, seed = ro.seed](const io::Dataset& f, const io::Dataset& v,
+                                                           const models::Model& previous, bool same_structure) {
     training::FitRequest r;
     r.train = &f;
     r.validation = &v;
     r.axis = axis;
     r.seed = seed;
-    r.options = training::refit_options(previous, r.options, same_structure);
-    return training::fit_model(kind, r);
+    r.options = training::refit_options(previous, fitted.options, same_structure);
+    return training::fit_model(fitted.kind, r);
   };
-  return fit_axis_model(train, n_fit, ro.axis, kind, ro.seed, false);
+  return base;
 }
 
 std::vector<FoundEffect> run_trial(const Planted* p, const SensitivityOptions& o, std::uint64_t seed, double& sigma_nm) {
