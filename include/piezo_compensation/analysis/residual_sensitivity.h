@@ -55,6 +55,11 @@ struct SensitivityResult {
 
 SensitivityResult run_sensitivity(const SensitivityOptions& o);
 
+// One of the harness's stages: `family` planted on c at size_sigma (null: clean), `hours` long, the seed's random
+// walk and temperature; *sigma_nm (optional) receives c's reading noise.
+io::Dataset sensitivity_stage(const SensitivityFamily* family, double size_sigma, double hours, std::uint64_t seed,
+                              double* sigma_nm = nullptr);
+
 // A markdown table: one row per family, one column per size (detected / trials), then the clean stages'
 // false-positive rate, and the options that reproduce it.
 std::string sensitivity_table(const SensitivityResult& r, const SensitivityOptions& o);

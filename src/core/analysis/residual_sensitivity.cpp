@@ -345,6 +345,15 @@ SensitivityFamily parse_sensitivity_family(const std::string& name) {
   throw std::invalid_argument("unknown sensitivity family '" + name + "' (valid: periodic, cross_axis, aux_signal, gain)");
 }
 
+io::Dataset sensitivity_stage(const SensitivityFamily* family, double size_sigma, double hours, std::uint64_t seed,
+                              double* sigma_nm) {
+  double sigma = 0.0;
+  const Planted p{family ? *family : SensitivityFamily::kPeriodic, size_sigma};
+  io::Dataset d = make_stage(family ? &p : nullptr, hours, seed, sigma);
+  if (sigma_nm) *sigma_nm = sigma;
+  return d;
+}
+
 SensitivityResult run_sensitivity(const SensitivityOptions& o) {
   if (!(o.hours >= 0.5) || !(o.train_fraction > 0.3 && o.train_fraction < 0.95) || o.trials < 0 || o.clean_trials < 0)
     throw std::invalid_argument("sensitivity: hours must be ≥ 0.5, train fraction in (0.3, 0.95), trials ≥ 0");
