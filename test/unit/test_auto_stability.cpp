@@ -57,3 +57,4 @@ TEST(AutoStability, APlantedEffectDoesNotChangeTheChoiceBeyondTheNoise) {
                         << "\n" << analysis::selection_table(planted);
   }
 }
+

@@ -132,7 +132,8 @@ std::string use_error_table(const std::vector<std::pair<std::string, const model
 // The choice among scored candidates. best_overall: the lowest overall; chosen: of the candidates within the
 // noise of it, the one with the fewest parameters (ties: lower overall). reason: one line. Clearly worse on a column:
 // the paired test over blocks (training::validation_prefers) prefers the best, and the column's mean is higher by
-// more than the noise of one entry (a consistent difference smaller than the reading noise is no difference to a user).
+// more than the noise of one entry: a difference smaller than the noise of one measured move or creep is no
+// difference to a user, however consistent.
 struct ChoiceEntry {
   std::string label;
   std::size_t parameters = 0;

@@ -290,8 +290,8 @@ bool within_noise(const SlowScore& best, const SlowScore& other, std::vector<std
     const auto& a = best.blocks.*c.v;
     const auto& b = other.blocks.*c.v;
     if (a.empty() || b.empty()) continue;
-    const double margin = (other.*c.mean) - (best.*c.mean);
-    if (margin > best.noise_nm && training::validation_prefers(a, b, std::max(best.block, std::size_t{1}))) {
+    const std::size_t block = std::max(best.block, std::size_t{1});
+    if ((other.*c.mean) - (best.*c.mean) > best.noise_nm && training::validation_prefers(a, b, block)) {
       within = false;
       if (worse) worse->push_back(c.name);
     }
