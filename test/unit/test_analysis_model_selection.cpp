@@ -214,6 +214,26 @@ TEST(UseErrors, HoldCreepIsScoredFromEachHoldsStart) {
   for (double x : e.move_short) EXPECT_NEAR(x, 0.0, 1e-9);  // the level step at the hold is not a move
 }
 
+// A held-out part shorter than four long moves is scored at its own time scale: windows, moves and blocks scaled by
+// span / (4 · 60 s); a long one keeps the defaults. Scored so, the drifting prediction is off by its drift over the
+// scaled moves.
+TEST(UseErrors, AShortHeldOutPartIsScoredAtItsOwnTimeScale) {
+  const io::Dataset d = series(1201, moving_v, [](int i) { return 100.0 * moving_v(i); });  // 120 s at 10 Hz
+  const analysis::SlowScoreOptions o = analysis::fitted_to_part({}, d, 600);                 // the last 60 s
+  EXPECT_NEAR(o.time_scale, 0.25, 1e-9);
+  EXPECT_NEAR(o.mean_s, 1.25, 1e-9);
+  EXPECT_NEAR(o.move_short_s, 2.5, 1e-9);
+  EXPECT_NEAR(o.move_long_s, 15.0, 1e-9);
+  EXPECT_EQ(analysis::fitted_to_part({}, d, 0).time_scale, 0.5);
+  const io::Dataset long_part = series(6000, moving_v, [](int i) { return 100.0 * moving_v(i); });
+  EXPECT_EQ(analysis::fitted_to_part({}, long_part, 0).time_scale, 1.0);
+  std::vector<double> p = d.axis("c").position_nm;
+  for (std::size_t i = 0; i < p.size(); ++i) p[i] += 0.1 * double(i);  // 1 nm/s
+  const analysis::SlowScore s = analysis::summarise_slow(analysis::use_errors(p, d.axis("c").position_nm, d, "c", 600, o), o);
+  EXPECT_NEAR(s.move_short_nm, 2.5, 1e-6);
+  EXPECT_NEAR(s.move_long_nm, 15.0, 1e-6);
+}
+
 // ---- the choice rule ----
 
 namespace {

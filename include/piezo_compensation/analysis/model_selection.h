@@ -85,7 +85,13 @@ struct SlowScoreOptions {
   // correlated: one slow error shows in every pair that spans it).
   double block_s = 60.0;
   double noise_nm = 0.0;  // noise of a difference of two window means [nm]; 0: select_model estimates it
+  double time_scale = 1.0;  // < 1: the times above scaled to a short held-out part (fitted_to_part)
 };
+// A held-out recording shorter than kMovesPerPart long moves: the window, both moves and the block scaled down by
+// span / (kMovesPerPart · move_long_s), so that a short recording is scored on the same shape of errors at its own
+// time scale rather than not at all (a 5-s tail at 200 Hz: moves of 0.2 s and 1.3 s).
+constexpr double kMovesPerPart = 4.0;
+SlowScoreOptions fitted_to_part(const SlowScoreOptions& o, const io::Dataset& data, std::size_t from);
 
 // Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s, none
 // across the start of a recording.
@@ -213,7 +219,8 @@ Identification identification(double carry_nm, double validation_nm, double nois
 // The noise of a difference of two window means on the request's validation part (√2 σ of a reading / √rows per
 // window); NaN when the part is too short for a noise figure or missing.
 double estimate_block_noise(const SelectionRequest& request);
-// The carry-over check of `fitted` (its slow score on the validation part: `validation`, or computed when null):
+// The carry-over check of `fitted` (its slow score on the validation part: `validation`, or computed when null;
+// the request's options fitted_to_part the validation part, as select_model scores):
 // one more fit of the candidate's kind, with its options, on the training part's first half (whole recordings when
 // there are several). Never throws: a failure is the `unchecked` reason.
 Identification check_identification(const SelectionRequest& request, const ModelCandidate& candidate,

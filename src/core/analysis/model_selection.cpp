@@ -519,8 +519,10 @@ Identification check_identification(const SelectionRequest& rq, const ModelCandi
     return id;
   }
   try {
-    const double noise = estimate_block_noise(rq);
-    SlowScoreOptions o = rq.slow;
+    SelectionRequest scaled = rq;
+    scaled.slow = fitted_to_part(rq.slow, *rq.score_data, rq.score_from);
+    const double noise = estimate_block_noise(scaled);
+    SlowScoreOptions o = scaled.slow;
     if (std::isfinite(noise) && noise > 0.0) o.noise_nm = noise;
     const SlowScore v = validation ? *validation : slow_score(fitted, *rq.score_data, rq.score_from, rq.axis, o);
     const io::Dataset& train = *rq.train;
@@ -599,14 +601,31 @@ CandidateResult fit_candidate(const SelectionRequest& rq, const ModelCandidate& 
 }
 }  // namespace
 
+SlowScoreOptions fitted_to_part(const SlowScoreOptions& o, const io::Dataset& data, std::size_t from) {
+  double span = INFINITY;  // the shortest held-out recording
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [rb, re] = data.recording_rows(k);
+    const std::size_t b = std::max(rb, from);
+    if (b + 1 < re) span = std::min(span, data.time_s[re - 1] - data.time_s[b]);
+  }
+  const double f = std::isfinite(span) ? span / (kMovesPerPart * o.move_long_s) : 1.0;
+  if (!(f < 1.0 - 1e-9) || !(f > 0.0)) return o;  // a part already scaled to keeps its options
+  SlowScoreOptions s = o;
+  s.mean_s *= f, s.move_short_s *= f, s.move_long_s *= f, s.block_s *= f;
+  s.time_scale = o.time_scale * f;
+  return s;
+}
+
 Selection select_model(const SelectionRequest& rq) {
   if (!rq.train || !rq.score_data) throw std::invalid_argument("model selection: no training or validation data");
   if (rq.score_data->size() <= rq.score_from)
     throw std::invalid_argument("model selection needs validation samples (use --split < 1 or --validation)");
   Selection sel;
   sel.scale = data_scale(*rq.train, rq.axis);
-  sel.slow_options = rq.slow;
-  sel.block_noise_nm = estimate_block_noise(rq);
+  SelectionRequest scaled = rq;
+  scaled.slow = fitted_to_part(rq.slow, *rq.score_data, rq.score_from);
+  sel.slow_options = scaled.slow;
+  sel.block_noise_nm = estimate_block_noise(scaled);
   if (std::isfinite(sel.block_noise_nm) && sel.block_noise_nm > 0.0) sel.slow_options.noise_nm = sel.block_noise_nm;
   const std::vector<ModelCandidate> cands = rq.candidates.empty() ? default_candidates() : rq.candidates;
   training::LassoFeatureCache lasso_cache;  // the neural candidates' voltage_lasso, resolved once
@@ -672,6 +691,8 @@ std::string selection_table(const Selection& s) {
   const auto& o = s.slow_options;
   os << "Model choice (`--model auto`): " << rule_text(o) << ". Holds: the voltage unchanged >= " << fmt(o.hold_min_s)
      << " s";
+  if (o.time_scale < 1.0)
+    os << "; the held-out part is short: windows, moves and blocks scaled by " << fmt(o.time_scale, 3);
   if (std::isfinite(s.block_noise_nm)) os << "; noise of a change of " << fmt(o.mean_s) << "-s means ~" << fmt(s.block_noise_nm, 2) << " nm";
   os << ".\n\n| kind | parameters | 10-s moves [nm] | 60-s moves [nm] | hold creep [nm] | worst hold creep end [nm] | "
         "overall [nm] | free-run MAE [nm] | status |\n|---|---:|---:|---:|---:|---:|---:|---:|---|\n";
@@ -707,6 +728,7 @@ YAML::Node selection_yaml(const Selection& s) {
   n["move_long_s"] = o.move_long_s;
   n["hold_min_s"] = o.hold_min_s;
   n["block_s"] = o.block_s;
+  if (o.time_scale < 1.0) n["time_scale"] = o.time_scale;
   if (std::isfinite(s.block_noise_nm)) n["noise_nm"] = s.block_noise_nm;
   n["position_range_nm"] = s.scale.position_range_nm;
   YAML::Node rows(YAML::NodeType::Sequence);
