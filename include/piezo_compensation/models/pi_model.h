@@ -13,7 +13,7 @@
 // Every PI and Preisach kind may carry an output map: a monotone static nonlinearity S of the hysteresis output H,
 //   y = b + S(H) + creep,   S(H) = H + a₂·z² + a₃·z³,   z = (H − H_mid)/H_half on [H_lo, H_hi], affine beyond,
 // (the superposition operator of the modified PI: loops whose middle and ends bend differently, which the odd play
-// operators cannot; the real MM3E's c axis, docs/models.md "Real recordings"). The creep input stays H. Stored as
+// operators cannot; the real MM3E's c axis, docs/validation/models.md "Real recordings"). The creep input stays H. Stored as
 // `output_map: {h_range_nm: [lo, hi], quadratic_nm, cubic_nm}`; S' > 0 on its range is checked on load.
 #pragma once
 

@@ -481,7 +481,7 @@ void Loop::rechoose_jointly() {
 
 // The lag of a term on an auxiliary signal (a temperature felt through the mount) as a first-order low-pass, its
 // τ profiled at the end with the base refitted for each τ (Backfitter::profile_lag): chosen on the residual of a
-// base refitted at another lag, a lag confirms itself (docs/closing-the-loop.md, "The lag of a slow signal").
+// base refitted at another lag, a lag confirms itself (docs/validation/residual-loop.md, "The lag of a slow signal").
 LagProfile Loop::profile_lags(std::size_t q, const std::string& family, std::map<std::string, double>& parameters,
                               std::map<std::string, std::string>& labels) {
   LagProfile first_profile;

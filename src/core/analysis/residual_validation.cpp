@@ -71,7 +71,7 @@ Val score_candidate(const Validator& v, const std::vector<EffectTerm>& fixed, co
 
 // The output gain with f linear is the default; another form must be clearly better (paired blocks), a quadratic
 // also by AcceptanceThresholds::quadratic_form_margin: a form that wins by a hair on validation can still be far
-// off in TEST (docs/closing-the-loop.md, "What limited (a)").
+// off in TEST (docs/validation/residual-loop.md, "Additive and gain effects").
 void Validator::choose_gain_form(FamilyScore& s, const std::vector<EffectTerm>& fixed, Val& v) const {
   const Candidate base_cand = s.best;
   for (const char* scales : {models::kSignalPosition, models::kSignalVoltage})

@@ -207,7 +207,7 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
     // The low-passed steps start from zero and are divided by 1 − αⁿ (a debiased mean): from the first step on
     // they estimate the recent step statistics. Not debiased, |ΔV| would rise from zero over a few τ, a start-up
     // decay a fit can trade against the base's start transients and then carry as an offset once settled
-    // (docs/closing-the-loop.md, "Live loop").
+    // (docs/validation/residual-loop.md, "Live loop").
     double decay_new = st.decay;
     if (st.fresh) {
       for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = 0.0;  // no step yet: nothing is known
