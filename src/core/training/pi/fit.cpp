@@ -10,6 +10,7 @@
 #include "gram.h"
 #include "options.h"
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/training/fit_common.h"
@@ -55,28 +56,17 @@ double search_1d(F&& f, double lo, double hi, int grid, int iters) {
   return golden(f, std::max(lo, best - step), std::min(hi, best + step), iters);
 }
 
-// Protocol phase code of a hold (protocols::Phase::kHold; io stores the integer).
-constexpr int kHoldPhase = 1;
-
-// Hold samples: the phase markers where present, else runs of constant voltage of at least max(2 s, 20 samples)
-// (tolerance 1e-4 of the voltage span, so a read-back with a few LSB of noise still counts).
-std::vector<char> hold_mask(const io::Dataset& data, const io::AxisSeries& ax) {
-  const std::size_t N = ax.voltage_v.size();
-  std::vector<char> m(N, 0);
-  if (data.phase.size() == N) {
-    for (std::size_t t = 0; t < N; ++t) m[t] = data.phase[t] == kHoldPhase;
-    return m;
-  }
-  const auto [mn, mx] = std::minmax_element(ax.voltage_v.begin(), ax.voltage_v.end());
-  const double tol = 1e-4 * std::max(1e-12, *mx - *mn);
-  const std::size_t min_len = std::max<std::size_t>(20, static_cast<std::size_t>(2.0 * data.sample_rate_hz()));
-  std::size_t start = 0;
-  for (std::size_t t = 1; t <= N; ++t)
-    if (t == N || std::abs(ax.voltage_v[t] - ax.voltage_v[start]) > tol) {
-      if (t - start >= min_len) std::fill(m.begin() + start + 1, m.begin() + t, 1);  // first sample is the move
-      start = t;
-    }
-  return m;
+// Hold rows of the training or validation data (the hold weights, the validation's hold and walk errors): the
+// phase markers where present, else runs of a constant voltage lasting at least 2 s and 20 samples, within 1e-4 of
+// the voltage span (a read-back with a few LSB of noise still counts), without the row that steps onto it.
+std::vector<char> fit_hold_rows(const io::Dataset& data, const std::string& axis) {
+  io::HoldRule rule;
+  rule.min_duration_s = 2.0;
+  rule.min_rows = 20;
+  rule.tolerance_v = 0.0;
+  rule.tolerance_of_span = 1e-4;
+  rule.skip_first_row = true;
+  return io::hold_rows(data.size(), io::find_holds(data, axis, rule));
 }
 
 struct Score {
@@ -227,7 +217,7 @@ PiCreepFit::PiCreepFit(const FitRequest& req, CreepKind kind, bool preisach)
       cp0_(initial_creep()),
       d_{&ax_.voltage_v, &ax_.position_nm, rate_} {
   d_.initial_state_terms = opt_.initial_state_terms;
-  if (val_) val_hold_ = hold_mask(*req.validation, *val_);
+  if (val_) val_hold_ = fit_hold_rows(*req.validation, req.axis);
   min_w0_ = min_slope(ax_, opt_.min_slope_fraction);
   const double per_search = kind == CreepKind::kNone || kind == CreepKind::kProny ? 1
                             : kind == CreepKind::kLti                           ? 21.0 * opt_.n_pairs
@@ -553,7 +543,7 @@ models::ModelPtr PiCreepFit::run() {
   const Basis r = choose_play_count();
   Score score;
   std::unique_ptr<PiCreepModel> m = choose_creep_input(r, score);
-  const std::vector<char> train_hold = hold_mask(*req_.train, ax_);
+  const std::vector<char> train_hold = fit_hold_rows(*req_.train, req_.axis);
   std::vector<double> weight;
   const double used_factor = choose_hold_weight(r, score, train_hold, m, weight);
   final_fit(r, used_factor, weight, train_hold, m);
@@ -584,7 +574,7 @@ models::ModelPtr fit_pi_creep(const FitRequest& req, models::CreepKind kind, boo
 
 YAML::Node refit_options(const models::Model& previous, const YAML::Node& options, bool same_structure) {
   YAML::Node o = options && options.IsMap() ? YAML::Clone(options) : YAML::Node(YAML::NodeType::Map);
-  const auto* pc = dynamic_cast<const models::PiCreepModel*>(&previous);
+  const models::PiCreepModel* pc = previous.pi_family();
   if (!pc) return o;
   const CreepParams& cp = pc->creep();
   // Same structure: the previous play thresholds, creep input and maps, so that refits compared with each other
