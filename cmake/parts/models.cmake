@@ -15,6 +15,8 @@ if(TARGET test_models_export)
   target_compile_definitions(test_models_export PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
 endif()
 piezo_unit_test(test_eval_metrics test/unit/test_eval_metrics.cpp)
+# The fit plan the CLI runs (training/fit_plan.h).
+piezo_unit_test(test_training_fit_plan test/unit/test_training_fit_plan.cpp)
 # The start-up state estimate (models/start_state.h): the checks (fast) and the docs/models.md table (slow: fits).
 piezo_unit_test_shards(test_start_state test/unit/test_start_state.cpp SHARDS
   checks "StartState.*" table "StartStateTable.*")

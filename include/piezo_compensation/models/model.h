@@ -16,6 +16,8 @@ namespace piezo::models {
 // The input of one sample (features/model_input.h): the layer below models owns it, models use it.
 using ModelInput = features::ModelInput;
 
+class PiCreepModel;  // models/pi_model.h
+
 // Where training-like operation keeps one linear state (Model::linear_state_nm): a line in the applied voltage and
 // the scatter about it, both over the model's free run on its training data. The start estimate's prior for a
 // history it has not seen (models/start_state.h).
@@ -105,6 +107,16 @@ class Model {
   virtual double linear_state_nm(std::size_t /*k*/) const { return 0.0; }
   // Moves state k so that the next prediction changes by delta_nm (later ones by what the state makes of it).
   virtual void shift_linear_state(std::size_t /*k*/, double /*delta_nm*/) {}
+
+  // What a tool asks of a kind without knowing it:
+  // the time constants [s] of the creep modes (empty: none); an augmented model answers for its base.
+  virtual std::vector<double> creep_mode_taus_s() const { return {}; }
+  // The PI or Preisach model this is (null for every other kind): its play thresholds, creep law and maps, for a
+  // refit of the same structure, the output map's fit and the C export.
+  virtual const PiCreepModel* pi_family() const { return nullptr; }
+  virtual PiCreepModel* pi_family() { return nullptr; }
+  // Whether the kind takes an output map, a monotone bend of its hysteresis output (training/fitters.h).
+  virtual bool takes_output_map() const { return false; }
 
   ModelMeta meta;
 };

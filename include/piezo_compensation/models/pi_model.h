@@ -79,6 +79,10 @@ class PiCreepModel : public Model {
   void set_output_map(const OutputMap& map);
   const CreepParams& creep() const { return creep_; }
   const std::vector<double>& mode_taus_s() const { return taus_; }
+  std::vector<double> creep_mode_taus_s() const override { return taus_; }
+  const PiCreepModel* pi_family() const override { return this; }
+  PiCreepModel* pi_family() override { return this; }
+  bool takes_output_map() const override { return true; }
   const std::vector<double>& mode_gains() const { return gains_; }
   const std::vector<double>& mode_poles() const { return poles_; }
   double sample_rate_hz() const { return rate_hz_; }

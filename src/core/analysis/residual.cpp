@@ -47,10 +47,7 @@ std::vector<double> run_model(models::Model& m, const io::Dataset& d, const std:
 // the same range.
 std::vector<double> start_transient_taus(const models::Model& base, const io::Dataset& train) {
   const double duration = train.time_s.back() - train.time_s.front();
-  const models::Model* m = &base;
-  if (const auto* aug = dynamic_cast<const models::AugmentedModel*>(m)) m = &aug->base();
-  std::vector<double> taus;
-  if (const auto* pi = dynamic_cast<const models::PiCreepModel*>(m)) taus = pi->mode_taus_s();
+  std::vector<double> taus = base.creep_mode_taus_s();
   if (taus.empty()) taus = {10.0, 100.0, 1000.0};
   std::vector<double> out;
   for (double t : taus)

@@ -462,7 +462,7 @@ std::string export_c99_linear(const Model& model, const std::string& prefix) {
 
 std::string export_c99_pi(const Model& model, const std::string& prefix) {
   check_prefix(prefix);
-  const auto* m = dynamic_cast<const PiCreepModel*>(&model);
+  const PiCreepModel* m = model.pi_family();
   if (!m) throw std::runtime_error("C export: model of kind '" + model.kind() + "' is not a PI model");
   std::ostringstream os;
   os << header_open(prefix, model, std::string(m->preisach()         ? "discrete Preisach (play pieces)"
@@ -512,13 +512,8 @@ std::string export_c99_augmented(const Model& model, const std::string& prefix) 
   std::vector<std::string> type, signal, lag, ring0, nreg, scales, inread;
   std::vector<double> alpha, thr, period, pc, ps, ref, c, sc, w;
   long ring = 0;
-  static const char* names[] = {"linear", "play", "sincos", "rate", "powers", "gain", "gain_quadratic"};
   for (const auto& t : m->terms()) {
-    int code = -1;
-    for (int i = 0; i < 7; ++i)
-      if (t.type == names[i]) code = i;
-    if (code < 0) throw std::runtime_error("C export: term type '" + t.type + "' is not supported");
-    type.push_back(std::to_string(code));
+    type.push_back(std::to_string(static_cast<int>(t.kind())));  // the term code: TermKind's order
     int sig = -1;
     if (t.signal == kSignalPosition) sig = -2;
     else if (t.signal != kSignalVoltage)
