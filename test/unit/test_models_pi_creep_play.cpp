@@ -1,5 +1,5 @@
-// Kind pi_creep_play: exact inverse, monotone loop ends, the fit on its own physics, the model file, clone and
-// stream, and the exported C99 header against the C++ stream.
+// Kind pi_creep_play: exact inverse, monotone loop ends, the fit on its own physics, the model file, clone
+// and stream, and the exported C99 header against the C++ stream.
 #include <gtest/gtest.h>
 #include <unistd.h>
 
@@ -21,14 +21,21 @@ using models::PiCreepPlayModel;
 
 namespace {
 
-// Six plays over ±80 V; creep on the linear term and on two of the wide plays, each at its own time constants.
-PiCreepPlayModel make_play_model(double rate_hz = 11.0) {
+// Six plays over ±80 V; creep on the linear term and on two of the wide plays, each at its own time
+// constants; with bends, the linear term curves up and play 2 down on their ranges.
+PiCreepPlayModel make_play_model(bool bends = true) {
   const std::vector<double> r = {0, 10, 20, 30, 45, 60}, taus = {5, 60, 600};
   std::vector<double> g(r.size() * taus.size(), 0.0);
   g[0 * 3 + 0] = 0.4, g[0 * 3 + 2] = 0.3;  // linear term: fast and slow creep
   g[3 * 3 + 1] = 0.8;                      // play 3: minute creep
   g[5 * 3 + 2] = 1.2;                      // widest play: slow creep
-  return PiCreepPlayModel(r, {8.0, 2.0, 1.5, 1.0, 0.6, 0.4}, taus, g, 30.0, rate_hz);
+  models::PlayBends b;
+  if (bends) {
+    for (double ri : r) b.lo_v.push_back(-80 + ri), b.hi_v.push_back(80 - ri);
+    b.convex_nm_per_v = {1.5, 0, 0, 0, 0, 0};
+    b.concave_nm_per_v = {0, 0, 1.0, 0, 0, 0};
+  }
+  return PiCreepPlayModel(r, {8.0, 2.0, 1.5, 1.0, 0.6, 0.4}, taus, g, 30.0, 11.0, b);
 }
 
 std::vector<double> stream_of(models::Model& m, const std::vector<double>& v) {
@@ -55,7 +62,7 @@ std::string run_shell(const std::string& cmd) {
 
 TEST(PiCreepPlay, InverseIsExactOnRandomWalks) {
   for (std::uint64_t seed : {3u, 8u, 21u}) {
-    PiCreepPlayModel m = make_play_model();
+    PiCreepPlayModel m = make_play_model(seed != 8u);
     const auto v = testdata::random_walk_v(6000, seed);
     m.reset(v[0], 0);
     std::mt19937_64 rng(seed);
@@ -73,6 +80,7 @@ TEST(PiCreepPlay, InverseIsExactOnRandomWalks) {
 
 TEST(PiCreepPlay, LoopEndsAreMonotone) {
   PiCreepPlayModel m = make_play_model();
+  EXPECT_FALSE(m.bends().empty());
   // Every state of a random walk: the prediction strictly increasing in V over the whole range.
   const auto v = testdata::random_walk_v(4000, 5);
   m.reset(v[0], 0);
@@ -89,8 +97,10 @@ TEST(PiCreepPlay, LoopEndsAreMonotone) {
     for (int k = 1; k <= 320; ++k) {
       const double x = pass % 2 == 0 ? -80 + 0.5 * k : 80 - 0.5 * k;
       const double y = m.predict_v(x);
-      if (pass % 2 == 0) EXPECT_GT(y, prev) << pass << " " << k;
-      else EXPECT_LT(y, prev) << pass << " " << k;
+      if (pass % 2 == 0)
+        EXPECT_GT(y, prev) << pass << " " << k;
+      else
+        EXPECT_LT(y, prev) << pass << " " << k;
       m.commit({x, nullptr}, y);
       prev = y;
     }
@@ -98,11 +108,12 @@ TEST(PiCreepPlay, LoopEndsAreMonotone) {
 
 TEST(PiCreepPlay, RefusesWhatCouldNotBeInverted) {
   const std::vector<double> r = {0, 10}, taus = {5};
-  EXPECT_THROW(PiCreepPlayModel(r, {1.0, -0.1}, taus, {0, 0}, 0, 11), std::runtime_error);   // negative weight
-  EXPECT_THROW(PiCreepPlayModel(r, {1.0, 1.0}, taus, {0, -1e-3}, 0, 11), std::runtime_error);  // negative gain
-  EXPECT_THROW(PiCreepPlayModel(r, {0.0, 1.0}, taus, {0, 0}, 0, 11), std::runtime_error);    // flat linear term
+  EXPECT_THROW(PiCreepPlayModel(r, {1.0, -0.1}, taus, {0, 0}, 0, 11), std::runtime_error);  // negative weight
+  EXPECT_THROW(PiCreepPlayModel(r, {1.0, 1.0}, taus, {0, -1e-3}, 0, 11),
+               std::runtime_error);                                                        // negative gain
+  EXPECT_THROW(PiCreepPlayModel(r, {0.0, 1.0}, taus, {0, 0}, 0, 11), std::runtime_error);  // flat linear term
   EXPECT_THROW(PiCreepPlayModel({5, 10}, {1, 1}, taus, {0, 0}, 0, 11), std::runtime_error);  // no linear term
-  EXPECT_THROW(PiCreepPlayModel(r, {1, 1}, {}, {}, 0, 11), std::runtime_error);              // no time constant
+  EXPECT_THROW(PiCreepPlayModel(r, {1, 1}, {}, {}, 0, 11), std::runtime_error);  // no time constant
   EXPECT_NO_THROW(PiCreepPlayModel(r, {0.0, 1.0}, taus, {0.5, 0}, 0, 11));  // the slope comes from the creep
 }
 
@@ -123,7 +134,8 @@ TEST(PiCreepPlay, FitRecoversItsOwnPhysics) {
   const auto& t = data.axis("c").true_position_nm;
   double mean = 0, mae = 0, span = 0;
   for (std::size_t i = train.size(); i < data.size(); ++i) mean += (t[i] - pred[i]) / double(val.size());
-  for (std::size_t i = train.size(); i < data.size(); ++i) mae += std::abs(pred[i] + mean - t[i]) / double(val.size());
+  for (std::size_t i = train.size(); i < data.size(); ++i)
+    mae += std::abs(pred[i] + mean - t[i]) / double(val.size());
   for (double x : t) span = std::max(span, std::abs(x));
   EXPECT_LT(mae, 3.0) << "MAE " << mae << " nm of ±" << span;
   const auto* p = dynamic_cast<const PiCreepPlayModel*>(m.get());
@@ -160,11 +172,15 @@ TEST(PiCreepPlay, FileRoundTripCloneAndStreamAgree) {
   io::Dataset data = testdata::make_dataset(m, v, 11.0, 0.0, 1);
   auto s = back->clone();
   const auto r = models::stream_model(*s, data, "c");
-  for (std::size_t i = 0; i < v.size(); ++i) ASSERT_EQ(r.prediction[i], data.axis("c").true_position_nm[i]) << i;
+  for (std::size_t i = 0; i < v.size(); ++i)
+    ASSERT_EQ(r.prediction[i], data.axis("c").true_position_nm[i]) << i;
   // A negative gain in a file is one clear error.
   YAML::Node bad = YAML::Load(YAML::Dump(file));
   bad["model"]["creep"]["gains_nm_per_v"][0] = -1.0;
   EXPECT_THROW(models::model_from_file_yaml(bad, "bad"), std::runtime_error);
+  YAML::Node folded = YAML::Load(YAML::Dump(file));
+  folded["model"]["bends"]["concave_nm_per_v"][2] = -0.5;
+  EXPECT_THROW(models::model_from_file_yaml(folded, "folded"), std::runtime_error);
 }
 
 TEST(PiCreepPlay, LinearStatesShiftThePrediction) {
@@ -177,35 +193,41 @@ TEST(PiCreepPlay, LinearStatesShiftThePrediction) {
 }
 
 TEST(PiCreepPlay, ExportedCMatchesCppStreamAndInverse) {
-  PiCreepPlayModel m = make_play_model();
-  const std::string dir = ::testing::TempDir(), tag = "pcp" + std::to_string(::getpid());
-  const std::string hdr = dir + tag + ".h", src = dir + tag + ".c", exe = dir + tag, in = dir + tag + ".txt";
-  std::ofstream(hdr) << models::export_c99(m, "pz");
-  std::ofstream(src) << "#include <stdio.h>\n#include \"" << hdr << "\"\n"
-                     << "int main(void) { pz_state s; double v; int first = 1;\n"
-                     << "  while (scanf(\"%lf\", &v) == 1) {\n"
-                     << "    if (first) { pz_init(&s, v, 0.0); first = 0; }\n"
-                     << "    double inv = pz_inverse(&s, 100.0 + v);\n"
-                     << "    printf(\"%.17g %.17g\\n\", pz_step(&s, v, NAN), inv); }\n  return 0; }\n";
-  const std::string build =
-      run_shell(std::string(PIEZO_C_COMPILER) + " -std=c99 -Wall -Wextra -Werror -pedantic -O2 -o " + exe + " " + src + " -lm 2>&1");
-  ASSERT_EQ(build, "") << "C compile failed";
-  const auto v = testdata::random_walk_v(4000, 12);
-  std::ostringstream os;
-  os.precision(17);
-  for (double x : v) os << x << "\n";
-  std::ofstream(in) << os.str();
-  std::istringstream out(run_shell(exe + " < " + in));
-  m.reset(v[0], 0);
-  std::size_t rows = 0;
-  double worst = 0, y_c = 0, inv_c = 0;
-  while (out >> y_c >> inv_c) {
-    ASSERT_LT(rows, v.size());
-    const double x = v[rows++];
-    const double inv = m.inverse(100.0 + x), y = m.predict_v(x);
-    worst = std::max({worst, std::abs(y_c - y) / (1 + std::abs(y)), std::abs(inv_c - inv) / (1 + std::abs(inv))});
-    m.commit({x, nullptr}, y);
+  for (bool bends : {false, true}) {
+    PiCreepPlayModel m = make_play_model(bends);
+    const std::string dir = ::testing::TempDir(),
+                      tag = "pcp" + std::to_string(::getpid()) + (bends ? "b" : "");
+    const std::string hdr = dir + tag + ".h", src = dir + tag + ".c", exe = dir + tag,
+                      in = dir + tag + ".txt";
+    std::ofstream(hdr) << models::export_c99(m, "pz");
+    std::ofstream(src) << "#include <stdio.h>\n#include \"" << hdr << "\"\n"
+                       << "int main(void) { pz_state s; double v; int first = 1;\n"
+                       << "  while (scanf(\"%lf\", &v) == 1) {\n"
+                       << "    if (first) { pz_init(&s, v, 0.0); first = 0; }\n"
+                       << "    double inv = pz_inverse(&s, 100.0 + v);\n"
+                       << "    printf(\"%.17g %.17g\\n\", pz_step(&s, v, NAN), inv); }\n  return 0; }\n";
+    const std::string build =
+        run_shell(std::string(PIEZO_C_COMPILER) + " -std=c99 -Wall -Wextra -Werror -pedantic -O2 -o " + exe +
+                  " " + src + " -lm 2>&1");
+    ASSERT_EQ(build, "") << "C compile failed";
+    const auto v = testdata::random_walk_v(4000, 12);
+    std::ostringstream os;
+    os.precision(17);
+    for (double x : v) os << x << "\n";
+    std::ofstream(in) << os.str();
+    std::istringstream out(run_shell(exe + " < " + in));
+    m.reset(v[0], 0);
+    std::size_t rows = 0;
+    double worst = 0, y_c = 0, inv_c = 0;
+    while (out >> y_c >> inv_c) {
+      ASSERT_LT(rows, v.size());
+      const double x = v[rows++];
+      const double inv = m.inverse(100.0 + x), y = m.predict_v(x);
+      worst = std::max(
+          {worst, std::abs(y_c - y) / (1 + std::abs(y)), std::abs(inv_c - inv) / (1 + std::abs(inv))});
+      m.commit({x, nullptr}, y);
+    }
+    EXPECT_EQ(rows, v.size());
+    EXPECT_LT(worst, 1e-12) << (bends ? "with bends" : "straight");
   }
-  EXPECT_EQ(rows, v.size());
-  EXPECT_LT(worst, 1e-12);
 }

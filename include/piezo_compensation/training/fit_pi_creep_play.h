@@ -14,10 +14,15 @@ namespace piezo::training {
 //   thresholds_v the thresholds [V] instead (first 0, increasing; overrides n_play)
 //   taus_s       the low-passes' time constants [s] (default 1, 5, 20, 60, 200, 600, 2000), each in
 //                [1 sample, 10⁵ s]
-//   start_terms  true (default): each recording's unknown pre-history as free decaying terms a_j^t per time
-//                constant, so the gains are not bent by a start away from rest; false: every recording from rest
-// The fit: every w_i, g_ij ≥ 0, one intercept per recording (their mean, by rows, is the bias); the memory-free
-// play's step slope is kept ≥ 10⁻³ of the total so the model stays strictly increasing in V.
+//   move_weight  weight of the changes over the move horizons beside the levels in the least squares (default
+//                4); 0: levels only
+//   move_horizons_s  the horizons [s] (default 10, 60)
+//   bends        true (default): each play's bend pieces on its training range
+//   (models/pi_creep_play_model.h);
+//                false: straight plays only
+// The fit: Σ (y − ŷ)² + move_weight·Σ_h Σ (Δ_h y − Δ_h ŷ)² over each recording, Δ_h the change over horizon h
+// (the moves a feedforward makes, which need no zero); every w_i, g_ij ≥ 0, one intercept per recording (their mean, by rows, is the bias); the
+// memory-free play's step slope is kept ≥ 10⁻³ of the total so the model stays strictly increasing in V.
 models::ModelPtr fit_pi_creep_play(const FitRequest& req);
 
 // The default time constants [s].

@@ -2,7 +2,6 @@
 #include "piezo_compensation/training/fit_pi_creep_play.h"
 
 #include <Eigen/Dense>
-
 #include <algorithm>
 #include <cmath>
 #include <stdexcept>
@@ -22,17 +21,21 @@ namespace {
 constexpr double kPlayMaxTauS = 1e5;
 // The memory-free play's share of the total step slope, at least: keeps the model strictly increasing in V.
 constexpr double kPlayMinLinearShare = 1e-3;
-constexpr std::size_t kPlayChunkRows = 256;
+constexpr double kPlayDefaultMoveWeight = 4.0;
 
 struct PlayLayout {
   std::vector<double> r, taus, a;
   std::size_t recordings = 1;
-  bool start_terms = true;
+  bool bends = true;
+  std::vector<double> lo, hi;  // the bends' ranges: each play's training range
+  std::vector<std::size_t> horizons;  // the move horizons [samples]
+  double move_weight = 0;
   std::size_t n() const { return r.size(); }
   std::size_t J() const { return taus.size(); }
-  std::size_t transients() const { return start_terms ? recordings * J() : 0; }
-  std::size_t size() const { return n() + n() * J() + transients() + recordings; }
-  std::size_t constrained() const { return n() + n() * J(); }  // plays and low-passes: ≥ 0
+  std::size_t bend_columns() const { return bends ? 2 * n() : 0; }
+  std::size_t lowpass0() const { return n() + bend_columns(); }
+  std::size_t constrained() const { return lowpass0() + n() * J(); }  // plays, bends and low-passes: ≥ 0
+  std::size_t size() const { return constrained() + recordings; }
 };
 
 struct PlayGram {
@@ -41,46 +44,73 @@ struct PlayGram {
   std::vector<double> rows;  // per recording
 };
 
-// Writes the basis of one row into x: plays, low-passes (advanced by this row), the recording's start transients
-// and its intercept.
-void play_row(const PlayLayout& L, double v, std::size_t k, std::size_t t, std::vector<double>& p,
-              std::vector<double>& l, double* x) {
-  const std::size_t n = L.n(), J = L.J();
+// Writes the basis of one row into x: plays, bends, low-passes (advanced by this row) and the recording's
+// intercept.
+void play_row(const PlayLayout& L, double v, std::size_t k, std::vector<double>& p, std::vector<double>& l,
+              double* x) {
+  const std::size_t n = L.n(), J = L.J(), l0 = L.lowpass0();
   std::fill(x, x + L.size(), 0.0);
   for (std::size_t i = 0; i < n; ++i) {
     const double q = features::play(v, L.r[i], p[i]);
     p[i] = q;
     x[i] = q;
+    if (L.bends) {
+      x[n + 2 * i] = models::play_bend_convex(q, L.lo[i], L.hi[i]);
+      x[n + 2 * i + 1] = models::play_bend_concave(q, L.lo[i], L.hi[i]);
+    }
     for (std::size_t j = 0; j < J; ++j) {
       double& s = l[i * J + j];
       s = L.a[j] * s + (1.0 - L.a[j]) * q;
-      x[n + i * J + j] = s;
+      x[l0 + i * J + j] = s;
     }
   }
-  if (L.start_terms)
-    for (std::size_t j = 0; j < J; ++j) x[n + n * J + k * J + j] = std::pow(L.a[j], static_cast<double>(t));
-  x[L.size() - L.recordings + k] = 1.0;
+  x[L.constrained() + k] = 1.0;
 }
 
+// Each play's range over the training recordings (each from its own rest), the bends' [lo, hi].
+void play_ranges(const io::Dataset& data, const std::string& axis, PlayLayout& L) {
+  const io::AxisSeries& ax = data.axis(axis);
+  L.lo.assign(L.n(), INFINITY);
+  L.hi.assign(L.n(), -INFINITY);
+  for (std::size_t k = 0; k < data.recording_count(); ++k) {
+    const auto [b, e] = data.recording_rows(k);
+    std::vector<double> p(L.n(), ax.voltage_v[b]);
+    for (std::size_t t = b; t < e; ++t)
+      for (std::size_t i = 0; i < L.n(); ++i) {
+        p[i] = features::play(ax.voltage_v[t], L.r[i], p[i]);
+        L.lo[i] = std::min(L.lo[i], p[i]);
+        L.hi[i] = std::max(L.hi[i], p[i]);
+      }
+  }
+  for (std::size_t i = 0; i < L.n(); ++i)
+    L.hi[i] = std::max(L.hi[i], L.lo[i] + 1e-3);  // a play that never moved
+}
+
+// The Gram sums of the levels (each recording with its own intercept) plus move_weight × those of the changes over
+// each move horizon (the intercepts cancel there), each recording streamed from its own rest.
 PlayGram play_gram(const io::Dataset& data, const std::string& axis, const PlayLayout& L) {
   const io::AxisSeries& ax = data.axis(axis);
   const Eigen::Index P = static_cast<Eigen::Index>(L.size());
   PlayGram g{Eigen::MatrixXd::Zero(P, P), Eigen::VectorXd::Zero(P), {}};
-  Eigen::MatrixXd X(P, static_cast<Eigen::Index>(kPlayChunkRows));
-  Eigen::VectorXd y(static_cast<Eigen::Index>(kPlayChunkRows));
   for (std::size_t k = 0; k < data.recording_count(); ++k) {
     const auto [b, e] = data.recording_rows(k);
-    g.rows.push_back(static_cast<double>(e - b));
+    const Eigen::Index N = static_cast<Eigen::Index>(e - b);
+    g.rows.push_back(static_cast<double>(N));
+    Eigen::MatrixXd X(P, N);
+    Eigen::VectorXd y(N);
     std::vector<double> p(L.n(), ax.voltage_v[b]), l(L.n() * L.J(), ax.voltage_v[b]);
-    for (std::size_t t0 = b; t0 < e; t0 += kPlayChunkRows) {
-      const std::size_t m = std::min(kPlayChunkRows, e - t0);
-      for (std::size_t t = t0; t < t0 + m; ++t) {
-        play_row(L, ax.voltage_v[t], k, t - b, p, l, X.col(static_cast<Eigen::Index>(t - t0)).data());
-        y(static_cast<Eigen::Index>(t - t0)) = ax.position_nm[t];
-      }
-      const Eigen::Index mi = static_cast<Eigen::Index>(m);
-      g.G.selfadjointView<Eigen::Lower>().rankUpdate(X.leftCols(mi));
-      g.c.noalias() += X.leftCols(mi) * y.head(mi);
+    for (std::size_t t = b; t < e; ++t) {
+      play_row(L, ax.voltage_v[t], k, p, l, X.col(static_cast<Eigen::Index>(t - b)).data());
+      y(static_cast<Eigen::Index>(t - b)) = ax.position_nm[t];
+    }
+    g.G.selfadjointView<Eigen::Lower>().rankUpdate(X);
+    g.c.noalias() += X * y;
+    for (std::size_t h : L.horizons) {
+      const Eigen::Index H = static_cast<Eigen::Index>(h);
+      if (H >= N) continue;
+      const Eigen::MatrixXd D = X.rightCols(N - H) - X.leftCols(N - H);
+      g.G.selfadjointView<Eigen::Lower>().rankUpdate(D, L.move_weight);
+      g.c.noalias() += L.move_weight * (D * (y.tail(N - H) - y.head(N - H)));
     }
   }
   g.G = g.G.selfadjointView<Eigen::Lower>();
@@ -99,16 +129,19 @@ Eigen::VectorXd play_solve(const PlayGram& g, const PlayLayout& L, double lower_
 
 double step_slope(const Eigen::VectorXd& x, const PlayLayout& L, std::size_t i) {
   double s = x(static_cast<Eigen::Index>(i));
-  for (std::size_t j = 0; j < L.J(); ++j) s += x(static_cast<Eigen::Index>(L.n() + i * L.J() + j)) * (1.0 - L.a[j]);
+  for (std::size_t j = 0; j < L.J(); ++j)
+    s += x(static_cast<Eigen::Index>(L.lowpass0() + i * L.J() + j)) * (1.0 - L.a[j]);
   return s;
 }
 
-PlayLayout play_layout(const FitRequest& req, const io::AxisSeries& ax) {
+PlayLayout play_layout(const FitRequest& req) {
+  const io::AxisSeries& ax = req.train->axis(req.axis);
   PlayLayout L;
   const YAML::Node& o = req.options;
   if (o && o["thresholds_v"]) {
     L.r = models::yaml_numbers(o, "thresholds_v", -1, "option");
-    if (L.r.empty() || L.r[0] != 0) throw std::runtime_error("option 'thresholds_v': expected 0 first, then increasing");
+    if (L.r.empty() || L.r[0] != 0)
+      throw std::runtime_error("option 'thresholds_v': expected 0 first, then increasing");
   } else {
     const int n = option_int(o, "n_play", 10);
     if (n < 1 || n > models::kMaxPlayOperators)
@@ -120,14 +153,25 @@ PlayLayout play_layout(const FitRequest& req, const io::AxisSeries& ax) {
   L.taus = o && o["taus_s"] ? models::yaml_numbers(o, "taus_s", -1, "option") : default_play_creep_taus_s();
   const double rate = req.train->sample_rate_hz();
   if (L.taus.empty() || L.taus.size() > static_cast<std::size_t>(models::kMaxCreepModes))
-    throw std::runtime_error("option 'taus_s': expected 1.." + std::to_string(models::kMaxCreepModes) + " time constants");
+    throw std::runtime_error("option 'taus_s': expected 1.." + std::to_string(models::kMaxCreepModes) +
+                             " time constants");
   for (double t : L.taus) {
     if (!(t >= 1.0 / rate && t <= kPlayMaxTauS))
       throw std::runtime_error("option 'taus_s': " + std::to_string(t) + " s is outside [1 sample, 1e5 s]");
     L.a.push_back(std::exp(-1.0 / (rate * t)));
   }
-  L.start_terms = option_bool(o, "start_terms", true);
+  L.bends = option_bool(o, "bends", true);
+  L.move_weight = option_num(o, "move_weight", kPlayDefaultMoveWeight);
+  if (!(L.move_weight >= 0) || !std::isfinite(L.move_weight))
+    throw std::runtime_error("option 'move_weight': expected a number >= 0");
+  const std::vector<double> hs =
+      o && o["move_horizons_s"] ? models::yaml_numbers(o, "move_horizons_s", -1, "option") : std::vector<double>{10, 60};
+  for (double h : hs) {
+    if (!(h * rate >= 1)) throw std::runtime_error("option 'move_horizons_s': each horizon at least one sample");
+    L.horizons.push_back(static_cast<std::size_t>(std::lround(h * rate)));
+  }
   L.recordings = req.train->recording_count();
+  if (L.bends) play_ranges(*req.train, req.axis, L);
   return L;
 }
 
@@ -139,21 +183,31 @@ models::ModelPtr fit_pi_creep_play(const FitRequest& req) {
   if (!req.train) throw std::runtime_error("pi_creep_play fit: no training data");
   const io::AxisSeries& ax = req.train->axis(req.axis);
   if (ax.voltage_v.size() < 10) throw std::runtime_error("pi_creep_play fit: need at least 10 samples");
-  const PlayLayout L = play_layout(req, ax);
+  const PlayLayout L = play_layout(req);
   const PlayGram g = play_gram(*req.train, req.axis, L);
   Eigen::VectorXd x = play_solve(g, L, 0.0);
   double total = 0;
   for (std::size_t i = 0; i < L.n(); ++i) total += step_slope(x, L, i);
-  if (!(total > 0)) throw std::runtime_error("pi_creep_play fit: the position does not rise with the voltage");
+  if (!(total > 0))
+    throw std::runtime_error("pi_creep_play fit: the position does not rise with the voltage");
   if (step_slope(x, L, 0) < kPlayMinLinearShare * total) x = play_solve(g, L, kPlayMinLinearShare * total);
   const std::size_t n = L.n(), J = L.J();
-  std::vector<double> w(x.data(), x.data() + n), gains(x.data() + n, x.data() + n + n * J);
+  std::vector<double> w(x.data(), x.data() + n), gains(x.data() + L.lowpass0(), x.data() + L.constrained());
+  models::PlayBends bends;
+  if (L.bends) {
+    bends.lo_v = L.lo, bends.hi_v = L.hi;
+    for (std::size_t i = 0; i < n; ++i) {
+      bends.convex_nm_per_v.push_back(x(static_cast<Eigen::Index>(n + 2 * i)));
+      bends.concave_nm_per_v.push_back(x(static_cast<Eigen::Index>(n + 2 * i + 1)));
+    }
+  }
   double bias = 0, rows = 0;
   for (std::size_t k = 0; k < L.recordings; ++k) {
-    bias += g.rows[k] * x(static_cast<Eigen::Index>(L.size() - L.recordings + k));
+    bias += g.rows[k] * x(static_cast<Eigen::Index>(L.constrained() + k));
     rows += g.rows[k];
   }
-  auto m = std::make_unique<models::PiCreepPlayModel>(L.r, w, L.taus, gains, bias / rows, req.train->sample_rate_hz());
+  auto m = std::make_unique<models::PiCreepPlayModel>(L.r, w, L.taus, gains, bias / rows,
+                                                      req.train->sample_rate_hz(), bends);
   m->meta = make_meta(req);
   m->meta.validation["fit_play_operators"] = static_cast<double>(n);
   m->meta.validation["fit_creep_time_constants"] = static_cast<double>(J);
