@@ -12,8 +12,8 @@ namespace piezo::training {
 // Options:
 //   n_play       play operators, thresholds evenly over half the training voltage span (default 10)
 //   thresholds_v the thresholds [V] instead (first 0, increasing; overrides n_play)
-//   taus_s       the low-passes' time constants [s] (default 1, 5, 20, 60, 200, 600, 2000), each in
-//                [1 sample, 10⁵ s]
+//   taus_s       the low-passes' time constants [s], each in [1 sample, 10⁵ s] (default 1, 5, 20, 60, 200,
+//                600, 2000, those up to the training data's duration)
 //   move_weight  weight of the changes over the move horizons beside the levels in the least squares (default
 //                4); 0: levels only
 //   move_horizons_s  the horizons [s] (default 10, 60)

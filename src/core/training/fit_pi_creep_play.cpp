@@ -150,8 +150,14 @@ PlayLayout play_layout(const FitRequest& req) {
     const double half_range = std::max(1e-6, 0.5 * (*mx - *mn));
     for (int i = 0; i < n; ++i) L.r.push_back(half_range * i / n);
   }
-  L.taus = o && o["taus_s"] ? models::yaml_numbers(o, "taus_s", -1, "option") : default_play_creep_taus_s();
   const double rate = req.train->sample_rate_hz();
+  if (o && o["taus_s"]) {
+    L.taus = models::yaml_numbers(o, "taus_s", -1, "option");
+  } else {  // the defaults the training data can identify: none slower than its duration (the first one always)
+    const double duration = req.train->time_s.empty() ? 0.0 : req.train->time_s.back() - req.train->time_s.front();
+    for (double t : default_play_creep_taus_s())
+      if (L.taus.empty() || t <= duration) L.taus.push_back(t);
+  }
   if (L.taus.empty() || L.taus.size() > static_cast<std::size_t>(models::kMaxCreepModes))
     throw std::runtime_error("option 'taus_s': expected 1.." + std::to_string(models::kMaxCreepModes) +
                              " time constants");
