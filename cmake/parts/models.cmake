@@ -5,6 +5,10 @@ piezo_unit_test(test_models_linear test/unit/test_models_linear.cpp)
 piezo_unit_test(test_models_pi test/unit/test_models_pi.cpp)
 piezo_unit_test(test_models_creep test/unit/test_models_creep.cpp)
 piezo_unit_test(test_models_prony test/unit/test_models_prony.cpp)
+piezo_unit_test(test_models_pi_creep_play test/unit/test_models_pi_creep_play.cpp)
+if(TARGET test_models_pi_creep_play)
+  target_compile_definitions(test_models_pi_creep_play PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
+endif()
 # The creep-protocol fits of the preisach kind and of the PI kind it is compared with, side by side.
 piezo_unit_test_shards(test_models_preisach test/unit/test_models_preisach.cpp SHARDS
   preisach "-Preisach.PiCreepCannotFollowThePreisachLoops" pi "Preisach.PiCreepCannotFollowThePreisachLoops")
