@@ -1,6 +1,5 @@
 #include "piezo_compensation/features/feature_stream.h"
 #include "piezo_compensation/features/play_operator.h"
-#include "piezo_compensation/util/format.h"
 
 #include <algorithm>
 #include <cmath>
@@ -34,7 +33,11 @@ Type parse_type(const std::string& t, std::size_t index) {
                            "play_hinge, lagged_position, position_mean, aux)");
 }
 
-std::string fmt(double v) { return util::fmt(v, 4); }
+std::string fmt(double v) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.4g", v);
+  return buf;
+}
 
 // Fixed-capacity history; get(k) is the value committed k samples ago (k ≥ 1).
 struct Ring {
