@@ -9,6 +9,13 @@ piezo_unit_test(test_models_pi_creep_play test/unit/test_models_pi_creep_play.cp
 if(TARGET test_models_pi_creep_play)
   target_compile_definitions(test_models_pi_creep_play PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
 endif()
+# Models at the data's rate (Model::set_step_s): another rate, a jittered clock, the refusal of a fixed-rate kind.
+piezo_unit_test(test_models_step test/unit/test_models_step.cpp)
+# Every registered kind: fit, model-file round trip, clone/stream equality, C export, the rate contract.
+piezo_unit_test(test_models_conformance test/unit/test_models_conformance.cpp)
+if(TARGET test_models_conformance)
+  target_compile_definitions(test_models_conformance PRIVATE PIEZO_C_COMPILER="${CMAKE_C_COMPILER}")
+endif()
 # The creep-protocol fits of the preisach kind and of the PI kind it is compared with, side by side.
 piezo_unit_test_shards(test_models_preisach test/unit/test_models_preisach.cpp SHARDS
   preisach "-Preisach.PiCreepCannotFollowThePreisachLoops" pi "Preisach.PiCreepCannotFollowThePreisachLoops")
@@ -26,4 +33,4 @@ piezo_unit_test_shards(test_start_state test/unit/test_start_state.cpp SHARDS
   checks "StartState.*" table "StartStateTable.*")
 piezo_benchmark(bench_models_linear bench/bench_models_linear.cpp)
 
-piezo_slow_tests(test_start_state_table test_models_creep test_models_prony test_models_preisach_preisach test_models_preisach_pi)
+piezo_slow_tests(test_models_step test_models_conformance test_start_state_table test_models_creep test_models_prony test_models_preisach_preisach test_models_preisach_pi)

@@ -124,6 +124,9 @@ class AugmentedModel : public Model {
   std::size_t linear_state_count() const override { return base_->linear_state_count(); }
   double linear_state_nm(std::size_t k) const override { return base_->linear_state_nm(k); }
   void shift_linear_state(std::size_t k, double delta_nm) override { base_->shift_linear_state(k, delta_nm); }
+  // The base's reason, or the terms' when one counts a lag, a low-pass or a difference in samples; else any step.
+  std::string fixed_rate_reason() const override;
+  void set_step_s(double dt_s) override;
 
   const Model& base() const { return *base_; }
   const std::vector<EffectTerm>& terms() const { return stream_.terms(); }

@@ -59,6 +59,10 @@ class PiCreepModel : public Model {
   std::size_t linear_state_count() const override { return live_modes_.size(); }
   double linear_state_nm(std::size_t k) const override;
   void shift_linear_state(std::size_t k, double delta_nm) override;
+  // The hysteresis has no time and the creep modes' time constants are in seconds: any step.
+  std::string fixed_rate_reason() const override { return ""; }
+  void set_step_s(double dt_s) override;  // the creep poles exp(−dt/τ) for the next commits
+  double step_s() const { return step_s_; }
 
   double predict_v(double voltage_v) const;
   // Exact inverse for the current state: the voltage whose predict() is target_nm (piecewise-linear, closed
@@ -97,7 +101,8 @@ class PiCreepModel : public Model {
   double b_;
   OutputMap map_;
   CreepParams creep_;
-  double rate_hz_;
+  double rate_hz_;   // the training rate (the model file's sample_rate_hz)
+  double step_s_;    // the step the poles are for (1 / rate_hz_ until set_step_s)
   std::vector<double> taus_, gains_, poles_;  // expanded creep modes
   std::vector<std::size_t> live_modes_;       // modes with g·pole ≠ 0 (the linear states)
   std::vector<double> p_, l_;                 // state: play outputs, mode low-passes

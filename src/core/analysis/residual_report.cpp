@@ -10,17 +10,13 @@
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/util/json_writer.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::analysis {
 
 namespace {
 
-std::string num(double v) {
-  if (!std::isfinite(v)) return "–";
-  std::ostringstream os;
-  os << std::setprecision(4) << v;
-  return os.str();
-}
+std::string num(double v) { return std::isfinite(v) ? util::fmt(v, 4) : "–"; }
 
 std::ofstream open_out(const std::string& path) {
   std::ofstream f(path);

@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::models {
 
@@ -14,12 +15,7 @@ constexpr double kTwoPi = 6.283185307179586;
 
 bool is_builtin_signal(const std::string& s) { return s == kSignalVoltage || s == kSignalPosition; }
 
-std::string fmt(double v) {
-  std::ostringstream os;
-  os.precision(4);
-  os << v;
-  return os.str();
-}
+std::string fmt(double v) { return util::fmt(v, 4); }
 
 double yaml_num(const YAML::Node& n, const char* key, double def) {
   if (!n[key]) return def;
@@ -382,6 +378,20 @@ void EffectTermStream::raw_and_commit(double v, double x, const double* cols, do
 }
 
 // ---- the model ---------------------------------------------------------------------------------------
+std::string AugmentedModel::fixed_rate_reason() const {
+  const std::string base = base_->fixed_rate_reason();
+  if (!base.empty()) return "its base: " + base;
+  for (const EffectTerm& t : terms())
+    if (t.lag_s > 0 || t.time_constant_s > 0 || t.type == "rate")
+      return "effect term " + t.name() + " counts its lag, low-pass or difference in samples of the training rate";
+  return "";
+}
+
+void AugmentedModel::set_step_s(double dt_s) {
+  if (!runs_at_any_rate()) return check_fixed_step(dt_s);
+  base_->set_step_s(dt_s);
+}
+
 AugmentedModel::AugmentedModel(ModelPtr base, std::vector<EffectTerm> terms, double offset_nm, double sample_rate_hz)
     : base_(std::move(base)), stream_(std::move(terms), sample_rate_hz, offset_nm), sample_rate_hz_(sample_rate_hz) {
   if (!base_) throw std::invalid_argument("augmented model: no base model");
