@@ -2,6 +2,7 @@
 piezo_unit_test(test_compensation_core test/unit/test_compensation_core.cpp)
 piezo_unit_test(test_estimation test/unit/test_estimation.cpp)
 piezo_unit_test(test_estimation_quantised test/unit/test_estimation_quantised.cpp)
+piezo_unit_test(test_estimation_forecast test/unit/test_estimation_forecast.cpp)
 piezo_unit_test(test_hold_trim test/unit/test_hold_trim.cpp)
 piezo_unit_test(test_sensor_reading_model test/unit/test_sensor_reading_model.cpp)
 piezo_node(piezo_predictor src/nodes/piezo_predictor_node.cpp)
