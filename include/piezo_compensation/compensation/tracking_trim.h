@@ -1,6 +1,6 @@
 // Tracking trim (docs/predictor.md, "Tracking trim"): while the axis moves, the feedforward's target is corrected
 // by the model's error that the fused estimate knows (estimation/error_filter.h), forecast half a period ahead
-// (estimation/forecast.h: the slow error and its rate carried, the fast error settling). Its aim is the model's
+// (estimation/forecast.h: the slow error held, the fast error settling). Its aim is the model's
 // error, never a position, so it cannot pull the tip towards an old intent (an operator's stream of intents during
 // a walk is followed by the feedforward, the trim only removes the model's error); the first intent of a move takes
 // the aim at once, then once per period. It acts only on the part of the error beyond deadband_sigma fused σ (on a/b, with

@@ -1,6 +1,6 @@
 // The estimator's forecast of the model's error h ahead (docs/estimation.md, "Forecast"): the filter's state carried
-// forward with its own dynamics (the slow error and its rate, the fast error settling) and the process noise of the
-// model's motion over the horizon, its σ scaled per horizon by a calibration on held-out training data
+// forward (the slow error held, the fast error settling; the slow error's rate only in the variance) with the process
+// noise of the model's motion over the horizon, its σ scaled per horizon by a calibration on held-out training data
 // (NoiseModel::forecast_*). compensation/drift_forecast.h turns it into the position forecast; ROS-free.
 #pragma once
 
