@@ -14,6 +14,7 @@
 #include "piezo_compensation/compensation/track.h"
 #include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/estimation/forecast.h"
+#include "test_compensation_models.h"
 
 namespace {
 
@@ -133,6 +134,44 @@ TEST(Forecast, ModelFileKeysRoundTripAndAreChecked) {
   NoiseModel none = NoiseModel::from_yaml(known_model().to_yaml(), "test");
   EXPECT_TRUE(none.forecast_horizons_s.empty());
   EXPECT_DOUBLE_EQ(piezo::estimation::forecast_sigma_scale(none, 10.0, true), 1.0);
+}
+
+// The live path: the drift forecast run with the estimator's state gives the model's run plus the error forecast,
+// counted from the fused position now, with the σ of the model's path from the filter's last prediction.
+TEST(Forecast, DriftForecastWithTheEstimatorsState) {
+  NoiseModel m = known_model();
+  m.q_fast_nm = 0.0;  // the path alone then sets the motion's variance: a monotone creep's path is its span
+  auto model = piezo::test::make_pi_creep();
+  model->reset(0.0, 0.0);
+  ErrorFilter f(m, kDt);
+  std::mt19937 rng(2);
+  std::normal_distribution<double> g(0.0, 20.0);
+  for (int i = 0; i < 400; ++i) {
+    const piezo::models::ModelInput in{30.0, nullptr};
+    const double p = model->predict(in);
+    model->commit(in, p);
+    f.step(p, 20.0 * std::round((p + 12.0 + g(rng)) / 20.0), true);
+  }
+  const piezo::compensation::EstimatorState est{m, f.state()};
+  const std::vector<double> hs{0.0, 10.0, 600.0};
+  const auto d = piezo::compensation::forecast_drift(*model, 30.0, hs, 11.0, nullptr, &est);
+  ASSERT_TRUE(d.ok) << d.error;
+  ASSERT_EQ(d.forecast_sigma_nm.size(), 3u);
+  EXPECT_DOUBLE_EQ(d.fused_now_nm, f.fused_nm());
+  for (std::size_t k = 0; k < hs.size(); ++k) {
+    piezo::estimation::ForecastPath path;
+    path.steps = static_cast<std::size_t>(std::lround(hs[k] * 11.0)) + 1;
+    path.path_nm = std::abs(d.position_nm[k] - est.state.last_predicted_nm);
+    const auto e = piezo::estimation::forecast_error(m, kDt, est.state, path, true);
+    EXPECT_NEAR(d.forecast_nm[k], d.position_nm[k] + e.mean_nm, 1e-9) << hs[k];
+    EXPECT_NEAR(d.forecast_drift_nm[k], d.forecast_nm[k] - f.fused_nm(), 1e-9) << hs[k];
+    EXPECT_NEAR(d.forecast_sigma_nm[k], e.sigma_nm, 1e-6 * e.sigma_nm) << hs[k];
+  }
+  EXPECT_GT(d.forecast_sigma_nm[2], d.forecast_sigma_nm[0]);  // the error wanders further the longer the horizon
+  // without the estimator's state: the model's drift only, as before
+  const auto plain = piezo::compensation::forecast_drift(*model, 30.0, hs, 11.0);
+  EXPECT_TRUE(plain.forecast_nm.empty());
+  EXPECT_EQ(plain.drift_nm, d.drift_nm);
 }
 
 }  // namespace
