@@ -117,7 +117,7 @@ void BM_Inverse_TestPiCreep(benchmark::State& state) {
 }
 BENCHMARK(BM_Inverse_TestPiCreep)->Unit(benchmark::kMicrosecond);
 
-// The estimator's cost per encoder sample (issue 25): one filter step, and one whole compensator sample + command
+// The estimator's cost per encoder sample: one filter step, and one whole compensator sample + command
 // with the estimator and the hold trim active on the shipped foreign-stage model (Preisach + Prony creep).
 void BM_ErrorFilterStep(benchmark::State& state) {
   estimation::NoiseModel nm;

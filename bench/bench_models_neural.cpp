@@ -1,4 +1,4 @@
-// Neural model speed. Targets (issue 5): inference per sample (feature stream + network, predict then commit)
+// Neural model speed. Targets: inference per sample (feature stream + network, predict then commit)
 // dense and KAN ≤ 2 µs, LSTM ≤ 10 µs; one training run on ~1 M samples (26 h at 11 Hz) ≤ 3 min on 2 cores.
 // Training data: synthetic random walk with holds through a play operator plus first-order creep and 20 nm
 // noise (study-like, not the simulator). PIEZO_BENCH_TRAIN_SAMPLES overrides the size (the CTest smoke run

@@ -1,4 +1,4 @@
-// Simulator throughput: the target is ≥ 1,000,000 samples/s per axis on one core (issue 3), i.e. the study's
+// Simulator throughput: the target is ≥ 1,000,000 samples/s per axis on one core, i.e. the study's
 // 26 h of 11 Hz data in about a second. items_per_second below counts axis-samples.
 #include <benchmark/benchmark.h>
 

@@ -17,7 +17,7 @@ endif()
 
 # libFuzzer target for the codec (clang from Debian, -fsanitize=fuzzer). CTest runs the seeded corpus plus a
 # short deterministic mutation run; new inputs go to a scratch directory in the build tree, never to fuzz/.
-# Longer sessions: devel/lib/piezo_compensation/fuzz_can_codec -max_total_time=600 <scratch> fuzz/corpus/can_codec
+# Longer runs: devel/lib/piezo_compensation/fuzz_can_codec -max_total_time=600 <scratch> fuzz/corpus/can_codec
 find_program(PIEZO_CLANGXX NAMES clang++-14 clang++)
 set(PIEZO_FUZZ_CAN ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/fuzz_can_codec)
 if(PIEZO_CLANGXX)

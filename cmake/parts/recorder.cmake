@@ -1,8 +1,8 @@
-# recorder: data-collection node, `piezo record`, recording summary (issue 7).
+# recorder: data-collection node, `piezo record`, recording summary.
 piezo_unit_test(test_recording_summary test/unit/test_recording_summary.cpp)
 piezo_ros_unit_test(test_recording_bag test/unit/test_recording_bag.cpp)
 piezo_node(piezo_recorder src/nodes/piezo_recorder_node.cpp)
-# Runs the simulated device and the driver (issue 4) on simulated time: a few minutes at time_scale 10.
+# Runs the simulated device and the driver on simulated time: a few minutes at time_scale 10.
 piezo_rostest(test/rostest/recorder_protocols.test test/rostest/recorder_protocols.cpp
               DEPENDS piezo_recorder mm3e_sim mm3e_driver)
 if(CATKIN_ENABLE_TESTING)

@@ -1,5 +1,6 @@
 // `piezo track`: the predictor's estimator run offline over a recording (compensation/track.h) — the fused
-// position and its 1σ per row in DIR/track.csv, a table per hold in DIR/holds.md, the summary in DIR/track.json.
+// position and its 1σ per row in DIR/track.csv, a table per hold and the forecast table (position forecast per horizon in
+// the walk and the holds) in DIR/holds.md, the summary in DIR/track.json.
 #include <filesystem>
 #include <fstream>
 #include <iomanip>
@@ -14,6 +15,7 @@
 #include "piezo_compensation/compensation/track.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
+#include "piezo_compensation/util/format.h"
 #include "piezo_compensation/util/json_writer.h"
 
 namespace piezo::cli {
@@ -65,6 +67,53 @@ std::string hold_table(const compensation::TrackResult& r, const compensation::T
   return s.str();
 }
 
+std::string forecast_table(const compensation::TrackResult& r, const compensation::TrackOptions& o) {
+  const compensation::ForecastTable& t = r.forecast;
+  if (t.horizons_s.empty()) return "";
+  const std::string ref = t.against_truth ? "the truth" : "the readings";
+  std::ostringstream s;
+  s << "Forecast of the position at t + h (fused now, moved by the model under the known voltage and by the error the "
+       "estimator expects), against the mean of " << ref << " over the " << num(o.forecast.reference_window_s, 0)
+    << " s after t + h; the first column also against the next single " << (t.against_truth ? "truth row" : "reading")
+    << ". Walk: the last " << num(o.forecast.walk_s, 0) << " s before each hold; hold: from " << num(o.forecast.hold_from_s, 0)
+    << " s after its start. MAE [nm] / share within ±2·√(σ² + σ_ref²) / mean 1σ [nm].\n\n| | next |";
+  for (double h : t.horizons_s) s << " " << util::fmt(h, 3) << " s |";
+  s << "\n|---|---|";
+  for (std::size_t k = 0; k < t.horizons_s.size(); ++k) s << "---|";
+  auto cell = [](const compensation::ForecastCell& c) {
+    return num(c.mae_nm(), 1) + " / " + num(100.0 * c.coverage(), 1) + " % / " + num(c.mean_sigma_nm(), 1);
+  };
+  auto row = [&](const char* name, const compensation::ForecastCell& next, const std::vector<compensation::ForecastCell>& cs) {
+    s << "\n| " << name << " | " << cell(next) << " |";
+    for (const auto& c : cs) s << " " << cell(c) << " |";
+  };
+  row("walk", t.walk_next, t.walk);
+  row("hold", t.hold_next, t.hold);
+  s << "\n";
+  return s.str();
+}
+
+void write_forecast_json(util::JsonWriter& j, const compensation::ForecastTable& t) {
+  j.key("forecast_against_truth").value(t.against_truth);
+  j.key("forecast").begin_array();
+  for (std::size_t k = 0; k < t.horizons_s.size(); ++k) {
+    j.begin_object();
+    j.key("horizon_s").value(t.horizons_s[k]);
+    j.key("walk_mae_nm").value(t.walk[k].mae_nm());
+    j.key("walk_within_2sigma").value(t.walk[k].coverage());
+    j.key("walk_rows").value(static_cast<double>(t.walk[k].n));
+    j.key("hold_mae_nm").value(t.hold[k].mae_nm());
+    j.key("hold_within_2sigma").value(t.hold[k].coverage());
+    j.key("hold_rows").value(static_cast<double>(t.hold[k].n));
+    j.end_object();
+  }
+  j.end_array();
+  j.key("forecast_next_walk_mae_nm").value(t.walk_next.mae_nm());
+  j.key("forecast_next_walk_within_2sigma").value(t.walk_next.coverage());
+  j.key("forecast_next_hold_mae_nm").value(t.hold_next.mae_nm());
+  j.key("forecast_next_hold_within_2sigma").value(t.hold_next.coverage());
+}
+
 int run(int argc, char** argv) {
   Args args("track", "Run the predictor's estimator (the model fused with the encoder, docs/predictor.md) over a recording\n"
                      "from a cold start at its first row, as the node would: DIR/track.csv (time_s, applied_v,\n"
@@ -72,8 +121,8 @@ int run(int argc, char** argv) {
   args.required("model", "FILE.yaml", "model file (with an estimator: block, written by piezo fit)")
       .files("data", "FILE", "recording (CSV or bag); several: each tracked from its own cold start", true)
       .option("axis", "a|b|c", "axis (default: the model's)")
-      .option("identify-on", "FILE", "identify the estimator's noise model on this recording (the model runs free over\n"
-              "it) instead of the model file's block")
+      .files("identify-on", "FILE", "identify the estimator's noise model (and calibrate its forecast σ) on this\n"
+             "recording (the model runs free over it; several: each its own history) instead of the model file's block", false)
       .option("identify-from-s", "T", "with --identify-on: the model runs over the first T of it and only the rest is\n"
               "scored (the part a split fit did not train on)", "0")
       .option("write-model", "FILE.yaml", "with --identify-on: write the model file with the identified estimator: block")
@@ -96,14 +145,14 @@ int run(int argc, char** argv) {
   models::check_model_matches_data(*model, data, data_names);
   check_training_rows(args, "track", model->meta, data, axis, args.str("model"), "", "tracks");
   if (args.has("identify-on")) {
-    const io::Dataset id = ros_io::read_data(args.str("identify-on"));
+    const io::Dataset id = ros_io::read_recordings(args.list("identify-on"));
     const double from_s = args.num("identify-from-s");
     std::size_t first = 0;
     while (first < id.size() && id.time_s[first] - id.time_s[0] < from_s) ++first;
     model->meta.estimator = analysis::identify_estimator(*model, id, axis, first).to_yaml();
     if (args.has("write-model")) {
       models::save_model(args.str("write-model"), *model);
-      std::cout << "wrote " << args.str("write-model") << " with the estimator identified on " << args.str("identify-on")
+      std::cout << "wrote " << args.str("write-model") << " with the estimator identified on " << args.list("identify-on").size() << " recording(s)"
                 << " from " << from_s << " s\n";
     }
   } else if (args.has("write-model")) {
@@ -124,7 +173,7 @@ int run(int argc, char** argv) {
   const fs::path out = args.str("out");
   fs::create_directories(out);
   write_csv(out / "track.csv", r);
-  const std::string table = hold_table(r, o);
+  const std::string table = hold_table(r, o) + "\n" + forecast_table(r, o);
   {
     std::ofstream f(out / "holds.md");
     f << "# piezo track: " << args.str("model") << " on " << data_names << " (axis " << axis << ")\n\n"
@@ -149,6 +198,7 @@ int run(int argc, char** argv) {
     j.key("all_fused_mae_nm").value(r.all_fused_mae_nm);
     j.key("all_within_2sigma").value(r.all_within_2sigma);
     j.key("zero_known_s").value(r.zero_known_s);
+    write_forecast_json(j, r.forecast);
     j.end_object();
   }
   std::cout << "estimator: " << r.estimator << "\n"

@@ -96,24 +96,22 @@ const params::NodeInterface& driver_interface() {
   return t;
 }
 
-DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh), updater_(nh, pnh) {
-  const params::NodeInterface& iface = driver_interface();
-  params::ParamReader r(pnh_, iface);
-  can::DriverConfig config;
-  config.protocol = read_protocol(r);
+namespace {
+// The command limits, the encoder timeout and the reconnect policy. Ranges stop at the compile-time ceilings of
+// can/command_limiter.h (docs/driver.md).
+void read_limits(params::ParamReader& r, const ros::NodeHandle& pnh, can::DriverConfig& config) {
   auto& lim = config.limits;
-  // Ranges stop at the compile-time ceilings of can/command_limiter.h (docs/driver.md).
   lim.min_voltage_v = r.number("min_voltage_v");
   lim.max_voltage_v = r.number("max_voltage_v");
   if (lim.min_voltage_v >= lim.max_voltage_v)
-    throw std::invalid_argument("parameter " + pnh_.resolveName("min_voltage_v") + " must be below max_voltage_v");
+    throw std::invalid_argument("parameter " + pnh.resolveName("min_voltage_v") + " must be below max_voltage_v");
   lim.slew_rate_v_per_s = r.number("slew_rate_v_per_s");
   lim.command_timeout_s = r.number("command_timeout_s");
   lim.max_step_dt_s = r.number("max_step_dt_s");
   lim.max_frame_step_v = r.number("max_frame_step_v");
   lim.max_unconfirmed_v = r.number("max_unconfirmed_v");
   if (lim.max_unconfirmed_v < lim.max_frame_step_v)
-    throw std::invalid_argument("parameter " + pnh_.resolveName("max_unconfirmed_v") + " must be at least max_frame_step_v");
+    throw std::invalid_argument("parameter " + pnh.resolveName("max_unconfirmed_v") + " must be at least max_frame_step_v");
   lim.max_stamp_ahead_s = r.number("max_stamp_ahead_s");
   lim.report_tolerance_v = r.number("report_tolerance_v");
   lim.report_lag_s = r.number("report_lag_s");
@@ -123,11 +121,12 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   config.reconnect_min_s = r.number("reconnect_min_s");
   config.reconnect_max_s = r.number("reconnect_max_s");
   if (config.reconnect_max_s < config.reconnect_min_s)
-    throw std::invalid_argument("parameter " + pnh_.resolveName("reconnect_max_s") + " must be at least reconnect_min_s");
+    throw std::invalid_argument("parameter " + pnh.resolveName("reconnect_max_s") + " must be at least reconnect_min_s");
   config.receive_poll_ms = r.integer("receive_poll_ms");
-  const double output_rate_hz = r.number("output_rate_hz");
-  const double diagnostic_period_s = r.number("diagnostic_period_s");
-  stamp_with_receive_time_ = r.flag("stamp_with_receive_time");
+}
+}  // namespace
+
+void DriverNode::read_sync_mode(params::ParamReader& r, can::DriverConfig& config) {
   sync_mode_ = r.flag("sync_mode");
   sync_idle_s_ = r.number("sync_idle_s");
   const int max_in_flight = r.integer("sync_max_in_flight");
@@ -139,41 +138,19 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     throw std::invalid_argument("parameter " + pnh_.resolveName("sync_idle_s") + " = " + std::to_string(sync_idle_s_) +
                                 " s: an idle device would be silent longer than silence_reconnect_s = " +
                                 std::to_string(config.silence_reconnect_s) + " s and be reconnected over and over");
-  if (sync_mode_) {
-    // one frame per SYNC, time counted in samples: the cap per frame is the slew step of one sample
-    lim.lockstep = true;
-    const double per_sample_v = lim.slew_rate_v_per_s / config.protocol.encoder_rate_hz;
-    lim.max_frame_step_v = std::max(lim.max_frame_step_v, std::min(per_sample_v, 2 * can::kVoltageCeilingV));
-    lim.max_unconfirmed_v = std::max(lim.max_unconfirmed_v, 2 * lim.max_frame_step_v);
-    lim.max_step_dt_s = std::max(lim.max_step_dt_s, 1.0 / config.protocol.encoder_rate_hz);
-    // the sample's set points go out with its SYNC: one datagram per sample instead of one per frame
-    config.hold_until_sync = true;
-  }
-  encoder_timeout_s_ = config.encoder_timeout_s;
-  sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
-  heartbeat_period_s_ = config.protocol.heartbeat_period_s;
-  const TransportParams transport = read_transport(r);
-  // The real controller samples on its own clock: counting slew time in SYNCs would turn V/s into V/command.
-  if (sync_mode_ && transport.kind != "udp")
-    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
-                                " is for the simulated device over udp only; it is refused on " + transport.kind +
-                                " (the slew limit would count commands, not seconds)");
-  const bool serial = transport.kind == "nanocontrol";
-  const nanocontrol::LinkOptions link = read_link_options(r, lim.min_voltage_v, lim.max_voltage_v, serial);
-  if (serial) {
-    // the set points and reports go through the NanoControl adapter below DriverCore; its frames stay in-process
-    config.protocol = nanocontrol::frame_protocol();
-    sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
-    heartbeat_period_s_ = config.protocol.heartbeat_period_s;
-  }
-  const std::string prefix = r.text("frame_prefix");
-  frame_id_ = prefix + "base";
-  std::string hardware_id = r.text("hardware_id");
-  if (hardware_id.empty())
-    hardware_id = serial ? "nanocontrol@" + link.port
-                         : "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
-  r.warn_unknown("mm3e_driver");
+  if (!sync_mode_) return;
+  // one frame per SYNC, time counted in samples: the cap per frame is the slew step of one sample
+  auto& lim = config.limits;
+  lim.lockstep = true;
+  const double per_sample_v = lim.slew_rate_v_per_s / config.protocol.encoder_rate_hz;
+  lim.max_frame_step_v = std::max(lim.max_frame_step_v, std::min(per_sample_v, 2 * can::kVoltageCeilingV));
+  lim.max_unconfirmed_v = std::max(lim.max_unconfirmed_v, 2 * lim.max_frame_step_v);
+  lim.max_step_dt_s = std::max(lim.max_step_dt_s, 1.0 / config.protocol.encoder_rate_hz);
+  // the sample's set points go out with its SYNC: one datagram per sample instead of one per frame
+  config.hold_until_sync = true;
+}
 
+can::DriverCallbacks DriverNode::core_callbacks() {
   can::DriverCallbacks cb;
   cb.on_voltage = [this](const can::VoltageReport& v, std::uint32_t seq, double t) {
     AxisVoltage msg;
@@ -204,16 +181,10 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     else
       ROS_INFO_STREAM("mm3e_driver: " << text);
   };
-  const can::Codec codec(config.protocol);
-  if (serial) {
-    link_monitor_ = std::make_shared<nanocontrol::LinkMonitor>();
-    auto monitor = link_monitor_;
-    core_ = std::make_unique<can::DriverCore>(
-        config, [link, monitor] { return nanocontrol::make_transport(link, monitor); }, cb);
-  } else {
-    core_ = std::make_unique<can::DriverCore>(config, transport_factory(transport, codec.driver_filters()), cb);
-  }
+  return cb;
+}
 
+void DriverNode::advertise(const params::NodeInterface& iface) {
   for (int i = 0; i < can::kAxisCount; ++i) {
     const std::string axis = can::kAxisNames[i];
     voltage_pub_[i] = nh_.advertise<AxisVoltage>(iface.topic_name<AxisVoltage>("<axis>/voltage", axis), 20);
@@ -224,7 +195,9 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   }
   halt_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~halt"), &DriverNode::on_halt, this);
   recover_srv_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~recover"), &DriverNode::on_recover, this);
+}
 
+void DriverNode::add_diagnostics(const std::string& hardware_id) {
   updater_.setHardwareID(hardware_id);
   updater_.add("bus", this, &DriverNode::diagnose_bus);
   if (link_monitor_)
@@ -237,7 +210,9 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
     updater_.add(std::string("axis ") + can::kAxisNames[i],
                  [this, i](diagnostic_updater::DiagnosticStatusWrapper& s) { diagnose_axis(i, s); });
   last_diag_ = ros::WallTime::now();
-  core_->start();
+}
+
+void DriverNode::start_timers(double output_rate_hz, double diagnostic_period_s) {
   if (sync_mode_) {
     last_sync_wall_ = ros::WallTime::now();
     sync_idle_timer_ = nh_.createWallTimer(ros::WallDuration(sync_idle_s_ / 4), [this](const ros::WallTimerEvent&) {
@@ -254,6 +229,58 @@ DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(
   diag_timer_ = nh_.createWallTimer(ros::WallDuration(diagnostic_period_s), [this](const ros::WallTimerEvent&) {
     updater_.force_update();
   });
+}
+
+DriverNode::DriverNode(ros::NodeHandle nh, ros::NodeHandle pnh) : nh_(nh), pnh_(pnh), updater_(nh, pnh) {
+  const params::NodeInterface& iface = driver_interface();
+  params::ParamReader r(pnh_, iface);
+  can::DriverConfig config;
+  config.protocol = read_protocol(r);
+  read_limits(r, pnh_, config);
+  const auto& lim = config.limits;
+  const double output_rate_hz = r.number("output_rate_hz");
+  const double diagnostic_period_s = r.number("diagnostic_period_s");
+  stamp_with_receive_time_ = r.flag("stamp_with_receive_time");
+  read_sync_mode(r, config);
+  encoder_timeout_s_ = config.encoder_timeout_s;
+  sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
+  heartbeat_period_s_ = config.protocol.heartbeat_period_s;
+  const TransportParams transport = read_transport(r);
+  // The real controller samples on its own clock: counting slew time in SYNCs would turn V/s into V/command.
+  if (sync_mode_ && transport.kind != "udp")
+    throw std::invalid_argument("parameter " + pnh_.resolveName("sync_mode") +
+                                " is for the simulated device over udp only; it is refused on " + transport.kind +
+                                " (the slew limit would count commands, not seconds)");
+  const bool serial = transport.kind == "nanocontrol";
+  const nanocontrol::LinkOptions link = read_link_options(r, lim.min_voltage_v, lim.max_voltage_v, serial);
+  if (serial) {
+    // the set points and reports go through the NanoControl adapter below DriverCore; its frames stay in-process
+    config.protocol = nanocontrol::frame_protocol();
+    sample_period_s_ = 1.0 / config.protocol.encoder_rate_hz;
+    heartbeat_period_s_ = config.protocol.heartbeat_period_s;
+  }
+  const std::string prefix = r.text("frame_prefix");
+  frame_id_ = prefix + "base";
+  std::string hardware_id = r.text("hardware_id");
+  if (hardware_id.empty())
+    hardware_id = serial ? "nanocontrol@" + link.port
+                         : "mm3e@" + transport.describe() + "/node " + hex(config.protocol.base_node_id);
+  r.warn_unknown("mm3e_driver");
+
+  const can::DriverCallbacks cb = core_callbacks();
+  const can::Codec codec(config.protocol);
+  if (serial) {
+    link_monitor_ = std::make_shared<nanocontrol::LinkMonitor>();
+    auto monitor = link_monitor_;
+    core_ = std::make_unique<can::DriverCore>(
+        config, [link, monitor] { return nanocontrol::make_transport(link, monitor); }, cb);
+  } else {
+    core_ = std::make_unique<can::DriverCore>(config, transport_factory(transport, codec.driver_filters()), cb);
+  }
+  advertise(iface);
+  add_diagnostics(hardware_id);
+  core_->start();
+  start_timers(output_rate_hz, diagnostic_period_s);
   ROS_INFO_STREAM("mm3e_driver: " << hardware_id << ", limits [" << lim.min_voltage_v << ", " << lim.max_voltage_v
                                   << "] V, slew " << lim.slew_rate_v_per_s << " V/s, command timeout "
                                   << lim.command_timeout_s << " s"

@@ -1,4 +1,5 @@
 #include "piezo_compensation/ros/params.h"
+#include "piezo_compensation/util/format.h"
 
 #include <algorithm>
 #include <cmath>
@@ -35,11 +36,7 @@ bool as_number(const XmlRpc::XmlRpcValue& v, double& out) {
   return false;
 }
 
-std::string num(double v) {
-  std::ostringstream s;
-  s << std::setprecision(10) << v;
-  return s.str();
-}
+std::string num(double v) { return util::fmt(v, 10); }
 
 std::string list_of(const std::vector<double>& v) {
   std::string s;

@@ -248,7 +248,8 @@ void PredictorNode::start_forecast(Axis& a) {
   auto clone = a.logic->compensator().model().clone();
   {
     std::lock_guard<std::mutex> lk(mutex_);
-    jobs_[a.logic->axis()] = {std::move(clone), a.logic->hold_voltage_v(), a.logic->compensator().next_inputs()};
+    jobs_[a.logic->axis()] = {std::move(clone), a.logic->hold_voltage_v(), a.logic->compensator().next_inputs(),
+                              a.logic->estimator_state()};
   }
   cv_.notify_one();
 }
@@ -263,7 +264,8 @@ void PredictorNode::forecast_worker() {
     const ForecastJob& job = node.mapped();
     compensation::DriftForecast f = compensation::forecast_drift(*job.model, job.hold_v, s_.drift_horizons_s,
                                                                  step_rate_hz(s_, *job.model),
-                                                                 job.inputs.empty() ? nullptr : job.inputs.data());
+                                                                 job.inputs.empty() ? nullptr : job.inputs.data(),
+                                                                 job.estimator ? &*job.estimator : nullptr);
     lk.lock();
     results_[node.key()] = std::move(f);
   }

@@ -209,6 +209,8 @@ void PredictorAxis::fill_command(Output& out, const compensation::SampleUpdate& 
   p.intended_position = intended_nm_ / kNmPerM;
   p.hold_trim = comp_->hold_trim().trim_nm() / kNmPerM;
   p.hold_trim_state = compensation::trim_state_name(comp_->hold_trim().state());
+  p.tracking_trim = comp_->tracking_trim().trim_nm() / kNmPerM;
+  p.tracking_trim_state = compensation::tracking_state_name(comp_->tracking_trim().state());
   p.commanded_voltage = c.commanded_v;
   p.corrected_voltage = c.corrected_v;
   p.compensation_active = sending && c.compensation_active;
@@ -231,13 +233,27 @@ void PredictorAxis::fill_drift(Output& out, const ros::Time& now) {
       out.forecast_due = true;
     } else {
       const std::vector<double> next = comp_->next_inputs();
+      const auto est = estimator_state();
       forecast_ = compensation::forecast_drift(comp_->model(), hold_v_, s_.drift_horizons_s, step_rate_hz(s_, comp_->model()),
-                                               next.empty() ? nullptr : next.data());
+                                               next.empty() ? nullptr : next.data(), est ? &*est : nullptr);
     }
   }
   p.drift.resize(s_.drift_horizons_s.size());
   for (std::size_t i = 0; i < p.drift.size(); ++i)
     p.drift[i] = forecast_.ok && i < forecast_.drift_nm.size() ? forecast_.drift_nm[i] / kNmPerM : std::nan("");
+  p.forecast_drift.resize(p.drift.size());
+  p.forecast_drift_sigma.resize(p.drift.size());
+  for (std::size_t i = 0; i < p.drift.size(); ++i) {
+    const bool has = forecast_.ok && i < forecast_.forecast_drift_nm.size();
+    p.forecast_drift[i] = has ? forecast_.forecast_drift_nm[i] / kNmPerM : std::nan("");
+    p.forecast_drift_sigma[i] = has ? forecast_.forecast_sigma_nm[i] / kNmPerM : std::nan("");
+  }
+}
+
+std::optional<compensation::EstimatorState> PredictorAxis::estimator_state() const {
+  const estimation::ErrorFilter* f = comp_->estimator();
+  if (!f) return std::nullopt;
+  return compensation::EstimatorState{f->noise_model(), f->state()};
 }
 
 std::string PredictorAxis::input_status() const {

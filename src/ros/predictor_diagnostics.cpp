@@ -111,6 +111,15 @@ void PredictorNode::diagnose(Axis& a, diagnostic_updater::DiagnosticStatusWrappe
   st.add("hold trim [nm]", cc.hold_trim().trim_nm());
   st.add("hold trim bound [nm]", cc.hold_trim().options().max_nm);
   st.add("settled for [s]", cc.hold_trim().settled_s());
+  const compensation::TrackingTrim& tt = cc.tracking_trim();
+  st.add("tracking trim", std::string(compensation::tracking_state_name(tt.state())) +
+                              (tt.enabled() ? "" : " (~tracking_trim off)"));
+  if (tt.enabled()) {
+    st.add("tracking trim [nm]", tt.trim_nm());
+    st.add("tracking trim bound [nm]", tt.options().max_nm);
+    st.add("tracking trim fallback reason", tt.reason().empty() ? std::string("none") : tt.reason());
+    st.add("tracking trim fallbacks", tt.fallbacks());
+  }
   st.add("processing p99 [us]", p99);
   if (l.watch()) {
     st.add("rolling free-run MAE [nm]", l.watch()->rolling_mae_nm());

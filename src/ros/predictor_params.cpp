@@ -115,6 +115,7 @@ std::vector<params::ParamDef> predictor_axis_params(const PredictorSettings& d) 
   using namespace params;
   const compensation::AxisCompensatorConfig& a = d.axis;
   const compensation::HoldTrimOptions& t = a.hold_trim;
+  const compensation::TrackingTrimOptions& k = a.tracking_trim;
   return {
       number("voltage_min_v", "V", a.voltage_min_v, -1000.0, 1000.0, "lowest voltage the predictor commands")
           .rule("< voltage_max_v"),
@@ -136,6 +137,18 @@ std::vector<params::ParamDef> predictor_axis_params(const PredictorSettings& d) 
              "the trim acts on the part of |intended − fused| beyond this many fused σ (0 = none)"),
       number("encoder_stale_after_s", "s", t.stale_after_s, 1e-3, 3600.0,
              "no valid reading for this long: the estimate only predicts and the trim holds"),
+      flag("tracking_trim", k.enabled, "correct the feedforward from the fused estimate while the axis moves"),
+      number("tracking_trim_period_s", "s", k.period_s, 0.01, 3600.0,
+             "the trim takes its aim (the model's error, forecast half a period ahead) once per period"),
+      number("tracking_trim_max_nm", "nm", k.max_nm, 0.0, 1e6, "bound on |tracking trim| (0 = 2 % of the ideal stroke)"),
+      number("tracking_trim_slew_nm_per_s", "nm/s", k.slew_nm_per_s, 1e-6, 1e6,
+             "largest change of the tracking trim per second"),
+      number("tracking_trim_deadband_sigma", "fused 1σ", k.deadband_sigma, 0.0, 100.0,
+             "the tracking trim acts on the part of the model's error beyond this many fused σ (0 = none)"),
+      number("tracking_trim_glitch_window_s", "s", k.glitch_window_s, 0.01, 3600.0,
+             "readings refused by the estimator are counted over this long"),
+      integer("tracking_trim_glitch_count", "readings", static_cast<int>(k.glitch_count), 1, 100000,
+              "this many refused readings within the window: the encoder is glitching, feedforward only"),
       number("start_estimate_s", "s", a.start_estimate_s, 0.0, 3600.0,
              "start-up state estimate from the first this many seconds (0 = off: the model starts at rest)"),
       text("resume_from", d.resume_from, "a bag of the run before: each axis' model resumes on it (\"\" = off)"),
@@ -173,6 +186,15 @@ void read_axis_settings(params::ParamReader& r, PredictorSettings& s) {
   t.slew_nm_per_s = r.number("hold_trim_slew_nm_per_s");
   t.deadband_sigma = r.number("hold_trim_deadband_sigma");
   t.stale_after_s = r.number("encoder_stale_after_s");
+  compensation::TrackingTrimOptions& k = s.axis.tracking_trim;
+  k.enabled = r.flag("tracking_trim");
+  k.period_s = r.number("tracking_trim_period_s");
+  k.max_nm = r.number("tracking_trim_max_nm");
+  k.slew_nm_per_s = r.number("tracking_trim_slew_nm_per_s");
+  k.deadband_sigma = r.number("tracking_trim_deadband_sigma");
+  k.glitch_window_s = r.number("tracking_trim_glitch_window_s");
+  k.glitch_count = static_cast<std::size_t>(r.integer("tracking_trim_glitch_count"));
+  k.stale_after_s = t.stale_after_s;
   s.axis.start_estimate_s = r.number("start_estimate_s");
   s.resume_from = r.text("resume_from");
   s.resume.max_gap_s = r.number("resume_max_gap_s");

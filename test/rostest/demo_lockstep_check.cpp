@@ -51,8 +51,10 @@ TEST(DemoLockstep, SawtoothInStepAndCompensated) {
   EXPECT_EQ(lines, 3858u + 1u);  // one row per step (11 Hz × 2 × 175.4 s), header
   EXPECT_EQ(j["uncompensated_saw_samples"].as<int>(), 1544);
   EXPECT_EQ(j["uncompensated_late_samples"].as<int>(), 0);
-  EXPECT_GT(j["uncompensated_max_pct"].as<double>(), 4.0);  // measured 6.47 %
-  EXPECT_LT(j["compensated_max_pct"].as<double>(), 1.5);    // measured 0.72 %
+  // Uncompensated the loop's deviation is several % of the stroke, compensated under 1.5 % (the figures:
+  // docs/validation/predictor.md, "Demo, pure feedforward").
+  EXPECT_GT(j["uncompensated_max_pct"].as<double>(), 4.0);
+  EXPECT_LT(j["compensated_max_pct"].as<double>(), 1.5);
   std::remove(json.c_str());
   std::remove((g_prefix + ".csv").c_str());
 }

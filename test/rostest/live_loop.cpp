@@ -1,4 +1,4 @@
-// The whole live loop on the simulated device (issue 13, "Done when" 1): compensated with a clean model → the
+// The whole live loop on the simulated device: compensated with a clean model → the
 // thermal drift switched on mid-run → the residual watch WARNs → ~snapshot → `piezo residual` on the bag names the
 // temperature → ~reload_model with the augmented model → the rolling MAE comes back under the threshold.
 #include <diagnostic_msgs/DiagnosticArray.h>
@@ -169,9 +169,9 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   const std::string bag = snap.response.message.substr(0, snap.response.message.find(" ("));
   fs::remove_all(out_dir);
   // Every family, the gain families included: the additive thermal effect must win against aux_gain on the same
-  // signal (ResidualOptions::gain_margin; docs/closing-the-loop.md, "Live loop"). The snapshot starts ~500 s into
+  // signal (ResidualOptions::gain_margin; docs/validation/residual-loop.md, "Live loop"). The snapshot starts ~500 s into
   // the device's history: --mid-history fits the base's unknown initial creep state (without it the cold start
-  // confounds the thermal term and the loop adds time_gain and rate_dependent, TEST MAE 50 → 58 nm).
+  // confounds the thermal term, and the loop adds time_gain and rate_dependent and makes TEST worse).
   std::vector<std::string> argv{piezo_binary(), "residual", "--data", bag, "--model", clean, "--axis", "c",
                                 "--permutations", "200", "--mid-history", "--no-plots", "--out", out_dir};
   if (!families.empty()) argv.insert(argv.end(), {"--families", families});

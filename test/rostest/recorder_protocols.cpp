@@ -28,7 +28,7 @@ TEST(RecorderProtocols, EachProtocolGivesItsPatternAndAReadableBag) {
     EXPECT_FALSE(fs::exists(out + ".parts")) << "chunks left behind";
     check_recording(out, c.protocol, c.params, r.total_samples(), 0.05);
     // the truth is matched to the reading by sequence number; under load it can come more than a sample after
-    // the reading (measured up to 28 % of the rows with another recording running): the earlier one stands in
+    // the reading (on a loaded host, for a sizeable share of the rows): the earlier one stands in; the bound is half
     EXPECT_LE(r.substituted_truths(), 0.5 * r.total_samples());
     std::printf("%s: %llu samples, %llu late commands, %llu device samples skipped between rows, %llu truths "
                 "substituted\n",

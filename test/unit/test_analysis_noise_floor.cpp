@@ -1,4 +1,4 @@
-// The noise floor estimated from the data (issue 11 item 5), on simulated stages whose noise is known.
+// The noise floor estimated from the data, on simulated stages whose noise is known.
 #include <gtest/gtest.h>
 
 #include <cmath>

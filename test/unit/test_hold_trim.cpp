@@ -1,4 +1,4 @@
-// Issue 25's offline done-when on the foreign hold stage (Preisach + a 7-mode creep spectrum no model kind has):
+// The hold trim offline, on the foreign hold stage (Preisach + a 7-mode creep spectrum no model kind has):
 // the shipped model fitted by `piezo fit --model auto` on seed 101 (config/models/mm3e_foreign_c.yaml) runs
 // through the predictor's own compensator (compensation/track.h, = `piezo track`) from a cold start on another
 // seed's recording. Inside each 30-min hold from 120 s on: fused MAE ≤ 2 nm against the truth, every hold's last

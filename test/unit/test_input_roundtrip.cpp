@@ -1,4 +1,4 @@
-// One input resolver for every tool (issue 27): a residual model reading any input kind it can be given — the data's
+// One input resolver for every tool: a residual model reading any input kind it can be given — the data's
 // time, an aux column, another axis' voltage, another axis' position — is saved, loaded and scored through the path
 // `piezo eval` takes (CSV read and validated, model file loaded, check_model_for_eval, evaluate_model) on the same
 // three-axis CSV, and its predictions there are the base's plus the term on the input as the resolver defines it

@@ -2,6 +2,7 @@
 
 #include <random>
 
+#include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/pi_model.h"
@@ -286,4 +287,38 @@ TEST(Nnls, MatchesBruteForceOnSmallProblem) {
     if (feasible && f < best) best = f, best_x = full;
   }
   EXPECT_LT((x - best_x).norm(), 1e-9);
+}
+
+// What tools ask of a kind without a cast (models/model.h): the PI family answers for itself, an augmented model
+// passes the creep question to its base and is no PI model itself.
+TEST(PiModel, AnswersTheKindQueries) {
+  CreepParams cp;
+  cp.kind = models::CreepKind::kLti;
+  cp.taus_s = {20, 400};
+  cp.gains_nm_per_v = {0.4, 0.8};
+  auto pi = std::make_unique<PiCreepModel>(make_pi(cp));
+  const models::Model& m = *pi;
+  EXPECT_EQ(m.pi_family(), pi.get());
+  EXPECT_TRUE(m.takes_output_map());
+  EXPECT_EQ(m.creep_mode_taus_s(), (std::vector<double>{20, 400}));
+  EXPECT_TRUE(make_pi().creep_mode_taus_s().empty());  // no creep law: no modes
+  const models::AugmentedModel aug(std::move(pi), {}, 0.0, 11.0);
+  EXPECT_EQ(aug.creep_mode_taus_s(), (std::vector<double>{20, 400}));
+  EXPECT_EQ(aug.pi_family(), nullptr);
+  EXPECT_FALSE(aug.takes_output_map());
+}
+
+// The term kinds' names: the one conversion, both ways, and an unknown name refused naming the known ones.
+TEST(PiModel, TermKindNamesRoundTrip) {
+  for (int k = 0; k <= static_cast<int>(models::TermKind::kGainQuadratic); ++k) {
+    const auto kind = static_cast<models::TermKind>(k);
+    EXPECT_EQ(models::term_kind(models::term_kind_name(kind)), kind);
+  }
+  EXPECT_STREQ(models::term_kind_name(models::TermKind::kSinCos), "sincos");
+  try {
+    models::term_kind("cosine");
+    ADD_FAILURE() << "an unknown term type was accepted";
+  } catch (const std::runtime_error& e) {
+    EXPECT_NE(std::string(e.what()).find("gain_quadratic"), std::string::npos);
+  }
 }

@@ -70,7 +70,7 @@ TEST(Preisach, ModelFileRoundTripsAndRefusesBrokenFiles) {
   EXPECT_NE(load_error_after(text, "weights_nm_per_v: [5, 4", "weights_nm_per_v: [4").find("weights_nm_per_v"), std::string::npos);
 }
 
-// Issue 12's done-when on the Preisach + creep-spectrum creep-protocol stage (config/stages/
+// Creep within 5 nm on the Preisach + creep-spectrum creep-protocol stage (config/stages/
 // mm3e_preisach_creep_protocol.yaml), with a seed and a creep spectrum the fits were not tuned to: 15 × (30-min
 // history, 30-min hold) at 11 Hz; histories 1–8 train, 9–10 validation (the user's 1–10), 11–15 test, free-run
 // over all of it from rest, scored against the true position in the test holds. The preisach kind and the PI
@@ -89,10 +89,10 @@ CreepProtocolRun creep_protocol_data() {
   auto& axis = stage.simulator.axes[2];
   axis.creep_spectrum_tau_s = {5.0, 45.0, 500.0, 3600.0, 15000.0};
   axis.creep_spectrum_weights = {0.05, 0.03, 0.07, 0.06, 0.11};
-  // 200 switching voltages (0.8 V apart) instead of the stage's 40 (4 V): the stage's relays switch in rows of up
-  // to 30.6 nm (40 bins, loop width 10 %), a staircase no continuous hysteresis model follows; fitted without creep
-  // or noise the `preisach` kind alone is 17.1 nm off at a test hold of seed 7 and 4.1 nm on this seed, and with
-  // 200 bins (rows ≤ 5.9 nm) 4.5 and 1.0 nm (docs/models.md, "Creep on physics no kind was written from"). The target is the creep, not that grid.
+  // 200 switching voltages (0.8 V apart) instead of the stage's 40 (4 V): with 40 bins the stage's relays switch
+  // in rows of up to 30.6 nm (loop width 10 %), a staircase no continuous hysteresis model follows, and with 200
+  // the rows are ≤ 5.9 nm. The target is the creep, not that grid (docs/validation/models.md, "Creep on physics
+  // no kind was written from").
   axis.preisach_grid_count = 200;
   CreepProtocolRun r;
   r.rate = stage.simulator.sample_rate_hz;
@@ -130,18 +130,18 @@ TEST(Preisach, CreepProtocolHoldsWithinFiveNanometresOnPreisachPhysics) {
   for (double w : pm.weights()) EXPECT_GE(w, 0.0);  // no cancelling pieces
   for (double tau : pm.mode_taus_s()) EXPECT_LE(tau, r.n_train / r.rate * 1.001);
   for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
-  // Issue 12: hold MAE and every end of hold ≤ 5 nm (measured 2.70 / 4.15 nm with the converged final fit;
-  // pi_creep_prony 41.8 nm). Not on every seed: 7 of the 7 seed/spectrum cases tried hold the MAE, 5 the ends
-  // (seed 7 6.38 / 6.35 nm, the pieces' hysteresis error at a 48.6-V hold; docs/models.md, "Creep on physics no kind was written from").
+  // Requirement: hold MAE and every end of hold ≤ 5 nm against the truth. It holds on this seed and spectrum, not
+  // on every one: the pieces' hysteresis error at a single hold voltage can exceed it (docs/validation/models.md,
+  // "Creep on physics no kind was written from", has the figures and the other seeds tried).
   EXPECT_LE(s.mae_nm, 5.0);
   EXPECT_LE(s.worst_end_nm, 5.0);
-  EXPECT_LE(s.walk_mae_nm, 3.0);  // measured 2.87 nm: holds not bought with the walk
+  EXPECT_LE(s.walk_mae_nm, 3.0);  // the holds are not bought with the walk
 }
 
 // The PI kind on the same data cannot follow the Preisach loops: its test-hold MAE is at least 4 × the preisach
-// kind's 5-nm bound (measured 41.8 nm), which with the test above is the former "preisach < 0.25 × PI".
+// kind's 5-nm bound, so with the test above the preisach kind is under 0.25 × the PI kind.
 TEST(Preisach, PiCreepCannotFollowThePreisachLoops) {
   const auto [s, m] = fit_and_score("pi_creep_prony", creep_protocol_data());
   EXPECT_GE(s.mae_nm, 4 * 5.0);
 }
-// Issue 12's residual-loop item on this kind of data: test/unit/test_residual_preisach.cpp.
+// The residual loop on this kind of data: test/unit/test_residual_preisach.cpp.

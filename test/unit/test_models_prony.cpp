@@ -17,10 +17,10 @@ using namespace piezo;
 using models::PiCreepModel;
 
 
-// Issue 12's done-when, on the creep-protocol stage (config/stages/mm3e_preisach_creep_protocol.yaml: each scenario a
+// Creep within 5 nm on the creep-protocol stage (config/stages/mm3e_preisach_creep_protocol.yaml: each scenario a
 // 30-min random history ending in a fast approach, then a 30-min hold; a creep spectrum of five first-order modes
 // between 3 s and 3 h, 11 Hz, 20.8 nm encoder noise), with its hysteresis switched to Prandtl–Ishlinskii: on the
-// stage's asymmetric Preisach hysteresis no PI kind gets near 5 nm (docs/models.md, ~40 nm), so this asserts the
+// stage's asymmetric Preisach hysteresis no PI kind gets near 5 nm (docs/validation/models.md), so this asserts the
 // creep part where the hysteresis is representable. 12 scenarios instead of 15 (fast test): 7 train, 2 validation,
 // 3 test; the model runs free over all of them and is scored in the test holds against the true position.
 TEST(PronyCreep, HoldsWithinFiveNanometresWithAnIndependentCreepSpectrum) {
@@ -43,8 +43,8 @@ TEST(PronyCreep, HoldsWithinFiveNanometresWithAnIndependentCreepSpectrum) {
             << " nm over " << s.holds << " holds\n";
   EXPECT_EQ(s.holds, 3);
   EXPECT_LE(s.mae_nm, 5.0);
-  // Issue 12: ≤ 5 nm at every end of hold (measured 2.60 nm with the final refit on train + validation; 5.01 nm
-  // without it).
+  // Requirement: ≤ 5 nm at every end of hold, for the final model a user gets (refitted on train + validation);
+  // figures: docs/validation/models.md, "Creep on physics no kind was written from".
   EXPECT_LE(s.worst_end_nm, 5.0);
   // PI hysteresis is a special case of the preisach kind: it must do no worse here (5 % slack on the worst end).
   auto pre = training::fit_model("preisach_creep_prony", req);
@@ -62,7 +62,7 @@ TEST(PronyCreep, HoldsWithinFiveNanometresWithAnIndependentCreepSpectrum) {
   for (double g : pm.mode_gains()) EXPECT_GE(g, 0.0);
 }
 
-// The failure of issue 11: a short, fast, low-voltage recording (config/stages/lowvolt_preisach_creep.yaml: 0–3.6 V,
+// A short, fast, low-voltage recording (config/stages/lowvolt_preisach_creep.yaml: 0–3.6 V,
 // ~50 µm, 200 Hz; 32 s train, 8 s validation) and a test recording of another seed that starts 5 s into its motion
 // (unknown state). Every PI kind must give a bias and weights of the data's own scale (no cancelling pair), no mode
 // the data cannot see, and a free-run error far below the travel.

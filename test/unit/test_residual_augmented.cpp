@@ -102,7 +102,7 @@ TEST(ResidualAugmented, RateAndPlayAndSinCos) {
 TEST(ResidualAugmented, LowPassedRateHasNoRiseFromZero) {
   // A steady ramp of 0.5 V per sample, low-passed over 240 s at 1 Hz: the debiased filter reads 0.5 V (and
   // 0.25 V² signed) from the first step on. Started at zero and not debiased it rose over ~3τ, a start-up decay
-  // the loop's fit traded against the base's start transients (docs/closing-the-loop.md, "Live loop").
+  // the loop's fit traded against the base's start transients (docs/validation/residual-loop.md, "Live loop").
   pm::EffectTermStream s({make("rate", "voltage", 3, 0.0, 240.0)}, 1.0);
   double z[3];
   for (int i = 0; i < 50; ++i) {

@@ -1,4 +1,4 @@
-// Gain effects (issue 18), on the Preisach/independent-creep stage of test_residual_gain_cases.h: (d) the stage
+// Gain effects on the Preisach/independent-creep stage of test_residual_gain_cases.h: (d) the stage
 // without an effect gets nothing added; a gain driven by a signal that is not in the file ends in "not
 // explained" with the size of what is left. (a) temperature: test_residual_gain_temperature.cpp; (b) time:
 // test_residual_gain_drift.cpp; (c) other axis: test_residual_gain_other_axis.cpp.

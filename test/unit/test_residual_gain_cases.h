@@ -1,6 +1,6 @@
-// Gain effects (issue 18) on a stage with physics the base is not written from: Preisach hysteresis (asymmetric
+// Gain effects on a stage with physics the base is not written from: Preisach hysteresis (asymmetric
 // relay hysterons) and a creep spectrum of four first-order modes (config/stages/mm3e_preisach_creep.yaml), 11 Hz,
-// 20.8 nm encoder noise, 6 h of random walk (the first 70 % TRAIN, the rest TEST, as in the issue), fitted with a
+// 20.8 nm encoder noise, 6 h of random walk (the first 70 % TRAIN, the rest TEST), fitted with a
 // preisach_creep_prony base (play-operator pieces + a Prony creep series). Axis a (the simulator's default
 // physics) walks too, so another axis' voltage and position are in the file. The stroke of axis c is scaled by
 // 1 + f(signal) about its rest position at 0 V (what a stroke change scales); the effect is never declared.

@@ -1,4 +1,4 @@
-// Gain effects (issue 18), on the Preisach/independent-creep stage of test_residual_gain_cases.h: (a) a stroke
+// Gain effects on the Preisach/independent-creep stage of test_residual_gain_cases.h: (a) a stroke
 // gain driven by a lagged temperature column is named as an aux_gain of temperature_c, nothing else added, and
 // ends within 10 % of (d)'s free-run MAE against the truth ((d) gets nothing added: test_residual_gain.cpp, so
 // its MAE is its base's).
@@ -6,10 +6,10 @@
 
 using namespace piezo::test::gain;
 
-// Within 1.10 × ((d)'s base is within 5.9 nm of the truth, noise σ 21 nm, so 10 % is 0.6 nm). Measured 20.1 → 4.76 nm
-// = 0.80 × (3.9 %/°C against 4 %); without the effect found it stays at 3.4 ×. The stage feels the temperature
-// through a 45-s delay and a 240-s low-pass (a mean delay of 285 s): the lag is profiled as one first-order lag
-// with the base refitted at each τ, and found at 320 s.
+// Within 1.10 × ((d)'s base is within 5.9 nm of the truth, noise σ 21 nm, so 10 % is 0.6 nm); without the effect
+// found it would stay far above that. The stage feels the temperature through a 45-s delay and a 240-s low-pass
+// (a mean delay of 285 s): the lag is profiled as one first-order lag with the base refitted at each τ. Figures:
+// docs/validation/residual-loop.md.
 TEST(ResidualGain, StrokeGainDrivenByALaggedTemperatureColumn) {
   const pa::ResidualResult r =
       expect_gain(Gain::kTemperature, "(a) temperature gain", "aux_gain", "temperature_c", clean_base_truth_mae(), 1.10);

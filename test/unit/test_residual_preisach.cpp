@@ -1,4 +1,4 @@
-// The residual loop on a preisach_creep_prony base (issue 12): on creep-protocol data from physics the base is
+// The residual loop on a preisach_creep_prony base: on creep-protocol data from physics the base is
 // not written from (Preisach hysteresis + a 5-mode creep spectrum) with no extra effect, nothing is added.
 #include <gtest/gtest.h>
 
@@ -15,9 +15,9 @@
 using namespace piezo;
 
 // The stage as shipped, 10 scenarios (8 h TRAIN of which the last 25 % validate, 2 h TEST), a seed no fit is
-// tuned to. Before the loop required an effect to help in both halves of the validation part it added time_drift
-// here: −7.3 % validation MAE overall, but +18.1 % / −7.7 % by half (a trend fitted on the fit part stands in for
-// slow creep the base extrapolates wrongly just after it), and TEST went 18.05 → 18.65 nm.
+// tuned to. A trend fitted on the fit part can stand in for slow creep the base extrapolates wrongly just after
+// it: it helps in the first half of the validation part and hurts in the second, so the "both halves" rule must
+// refuse it here (docs/validation/residual-loop.md, step 4).
 TEST(ResidualPreisach, ResidualLoopAddsNothingOnPreisachCreepProtocolData) {
   sim::StageConfig stage =
       sim::load_stage(std::string(PIEZO_SOURCE_DIR) + "/config/stages/mm3e_preisach_creep_protocol.yaml");
@@ -52,7 +52,7 @@ TEST(ResidualPreisach, ResidualLoopAddsNothingOnPreisachCreepProtocolData) {
 }
 
 // The same kind of data with a base that misses the Preisach loop's asymmetry (PI + LTI creep): the loop may add
-// what really captures that (voltage_nonlinearity; measured TEST MAE vs truth 46.6 → 13.4 nm), but no periodic,
+// what really captures that (voltage_nonlinearity), but no periodic,
 // signal, time or gain family, and every step must earn ≥ 2 % of TEST MAE against the truth.
 // Preisach + 5-mode creep spectrum, 4 × (30-min random sequence, 30-min hold), the first 2/3 TRAIN.
 TEST(ResidualPreisach, CreepProtocolWithAPiBaseAddsNoPeriodicSignalOrTimeEffect) {

@@ -1,4 +1,4 @@
-// Mount slips (issue 27): steps of the offset that no family explains. On the synthetic plant of
+// Mount slips: steps of the offset that no family explains. On the synthetic plant of
 // test_residual_common.h without a planted effect, the tip slips twice in TEST. Nothing may be added, what is
 // left is "not explained", and the slips are reported as steps within 60 s of their times with their sizes.
 // (A slip inside TRAIN's fit part is another matter: a slow family such as missing_memory, τ ~ 4000 s, fits the

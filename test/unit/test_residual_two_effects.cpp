@@ -1,4 +1,4 @@
-// Two effects at once (issue 27), on the Preisach/independent-creep stage of test_residual_gain_cases.h: an
+// Two effects at once, on the Preisach/independent-creep stage of test_residual_gain_cases.h: an
 // additive a → c coupling (0.4 nm/V of axis a, 1 s late) and a 2 %/°C stroke gain on a temperature the stage
 // feels through 45 s + 240 s. Both must be named, one after the other with the base refitted between, and the
 // TEST error against the truth must end within 15 % of the same stage without either effect (the base alone,

@@ -1,5 +1,4 @@
-// A sensor effect goes into the estimator's reading model, not into the feedforward (issue 44 item 5, issue 46 item
-// 3). The stage of the hold-trim tests (config/stages/mm3e_foreign_hold_stage.yaml, its shipped model
+// A sensor effect goes into the estimator's reading model, not into the feedforward. The stage of the hold-trim tests (config/stages/mm3e_foreign_hold_stage.yaml, its shipped model
 // config/models/mm3e_foreign_c.yaml) with an encoder interpolation error periodic in the position (25 nm at 350 nm):
 // the residual loop's term for it, sin/cos of the position fitted to the readings on one recording, is put in the
 // model three ways and the compensator runs a recording of another seed. As a sensor term (acts_on: readings) the

@@ -1,4 +1,4 @@
-// The simulated MM3E against the numbers of the reference study (issue 3 "Done when").
+// The simulated MM3E against the numbers of the reference study.
 #include <gtest/gtest.h>
 
 #include <algorithm>

@@ -1,8 +1,8 @@
-// The model test matrix of issue 11: every kind on every simulated stage (three stages × PI-like/Preisach
+// The model test matrix: every kind on every simulated stage (three stages × PI-like/Preisach
 // hysteresis × without/with creep, config/stages/*.yaml), fitted on the first 80 % and run free on the rest.
 // The stage settings build the data only; the fits see the data set alone. Then every fitted kind runs on a
-// separate recording of the stage (another seed, starting mid-motion, cold with the start estimate: issue 26
-// item 4). Prints both matrices and the model choice (docs/models.md).
+// separate recording of the stage (another seed, starting mid-motion, cold with the start estimate). Prints both
+// matrices and the model choice (docs/validation/models.md, "The stage matrix").
 // Set PIEZO_STAGE_MATRIX_FULL=1 for the MM3E stages' full 7.5 h (the default run uses 2 h to stay fast).
 #include <gtest/gtest.h>
 
@@ -32,7 +32,7 @@ const std::vector<std::string> kNeural = {"dense", "lstm", "kan"};
 // reproducible and asserted like the others.
 constexpr int kNeuralSteps = 800;
 
-// Cells known to fail, with the measured figure and the reason (docs/models.md); every other cell must pass, and a
+// Cells known to fail, with the figure they fail by and the reason (docs/validation/models.md); every other cell must pass, and a
 // listed cell that passes is reported. Names: "<stage>/<kind>" (continuation MAE ≥ 10 % of range), "<stage>/auto"
 // (auto > 1.1× the best kind), "<stage>/<kind> separate" (separate recording > 1.5× the continuation),
 // "<stage>/auto separate" (auto > 1.1× the best kind there).
@@ -41,10 +41,10 @@ constexpr int kNeuralSteps = 800;
 // the other recording, whatever its start; whole ≤ 1.5× means the start estimate leaves the gap.
 std::string not_carried_over(const char* figure, const char* whole) {
   return std::string(figure) + "; whole history " + whole + "× too: the model does not carry over to another "
-         "recording (issue 26 item 3)";
+         "recording";
 }
 std::string start_gap(const char* figure, const char* whole) {
-  return std::string(figure) + "; whole history " + whole + "×: the start estimate leaves the gap (issue 26 item 1)";
+  return std::string(figure) + "; whole history " + whole + "×: the start estimate leaves the gap";
 }
 const std::map<std::string, std::string> kKnownFailing = {
     {"lowvolt_pi/auto", "auto chose pi, 42.84 nm against the best kind's 38.27: auto chooses on the moves and the "

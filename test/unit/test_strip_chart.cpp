@@ -122,7 +122,7 @@ TEST(StripChart, HeldAxisOnACoarseEncoderUsesTheQuantisationFloor) {
   const auto ps = c.draw(0, 0);
   const auto& head = find(ps, "a/headline")->text;
   EXPECT_NE(head.find("q/sqrt12, q 250 nm encoder resolution"), std::string::npos) << head;
-  ASSERT_NE(find(ps, "a/band1"), nullptr);  // the bands no longer collapse
+  ASSERT_NE(find(ps, "a/band1"), nullptr);  // the bands have a width: the floor is the quantiser's
 
   // A noisy axis above the bound keeps its estimate (the 20 nm encoder with σ 8 nm: 8 > 20/√12).
   StripChartOptions oc;

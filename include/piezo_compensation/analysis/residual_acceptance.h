@@ -36,10 +36,10 @@ struct AcceptanceThresholds {
   // refitting the same terms on another stretch moves by, and not worth a term that must also hold live.
   double min_removed_fraction = 0.10;
   // … for a line in time (time_drift, time_gain): its slope's error grows with the horizon past TRAIN, and a slow
-  // wander of the base's creep misfit over a few hours looks like a line on the validation part: on the Preisach
-  // gain stage a line removes 38 % of what the clean base leaves and 48.5 % of what is left after the temperature
-  // gain (clearly better, and 5.6 → 13.1 nm against the truth in TEST), while a real drift of the stroke removes
-  // most of it.
+  // wander of the base's creep misfit over a few hours looks like a line on the validation part. On the Preisach
+  // gain stage such a line removes under half of what is left after the temperature gain (clearly better on
+  // validation, yet worse against the truth in TEST), while a real drift of the stroke removes most of it
+  // (docs/validation/residual-loop.md, step 4).
   double time_trend_min_removed_fraction = 0.65;
   // What it removes, √(ΔMSE) [nm], must exceed this many σ of a mean over resolution_block_s of readings: an
   // effect smaller than what a 30-s average resolves (21 nm noise at 11 Hz: 1.2 nm) is not measured, whatever

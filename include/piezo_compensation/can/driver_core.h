@@ -129,6 +129,11 @@ class DriverCore {
   void refused_locked(Axis& a);
   void close_locked(const std::string& reason, BusState state, std::vector<Pending>& events);
   void flush(std::vector<Pending>& events);
+  // poll_once's parts, under the lock: an open attempt when due (true: open); one received frame (false: the bus
+  // went off, stop reading this batch); a voltage report.
+  bool connect_locked(std::vector<Pending>& events);
+  bool frame_locked(const ReceivedFrame& rf, std::vector<Pending>& events);
+  void voltage_report_locked(const VoltageReport& v, double receive_time_s, std::vector<Pending>& events);
   double since(Clock::time_point t) const;
 
   DriverConfig config_;

@@ -13,6 +13,7 @@
 #include "piezo_compensation/compensation/hold_trim.h"
 #include "piezo_compensation/compensation/ideal_line.h"
 #include "piezo_compensation/compensation/inverse.h"
+#include "piezo_compensation/compensation/tracking_trim.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
 #include "piezo_compensation/models/start_state.h"
@@ -33,6 +34,8 @@ struct AxisCompensatorConfig {
   // Hold trim on the fused estimate (compensation/hold_trim.h); acts only when the model file carries an
   // estimator noise model and the axis' readings can inform it (estimation/error_filter.h).
   HoldTrimOptions hold_trim;
+  // Tracking trim while the axis moves (compensation/tracking_trim.h), handed to the hold trim when it settles.
+  TrackingTrimOptions tracking_trim;
   // > 0: after the first start_estimate_s seconds the model's state is re-chosen from them (models/start_state.h:
   // the synthetic pre-history that fits them best, turning points within the voltage limits), replayed over them,
   // and the estimator starts from that estimate's offset and σ instead of its cold-start σ. 0 = off.
@@ -115,6 +118,8 @@ class AxisCompensator {
   const std::string& estimator_status() const { return estimator_status_; }
   const HoldTrim& hold_trim() const { return trim_; }
   void set_hold_trim(bool on) { trim_.set_enabled(on); }
+  const TrackingTrim& tracking_trim() const { return tracking_; }
+  void set_tracking_trim(bool on) { tracking_.set_enabled(on); }
   std::size_t samples() const { return samples_; }
   std::size_t prediction_failures() const { return prediction_failures_; }
   std::size_t command_fallbacks() const { return command_fallbacks_; }
@@ -157,6 +162,10 @@ class AxisCompensator {
   std::unique_ptr<estimation::ErrorFilter> filter_;
   std::string estimator_status_;
   HoldTrim trim_;
+  TrackingTrim tracking_;
+  bool handed_over_ = false;  // the hold trim has the tracking trim's value (until the next intent)
+  void on_new_intent();
+  void step_tracking(const SampleUpdate& u, bool ok);
   bool last_command_active_ = false;
   bool has_sent_ = false;
   std::size_t samples_ = 0, prediction_failures_ = 0, command_fallbacks_ = 0;

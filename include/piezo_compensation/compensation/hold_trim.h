@@ -34,6 +34,9 @@ class HoldTrim {
   void set_max_nm(double max_nm) { o_.max_nm = max_nm; }
   // A new intent (a different target): the trim is cancelled at once and the settle time starts again.
   void on_new_intent();
+  // The tracking trim's correction taken over as the axis settles (added to the trim, within its bound), so the
+  // sum of the two does not jump.
+  void take_over(double trim_nm);
   // One sample. `fusing`: the estimate is informed by readings; `fused_sigma_nm`: its 1σ; `since_reading_samples`:
   // samples since the last valid one; `model_ok`: the prediction and the command are from the model (no fallback).
   void step(double intended_nm, double fused_nm, double fused_sigma_nm, bool fusing, std::size_t since_reading_samples,

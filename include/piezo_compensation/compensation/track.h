@@ -7,6 +7,7 @@
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/compensation/drift_forecast_table.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
 
@@ -17,6 +18,7 @@ struct TrackOptions {
   double settle_skip_s = 120.0; // hold scores start this long after the hold starts
   double end_window_s = 5.0;    // "end of hold": its last seconds
   double start_estimate_s = 0.0;  // > 0: the compensator's start-up state estimate over the first seconds
+  ForecastTableOptions forecast;  // the forecast table (compensation/drift_forecast_table.h)
   double score_from_s = 300.0;  // every sample from this long after the first row is scored too (a cold start's
                                 // first minutes are the estimator pinning the model's error)
 };
@@ -37,6 +39,7 @@ struct TrackHold {
 struct TrackResult {
   std::vector<double> time_s, applied_v, measured_nm, model_nm, fused_nm, fused_sigma_nm, true_nm;
   std::vector<TrackHold> holds;
+  ForecastTable forecast;  // the position forecast per horizon, walk and holds (empty on a model-only axis)
   std::string estimator;   // the filter's noise model, or why the axis is model-only
   std::string start_estimate;  // the start-up state estimate's line (empty without start_estimate_s)
   bool fusing = false;

@@ -72,6 +72,10 @@ struct NoiseModel {
   // why; and by identifications before the quantised reading model for axes whose step is coarse against the noise:
   // such a file keeps loading, and its describe() says to re-identify.
   bool fuse = true;
+  // The forecast's σ (estimation/forecast.h): per horizon [s], the scale of the propagated σ while the voltage is
+  // held over the horizon and while it moves, calibrated on the identification's data (calibrate_forecast). Empty:
+  // the propagated σ unscaled.
+  std::vector<double> forecast_horizons_s, forecast_sigma_scale_hold, forecast_sigma_scale_move;
   std::string method;               // how it was identified (one line)
   std::size_t samples = 0;          // readings the identification used
   double log_likelihood = 0.0;      // per reading, at the identified parameters

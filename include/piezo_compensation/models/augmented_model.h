@@ -30,6 +30,12 @@ inline constexpr const char* kSignalTime = "time_s";        // the data's time c
 inline constexpr const char* kActsOnPosition = "position";
 inline constexpr const char* kActsOnReadings = "readings";
 
+// The term types (EffectTerm::type in a model file; term_kind and term_kind_name convert, the one place the names
+// are read). The order is the C export's term code (models/c_export.h).
+enum class TermKind { kLinear, kPlay, kSinCos, kRate, kPowers, kGain, kGainQuadratic };
+TermKind term_kind(const std::string& type);  // throws std::runtime_error naming the known types
+const char* term_kind_name(TermKind kind);
+
 struct EffectTerm {
   // "linear"          [y]                                   y = lowpass_τ(lag_L(s))
   // "play"            [lowpass_τ(play_r(lag_L(s)))]          hysteretic memory of a signal
@@ -53,7 +59,8 @@ struct EffectTerm {
   std::string acts_on = kActsOnPosition;
   bool in_readings() const { return acts_on == kActsOnReadings; }
   double reference = 0.0;                    // gains: value of the scaled quantity the gain acts about
-  bool is_gain() const { return type == "gain" || type == "gain_quadratic"; }
+  TermKind kind() const { return term_kind(type); }  // throws for an unknown type
+  bool is_gain() const { return kind() == TermKind::kGain || kind() == TermKind::kGainQuadratic; }
   // Standardisation of each raw regressor (fitted on training data) and its weight [nm per standardised unit].
   std::vector<double> center, scale, weight;
 
@@ -112,10 +119,14 @@ class AugmentedModel : public Model {
   std::vector<std::string> aux_inputs() const override;  // base model's first, then the terms' columns
   YAML::Node to_yaml() const override;
   std::size_t num_parameters() const override;
+  std::vector<double> creep_mode_taus_s() const override;
   // The base model's (the terms' states are not linear states).
   std::size_t linear_state_count() const override { return base_->linear_state_count(); }
   double linear_state_nm(std::size_t k) const override { return base_->linear_state_nm(k); }
   void shift_linear_state(std::size_t k, double delta_nm) override { base_->shift_linear_state(k, delta_nm); }
+  // The base's reason, or the terms' when one counts a lag, a low-pass or a difference in samples; else any step.
+  std::string fixed_rate_reason() const override;
+  void set_step_s(double dt_s) override;
 
   const Model& base() const { return *base_; }
   const std::vector<EffectTerm>& terms() const { return stream_.terms(); }

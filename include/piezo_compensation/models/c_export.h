@@ -16,6 +16,7 @@ namespace piezo::models {
 
 std::string export_c99_linear(const Model& model, const std::string& prefix);  // kind "linear" (no aux features)
 std::string export_c99_pi(const Model& model, const std::string& prefix);      // kinds "pi", "pi_creep_*", "preisach*"
+std::string export_c99_pi_creep_play(const Model& model, const std::string& prefix);  // kind "pi_creep_play"
 // Kind "augmented": the base's header (prefix <p>_base) plus the effect terms. Its predict/commit/step take one
 // more argument, `const double* aux`: the values of <p>_AUX_NAMES (Model::aux_inputs()) at the sample.
 std::string export_c99_augmented(const Model& model, const std::string& prefix);

@@ -22,6 +22,7 @@ class LinearModel : public Model {
   void commit(const ModelInput& in, double position_nm) override { stream_.commit(in, position_nm); }
   std::unique_ptr<Model> clone() const override { return std::make_unique<LinearModel>(*this); }
   bool uses_position_history() const override { return stream_.spec().uses_positions(); }
+  std::string fixed_rate_reason() const override { return kLaggedSamplesReason; }
   bool is_affine_in_voltage() const override;
   std::vector<std::string> aux_inputs() const override { return stream_.spec().aux_signals(); }
   YAML::Node to_yaml() const override;

@@ -67,6 +67,7 @@ class LstmModel : public Model {
   std::unique_ptr<Model> clone() const override { return std::make_unique<LstmModel>(*this); }
   // The recurrent state carries the model's own history, but positions enter only through features.
   bool uses_position_history() const override { return stream_.spec().uses_positions(); }
+  std::string fixed_rate_reason() const override { return kLaggedSamplesReason; }
   std::vector<std::string> aux_inputs() const override { return stream_.spec().aux_signals(); }
   YAML::Node to_yaml() const override;
   std::size_t num_parameters() const override { return net_.num_params(); }

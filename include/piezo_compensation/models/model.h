@@ -16,6 +16,8 @@ namespace piezo::models {
 // The input of one sample (features/model_input.h): the layer below models owns it, models use it.
 using ModelInput = features::ModelInput;
 
+class PiCreepModel;  // models/pi_model.h
+
 // Where training-like operation keeps one linear state (Model::linear_state_nm): a line in the applied voltage and
 // the scatter about it, both over the model's free run on its training data. The start estimate's prior for a
 // history it has not seen (models/start_state.h).
@@ -58,6 +60,10 @@ struct ModelMeta {
   YAML::Node selection;                        // `--model auto`: the candidates' scores and the choice (or null)
   YAML::Node estimator;                        // the error filter's noise model (estimation/error_filter.h), or null
 };
+
+// Model::fixed_rate_reason of the kinds on the feature stream (linear and the neural kinds).
+inline constexpr const char* kLaggedSamplesReason =
+    "its features are lagged samples and windows counted in samples of the training rate";
 
 class Model {
  public:
@@ -106,7 +112,32 @@ class Model {
   // Moves state k so that the next prediction changes by delta_nm (later ones by what the state makes of it).
   virtual void shift_linear_state(std::size_t /*k*/, double /*delta_nm*/) {}
 
+  // What a tool asks of a kind without knowing it:
+  // the time constants [s] of the creep modes (empty: none); an augmented model answers for its base.
+  virtual std::vector<double> creep_mode_taus_s() const { return {}; }
+  // The PI or Preisach model this is (null for every other kind): its play thresholds, creep law and maps, for a
+  // refit of the same structure, the output map's fit and the C export.
+  virtual const PiCreepModel* pi_family() const { return nullptr; }
+  virtual PiCreepModel* pi_family() { return nullptr; }
+  // Whether the kind takes an output map, a monotone bend of its hysteresis output (training/fitters.h).
+  virtual bool takes_output_map() const { return false; }
+  // Sample period. A kind whose time constants are in seconds (PI/Preisach hysteresis with creep modes) runs on
+  // any step: set_step_s(dt) makes the next commit advance dt seconds (a jittered recording's own row steps).
+  // fixed_rate_reason() is "" for such a kind, else why it runs only at meta.sample_rate_hz (lagged samples,
+  // windows counted in samples); then set_step_s throws std::invalid_argument with that reason for a step more
+  // than kStepTolerance from 1 / meta.sample_rate_hz.
+  static constexpr double kStepTolerance = 0.01;  // relative
+  virtual std::string fixed_rate_reason() const {
+    return "kind '" + kind() + "' steps once per sample of its training rate";
+  }
+  virtual void set_step_s(double dt_s) { check_fixed_step(dt_s); }
+  bool runs_at_any_rate() const { return fixed_rate_reason().empty(); }
+
   ModelMeta meta;
+
+ protected:
+  // Throws std::invalid_argument (with fixed_rate_reason()) unless dt_s is the training rate's step.
+  void check_fixed_step(double dt_s) const;
 };
 
 using ModelPtr = std::unique_ptr<Model>;

@@ -13,7 +13,7 @@
 // Every PI and Preisach kind may carry an output map: a monotone static nonlinearity S of the hysteresis output H,
 //   y = b + S(H) + creep,   S(H) = H + a₂·z² + a₃·z³,   z = (H − H_mid)/H_half on [H_lo, H_hi], affine beyond,
 // (the superposition operator of the modified PI: loops whose middle and ends bend differently, which the odd play
-// operators cannot; the real MM3E's c axis, docs/models.md "Real recordings"). The creep input stays H. Stored as
+// operators cannot; the real MM3E's c axis, docs/validation/models.md "Real recordings"). The creep input stays H. Stored as
 // `output_map: {h_range_nm: [lo, hi], quadratic_nm, cubic_nm}`; S' > 0 on its range is checked on load.
 #pragma once
 
@@ -59,6 +59,10 @@ class PiCreepModel : public Model {
   std::size_t linear_state_count() const override { return live_modes_.size(); }
   double linear_state_nm(std::size_t k) const override;
   void shift_linear_state(std::size_t k, double delta_nm) override;
+  // The hysteresis has no time and the creep modes' time constants are in seconds: any step.
+  std::string fixed_rate_reason() const override { return ""; }
+  void set_step_s(double dt_s) override;  // the creep poles exp(−dt/τ) for the next commits
+  double step_s() const { return step_s_; }
 
   double predict_v(double voltage_v) const;
   // Exact inverse for the current state: the voltage whose predict() is target_nm (piecewise-linear, closed
@@ -79,6 +83,10 @@ class PiCreepModel : public Model {
   void set_output_map(const OutputMap& map);
   const CreepParams& creep() const { return creep_; }
   const std::vector<double>& mode_taus_s() const { return taus_; }
+  std::vector<double> creep_mode_taus_s() const override { return taus_; }
+  const PiCreepModel* pi_family() const override { return this; }
+  PiCreepModel* pi_family() override { return this; }
+  bool takes_output_map() const override { return true; }
   const std::vector<double>& mode_gains() const { return gains_; }
   const std::vector<double>& mode_poles() const { return poles_; }
   double sample_rate_hz() const { return rate_hz_; }
@@ -93,7 +101,8 @@ class PiCreepModel : public Model {
   double b_;
   OutputMap map_;
   CreepParams creep_;
-  double rate_hz_;
+  double rate_hz_;   // the training rate (the model file's sample_rate_hz)
+  double step_s_;    // the step the poles are for (1 / rate_hz_ until set_step_s)
   std::vector<double> taus_, gains_, poles_;  // expanded creep modes
   std::vector<std::size_t> live_modes_;       // modes with g·pole ≠ 0 (the linear states)
   std::vector<double> p_, l_;                 // state: play outputs, mode low-passes

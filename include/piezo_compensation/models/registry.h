@@ -16,7 +16,8 @@ namespace piezo::models {
 
 // Whether `piezo fit --model auto` tries a kind: kDefault, always (an invertible physical kind that reads only the
 // axis's own voltage); kExtra, only when named with --auto-extra (neural kinds, linear on lasso features: they may
-// read other columns, and a base that reads one hides the effect the residual loop must find); kNever.
+// read other columns, and a base that reads one hides the effect the residual loop must find; pi_creep_play, whose
+// choice on the simulated stages does not carry over to a separate recording: docs/validation/pi_creep_play.md); kNever.
 enum class AutoCandidacy { kNever, kDefault, kExtra };
 
 struct ModelKind {

@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/io/holds.h"
 
 namespace piezo::protocols {
 
@@ -22,6 +23,7 @@ enum class Phase : int {
   kRecord = 3,   // measuring at constant voltage (noise protocol)
   kSweep = 4,    // hysteresis sweep
 };
+static_assert(static_cast<int>(Phase::kHold) == io::kHoldPhase, "io::find_holds reads the hold phase code");
 const char* phase_name(Phase p);
 // Inverse of phase_name; throws std::invalid_argument listing the valid names.
 Phase phase_from_name(const std::string& name);

@@ -17,6 +17,7 @@
 #include "piezo_compensation/can/driver_core.h"
 #include "piezo_compensation/can/lockstep.h"
 #include "piezo_compensation/nanocontrol/transport.h"
+#include "piezo_compensation/ros/params.h"
 
 namespace piezo::mm3e {
 
@@ -27,6 +28,13 @@ class DriverNode {
   ~DriverNode();
 
  private:
+  // The constructor's parts: sync_mode and what it changes in the limits; the core's report callbacks; topics and
+  // services; diagnostics; the tick (or the idle SYNC) and diagnostics timers.
+  void read_sync_mode(params::ParamReader& r, can::DriverConfig& config);
+  can::DriverCallbacks core_callbacks();
+  void advertise(const params::NodeInterface& iface);
+  void add_diagnostics(const std::string& hardware_id);
+  void start_timers(double output_rate_hz, double diagnostic_period_s);
   void on_command(int axis, const piezo_compensation::VoltageCommand::ConstPtr& msg);
   void on_tick(const ros::TimerEvent&);
   void sync_locked();

@@ -119,6 +119,7 @@ class PredictorNode {
     models::ModelPtr model;  // clone
     double hold_v = 0.0;
     std::vector<double> inputs;
+    std::optional<compensation::EstimatorState> estimator;  // for the forecast's σ
   };
   std::map<std::string, ForecastJob> jobs_;   // per axis
   std::map<std::string, compensation::DriftForecast> results_;

@@ -2,6 +2,8 @@
 // measurement and the tests drive it.
 #pragma once
 
+#include <optional>
+
 #include <limits>
 #include <cmath>
 #include <deque>
@@ -68,6 +70,8 @@ class PredictorAxis {
   const compensation::ResidualWatch* watch() const { return watch_.get(); }
 
   void set_forecast(const compensation::DriftForecast& f);
+  // The estimator's noise model and state now, for the forecast's σ; empty without an estimator.
+  std::optional<compensation::EstimatorState> estimator_state() const;
   // The recorded history the model resumes on at this axis' first sample (~resume_from), read when first asked for:
   // `history` returns it, or null with `why` set when it cannot be read. Unset: the model starts at rest.
   using ResumeSource = std::function<const io::Dataset*(std::string& why)>;

@@ -4,6 +4,7 @@
 
 #include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/estimation/forecast.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/training/fitters.h"
 
@@ -26,6 +27,8 @@ estimation::NoiseModel identify_estimator(const models::Model& model, const io::
   o.reading_sigma_nm = floor.sigma_nm;
   o.step_nm = floor.quantisation_nm;
   estimation::NoiseModel nm = estimation::identify_noise_model(p, y, o);
+  const std::vector<double> v(ax.voltage_v.begin() + first_row, ax.voltage_v.end());
+  estimation::calibrate_forecast(nm, o.dt_s, p, y, v);
   nm.method += "; reading σ from " + floor.method;
   return nm;
 }

@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/model_stream.h"
@@ -18,30 +19,13 @@ constexpr int kHold = static_cast<int>(protocols::Phase::kHold);
 
 std::vector<Hold> find_holds(const io::Dataset& d, double min_duration_s) {
   std::vector<Hold> out;
-  const double dt = d.size() > 1 ? d.sample_period_s() : 0.0;
-  if (d.phase.empty()) {  // as `piezo fit` finds them (analysis/model_selection.h)
-    if (d.axes.empty() || d.size() < 2) return out;
-    SlowScoreOptions o;
-    o.hold_min_s = std::max(min_duration_s, kVoltageHoldMinS);
-    for (const auto& h : voltage_holds(d, d.axes.front().name, 0, o))
-      out.push_back({h.begin, h.end, -1, double(h.end - h.begin) * dt});
-    return out;
-  }
-  std::size_t i = 0;
-  while (i < d.size()) {
-    if (d.phase[i] != kHold) {
-      ++i;
-      continue;
-    }
-    Hold h;
-    h.begin = i;
-    h.segment = d.segment.empty() ? -1 : d.segment[i];
-    ++i;
-    while (i < d.size() && d.phase[i] == kHold && (d.segment.empty() || d.segment[i] == h.segment) && !d.starts_recording(i)) ++i;
-    h.end = i;
-    h.duration_s = (h.end - h.begin) * dt;
-    if (h.duration_s >= min_duration_s) out.push_back(h);
-  }
+  if (d.axes.empty() || d.size() < 2) return out;
+  io::HoldRule rule;
+  rule.min_duration_s = std::max(min_duration_s, kVoltageHoldMinS);
+  rule.min_marked_s = min_duration_s;
+  const double dt = d.sample_period_s();
+  for (const io::HoldRun& h : io::find_holds(d, d.axes.front().name, rule))
+    out.push_back({h.begin, h.end, h.segment, double(h.end - h.begin) * dt});
   return out;
 }
 

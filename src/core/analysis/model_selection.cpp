@@ -8,6 +8,7 @@
 
 #include "piezo_compensation/analysis/evaluation.h"
 #include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/training/fit_common.h"
@@ -118,16 +119,12 @@ ValidationScore score_validation(const models::Model& model, const io::Dataset& 
 
 std::vector<VoltageHold> voltage_holds(const io::Dataset& d, const std::string& axis, std::size_t from,
                                        const SlowScoreOptions& o) {
+  io::HoldRule rule;
+  rule.min_duration_s = o.hold_min_s;
+  rule.tolerance_v = o.hold_tolerance_v;
+  rule.use_phase = false;
   std::vector<VoltageHold> out;
-  const auto& v = d.axis(axis).voltage_v;
-  const double dt = d.size() > 1 ? d.sample_period_s() : 1.0;
-  std::size_t i = from;
-  while (i < v.size()) {
-    std::size_t j = i + 1;
-    while (j < v.size() && std::fabs(v[j] - v[i]) <= o.hold_tolerance_v && !d.starts_recording(j)) ++j;
-    if (double(j - i) * dt >= o.hold_min_s) out.push_back({i, j});
-    i = j;
-  }
+  for (const io::HoldRun& h : io::find_holds(d, axis, rule, from)) out.push_back({h.begin, h.end});
   return out;
 }
 

@@ -6,6 +6,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/util/stats.h"
 
 namespace piezo::analysis {
 
@@ -18,8 +19,7 @@ double sigma_from_second_differences(std::vector<double> d2) {
   if (d2.empty()) return NAN;
   std::vector<double> a(d2.size());
   for (std::size_t i = 0; i < d2.size(); ++i) a[i] = std::fabs(d2[i]);
-  std::nth_element(a.begin(), a.begin() + a.size() / 2, a.end());
-  double mad = a[a.size() / 2];
+  double mad = util::median(std::move(a));
   // Quantised readings can make half the differences exactly 0: fall back to the mean absolute value.
   if (mad <= 0.0) {
     double s = 0.0;

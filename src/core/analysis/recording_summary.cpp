@@ -6,6 +6,7 @@
 #include <sstream>
 
 #include "piezo_compensation/protocols/protocol.h"
+#include "piezo_compensation/util/stats.h"
 
 namespace piezo::analysis {
 
@@ -129,9 +130,7 @@ ContinuityReport check_continuity(const std::vector<double>& time_s) {
   if (time_s.size() < 2) return r;
   std::vector<double> steps(time_s.size() - 1);
   for (std::size_t i = 1; i < time_s.size(); ++i) steps[i - 1] = time_s[i] - time_s[i - 1];
-  std::vector<double> sorted = steps;
-  std::nth_element(sorted.begin(), sorted.begin() + sorted.size() / 2, sorted.end());
-  r.period_s = sorted[sorted.size() / 2];
+  r.period_s = util::median(steps);
   if (!(r.period_s > 0.0)) return r;
   for (std::size_t i = 0; i < steps.size(); ++i) {
     bool problem = false;

@@ -47,10 +47,7 @@ std::vector<double> run_model(models::Model& m, const io::Dataset& d, const std:
 // the same range.
 std::vector<double> start_transient_taus(const models::Model& base, const io::Dataset& train) {
   const double duration = train.time_s.back() - train.time_s.front();
-  const models::Model* m = &base;
-  if (const auto* aug = dynamic_cast<const models::AugmentedModel*>(m)) m = &aug->base();
-  std::vector<double> taus;
-  if (const auto* pi = dynamic_cast<const models::PiCreepModel*>(m)) taus = pi->mode_taus_s();
+  std::vector<double> taus = base.creep_mode_taus_s();
   if (taus.empty()) taus = {10.0, 100.0, 1000.0};
   std::vector<double> out;
   for (double t : taus)
@@ -481,7 +478,7 @@ void Loop::rechoose_jointly() {
 
 // The lag of a term on an auxiliary signal (a temperature felt through the mount) as a first-order low-pass, its
 // τ profiled at the end with the base refitted for each τ (Backfitter::profile_lag): chosen on the residual of a
-// base refitted at another lag, a lag confirms itself (docs/closing-the-loop.md, "The lag of a slow signal").
+// base refitted at another lag, a lag confirms itself (docs/validation/residual-loop.md, "The lag of a slow signal").
 LagProfile Loop::profile_lags(std::size_t q, const std::string& family, std::map<std::string, double>& parameters,
                               std::map<std::string, std::string>& labels) {
   LagProfile first_profile;

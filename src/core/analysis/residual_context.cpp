@@ -1,5 +1,6 @@
 // Shared building blocks of the residual loop: streamed regressors, the joint fit of effect terms, predictions.
 #include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/util/stats.h"
 
 #include <Eigen/Dense>
 #include <algorithm>
@@ -11,17 +12,9 @@ namespace piezo::analysis::detail {
 using models::EffectTerm;
 using models::EffectTermStream;
 
-double mean_of(const std::vector<double>& v, std::size_t a, std::size_t b) {
-  double s = 0;
-  for (std::size_t i = a; i < b; ++i) s += v[i];
-  return b > a ? s / static_cast<double>(b - a) : 0.0;
-}
+double mean_of(const std::vector<double>& v, std::size_t a, std::size_t b) { return util::mean(v, a, b); }
 
-double mae_of(const std::vector<double>& r, std::size_t a, std::size_t b) {
-  double s = 0;
-  for (std::size_t i = a; i < b; ++i) s += std::fabs(r[i]);
-  return b > a ? s / static_cast<double>(b - a) : 0.0;
-}
+double mae_of(const std::vector<double>& r, std::size_t a, std::size_t b) { return util::mean_abs(r, a, b); }
 
 double span_of(const std::vector<double>& v) {
   const auto [lo, hi] = std::minmax_element(v.begin(), v.end());

@@ -7,6 +7,7 @@
 
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/util/stats.h"
 
 namespace piezo::analysis {
 
@@ -92,12 +93,6 @@ Blocks block_means(const std::vector<double>& residual, const Signals& sig, cons
   return out;
 }
 
-double median(std::vector<double> v) {
-  if (v.empty()) return 0.0;
-  std::nth_element(v.begin(), v.begin() + static_cast<long>(v.size() / 2), v.end());
-  return v[v.size() / 2];
-}
-
 // Where, within ±B rows of `row`, the mean over W scored rows after differs most from the mean over W before.
 std::size_t refine_step(const std::vector<double>& r, const std::vector<char>& mask, std::size_t row, std::size_t B,
                         std::size_t W) {
@@ -137,7 +132,7 @@ std::vector<StepChange> find_steps(const std::vector<double>& residual, const st
   if (K < 2 * w + 1) return out;
   std::vector<double> d(K - 1);
   for (std::size_t j = 0; j + 1 < K; ++j) d[j] = std::fabs(block_means[j + 1] - block_means[j]);
-  const double scatter = std::max(1.4826 * median(d) / std::sqrt(2.0), noise_sigma_nm / std::sqrt(static_cast<double>(B)));
+  const double scatter = std::max(1.4826 * util::median(d) / std::sqrt(2.0), noise_sigma_nm / std::sqrt(static_cast<double>(B)));
   const double se = scatter * std::sqrt(2.0 / static_cast<double>(w));
   std::vector<double> z(K, 0.0), size(K, 0.0);
   for (std::size_t j = w; j + w <= K; ++j) {
@@ -150,7 +145,7 @@ std::vector<StepChange> find_steps(const std::vector<double>& residual, const st
   // slow structure the model misses moves them by several block-noise units everywhere, a slip only at itself.
   std::vector<double> dev;
   for (std::size_t j = w; j + w <= K; ++j) dev.push_back(std::fabs(size[j]));
-  const double typical = 1.4826 * median(dev);
+  const double typical = 1.4826 * util::median(dev);
   if (typical > se)
     for (std::size_t j = w; j + w <= K; ++j) z[j] = size[j] / typical;
   std::vector<std::size_t> order(K);

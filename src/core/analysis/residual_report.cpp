@@ -10,17 +10,13 @@
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/util/json_writer.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::analysis {
 
 namespace {
 
-std::string num(double v) {
-  if (!std::isfinite(v)) return "–";
-  std::ostringstream os;
-  os << std::setprecision(4) << v;
-  return os.str();
-}
+std::string num(double v) { return std::isfinite(v) ? util::fmt(v, 4) : "–"; }
 
 std::ofstream open_out(const std::string& path) {
   std::ofstream f(path);
@@ -75,11 +71,11 @@ std::vector<double> explaining_variable(const models::AugmentedModel& m, std::si
     cols.fill(i, colv.data());
     stream.raw_and_commit(ax.voltage_v[i], xb[i], colv.data(), buf.data());
     const double* z = buf.data() + first;
-    if (target.type == "sincos") {
+    if (target.kind() == models::TermKind::kSinCos) {
       double ph = std::atan2(z[0], z[1]) / 6.283185307179586;
       if (ph < 0) ph += 1.0;
       out[i] = ph * target.period;
-    } else if (target.type == "powers") {
+    } else if (target.kind() == models::TermKind::kPowers) {
       out[i] = std::cbrt(z[1]) * target.pre_scale + target.pre_center;
     } else if (target.is_gain()) {
       const double q = target.scales == models::kSignalVoltage ? ax.voltage_v[i] : xb[i];
@@ -92,10 +88,10 @@ std::vector<double> explaining_variable(const models::AugmentedModel& m, std::si
 }
 
 std::string explaining_label(const models::EffectTerm& t) {
-  if (t.type == "sincos") return t.signal == models::kSignalTime ? "time within period [s]" : "position within period [nm]";
-  if (t.type == "rate") return "voltage step (low-passed) [V]";
+  if (t.kind() == models::TermKind::kSinCos) return t.signal == models::kSignalTime ? "time within period [s]" : "position within period [nm]";
+  if (t.kind() == models::TermKind::kRate) return "voltage step (low-passed) [V]";
   std::string s = t.signal == models::kSignalVoltage ? "voltage [V]" : t.signal == models::kSignalPosition ? "predicted position [nm]" : t.signal;
-  if (t.type == "play") s = "play(" + s + ")";
+  if (t.kind() == models::TermKind::kPlay) s = "play(" + s + ")";
   if (t.lag_s > 0) s += ", lag " + num(t.lag_s) + " s";
   if (t.time_constant_s > 0) s += ", low-pass " + num(t.time_constant_s) + " s";
   if (t.is_gain()) s = "gain signal " + s + " (scales the " + (t.scales == models::kSignalVoltage ? "voltage" : "output") + ")";

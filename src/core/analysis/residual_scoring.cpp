@@ -102,18 +102,19 @@ void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size
     const EffectTerm& t = terms[i];
     auto w = [&](std::size_t q) { return t.weight[q] / t.scale[q]; };  // per raw unit
     const std::string pre = count > 1 ? "term" + std::to_string(i - first) + "_" : "";
-    if (t.type == "sincos") {
+    const models::TermKind kind = t.kind();
+    if (kind == models::TermKind::kSinCos) {
       e.parameters[pre + "amplitude_nm"] = std::hypot(w(0), w(1));
       e.parameters[pre + "phase_rad"] = std::atan2(w(1), w(0));
-    } else if (t.type == "linear" || t.type == "play") {
+    } else if (kind == models::TermKind::kLinear || kind == models::TermKind::kPlay) {
       if (t.signal == models::kSignalTime) {
         e.parameters["drift_nm_per_h"] = w(0) * 3600.0;
       } else {
         const std::string unit =
             t.signal == models::kSignalVoltage || io::is_voltage_column(t.signal) ? "nm_per_v" : "nm_per_unit";
-        e.parameters[pre + (t.type == "play" ? "play_gain_" : "gain_") + unit] = w(0);
+        e.parameters[pre + (kind == models::TermKind::kPlay ? "play_gain_" : "gain_") + unit] = w(0);
       }
-    } else if (t.type == "rate") {
+    } else if (kind == models::TermKind::kRate) {
       e.parameters["gain_nm_per_v_step"] = w(0);
       e.parameters["gain_nm_per_abs_v_step"] = w(1);
       e.parameters["gain_nm_per_signed_v2_step"] = w(2);
@@ -124,10 +125,10 @@ void describe(const std::vector<EffectTerm>& terms, std::size_t first, std::size
       const double k = t.signal == models::kSignalTime ? 3600.0 : 1.0;
       e.parameters[pre + (t.scales == models::kSignalVoltage ? "gain_change_nm_per_v_" : "gain_change_") + sig] =
           w(0) / t.pre_scale * k;
-      if (t.type == "gain_quadratic") e.parameters[pre + "gain_change_quadratic"] = t.weight[1] / t.scale[1];
+      if (kind == models::TermKind::kGainQuadratic) e.parameters[pre + "gain_change_quadratic"] = t.weight[1] / t.scale[1];
       e.labels["scales"] = t.scales;
-      e.labels["form"] = t.type == "gain" ? "linear" : "quadratic";
-    } else if (t.type == "powers") {
+      e.labels["form"] = kind == models::TermKind::kGain ? "linear" : "quadratic";
+    } else if (kind == models::TermKind::kPowers) {
       e.parameters["quadratic_nm"] = w(0);
       e.parameters["cubic_nm"] = w(1);
     }

@@ -7,6 +7,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/util/stats.h"
 
 namespace piezo::analysis {
 
@@ -406,8 +407,7 @@ PeriodicPeak find_periodic_peak(const std::vector<double>& u, const std::vector<
   for (std::size_t j = 0; j < freq.size(); ++j)
     if ((j > ipk ? j - ipk : ipk - j) > lobe && freq[j] >= freq[ipk] / 2 && freq[j] <= 2 * freq[ipk]) bg.push_back(white[j]);
   if (bg.size() < 8) return out;
-  std::nth_element(bg.begin(), bg.begin() + static_cast<long>(bg.size() / 2), bg.end());
-  const double bg_mean = bg[bg.size() / 2] / std::log(2.0);  // median of Exp(1) is ln 2
+  const double bg_mean = util::median(std::move(bg)) / std::log(2.0);  // median of Exp(1) is ln 2
   const auto [best_f, best_p] = refine_peak(u, r, freq[ipk], sp.pow[ipk], freq.size() > 1 ? (freq[1] - freq[0]) : 0.0);
   out.frequency = best_f;
   out.amplitude = 2.0 * std::sqrt(best_p / static_cast<double>(n));

@@ -71,7 +71,7 @@ Val score_candidate(const Validator& v, const std::vector<EffectTerm>& fixed, co
 
 // The output gain with f linear is the default; another form must be clearly better (paired blocks), a quadratic
 // also by AcceptanceThresholds::quadratic_form_margin: a form that wins by a hair on validation can still be far
-// off in TEST (docs/closing-the-loop.md, "What limited (a)").
+// off in TEST (docs/validation/residual-loop.md, "Additive and gain effects").
 void Validator::choose_gain_form(FamilyScore& s, const std::vector<EffectTerm>& fixed, Val& v) const {
   const Candidate base_cand = s.best;
   for (const char* scales : {models::kSignalPosition, models::kSignalVoltage})
@@ -95,7 +95,7 @@ void Validator::choose_gain_form(FamilyScore& s, const std::vector<EffectTerm>& 
         s.best.labels["scales"] = scales;
       }
     }
-  s.best.labels["form"] = s.best.terms[0].type == "gain" ? "linear" : "quadratic";
+  s.best.labels["form"] = s.best.terms[0].kind() == models::TermKind::kGain ? "linear" : "quadratic";
 }
 
 double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate& cand, std::size_t rows) const {
@@ -115,7 +115,7 @@ double Validator::train_ms(const std::vector<EffectTerm>& fixed, const Candidate
 // rows [0, rows): L' = k·L for k in {0, ¼, ½, ¾}, τ' = τ + (1 − k)·L, within max_time_constant_s. True when it moved.
 bool Validator::split_delay(FamilyScore& s, const std::vector<EffectTerm>& fixed, std::size_t rows, std::size_t q) const {
   const EffectTerm& t0 = s.best.terms[q];
-  if (!(t0.lag_s > 0.0) || t0.signal == models::kSignalPosition || t0.type == "sincos") return false;
+  if (!(t0.lag_s > 0.0) || t0.signal == models::kSignalPosition || t0.kind() == models::TermKind::kSinCos) return false;
   double best_ms = train_ms(fixed, s.best, rows);
   Candidate best = s.best;
   for (double k : {0.0, 0.25, 0.5, 0.75}) {
@@ -241,7 +241,7 @@ void Validator::prefer_fused_position(FamilyScore& s, const std::vector<EffectTe
   Candidate alt = s.best;
   alt.terms.clear();
   for (EffectTerm t : s.best.terms) {
-    if (t.signal == volt && t.type == "play") continue;  // a play's threshold is in volts
+    if (t.signal == volt && t.kind() == models::TermKind::kPlay) continue;  // a play's threshold is in volts
     if (t.signal == volt) {
       t.signal = fused;
       if (t.is_gain()) t.pre_center = mu, t.pre_scale = sd;

@@ -199,6 +199,20 @@ can_frame Codec::encode(const BusError& m) {
   return f;
 }
 
+namespace {
+// An error frame (CAN_ERR_FLAG, DLC 8) as the bus state it reports.
+BusError bus_error_of(const can_frame& f) {
+  BusError e;
+  e.error_class = f.can_id & CAN_ERR_MASK;
+  e.bus_off = e.error_class & CAN_ERR_BUSOFF;
+  e.restarted = e.error_class & CAN_ERR_RESTARTED;
+  e.error_passive = (e.error_class & CAN_ERR_CRTL) && (f.data[1] & (CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_PASSIVE));
+  std::memcpy(e.data, f.data, CAN_ERR_DLC);
+  e.description = describe_error(f);
+  return e;
+}
+}  // namespace
+
 DecodeResult Codec::decode(const can_frame& f) const noexcept {
   DecodeResult r;
   auto fail = [&r](DecodeError e, std::string msg) {
@@ -210,15 +224,7 @@ DecodeResult Codec::decode(const can_frame& f) const noexcept {
     if (f.can_id & CAN_ERR_FLAG) {
       if (f.can_dlc != CAN_ERR_DLC)
         return fail(DecodeError::kBadLength, "error frame with DLC " + std::to_string(f.can_dlc) + " (expected 8)");
-      BusError e;
-      e.error_class = f.can_id & CAN_ERR_MASK;
-      e.bus_off = e.error_class & CAN_ERR_BUSOFF;
-      e.restarted = e.error_class & CAN_ERR_RESTARTED;
-      e.error_passive = (e.error_class & CAN_ERR_CRTL) &&
-                        (f.data[1] & (CAN_ERR_CRTL_RX_PASSIVE | CAN_ERR_CRTL_TX_PASSIVE));
-      std::memcpy(e.data, f.data, CAN_ERR_DLC);
-      e.description = describe_error(f);
-      r.message_value = std::move(e);
+      r.message_value = bus_error_of(f);
       return r;
     }
     const bool extended = f.can_id & CAN_EFF_FLAG;

@@ -332,6 +332,31 @@ BusStatus DriverCore::bus_status() const {
   return s;
 }
 
+bool DriverCore::connect_locked(std::vector<Pending>& events) {
+  if (transport_->is_open()) return true;
+  if (Clock::now() < next_attempt_) return false;
+  try {
+    transport_->open();
+    bus_.state = BusState::kConnected;
+    ++bus_.connects;
+    last_rx_ = Clock::now();
+    events.push_back({Pending::kEvent, {}, {}, 0, 0,
+                      std::string(ever_connected_ ? "reconnected to " : "connected to ") + transport_->describe(),
+                      false});
+    ever_connected_ = true;
+    return true;
+  } catch (const TransportError& e) {
+    ++bus_.connect_failures;
+    const bool repeated = bus_.last_error == e.what();
+    bus_.last_error = e.what();
+    bus_.state = BusState::kDisconnected;
+    if (!repeated) events.push_back({Pending::kEvent, {}, {}, 0, 0, e.what(), true});
+    next_attempt_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(backoff_s_));
+    backoff_s_ = std::min(backoff_s_ * 2, config_.reconnect_max_s);
+    return false;
+  }
+}
+
 void DriverCore::poll_once(int timeout_ms) {
   std::vector<Pending> events;
   if (recover_requested_.exchange(false)) {
@@ -344,28 +369,7 @@ void DriverCore::poll_once(int timeout_ms) {
   bool open;
   {
     std::lock_guard<std::mutex> lock(mutex_);
-    open = transport_->is_open();
-    if (!open && Clock::now() >= next_attempt_) {
-      try {
-        transport_->open();
-        open = true;
-        bus_.state = BusState::kConnected;
-        ++bus_.connects;
-        last_rx_ = Clock::now();
-        events.push_back({Pending::kEvent, {}, {}, 0, 0,
-                          std::string(ever_connected_ ? "reconnected to " : "connected to ") + transport_->describe(),
-                          false});
-        ever_connected_ = true;
-      } catch (const TransportError& e) {
-        ++bus_.connect_failures;
-        const bool repeated = bus_.last_error == e.what();
-        bus_.last_error = e.what();
-        bus_.state = BusState::kDisconnected;
-        if (!repeated) events.push_back({Pending::kEvent, {}, {}, 0, 0, e.what(), true});
-        next_attempt_ = Clock::now() + std::chrono::duration_cast<Clock::duration>(std::chrono::duration<double>(backoff_s_));
-        backoff_s_ = std::min(backoff_s_ * 2, config_.reconnect_max_s);
-      }
-    }
+    open = connect_locked(events);
   }
   flush(events);
   if (!open) {
@@ -386,95 +390,103 @@ void DriverCore::poll_once(int timeout_ms) {
     if (!failure.empty()) {
       close_locked(failure, BusState::kDisconnected, events);
     }
-    for (const auto& rf : frames) {
-      const DecodeResult r = codec_.decode(rf.frame);
-      if (!r.ok()) {
-        if (r.error == DecodeError::kUnknownId) {
-          ++bus_.unknown_frames;
-        } else {
-          ++bus_.malformed_frames;
-          // Count every one, log the first of a run so garbage cannot flood the log.
-          if (bus_.malformed_frames < 10 || bus_.malformed_frames % 1000 == 0)
-            events.push_back({Pending::kEvent, {}, {}, 0, 0,
-                              "malformed frame " + to_candump(rf.frame) + ": " + r.message, true});
-        }
-        continue;
-      }
-      if (const auto* e = std::get_if<BusError>(&r.message_value)) {
-        ++bus_.error_frames;
-        bus_.last_error_frame = to_candump(rf.frame);
-        bus_.last_error = "error frame: " + e->description;
-        if (e->bus_off) {
-          ++bus_.bus_off_events;
-          close_locked("bus-off (" + e->description + ")", BusState::kBusOff, events);
-          break;
-        }
-        if (e->restarted)
-          bus_.state = BusState::kActive;
-        else if (e->error_passive)
-          bus_.state = BusState::kErrorPassive;
-        if (bus_.error_frames < 10 || bus_.error_frames % 1000 == 0)
-          events.push_back({Pending::kEvent, {}, {}, 0, 0, "CAN error frame: " + e->description, true});
-        continue;
-      }
-      last_rx_ = Clock::now();
-      if (bus_.state == BusState::kConnected) {
-        bus_.state = BusState::kActive;
-        backoff_s_ = config_.reconnect_min_s;  // the link works: start the next back-off from scratch
-      }
-      if (const auto* v = std::get_if<VoltageReport>(&r.message_value)) {
-        Axis& a = *axes_[v->axis];
-        const auto u = a.voltage_seq.update(v->sequence);
-        ++a.status.voltage_frames;
-        a.status.voltage_dropped += u.dropped;
-        a.status.voltage_out_of_order += u.out_of_order;
-        a.status.amplifier_fault = v->fault;
-        // A repeated frame says nothing new.
-        if (!u.out_of_order) {
-          a.status.reported_v = v->voltage_v;
-          if (u.restarted) {
-            char back[80];
-            std::snprintf(back, sizeof back, "report sequence went back to %u (controller restart?)", v->sequence);
-            trip_locked(v->axis, back, events);
-          }
-          const bool was_held = a.limiter.held_for(HoldReason::kDeviceFault);
-          a.limiter.on_reported_voltage(v->voltage_v, last_now_s_);
-          if (!was_held && a.limiter.held_for(HoldReason::kDeviceFault)) {  // reports away from the commanded value
-            ++a.status.device_faults;
-            events.push_back({Pending::kEvent, {}, {}, 0, 0, a.limiter.fault(), true});
-          }
-        }
-        Pending p{Pending::kVoltage, *v, {}, u.sequence, rf.receive_time_s, {}, false};
-        events.push_back(std::move(p));
-      } else if (const auto* en = std::get_if<EncoderReport>(&r.message_value)) {
-        Axis& a = *axes_[en->axis];
-        const auto u = a.encoder_seq.update(en->sequence);
-        ++a.status.encoder_frames;
-        a.status.encoder_dropped += u.dropped;
-        a.status.encoder_out_of_order += u.out_of_order;
-        a.status.position_m = en->position_m;
-        a.status.encoder_valid = en->valid;
-        a.last_encoder = Clock::now();
-        a.has_encoder = true;
-        Pending p{Pending::kEncoder, {}, *en, u.sequence, rf.receive_time_s, {}, false};
-        events.push_back(std::move(p));
-      } else if (const auto* hb = std::get_if<Heartbeat>(&r.message_value)) {
-        bus_.heartbeat_seen = true;
-        if (hb->state != DeviceState::kOperational)
-          for (int i = 0; i < kAxisCount; ++i)
-            trip_locked(i, std::string("controller heartbeat says ") + to_string(hb->state), events);
-        bus_.device_state = hb->state;
-        bus_.device_fault_flags = hb->fault_flags;
-        last_heartbeat_ = Clock::now();
-      }
-      // Command frames (another commander on the bus) pass the device filter only; ignored here.
-    }
+    for (const auto& rf : frames)
+      if (!frame_locked(rf, events)) break;
     if (transport_->is_open() && since(last_rx_) > config_.silence_reconnect_s) {
       close_locked("no frame from the device for " + std::to_string(config_.silence_reconnect_s).substr(0, 4) + " s",
                    BusState::kDisconnected, events);
     }
   }
   flush(events);
+}
+
+bool DriverCore::frame_locked(const ReceivedFrame& rf, std::vector<Pending>& events) {
+  const DecodeResult r = codec_.decode(rf.frame);
+  if (!r.ok()) {
+    if (r.error == DecodeError::kUnknownId) {
+      ++bus_.unknown_frames;
+    } else {
+      ++bus_.malformed_frames;
+      // Count every one, log the first of a run so garbage cannot flood the log.
+      if (bus_.malformed_frames < 10 || bus_.malformed_frames % 1000 == 0)
+        events.push_back({Pending::kEvent, {}, {}, 0, 0,
+                          "malformed frame " + to_candump(rf.frame) + ": " + r.message, true});
+    }
+    return true;
+  }
+  if (const auto* e = std::get_if<BusError>(&r.message_value)) {
+    ++bus_.error_frames;
+    bus_.last_error_frame = to_candump(rf.frame);
+    bus_.last_error = "error frame: " + e->description;
+    if (e->bus_off) {
+      ++bus_.bus_off_events;
+      close_locked("bus-off (" + e->description + ")", BusState::kBusOff, events);
+      return false;
+    }
+    if (e->restarted)
+      bus_.state = BusState::kActive;
+    else if (e->error_passive)
+      bus_.state = BusState::kErrorPassive;
+    if (bus_.error_frames < 10 || bus_.error_frames % 1000 == 0)
+      events.push_back({Pending::kEvent, {}, {}, 0, 0, "CAN error frame: " + e->description, true});
+    return true;
+  }
+  last_rx_ = Clock::now();
+  if (bus_.state == BusState::kConnected) {
+    bus_.state = BusState::kActive;
+    backoff_s_ = config_.reconnect_min_s;  // the link works: start the next back-off from scratch
+  }
+  if (const auto* v = std::get_if<VoltageReport>(&r.message_value)) {
+    voltage_report_locked(*v, rf.receive_time_s, events);
+  } else if (const auto* en = std::get_if<EncoderReport>(&r.message_value)) {
+    Axis& a = *axes_[en->axis];
+    const auto u = a.encoder_seq.update(en->sequence);
+    ++a.status.encoder_frames;
+    a.status.encoder_dropped += u.dropped;
+    a.status.encoder_out_of_order += u.out_of_order;
+    a.status.position_m = en->position_m;
+    a.status.encoder_valid = en->valid;
+    a.last_encoder = Clock::now();
+    a.has_encoder = true;
+    Pending p{Pending::kEncoder, {}, *en, u.sequence, rf.receive_time_s, {}, false};
+    events.push_back(std::move(p));
+  } else if (const auto* hb = std::get_if<Heartbeat>(&r.message_value)) {
+    bus_.heartbeat_seen = true;
+    if (hb->state != DeviceState::kOperational)
+      for (int i = 0; i < kAxisCount; ++i)
+        trip_locked(i, std::string("controller heartbeat says ") + to_string(hb->state), events);
+    bus_.device_state = hb->state;
+    bus_.device_fault_flags = hb->fault_flags;
+    last_heartbeat_ = Clock::now();
+  }
+  // Command frames (another commander on the bus) pass the device filter only; ignored here.
+  return true;
+}
+
+void DriverCore::voltage_report_locked(const VoltageReport& v, double receive_time_s, std::vector<Pending>& events) {
+  Axis& a = *axes_[v.axis];
+  const auto u = a.voltage_seq.update(v.sequence);
+  ++a.status.voltage_frames;
+  a.status.voltage_dropped += u.dropped;
+  a.status.voltage_out_of_order += u.out_of_order;
+  a.status.amplifier_fault = v.fault;
+  // A repeated frame says nothing new.
+  if (!u.out_of_order) {
+    a.status.reported_v = v.voltage_v;
+    if (u.restarted) {
+      char back[80];
+      std::snprintf(back, sizeof back, "report sequence went back to %u (controller restart?)", v.sequence);
+      trip_locked(v.axis, back, events);
+    }
+    const bool was_held = a.limiter.held_for(HoldReason::kDeviceFault);
+    a.limiter.on_reported_voltage(v.voltage_v, last_now_s_);
+    if (!was_held && a.limiter.held_for(HoldReason::kDeviceFault)) {  // reports away from the commanded value
+      ++a.status.device_faults;
+      events.push_back({Pending::kEvent, {}, {}, 0, 0, a.limiter.fault(), true});
+    }
+  }
+  Pending p{Pending::kVoltage, v, {}, u.sequence, receive_time_s, {}, false};
+  events.push_back(std::move(p));
 }
 
 }  // namespace piezo::can

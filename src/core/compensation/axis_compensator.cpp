@@ -6,12 +6,14 @@
 #include <sstream>
 #include <stdexcept>
 
+#include "piezo_compensation/estimation/forecast.h"
 #include "piezo_compensation/models/model_stream.h"
 
 namespace piezo::compensation {
 
 AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, const AxisCompensatorConfig& config)
-    : model_(std::move(model)), line_(line), config_(config), trim_(config.hold_trim, 1.0 / config.sample_rate_hz) {
+    : model_(std::move(model)), line_(line), config_(config), trim_(config.hold_trim, 1.0 / config.sample_rate_hz),
+      tracking_(config.tracking_trim, 1.0 / config.sample_rate_hz) {
   if (!model_) throw std::invalid_argument("AxisCompensator: no model");
   if (!(config_.voltage_max_v > config_.voltage_min_v)) throw std::invalid_argument("AxisCompensator: empty voltage limits");
   if (!(config_.fallback_max_step_v > 0.0)) throw std::invalid_argument("AxisCompensator: fallback_max_step_v must be > 0");
@@ -20,8 +22,9 @@ AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, 
     throw std::invalid_argument("AxisCompensator: start_estimate_s must be a finite time >= 0 s");
   check_model(*model_);
   set_inputs_for(*model_);
-  if (config_.hold_trim.max_nm <= 0.0)  // 2 % of the ideal stroke
-    trim_.set_max_nm(0.02 * std::abs(line_.position_nm(config_.voltage_max_v) - line_.position_nm(config_.voltage_min_v)));
+  const double stroke_nm = std::abs(line_.position_nm(config_.voltage_max_v) - line_.position_nm(config_.voltage_min_v));
+  if (config_.hold_trim.max_nm <= 0.0) trim_.set_max_nm(0.02 * stroke_nm);  // 2 % of the ideal stroke
+  if (config_.tracking_trim.max_nm <= 0.0) tracking_.set_max_nm(0.02 * stroke_nm);
   set_estimator_for(*model_);
 }
 
@@ -53,6 +56,39 @@ void AxisCompensator::track(double predicted_nm, double measured_nm, bool measur
   }
   trim_.step(has_intent_ ? intended_nm_ : u.fused_nm, u.fused_nm, u.fused_sigma_nm, filter_ && filter_->fusing(),
              filter_ ? filter_->samples_since_reading() : 0, ok && last_command_active_, has_intent_);
+  step_tracking(u, ok);
+}
+
+// The tracking trim aims at the model's error forecast half its period ahead; once the hold trim acts, it takes the
+// tracking trim's value (their sum is the correction, so it does not jump).
+void AxisCompensator::step_tracking(const SampleUpdate& u, bool ok) {
+  if (!handed_over_ && trim_.state() == TrimState::kActive && tracking_.enabled()) {
+    trim_.take_over(tracking_.hand_over());
+    handed_over_ = true;
+  }
+  TrackingInput in;
+  in.fusing = filter_ && filter_->fusing();
+  in.has_intent = has_intent_;
+  in.holding = handed_over_;
+  in.model_ok = ok && last_command_active_;
+  in.sigma_nm = u.fused_sigma_nm;
+  if (filter_) {
+    estimation::ForecastPath rest;
+    rest.steps = static_cast<std::size_t>(std::lround(0.5 * tracking_.options().period_s * config_.sample_rate_hz));
+    in.error_forecast_nm = estimation::forecast_error(filter_->noise_model(), 1.0 / config_.sample_rate_hz,
+                                                      filter_->state(), rest, false).mean_nm;
+    in.since_reading_samples = filter_->samples_since_reading();
+    in.refused_readings = filter_->rejected_readings() + filter_->stale_readings();
+  }
+  tracking_.step(in);
+}
+
+// A new intent: the hold trim's correction goes back to the tracking trim when it is on (the sum does not jump),
+// else it is cancelled as before a move.
+void AxisCompensator::on_new_intent() {
+  tracking_.on_new_intent(trim_.trim_nm());
+  trim_.on_new_intent();
+  handed_over_ = false;
 }
 
 void AxisCompensator::check_model(const models::Model& model) {
@@ -82,14 +118,14 @@ std::vector<double> AxisCompensator::next_inputs() const {
 void AxisCompensator::set_intended_voltage(double voltage_v) {
   if (!std::isfinite(voltage_v)) throw std::invalid_argument("intended voltage is not finite");
   const double target = line_.position_nm(voltage_v);
-  if (!has_intent_ || target != intended_nm_) trim_.on_new_intent();
+  if (!has_intent_ || target != intended_nm_) on_new_intent();
   intended_nm_ = target;
   has_intent_ = true;
 }
 
 void AxisCompensator::set_intended_position_nm(double position_nm) {
   if (!std::isfinite(position_nm)) throw std::invalid_argument("intended position is not finite");
-  if (!has_intent_ || position_nm != intended_nm_) trim_.on_new_intent();
+  if (!has_intent_ || position_nm != intended_nm_) on_new_intent();
   intended_nm_ = position_nm;
   has_intent_ = true;
 }
@@ -237,7 +273,7 @@ CommandUpdate AxisCompensator::command(bool compensate) {
     o.tolerance_nm = config_.inverse_tolerance_nm;
     // The hold trim moves the target so that the fused estimate, not the model alone, reaches the intent.
     const InverseResult inv =
-        invert(*model_, c.intended_nm + trim_.trim_nm(), o, next.empty() ? nullptr : next.data());
+        invert(*model_, c.intended_nm + trim_.trim_nm() + tracking_.trim_nm(), o, next.empty() ? nullptr : next.data());
     if (inv.ok) {
       c.corrected_v = c.send_v = inv.voltage_v;
       c.compensation_active = true;
@@ -298,7 +334,9 @@ void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& lin
     window_ = io::Dataset();
   }
   set_estimator_for(*model_);
-  trim_.on_new_intent();  // the trim was for the old model's error
+  trim_.on_new_intent();  // the trims were for the old model's error
+  tracking_.on_new_intent(0.0);
+  handed_over_ = false;
 }
 
 }  // namespace piezo::compensation

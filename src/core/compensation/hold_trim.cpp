@@ -48,6 +48,12 @@ void HoldTrim::on_new_intent() {
   state_ = TrimState::kMoving;
 }
 
+void HoldTrim::take_over(double trim_nm) {
+  if (!o_.enabled || !std::isfinite(trim_nm)) return;
+  const double bound = o_.max_nm > 0.0 ? o_.max_nm : std::numeric_limits<double>::infinity();
+  trim_nm_ = std::clamp(trim_nm_ + trim_nm, -bound, bound);
+}
+
 void HoldTrim::step(double intended_nm, double fused_nm, double fused_sigma_nm, bool fusing,
                     std::size_t since_reading_samples, bool model_ok, bool has_intent) {
   ++settled_samples_;

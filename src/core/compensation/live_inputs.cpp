@@ -68,8 +68,9 @@ double neutral_input(const models::Model& model, const std::string& name) {
   if (const auto* aug = dynamic_cast<const models::AugmentedModel*>(&model))
     for (const auto& t : aug->terms()) {
       if (t.signal != name) continue;
-      if (t.is_gain() || t.type == "powers") return t.pre_center;
-      if (!t.center.empty() && (t.type == "linear" || t.type == "play")) return t.center.front();
+      if (t.is_gain() || t.kind() == models::TermKind::kPowers) return t.pre_center;
+      if (!t.center.empty() && (t.kind() == models::TermKind::kLinear || t.kind() == models::TermKind::kPlay))
+        return t.center.front();
     }
   return 0.0;
 }

@@ -124,6 +124,7 @@ TrackResult track_recordings(const models::Model& model, const io::Dataset& data
     add(all.model_nm, r.model_nm), add(all.fused_nm, r.fused_nm), add(all.fused_sigma_nm, r.fused_sigma_nm);
     add(all.true_nm, r.true_nm);
     all.holds.insert(all.holds.end(), r.holds.begin(), r.holds.end());
+    all.forecast.add(r.forecast);
     if (k == 0) all.estimator = r.estimator, all.fusing = r.fusing, all.has_truth = r.has_truth,
                 all.reading_sigma_nm = r.reading_sigma_nm;
     if (!r.start_estimate.empty())
@@ -181,17 +182,23 @@ TrackResult track_one(models::ModelPtr model, const io::Dataset& data, const std
   r.model_nm.resize(n);
   r.fused_nm.resize(n);
   r.fused_sigma_nm.resize(n);
+  std::vector<estimation::FilterState> states(comp.estimator() ? n : 0);
   for (std::size_t i = 0; i < n; ++i) {
     const double y = ax.position_nm[i];
     const SampleUpdate u = comp.on_sample(ax.voltage_v[i], y, std::isfinite(y), inputs.at(i));
     r.model_nm[i] = u.predicted_nm;
     r.fused_nm[i] = u.fused_nm;
     r.fused_sigma_nm[i] = u.fused_sigma_nm;
+    if (comp.estimator()) states[i] = comp.estimator()->state();
     if (std::isnan(r.zero_known_s) && comp.estimator() && comp.estimator()->zero_known())
       r.zero_known_s = data.time_s[i] - data.time_s[0];
   }
   r.start_estimate = comp.start_estimate_status();
-  for (const auto& [b, e] : find_holds(ax.voltage_v, rate, o.min_hold_s)) {
+  const auto holds = find_holds(ax.voltage_v, rate, o.min_hold_s);
+  if (r.fusing)
+    r.forecast = score_forecasts(comp.estimator()->noise_model(), 1.0 / rate, r.model_nm, r.measured_nm,
+                                 r.has_truth ? r.true_nm : std::vector<double>{}, r.applied_v, states, holds, o.forecast);
+  for (const auto& [b, e] : holds) {
     TrackHold h;
     score_hold(r, b, e, rate, o, h);
     r.holds.push_back(h);

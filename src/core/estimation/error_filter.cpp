@@ -125,6 +125,33 @@ std::size_t level_changes(const std::vector<double>& y) {
   return n;
 }
 
+// The forecast calibration's three lists: all or none, equal lengths, horizons rising, scales positive.
+void read_forecast(const YAML::Node& node, const std::string& where, NoiseModel& m) {
+  const char* keys[] = {"forecast_horizons_s", "forecast_sigma_scale_hold", "forecast_sigma_scale_move"};
+  std::vector<double>* to[] = {&m.forecast_horizons_s, &m.forecast_sigma_scale_hold, &m.forecast_sigma_scale_move};
+  const int present = !!node[keys[0]] + !!node[keys[1]] + !!node[keys[2]];
+  if (present == 0) return;
+  if (present != 3)
+    throw std::invalid_argument(where + ": estimator: forecast_horizons_s, forecast_sigma_scale_hold and "
+                                "forecast_sigma_scale_move go together");
+  for (int k = 0; k < 3; ++k) {
+    try {
+      *to[k] = node[keys[k]].as<std::vector<double>>();
+    } catch (const YAML::Exception&) {
+      throw std::invalid_argument(where + ": estimator." + keys[k] + " is not a list of numbers");
+    }
+    for (std::size_t i = 0; i < to[k]->size(); ++i) {
+      const double v = (*to[k])[i];
+      if (!std::isfinite(v) || !(v > 0.0) || (k == 0 && i > 0 && !(v > (*to[k])[i - 1])))
+        throw std::invalid_argument(where + ": estimator." + keys[k] + "[" + std::to_string(i) + "] = " +
+                                    std::to_string(v) + (k == 0 ? " is not a rising positive time [s]" : " is not > 0"));
+    }
+    if (to[k]->size() != m.forecast_horizons_s.size())
+      throw std::invalid_argument(where + ": estimator." + keys[k] + " has " + std::to_string(to[k]->size()) +
+                                  " entries, forecast_horizons_s " + std::to_string(m.forecast_horizons_s.size()));
+  }
+}
+
 }  // namespace
 
 // √(r² − q²/12): the noise before the quantiser for a reading σ that includes the step's rounding; 0 when the
@@ -184,6 +211,11 @@ YAML::Node NoiseModel::to_yaml() const {
   n["adapt_window_s"] = adapt_window_s;
   n["adapt_k"] = adapt_k;
   n["gate_s"] = gate_s;
+  if (!forecast_horizons_s.empty()) {
+    n["forecast_horizons_s"] = forecast_horizons_s;
+    n["forecast_sigma_scale_hold"] = forecast_sigma_scale_hold;
+    n["forecast_sigma_scale_move"] = forecast_sigma_scale_move;
+  }
   n["samples"] = samples;
   n["log_likelihood_per_reading"] = log_likelihood;
   n["method"] = method;
@@ -216,6 +248,7 @@ NoiseModel NoiseModel::from_yaml(const YAML::Node& node, const std::string& wher
   if (node["adapt_window_s"]) m.adapt_window_s = field(node, "adapt_window_s", where, 1e-3, 86400.0);
   if (node["adapt_k"]) m.adapt_k = field(node, "adapt_k", where, 0.0, 1e3);
   if (node["gate_s"]) m.gate_s = field(node, "gate_s", where, 1.0, 1e3);
+  read_forecast(node, where, m);
   if (node["samples"]) m.samples = node["samples"].as<std::size_t>(0);
   if (node["log_likelihood_per_reading"]) m.log_likelihood = node["log_likelihood_per_reading"].as<double>(0.0);
   if (node["method"]) m.method = node["method"].as<std::string>("");

@@ -35,16 +35,11 @@ struct ColumnSlot {
   std::string name;
 };
 
-}  // namespace
-
-Dataset read_csv(const std::string& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw DataError(path + ": cannot open file");
-  std::string text((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  if (text.empty()) throw DataError(path + ": file is empty (expected a header row)");
-
+// The lines of a file's text, without their line ends.
+struct CsvLines {
+  std::string text;
   std::size_t pos = 0;
-  auto next_line = [&](std::string_view& line) {
+  bool next(std::string_view& line) {
     if (pos >= text.size()) return false;
     std::size_t end = text.find('\n', pos);
     if (end == std::string::npos) end = text.size();
@@ -52,13 +47,16 @@ Dataset read_csv(const std::string& path) {
     if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
     pos = end + 1;
     return true;
-  };
+  }
+  bool at_end() const { return pos >= text.size(); }
+};
 
-  // `# origin: simulated` (Dataset::origin) before the column names; no other comment lines
-  Dataset d;
+// `# origin: simulated` (Dataset::origin) before the column names; no other comment lines. Returns the column
+// names; header_row is the header's row number.
+std::vector<std::string> csv_header(CsvLines& lines, const std::string& path, Dataset& d, std::size_t& header_row) {
   std::string_view header;
-  next_line(header);
-  std::size_t header_row = 1;
+  lines.next(header);
+  header_row = 1;
   while (!header.empty() && header.front() == '#') {
     const std::string c = trim(header.substr(1));
     const std::string key = "origin:";
@@ -67,21 +65,23 @@ Dataset read_csv(const std::string& path) {
       throw DataError(path + ": row " + std::to_string(header_row) + ": expected '# origin: simulated' or '# origin: "
                       "recorded' (the only comment line a data file may have, before the column names)");
     d.origin = value;
-    if (!next_line(header)) throw DataError(path + ": no header row after row " + std::to_string(header_row));
+    if (!lines.next(header)) throw DataError(path + ": no header row after row " + std::to_string(header_row));
     ++header_row;
   }
   std::vector<std::string> names;
-  {
-    std::size_t start = 0;
-    while (true) {
-      std::size_t comma = header.find(',', start);
-      names.push_back(trim(header.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start)));
-      if (comma == std::string_view::npos) break;
-      start = comma + 1;
-    }
+  std::size_t start = 0;
+  while (true) {
+    std::size_t comma = header.find(',', start);
+    names.push_back(trim(header.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start)));
+    if (comma == std::string_view::npos) break;
+    start = comma + 1;
   }
+  return names;
+}
 
-  d.source = path;
+// Where each named column goes; adds the data set's axes (each needs voltage and position) and aux columns.
+std::vector<ColumnSlot> csv_slots(const std::vector<std::string>& names, const std::string& path, std::size_t header_row,
+                                  Dataset& d) {
   std::vector<ColumnSlot> slots;
   bool have_time = false;
   bool have_v[3] = {false, false, false}, have_p[3] = {false, false, false};
@@ -134,9 +134,62 @@ Dataset read_csv(const std::string& path) {
         throw DataError(path + ": row 1, column " + s.name + ": ground truth for an axis without voltage/position");
       s.index = axis_of[s.index];
     }
+  return slots;
+}
+
+// One data row's cells into their columns (time must increase).
+void csv_row(std::string_view line, std::size_t row, const std::string& path, const std::vector<ColumnSlot>& slots,
+             const std::vector<std::vector<double>*>& dest, const std::vector<double>& time_s) {
+  std::size_t start = 0;
+  for (std::size_t c = 0; c < slots.size(); ++c) {
+    if (start > line.size())
+      throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": missing value (row has " +
+                      std::to_string(c) + " of " + std::to_string(slots.size()) + " columns)");
+    std::size_t comma = line.find(',', start);
+    std::string_view cell = line.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start);
+    while (!cell.empty() && (cell.front() == ' ' || cell.front() == '\t')) cell.remove_prefix(1);
+    while (!cell.empty() && (cell.back() == ' ' || cell.back() == '\t')) cell.remove_suffix(1);
+    double v = 0.0;
+    if (cell.empty())
+      throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": empty cell");
+    const char* b = cell.data();
+    if (*b == '+') ++b;
+    auto [ptr, ec] = std::from_chars(b, cell.data() + cell.size(), v);
+    if (ec != std::errc() || ptr != cell.data() + cell.size())
+      throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": not a number: '" +
+                      std::string(cell) + "'");
+    if (!std::isfinite(v))
+      throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": " + std::string(cell) +
+                      " is not a finite number");
+    if (slots[c].target == Target::kTime && !time_s.empty() && !(v > time_s.back()))
+      throw DataError(path + ": row " + std::to_string(row) + ", column time_s: time does not increase (" +
+                      std::to_string(time_s.back()) + " then " + std::string(cell) + ")");
+    dest[c]->push_back(v);
+    start = (comma == std::string_view::npos) ? line.size() + 1 : comma + 1;
+  }
+  if (start <= line.size())
+    throw DataError(path + ": row " + std::to_string(row) + ": more cells than the " + std::to_string(slots.size()) +
+                    " header columns");
+}
+
+}  // namespace
+
+Dataset read_csv(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw DataError(path + ": cannot open file");
+  CsvLines lines;
+  lines.text.assign((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  if (lines.text.empty()) throw DataError(path + ": file is empty (expected a header row)");
+  Dataset d;
+  std::size_t header_row = 1;
+  const std::vector<std::string> names = csv_header(lines, path, d, header_row);
+  d.source = path;
+  const std::vector<ColumnSlot> slots = csv_slots(names, path, header_row, d);
 
   // Reserve from a cheap line count to avoid reallocations on million-row files.
-  const std::size_t approx_rows = static_cast<std::size_t>(std::count(text.begin() + std::min(pos, text.size()), text.end(), '\n')) + 1;
+  const std::string& text = lines.text;
+  const std::size_t approx_rows =
+      static_cast<std::size_t>(std::count(text.begin() + std::min(lines.pos, text.size()), text.end(), '\n')) + 1;
   std::vector<std::vector<double>*> dest(slots.size(), nullptr);
   std::vector<double> seg_tmp, phase_tmp;
   for (std::size_t c = 0; c < slots.size(); ++c) {
@@ -155,42 +208,13 @@ Dataset read_csv(const std::string& path) {
 
   std::string_view line;
   std::size_t row = header_row;
-  while (next_line(line)) {
+  while (lines.next(line)) {
     ++row;
     if (trim(line).empty()) {
-      if (pos >= text.size()) break;  // trailing newline
+      if (lines.at_end()) break;  // trailing newline
       throw DataError(path + ": row " + std::to_string(row) + ": empty line");
     }
-    std::size_t start = 0;
-    for (std::size_t c = 0; c < slots.size(); ++c) {
-      if (start > line.size())
-        throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": missing value (row has " +
-                        std::to_string(c) + " of " + std::to_string(slots.size()) + " columns)");
-      std::size_t comma = line.find(',', start);
-      std::string_view cell = line.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start);
-      while (!cell.empty() && (cell.front() == ' ' || cell.front() == '\t')) cell.remove_prefix(1);
-      while (!cell.empty() && (cell.back() == ' ' || cell.back() == '\t')) cell.remove_suffix(1);
-      double v = 0.0;
-      if (cell.empty())
-        throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": empty cell");
-      const char* b = cell.data();
-      if (*b == '+') ++b;
-      auto [ptr, ec] = std::from_chars(b, cell.data() + cell.size(), v);
-      if (ec != std::errc() || ptr != cell.data() + cell.size())
-        throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": not a number: '" +
-                        std::string(cell) + "'");
-      if (!std::isfinite(v))
-        throw DataError(path + ": row " + std::to_string(row) + ", column " + slots[c].name + ": " + std::string(cell) +
-                        " is not a finite number");
-      if (slots[c].target == Target::kTime && !d.time_s.empty() && !(v > d.time_s.back()))
-        throw DataError(path + ": row " + std::to_string(row) + ", column time_s: time does not increase (" +
-                        std::to_string(d.time_s.back()) + " then " + std::string(cell) + ")");
-      dest[c]->push_back(v);
-      start = (comma == std::string_view::npos) ? line.size() + 1 : comma + 1;
-    }
-    if (start <= line.size())
-      throw DataError(path + ": row " + std::to_string(row) + ": more cells than the " + std::to_string(slots.size()) +
-                      " header columns");
+    csv_row(line, row, path, slots, dest, d.time_s);
   }
   if (d.time_s.empty()) throw DataError(path + ": no data rows after the header");
   for (double v : seg_tmp) d.segment.push_back(static_cast<int>(std::lround(v)));

@@ -6,27 +6,16 @@
 #include <stdexcept>
 
 #include "piezo_compensation/models/registry.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::models {
-
-// The streaming terms' kinds and state, in a named namespace: EffectTermStream::Impl holds them, and a class of
-// external linkage may not have fields of an anonymous namespace's types.
-namespace effect_stream {
-enum class TermKind { linear, play, sincos, rate, gain, gain_quadratic, powers };
-}  // namespace effect_stream
-using effect_stream::TermKind;
 
 namespace {
 constexpr double kTwoPi = 6.283185307179586;
 
 bool is_builtin_signal(const std::string& s) { return s == kSignalVoltage || s == kSignalPosition; }
 
-std::string fmt(double v) {
-  std::ostringstream os;
-  os.precision(4);
-  os << v;
-  return os.str();
-}
+std::string fmt(double v) { return util::fmt(v, 4); }
 
 double yaml_num(const YAML::Node& n, const char* key, double def) {
   if (!n[key]) return def;
@@ -50,26 +39,34 @@ std::vector<double> yaml_vec(const YAML::Node& n, const char* key) {
   }
   return v;
 }
-// The term types, by name: the one list the type strings are read against.
+}  // namespace
+
+namespace {
+constexpr std::pair<const char*, TermKind> kTermKinds[] = {
+    {"linear", TermKind::kLinear}, {"play", TermKind::kPlay},       {"sincos", TermKind::kSinCos},
+    {"rate", TermKind::kRate},     {"powers", TermKind::kPowers},   {"gain", TermKind::kGain},
+    {"gain_quadratic", TermKind::kGainQuadratic}};
+}  // namespace
 
 TermKind term_kind(const std::string& type) {
-  static const std::pair<const char*, TermKind> kinds[] = {
-      {"linear", TermKind::linear}, {"play", TermKind::play},   {"sincos", TermKind::sincos},
-      {"rate", TermKind::rate},     {"powers", TermKind::powers}, {"gain", TermKind::gain},
-      {"gain_quadratic", TermKind::gain_quadratic}};
-  for (const auto& [name, kind] : kinds)
+  for (const auto& [name, kind] : kTermKinds)
     if (type == name) return kind;
   throw std::runtime_error("augmented model term: unknown type '" + type +
                            "' (linear, play, sincos, rate, powers, gain, gain_quadratic)");
 }
-}  // namespace
+
+const char* term_kind_name(TermKind kind) {
+  for (const auto& [name, k] : kTermKinds)
+    if (k == kind) return name;
+  return "?";
+}
 
 std::size_t EffectTerm::num_regressors() const {
-  switch (term_kind(type)) {
-    case TermKind::sincos:
-    case TermKind::powers:
-    case TermKind::gain_quadratic: return 2;
-    case TermKind::rate: return 3;
+  switch (kind()) {
+    case TermKind::kSinCos:
+    case TermKind::kPowers:
+    case TermKind::kGainQuadratic: return 2;
+    case TermKind::kRate: return 3;
     default: return 1;  // linear, play, gain
   }
 }
@@ -78,8 +75,8 @@ std::string EffectTerm::name() const {
   std::ostringstream os;
   os << type << "(" << signal;
   if (lag_s > 0) os << ", lag " << fmt(lag_s) << " s";
-  if (type == "play") os << ", r=" << fmt(threshold);
-  if (type == "sincos") os << ", period " << fmt(period) << (signal == kSignalTime ? " s" : signal == kSignalPosition ? " nm" : "");
+  if (kind() == TermKind::kPlay) os << ", r=" << fmt(threshold);
+  if (kind() == TermKind::kSinCos) os << ", period " << fmt(period) << (signal == kSignalTime ? " s" : signal == kSignalPosition ? " nm" : "");
   if (time_constant_s > 0) os << ", low-pass " << fmt(time_constant_s) << " s";
   if (is_gain()) os << ", scales " << scales;
   if (in_readings()) os << ", in the readings";
@@ -142,7 +139,7 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
     throw std::runtime_error("augmented model term " + t.name() + ": center/scale/weight need " + std::to_string(k) + " entries each");
   if (t.lag_s < 0 || t.time_constant_s < 0 || t.threshold < 0)
     throw std::runtime_error("augmented model term " + t.name() + ": lag_s, time_constant_s and threshold must be >= 0");
-  if (t.type == "sincos" && !(t.period > 0)) throw std::runtime_error("augmented model term " + t.name() + ": period must be > 0");
+  if (t.kind() == TermKind::kSinCos && !(t.period > 0)) throw std::runtime_error("augmented model term " + t.name() + ": period must be > 0");
   if (t.is_gain() && t.scales != kSignalPosition && t.scales != kSignalVoltage)
     throw std::runtime_error("augmented model term " + t.name() + ": 'scales' must be position or voltage");
   if (t.pre_scale == 0.0) throw std::runtime_error("augmented model term " + t.name() + ": pre_scale must be non-zero");
@@ -152,6 +149,8 @@ EffectTerm EffectTerm::from_yaml(const YAML::Node& n) {
 }
 
 // ---- streaming terms -------------------------------------------------------------------------------
+// The streaming terms' state, in a named namespace: EffectTermStream::Impl holds it, and a class of external
+// linkage may not have fields of an anonymous namespace's types.
 namespace effect_stream {
 struct TermState {
   bool fresh = true;
@@ -168,7 +167,7 @@ struct TermConst {
   std::size_t lag = 0;   // samples
   double alpha = 0.0;    // low-pass pole (0 = none)
   int column = -1;       // index into the column array, -1 = builtin
-  TermKind kind = TermKind::linear;
+  TermKind kind = TermKind::kLinear;
   bool on_position = false;    // the term reads the (corrected) position
   bool scales_voltage = false; // a gain scales the voltage, not the base output
   bool in_readings = false;    // a sensor term (acts_on: readings)
@@ -193,21 +192,21 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
   };
   double lp_new[3] = {0, 0, 0};
   double play_new = st.play;
-  if (c.kind == TermKind::linear) {
+  if (c.kind == TermKind::kLinear) {
     out[0] = lp_new[0] = lowpass(0, lagged);
-  } else if (c.kind == TermKind::play) {
+  } else if (c.kind == TermKind::kPlay) {
     const double prev = st.fresh ? lagged : st.play;
     play_new = std::max(lagged - t.threshold, std::min(lagged + t.threshold, prev));
     out[0] = lp_new[0] = lowpass(0, play_new);
-  } else if (c.kind == TermKind::sincos) {
+  } else if (c.kind == TermKind::kSinCos) {
     const double ph = kTwoPi * lagged / t.period;
     out[0] = std::sin(ph);
     out[1] = std::cos(ph);
-  } else if (c.kind == TermKind::rate) {
+  } else if (c.kind == TermKind::kRate) {
     // The low-passed steps start from zero and are divided by 1 − αⁿ (a debiased mean): from the first step on
     // they estimate the recent step statistics. Not debiased, |ΔV| would rise from zero over a few τ, a start-up
     // decay a fit can trade against the base's start transients and then carry as an offset once settled
-    // (docs/closing-the-loop.md, "Live loop").
+    // (docs/validation/residual-loop.md, "Live loop").
     double decay_new = st.decay;
     if (st.fresh) {
       for (int i = 0; i < 3; ++i) out[i] = lp_new[i] = 0.0;  // no step yet: nothing is known
@@ -222,11 +221,11 @@ void eval_term(const EffectTerm& t, const TermConst& c, const TermState& st, dou
       }
     }
     if (next) next->decay = decay_new;
-  } else if (c.kind == TermKind::gain || c.kind == TermKind::gain_quadratic) {
+  } else if (c.kind == TermKind::kGain || c.kind == TermKind::kGainQuadratic) {
     const double g = (lowpass(0, lagged) - t.pre_center) / t.pre_scale;
     lp_new[0] = lowpass(0, lagged);
     out[0] = (q - t.reference) * g;
-    if (c.kind == TermKind::gain_quadratic) out[1] = (q - t.reference) * g * g;
+    if (c.kind == TermKind::kGainQuadratic) out[1] = (q - t.reference) * g * g;
   } else {  // powers
     const double u = (s - t.pre_center) / t.pre_scale;
     out[0] = u * u;
@@ -305,7 +304,7 @@ EffectTermStream::EffectTermStream(std::vector<EffectTerm> terms, double sample_
     TermConst c;
     c.lag = static_cast<std::size_t>(std::lround(t.lag_s * sample_rate_hz));
     c.alpha = t.time_constant_s > 0 ? std::exp(-1.0 / (t.time_constant_s * sample_rate_hz)) : 0.0;
-    c.kind = term_kind(t.type);  // throws for an unknown type, naming the known ones
+    c.kind = t.kind();  // throws for an unknown type, naming the known ones
     c.regressors = t.num_regressors();
     c.on_position = t.signal == kSignalPosition;
     c.scales_voltage = t.scales == kSignalVoltage;
@@ -379,6 +378,20 @@ void EffectTermStream::raw_and_commit(double v, double x, const double* cols, do
 }
 
 // ---- the model ---------------------------------------------------------------------------------------
+std::string AugmentedModel::fixed_rate_reason() const {
+  const std::string base = base_->fixed_rate_reason();
+  if (!base.empty()) return "its base: " + base;
+  for (const EffectTerm& t : terms())
+    if (t.lag_s > 0 || t.time_constant_s > 0 || t.type == "rate")
+      return "effect term " + t.name() + " counts its lag, low-pass or difference in samples of the training rate";
+  return "";
+}
+
+void AugmentedModel::set_step_s(double dt_s) {
+  if (!runs_at_any_rate()) return check_fixed_step(dt_s);
+  base_->set_step_s(dt_s);
+}
+
 AugmentedModel::AugmentedModel(ModelPtr base, std::vector<EffectTerm> terms, double offset_nm, double sample_rate_hz)
     : base_(std::move(base)), stream_(std::move(terms), sample_rate_hz, offset_nm), sample_rate_hz_(sample_rate_hz) {
   if (!base_) throw std::invalid_argument("augmented model: no base model");
@@ -495,7 +508,7 @@ bool AugmentedModel::is_affine_in_voltage() const {
   for (const auto& t : stream_.terms()) {
     // Terms on the voltage or on the (voltage-dependent) base prediction are affine only if linear in it.
     const bool reads_v = t.signal == kSignalVoltage || t.signal == kSignalPosition;
-    if (reads_v && t.type != "linear") return false;
+    if (reads_v && t.kind() != TermKind::kLinear) return false;
   }
   return true;
 }
@@ -544,5 +557,7 @@ ModelPtr AugmentedModel::from_yaml(const YAML::Node& n) {
   if (!(fs > 0)) throw std::runtime_error("augmented model: sample_rate_hz must be > 0");
   return std::make_unique<AugmentedModel>(std::move(base), std::move(terms), off, fs);
 }
+
+std::vector<double> AugmentedModel::creep_mode_taus_s() const { return base().creep_mode_taus_s(); }
 
 }  // namespace piezo::models

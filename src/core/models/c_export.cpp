@@ -9,6 +9,7 @@
 
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/linear_model.h"
+#include "piezo_compensation/models/pi_creep_play_model.h"
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/models/registry.h"
 
@@ -411,6 +412,105 @@ int type_code(const std::string& t) {
   throw std::runtime_error("C export: feature type '" + t + "' is not supported (aux signals cannot be exported)");
 }
 
+// Kind pi_creep_play: a low-pass per play operator and time constant (models/pi_creep_play_model.h).
+const char* kPiCreepPlayCode = R"C(
+typedef struct {
+  double p[PFX_NP];             /* play operator outputs [V] */
+  double l[PFX_NP * PFX_NTAU];  /* low-passes of each play output, play by play [V] */
+  double held;                  /* the low-passes' share of the next prediction [nm] */
+} PFX_state;
+
+static double PFX_play(double v, double r, double prev) { double lo = v - r, hi = v + r; return prev < lo ? lo : (prev > hi ? hi : prev); }
+
+static void PFX_hold(PFX_state* st) {
+  int k;
+  st->held = 0.0;
+  for (k = 0; k < PFX_NP * PFX_NTAU; ++k) if (PFX_g[k] != 0.0) st->held += PFX_g[k] * PFX_a[k % PFX_NTAU] * st->l[k];
+}
+
+static void PFX_init(PFX_state* st, double voltage_v, double position_nm) {
+  int k;
+  (void)position_nm;
+  for (k = 0; k < PFX_NP; ++k) st->p[k] = voltage_v;
+  for (k = 0; k < PFX_NP * PFX_NTAU; ++k) st->l[k] = voltage_v;
+  PFX_hold(st);
+}
+
+/* y = bias + held + sum_i c_i play_i(V), c_i = w_i + sum_j g_ij (1 - a_j): the slope in play i at this step. */
+#if PFX_BENDS
+/* Bend pieces on [lo, hi]: convex (q-lo)^2/s, concave 2(q-lo) - (q-lo)^2/s, both increasing, linear or flat beyond. */
+static double PFX_convex(double q, double lo, double hi) { double s = hi - lo, x = q - lo; return x <= 0 ? 0.0 : (q >= hi ? 2.0 * x - s : x * x / s); }
+static double PFX_concave(double q, double lo, double hi) { double s = hi - lo, x = q - lo; return x <= 0 ? 2.0 * x : (q >= hi ? s : 2.0 * x - x * x / s); }
+#endif
+
+static double PFX_predict(const PFX_state* st, double v) {
+  double y = PFX_bias_nm + st->held;
+  int i;
+  for (i = 0; i < PFX_NP; ++i) {
+    double q = PFX_play(v, PFX_r[i], st->p[i]);
+#if PFX_BENDS
+    y += PFX_c[i] * q + (PFX_u[i] * PFX_convex(q, PFX_lo[i], PFX_hi[i]) + PFX_d[i] * PFX_concave(q, PFX_lo[i], PFX_hi[i]));
+#else
+    y += PFX_c[i] * q;
+#endif
+  }
+  return y;
+}
+
+static void PFX_commit(PFX_state* st, double v, double position_nm) {
+  int i, j;
+  (void)position_nm;
+  for (i = 0; i < PFX_NP; ++i) {
+    double q = PFX_play(v, PFX_r[i], st->p[i]);
+    st->p[i] = q;
+    for (j = 0; j < PFX_NTAU; ++j) st->l[i * PFX_NTAU + j] = PFX_a[j] * st->l[i * PFX_NTAU + j] + (1.0 - PFX_a[j]) * q;
+  }
+  PFX_hold(st);
+}
+
+static double PFX_step(PFX_state* st, double voltage_v, double measured_nm) {
+  double y = PFX_predict(st, voltage_v);
+  (void)measured_nm;  /* no position history: one-step and free-run agree */
+  PFX_commit(st, voltage_v, y);
+  return y;
+}
+
+#define PFX_HAS_INVERSE 1
+/* Exact inverse for the current state: strictly increasing, smooth between the kinks p_i -/+ r_i (and, with bends,
+ * lo_i -/+ r_i, hi_i -/+ r_i), affine beyond them; linear between kinks without bends (closed form), else bisection. */
+static double PFX_inverse(const PFX_state* st, double target_nm) {
+  double k[6 * PFX_NP], x_prev, f_prev, f;
+  int n = 0, i, j;
+  for (i = 0; i < PFX_NP; ++i) {
+    k[n++] = st->p[i] - PFX_r[i];
+    if (PFX_r[i] > 0.0) k[n++] = st->p[i] + PFX_r[i];
+#if PFX_BENDS
+    k[n++] = PFX_lo[i] - PFX_r[i]; k[n++] = PFX_lo[i] + PFX_r[i];
+    k[n++] = PFX_hi[i] - PFX_r[i]; k[n++] = PFX_hi[i] + PFX_r[i];
+#endif
+  }
+  for (i = 1; i < n; ++i) { double x = k[i]; j = i - 1; while (j >= 0 && k[j] > x) { k[j + 1] = k[j]; --j; } k[j + 1] = x; }
+  x_prev = k[0]; f_prev = PFX_predict(st, x_prev);
+  if (target_nm <= f_prev) return x_prev + (target_nm - f_prev) / (f_prev - PFX_predict(st, x_prev - 1.0));
+  for (i = 1; i < n; ++i) {
+    if (!(k[i] > x_prev)) continue;
+    f = PFX_predict(st, k[i]);
+    if (target_nm <= f) {
+#if PFX_BENDS
+      double lo = x_prev, hi = k[i];
+      int it;
+      for (it = 0; it < 64; ++it) { double mid = 0.5 * (lo + hi); if (PFX_predict(st, mid) < target_nm) lo = mid; else hi = mid; }
+      return 0.5 * (lo + hi);
+#else
+      return x_prev + (target_nm - f_prev) * (k[i] - x_prev) / (f - f_prev);
+#endif
+    }
+    x_prev = k[i]; f_prev = f;
+  }
+  return x_prev + (target_nm - f_prev) / (PFX_predict(st, x_prev + 1.0) - f_prev);
+}
+)C";
+
 }  // namespace
 
 std::string export_c99_linear(const Model& model, const std::string& prefix) {
@@ -462,7 +562,7 @@ std::string export_c99_linear(const Model& model, const std::string& prefix) {
 
 std::string export_c99_pi(const Model& model, const std::string& prefix) {
   check_prefix(prefix);
-  const auto* m = dynamic_cast<const PiCreepModel*>(&model);
+  const PiCreepModel* m = model.pi_family();
   if (!m) throw std::runtime_error("C export: model of kind '" + model.kind() + "' is not a PI model");
   std::ostringstream os;
   os << header_open(prefix, model, std::string(m->preisach()         ? "discrete Preisach (play pieces)"
@@ -501,6 +601,27 @@ std::string export_c99_pi(const Model& model, const std::string& prefix) {
   return replace_all(os.str(), "PFX_", prefix + "_");
 }
 
+std::string export_c99_pi_creep_play(const Model& model, const std::string& prefix) {
+  check_prefix(prefix);
+  const auto* m = dynamic_cast<const PiCreepPlayModel*>(&model);
+  if (!m) throw std::runtime_error("C export: model of kind '" + model.kind() + "' is not a pi_creep_play model");
+  std::ostringstream os;
+  os << header_open(prefix, model, "Prandtl-Ishlinskii hysteresis with a creep per play operator");
+  os << "#define PFX_NP " << m->thresholds_v().size() << "\n#define PFX_NTAU " << m->taus_s().size() << "\n";
+  os << "static const double PFX_bias_nm = " << num(m->bias_nm()) << ";\n/* time constants [s] ";
+  for (double t : m->taus_s()) os << num(t) << " ";
+  os << "*/\n"
+     << table("double", "PFX_r", nums(m->thresholds_v())) << table("double", "PFX_c", nums(m->step_slopes()))
+     << table("double", "PFX_a", nums(m->poles())) << table("double", "PFX_g", nums(m->gains()));
+  const PlayBends& b = m->bends();
+  os << "#define PFX_BENDS " << (b.empty() ? 0 : 1) << "\n";
+  if (!b.empty())
+    os << table("double", "PFX_lo", nums(b.lo_v)) << table("double", "PFX_hi", nums(b.hi_v))
+       << table("double", "PFX_u", nums(b.convex_nm_per_v)) << table("double", "PFX_d", nums(b.concave_nm_per_v));
+  os << kPiCreepPlayCode << "\n#endif\n";
+  return replace_all(os.str(), "PFX_", prefix + "_");
+}
+
 std::string export_c99_augmented(const Model& model, const std::string& prefix) {
   check_prefix(prefix);
   const auto* m = dynamic_cast<const AugmentedModel*>(&model);
@@ -512,13 +633,8 @@ std::string export_c99_augmented(const Model& model, const std::string& prefix) 
   std::vector<std::string> type, signal, lag, ring0, nreg, scales, inread;
   std::vector<double> alpha, thr, period, pc, ps, ref, c, sc, w;
   long ring = 0;
-  static const char* names[] = {"linear", "play", "sincos", "rate", "powers", "gain", "gain_quadratic"};
   for (const auto& t : m->terms()) {
-    int code = -1;
-    for (int i = 0; i < 7; ++i)
-      if (t.type == names[i]) code = i;
-    if (code < 0) throw std::runtime_error("C export: term type '" + t.type + "' is not supported");
-    type.push_back(std::to_string(code));
+    type.push_back(std::to_string(static_cast<int>(t.kind())));  // the term code: TermKind's order
     int sig = -1;
     if (t.signal == kSignalPosition) sig = -2;
     else if (t.signal != kSignalVoltage)

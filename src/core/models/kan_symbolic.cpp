@@ -1,5 +1,6 @@
 // KAN: closed-form stand-ins for learned edge functions, and the model's formulas.
 #include "piezo_compensation/models/kan_model.h"
+#include "piezo_compensation/util/format.h"
 
 #include <algorithm>
 #include <cmath>
@@ -56,11 +57,7 @@ int complexity(const std::string& fam) {
   return static_cast<int>(std::find(order.begin(), order.end(), fam) - order.begin());
 }
 
-std::string num(double v) {
-  std::ostringstream os;
-  os << std::setprecision(4) << v;
-  return os.str();
-}
+std::string num(double v) { return util::fmt(v, 4); }
 
 }  // namespace
 

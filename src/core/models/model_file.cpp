@@ -278,10 +278,10 @@ void check_model_matches_data(const Model& m, const io::Dataset& data, const std
     throw ModelFileError(where + ": model is for axis '" + axis + "' but " +
                          (data.source.empty() ? std::string("the data") : data.source) + " has no such axis");
   const double rate = data.sample_rate_hz();
-  if (std::abs(rate - m.meta.sample_rate_hz) > 0.01 * m.meta.sample_rate_hz) {
+  if (!m.runs_at_any_rate() && std::abs(rate - m.meta.sample_rate_hz) > Model::kStepTolerance * m.meta.sample_rate_hz) {
     std::ostringstream os;
     os << where << ": sample_rate_hz " << m.meta.sample_rate_hz << " Hz does not match the data's " << rate << " Hz ("
-       << data.source_or_data() << ")";
+       << data.source_or_data() << "): " << m.fixed_rate_reason();
     throw ModelFileError(os.str());
   }
   // Inputs as every tool streams them (model_stream.h's one resolver): time_s, aux columns and the other axes'

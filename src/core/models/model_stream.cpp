@@ -5,6 +5,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/util/flush_subnormals.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::models {
 
@@ -97,14 +98,55 @@ const double* InputResolver::at(std::size_t i) {
   return row_.data();
 }
 
+void Model::check_fixed_step(double dt_s) const {
+  const double nominal = 1.0 / meta.sample_rate_hz;
+  if (!(dt_s > 0) || !std::isfinite(dt_s))
+    throw std::invalid_argument("model '" + kind() + "': a step must be a finite time > 0 s, got " + util::fmt(dt_s, 6));
+  if (std::abs(dt_s - nominal) > kStepTolerance * nominal)
+    throw std::invalid_argument("model '" + kind() + "' cannot run at a " + util::fmt(dt_s, 6) + "-s step (" +
+                                util::fmt(1.0 / dt_s, 4) + " Hz; trained at " + util::fmt(meta.sample_rate_hz, 4) +
+                                " Hz): " + fixed_rate_reason());
+}
+
 namespace {
+// The step each row advances a model over: the row's own step for a model that runs at any rate on data
+// without a sample clock (the first row, and a step beyond io::kMaxStepS, take the data's period), the
+// data's period on a sample clock, and nothing for a model that runs at its training rate only.
+class RowSteps {
+ public:
+  RowSteps(const Model& model, const io::Dataset& data) : t_(data.time_s) {
+    if (!model.runs_at_any_rate() || data.size() < 2) return;
+    const io::TimeBase tb = io::time_base(data.time_s);
+    if (!(tb.period_s > 0)) return;
+    period_s_ = tb.period_s;
+    per_row_ = !tb.constant;
+  }
+  // Sets the model's step for row i (before its predict).
+  void apply(Model& model, std::size_t i) const {
+    if (!(period_s_ > 0)) return;
+    if (!per_row_) {
+      if (i == 0) model.set_step_s(period_s_);
+      return;
+    }
+    const double dt = i > 0 ? t_[i] - t_[i - 1] : period_s_;
+    model.set_step_s(dt > 0 && dt <= io::kMaxStepS ? dt : period_s_);
+  }
+
+ private:
+  const std::vector<double>& t_;
+  double period_s_ = 0;
+  bool per_row_ = false;
+};
+
 void stream_rows(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o,
                  std::vector<double>* pred) {
   const io::AxisSeries& ax = data.axis(axis);
   InputResolver inputs(data, model.aux_inputs(), axis);
+  const RowSteps steps(model, data);
   const bool free_run = o.mode == PredictionMode::kFreeRun;
   if (pred) pred->assign(data.size(), 0.0);
   for (std::size_t i = 0; i < data.size(); ++i) {
+    steps.apply(model, i);
     const ModelInput in{ax.voltage_v[i], inputs.at(i)};
     double y = model.predict(in);
     if (!std::isfinite(y)) {

@@ -98,11 +98,20 @@ PiCreepModel::PiCreepModel(std::vector<double> thresholds_v, std::vector<double>
   if (!std::isfinite(b_)) throw std::runtime_error("PI model: non-finite bias");
   if (!(rate_hz_ > 0)) throw std::runtime_error("PI model: sample rate must be > 0");
   creep_.modes(taus_, gains_);
+  step_s_ = 1.0 / rate_hz_;
   for (double t : taus_) poles_.push_back(std::exp(-1.0 / (rate_hz_ * t)));
   for (std::size_t j = 0; j < taus_.size(); ++j)
     if (gains_[j] * poles_[j] != 0.0) live_modes_.push_back(j);
   meta.sample_rate_hz = rate_hz_;
   reset(0.0, 0.0);
+}
+
+void PiCreepModel::set_step_s(double dt_s) {
+  if (!(dt_s > 0) || !std::isfinite(dt_s))
+    throw std::invalid_argument("model '" + kind() + "': a step must be a finite time > 0 s, got " + std::to_string(dt_s));
+  if (std::abs(dt_s - step_s_) <= 1e-9 * step_s_) return;  // the same step: the poles stand (bit for bit)
+  step_s_ = dt_s;
+  for (std::size_t j = 0; j < taus_.size(); ++j) poles_[j] = std::exp(-dt_s / taus_[j]);
 }
 
 double PiCreepModel::hysteresis(double v, const std::vector<double>& p, std::vector<double>* p_next) const {

@@ -9,6 +9,7 @@
 #include "piezo_compensation/models/kan_model.h"
 #include "piezo_compensation/models/linear_model.h"
 #include "piezo_compensation/models/lstm_model.h"
+#include "piezo_compensation/models/pi_creep_play_model.h"
 #include "piezo_compensation/models/pi_model.h"
 
 namespace piezo::models {
@@ -37,6 +38,8 @@ std::map<std::string, ModelKind> built_in_kinds() {
        &export_c99_pi, kDefault},
       {"pi_creep_prony", "PI hysteresis + creep spectrum (non-negative first-order modes on a log tau grid)",
        &PiCreepModel::load, &export_c99_pi, kDefault},
+      {"pi_creep_play", "PI hysteresis + creep per play operator (non-negative low-passes of each play, Krejčí–Kuhnen)",
+       &PiCreepPlayModel::load, &export_c99_pi_creep_play, kExtra},
       {"preisach", "discrete Preisach hysteresis (play outputs cut into non-negative ramp pieces: asymmetric loops)",
        &PiCreepModel::load, &export_c99_pi, kDefault},
       {"preisach_creep_prony", "discrete Preisach hysteresis + creep spectrum (as pi_creep_prony)", &PiCreepModel::load,

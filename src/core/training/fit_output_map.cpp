@@ -139,7 +139,7 @@ std::string output_map_option(const YAML::Node& options) {
 
 models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const FitFn& fit) {
   models::ModelPtr first = fit(req);
-  auto* base = dynamic_cast<PiCreepModel*>(first.get());
+  PiCreepModel* base = first->pi_family();
   if (!base) return first;
   const bool validate = req.validation && req.validation->has_axis(req.axis) && !always;
   if (!always && !validate) return first;
@@ -160,7 +160,7 @@ models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const F
     for (std::size_t i = 0; i < y.size(); ++i) y[i] = y0[i] - (map(H[i]) - H[i]);
     r.train = &shifted;
     second = fit(r);
-    refit = dynamic_cast<PiCreepModel*>(second.get());
+    refit = second->pi_family();
     if (!refit) return first;
     map = fit_map(*refit, *req.train, req.axis);
     if (map.empty()) return first;

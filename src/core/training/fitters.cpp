@@ -10,6 +10,7 @@
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/models/start_state.h"
+#include "piezo_compensation/training/fit_pi_creep_play.h"
 #include "piezo_compensation/util/flush_subnormals.h"
 
 namespace piezo::training {
@@ -28,6 +29,7 @@ const std::map<std::string, FitFn>& fitters() {
       {"pi_creep_lti", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kLti); }},
       {"pi_creep_fractional", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kFractional); }},
       {"pi_creep_prony", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kProny); }},
+      {"pi_creep_play", &fit_pi_creep_play},
       {"preisach", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kNone, true); }},
       {"preisach_creep_prony", [](const FitRequest& r) { return fit_pi_creep(r, CreepKind::kProny, true); }},
       {"dense", [](const FitRequest& r) -> ModelPtr { return fit_dense(r); }},
