@@ -91,6 +91,94 @@ std::ofstream open_out(const std::string& path) {
   return f;
 }
 
+// The report's sections, in the order eval_markdown writes them.
+void zeroed_section(std::ostream& os, const EvalContext& ctx, const std::vector<ModelEvaluation>& evals, double floor) {
+  if (std::any_of(evals.begin(), evals.end(), [](const ModelEvaluation& e) { return !e.zeroed.empty(); })) {
+    os << "## Each recording's hold from a zero taken before it [nm]\n\nFree run from the recording's start; its offset "
+          "from the readings over the " << f1(ctx.zero_window_s) << " s before the hold; walk: MAE over the "
+       << f1(ctx.walk_end_s) << " s before the hold against the readings (floor " << f1(floor)
+       << " nm); creep: the change from the hold's first to its last 5 s, predicted − measured.\n\n"
+       << "| model | recording | hold [s] | offset | walk MAE | creep measured | creep predicted | creep error |\n"
+       << "|---|---|---|---|---|---|---|---|\n";
+    for (const auto& e : evals) {
+      double walk = 0, worst = 0;
+      for (const auto& z : e.zeroed) {
+        os << "| " << e.name << " | " << z.recording << " | " << f1(z.hold_s) << " | " << f1(z.offset_nm) << " | "
+           << f1(z.walk_mae_nm) << " | " << f1(z.creep_measured_nm) << " | " << f1(z.creep_predicted_nm) << " | "
+           << f1(z.creep_error_nm()) << " |\n";
+        walk += z.walk_mae_nm / static_cast<double>(e.zeroed.size());
+        worst = std::max(worst, std::abs(z.creep_error_nm()));
+      }
+      if (!e.zeroed.empty())
+        os << "| " << e.name << " | **mean / worst** | | | **" << f1(walk) << "** | | | **" << f1(worst) << "** |\n";
+    }
+    os << "\n";
+  }
+}
+
+void all_modes_section(std::ostream& os, const std::vector<ModelEvaluation>& evals) {
+  os << "## All modes [nm]: MAE / RMS / max\n\n"
+     << "| model | set | one-step vs measured | one-step vs truth | free-run vs measured | free-run vs truth |\n"
+     << "|---|---|---|---|---|---|\n";
+  auto cell = [](const ErrorStats& s) { return s.valid() ? f1(s.mae_nm) + " / " + f1(s.rms_nm) + " / " + f1(s.max_nm) : std::string("–"); };
+  for (const auto& e : evals)
+    for (const auto& [set, m] : {std::pair<const char*, const SetMetrics*>{"hysteresis", &e.hysteresis}, {"creep", &e.creep}})
+      os << "| " << e.name << " | " << set << " | " << cell(m->one_step.vs_measured) << " | " << cell(m->one_step.vs_truth)
+         << " | " << cell(m->free_run.vs_measured) << " | " << cell(m->free_run.vs_truth) << " |\n";
+
+}
+
+void holds_section(std::ostream& os, const EvalContext& ctx, const std::vector<ModelEvaluation>& evals) {
+  if (!evals.empty() && evals[0].holds_free_run.valid()) {
+    os << "\n## Holds, free-run [nm]: MAE inside the holds, and the end-of-hold error (prediction − reference, "
+          "means over each hold's last " << f1(ctx.final_window_s) << " s)\n\n"
+       << "| model | hold MAE vs measured | hold MAE vs truth | end-of-hold error vs measured: max / mean abs | "
+          "vs truth: max / mean abs | holds |\n|---|---|---|---|---|---|\n";
+    auto endc = [](const HoldErrors& h) {
+      return h.valid() ? f1(h.end_max_abs_nm) + " / " + f1(h.end_mean_abs_nm) : std::string("–");
+    };
+    for (const auto& e : evals)
+      os << "| " << e.name << " | " << f1(e.holds_free_run.in_holds.mae_nm) << " | "
+         << (e.holds_free_run_truth.valid() ? f1(e.holds_free_run_truth.in_holds.mae_nm) : std::string("–")) << " | "
+         << endc(e.holds_free_run) << " | " << endc(e.holds_free_run_truth) << " | " << e.holds_free_run.end_error_nm.size()
+         << " |\n";
+  }
+}
+
+void finals_section(std::ostream& os, const EvalContext& ctx, const std::vector<ModelEvaluation>& evals) {
+  if (!evals.empty() && !evals[0].finals.empty()) {
+    os << "\n## Final position after each hold (mean of the last 5 s), deviation from the measurement [nm] (Fig. 14)\n\n"
+       << "Encoder-noise band ±" << f1(ctx.noise_sigma_nm) << " nm (σ of one sample; the 5-s mean of the measurement itself "
+       << "scatters less).\n\n| hold | segment |";
+    for (const auto& e : evals) os << " " << e.name << " one-step | " << e.name << " free-run |";
+    os << "\n|---|---|";
+    for (std::size_t k = 0; k < evals.size(); ++k) os << "---|---|";
+    os << "\n";
+    for (std::size_t h = 0; h < evals[0].finals.size(); ++h) {
+      os << "| " << h + 1 << " | " << evals[0].finals[h].segment << " |";
+      for (const auto& e : evals) {
+        const auto& f = e.finals[h];
+        os << " " << f1(f.one_step_nm - f.measured_nm) << " | " << f1(f.free_run_nm - f.measured_nm) << " |";
+      }
+      os << "\n";
+    }
+    if (std::isfinite(evals[0].finals[0].truth_nm)) {
+      os << "\n| model | mean abs final deviation vs truth, one-step | free-run | holds within the noise band (free-run vs truth) |\n|---|---|---|---|\n";
+      for (const auto& e : evals) {
+        double a = 0, b = 0;
+        int within = 0;
+        for (const auto& f : e.finals) {
+          a += std::abs(f.one_step_nm - f.truth_nm);
+          b += std::abs(f.free_run_nm - f.truth_nm);
+          within += std::abs(f.free_run_nm - f.truth_nm) <= ctx.noise_sigma_nm;
+        }
+        os << "| " << e.name << " | " << f1(a / e.finals.size()) << " | " << f1(b / e.finals.size()) << " | " << within << "/"
+           << e.finals.size() << " |\n";
+      }
+    }
+  }
+}
+
 }  // namespace
 
 std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluation>& evals) {
@@ -128,81 +216,10 @@ std::string eval_markdown(const EvalContext& ctx, const std::vector<ModelEvaluat
   os << "\n(one-step, against the measurement — the study's setting; the study reported 8.2 nm / 10.0 nm for linear "
         "regression, below this floor, see docs/models.md.)\n\n";
 
-  if (std::any_of(evals.begin(), evals.end(), [](const ModelEvaluation& e) { return !e.zeroed.empty(); })) {
-    os << "## Each recording's hold from a zero taken before it [nm]\n\nFree run from the recording's start; its offset "
-          "from the readings over the " << f1(ctx.zero_window_s) << " s before the hold; walk: MAE over the "
-       << f1(ctx.walk_end_s) << " s before the hold against the readings (floor " << f1(floor)
-       << " nm); creep: the change from the hold's first to its last 5 s, predicted − measured.\n\n"
-       << "| model | recording | hold [s] | offset | walk MAE | creep measured | creep predicted | creep error |\n"
-       << "|---|---|---|---|---|---|---|---|\n";
-    for (const auto& e : evals) {
-      double walk = 0, worst = 0;
-      for (const auto& z : e.zeroed) {
-        os << "| " << e.name << " | " << z.recording << " | " << f1(z.hold_s) << " | " << f1(z.offset_nm) << " | "
-           << f1(z.walk_mae_nm) << " | " << f1(z.creep_measured_nm) << " | " << f1(z.creep_predicted_nm) << " | "
-           << f1(z.creep_error_nm()) << " |\n";
-        walk += z.walk_mae_nm / static_cast<double>(e.zeroed.size());
-        worst = std::max(worst, std::abs(z.creep_error_nm()));
-      }
-      if (!e.zeroed.empty())
-        os << "| " << e.name << " | **mean / worst** | | | **" << f1(walk) << "** | | | **" << f1(worst) << "** |\n";
-    }
-    os << "\n";
-  }
-  os << "## All modes [nm]: MAE / RMS / max\n\n"
-     << "| model | set | one-step vs measured | one-step vs truth | free-run vs measured | free-run vs truth |\n"
-     << "|---|---|---|---|---|---|\n";
-  auto cell = [](const ErrorStats& s) { return s.valid() ? f1(s.mae_nm) + " / " + f1(s.rms_nm) + " / " + f1(s.max_nm) : std::string("–"); };
-  for (const auto& e : evals)
-    for (const auto& [set, m] : {std::pair<const char*, const SetMetrics*>{"hysteresis", &e.hysteresis}, {"creep", &e.creep}})
-      os << "| " << e.name << " | " << set << " | " << cell(m->one_step.vs_measured) << " | " << cell(m->one_step.vs_truth)
-         << " | " << cell(m->free_run.vs_measured) << " | " << cell(m->free_run.vs_truth) << " |\n";
-
-  if (!evals.empty() && evals[0].holds_free_run.valid()) {
-    os << "\n## Holds, free-run [nm]: MAE inside the holds, and the end-of-hold error (prediction − reference, "
-          "means over each hold's last " << f1(ctx.final_window_s) << " s)\n\n"
-       << "| model | hold MAE vs measured | hold MAE vs truth | end-of-hold error vs measured: max / mean abs | "
-          "vs truth: max / mean abs | holds |\n|---|---|---|---|---|---|\n";
-    auto endc = [](const HoldErrors& h) {
-      return h.valid() ? f1(h.end_max_abs_nm) + " / " + f1(h.end_mean_abs_nm) : std::string("–");
-    };
-    for (const auto& e : evals)
-      os << "| " << e.name << " | " << f1(e.holds_free_run.in_holds.mae_nm) << " | "
-         << (e.holds_free_run_truth.valid() ? f1(e.holds_free_run_truth.in_holds.mae_nm) : std::string("–")) << " | "
-         << endc(e.holds_free_run) << " | " << endc(e.holds_free_run_truth) << " | " << e.holds_free_run.end_error_nm.size()
-         << " |\n";
-  }
-  if (!evals.empty() && !evals[0].finals.empty()) {
-    os << "\n## Final position after each hold (mean of the last 5 s), deviation from the measurement [nm] (Fig. 14)\n\n"
-       << "Encoder-noise band ±" << f1(ctx.noise_sigma_nm) << " nm (σ of one sample; the 5-s mean of the measurement itself "
-       << "scatters less).\n\n| hold | segment |";
-    for (const auto& e : evals) os << " " << e.name << " one-step | " << e.name << " free-run |";
-    os << "\n|---|---|";
-    for (std::size_t k = 0; k < evals.size(); ++k) os << "---|---|";
-    os << "\n";
-    for (std::size_t h = 0; h < evals[0].finals.size(); ++h) {
-      os << "| " << h + 1 << " | " << evals[0].finals[h].segment << " |";
-      for (const auto& e : evals) {
-        const auto& f = e.finals[h];
-        os << " " << f1(f.one_step_nm - f.measured_nm) << " | " << f1(f.free_run_nm - f.measured_nm) << " |";
-      }
-      os << "\n";
-    }
-    if (std::isfinite(evals[0].finals[0].truth_nm)) {
-      os << "\n| model | mean abs final deviation vs truth, one-step | free-run | holds within the noise band (free-run vs truth) |\n|---|---|---|---|\n";
-      for (const auto& e : evals) {
-        double a = 0, b = 0;
-        int within = 0;
-        for (const auto& f : e.finals) {
-          a += std::abs(f.one_step_nm - f.truth_nm);
-          b += std::abs(f.free_run_nm - f.truth_nm);
-          within += std::abs(f.free_run_nm - f.truth_nm) <= ctx.noise_sigma_nm;
-        }
-        os << "| " << e.name << " | " << f1(a / e.finals.size()) << " | " << f1(b / e.finals.size()) << " | " << within << "/"
-           << e.finals.size() << " |\n";
-      }
-    }
-  }
+  zeroed_section(os, ctx, evals, floor);
+  all_modes_section(os, evals);
+  holds_section(os, ctx, evals);
+  finals_section(os, ctx, evals);
   os << "\n## Plots\n\n![Table 3](table3.png)\n\n![Final positions](final_positions.png)\n\n"
      << "![Hysteresis traces](traces_hysteresis.png)\n\n![Creep traces](traces_creep.png)\n";
   for (const auto& n : ctx.lasso_notes) os << "\n" << n << "\n";

@@ -172,6 +172,39 @@ void draw_fan(const ChartSample& last_sample, const FY& Y, double x_right, doubl
   }
 }
 
+// The headline: the axis, whether it is compensated, and the error against the noise floor.
+std::string headline(const std::string& axis, const ChartSample* last, const StripChart::Stats& st) {
+  std::string head = "axis " + axis;
+  if (last) {
+    head += last->fallback ? "   FALLBACK (uncorrected)"
+                           : std::string(last->compensation_active ? "   compensation ON" : "   compensation OFF");
+  } else {
+    head += "   no data";
+  }
+  if (st.errors > 0) {
+    head += fmt("   MAE %.1f nm", st.mae_nm);
+    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) +
+                                          fmt(" (σ %.1f nm, ", st.floor.sigma_nm) + st.floor_source + ")"
+                                    : std::string(" (floor: too few samples)");
+  }
+  return head;
+}
+
+// The frames of the position and error lanes (top and bottom of each) and the error lane's zero line.
+ChartPrimitive lane_frames(const std::string& n, double x0, double W, std::pair<double, double> pos,
+                           std::pair<double, double> err, double y_err_mid) {
+  auto frame = prim(ChartPrimitive::Type::kLineList, n + "frame", kFrame, 0.015);
+  for (const auto& [yt, yb] : {pos, err}) {
+    const double xs[] = {x0, x0 + W, x0 + W, x0 + W, x0 + W, x0, x0, x0};
+    const double ys[] = {yt, yt, yt, yb, yb, yb, yb, yt};
+    frame.x.insert(frame.x.end(), xs, xs + 8);
+    frame.y.insert(frame.y.end(), ys, ys + 8);
+  }
+  frame.x.insert(frame.x.end(), {x0, x0 + W});  // error zero line
+  frame.y.insert(frame.y.end(), {y_err_mid, y_err_mid});
+  return frame;
+}
+
 }  // namespace
 
 std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
@@ -213,17 +246,7 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   const auto YE = [&](double nm) { return y_err_mid + (E / 2) * std::clamp(nm / ehalf, -1.0, 1.0); };
 
   // Frames of both lanes and the "now" line.
-  auto frame = prim(T::kLineList, n + "frame", kFrame, 0.015);
-  for (double yt : {y_pos_top, y_err_top}) {
-    const double yb = yt == y_pos_top ? y_pos_bot : y_err_bot;
-    const double xs[] = {x0, x0 + W, x0 + W, x0 + W, x0 + W, x0, x0, x0};
-    const double ys[] = {yt, yt, yt, yb, yb, yb, yb, yt};
-    frame.x.insert(frame.x.end(), xs, xs + 8);
-    frame.y.insert(frame.y.end(), ys, ys + 8);
-  }
-  frame.x.insert(frame.x.end(), {x0, x0 + W});  // error zero line
-  frame.y.insert(frame.y.end(), {y_err_mid, y_err_mid});
-  out.push_back(frame);
+  out.push_back(lane_frames(n, x0, W, {y_pos_top, y_pos_bot}, {y_err_top, y_err_bot}, y_err_mid));
 
   // Noise-floor bands in the error lane.
   if (st.floor.sigma_nm > 0.0) {
@@ -280,21 +303,10 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
                          (fused.x.size() >= 2 ? "   white fused ±1σ" : "") +
                          "   magenta drift forecast   yellow measured - predicted",
                      lh));
-  std::string head = "axis " + axis_;
-  if (last) {
-    head += last->fallback ? "   FALLBACK (uncorrected)"
-                           : std::string(last->compensation_active ? "   compensation ON" : "   compensation OFF");
+  if (last)
     out.push_back(text(n + "model", x0 + W / 2, y_model,
                        "model " + last->model + (last->fallback ? "   " + last->status : std::string()), lh));
-  } else {
-    head += "   no data";
-  }
-  if (st.errors > 0) {
-    head += fmt("   MAE %.1f nm", st.mae_nm);
-    head += st.floor.sigma_nm > 0.0 ? fmt(" vs floor %.1f nm", st.floor.floor_mae_nm) +
-                                          fmt(" (σ %.1f nm, ", st.floor.sigma_nm) + st.floor_source + ")"
-                                    : std::string(" (floor: too few samples)");
-  }
+  const std::string head = headline(axis_, last, st);
   out.push_back(text(n + "headline", x0 + W / 2, y_text, head, th));
   return out;
 }

@@ -80,108 +80,115 @@ YAML::Node model_to_file_yaml(const Model& m) {
   return root;
 }
 
+namespace {
+std::runtime_error key_error(const std::string& key, const std::string& what) {
+  return std::runtime_error(key + ": " + what);
+}
+
+// The `training:` block of a model file into the model's metadata (models/model.h, ModelMeta).
+void read_training_meta(const YAML::Node& t, Model& m) {
+  if (!t.IsMap()) throw key_error("training", "expected a mapping");
+  if (t["fingerprint"]) m.meta.training_fingerprint = t["fingerprint"].as<std::string>();
+  if (t["source"]) m.meta.training_source = t["source"].as<std::string>();
+  if (const YAML::Node rs = t["recordings"]) {
+    if (!rs.IsSequence()) throw key_error("training.recordings", "expected a list");
+    for (const auto& r : rs) {
+      TrainingSpan sp;
+      try {
+        sp.source = r["source"].as<std::string>();
+        sp.begin_s = r["begin_s"].as<double>();
+        sp.end_s = r["end_s"].as<double>();
+        sp.rows = r["rows"].as<std::size_t>();
+        sp.fingerprint = r["fingerprint"].as<std::string>();
+      } catch (const YAML::Exception&) {
+        throw key_error("training.recordings", "each entry needs source, begin_s, end_s, rows and fingerprint");
+      }
+      m.meta.trained_on.push_back(sp);
+    }
+  }
+  if (const YAML::Node f = t["fitted_on"]) {
+    const std::string on = f.IsScalar() ? f.Scalar() : std::string();
+    if (on != kFittedOnSimulated && on != kFittedOnRecorded)
+      throw key_error("training.fitted_on", "expected simulated or recorded");
+    m.meta.fitted_on = on;
+  }
+  if (t["time_clock"]) m.meta.time_clock = t["time_clock"].as<std::string>();
+  if (t["voltage_min_v"] || t["voltage_max_v"]) {
+    double lo = NAN, hi = NAN;
+    try {
+      lo = t["voltage_min_v"].as<double>();
+      hi = t["voltage_max_v"].as<double>();
+    } catch (const YAML::Exception&) {
+    }
+    if (!(std::isfinite(lo) && std::isfinite(hi) && lo <= hi))
+      throw key_error("training.voltage_min_v/voltage_max_v", "expected two finite numbers, min <= max");
+    m.meta.train_voltage_min_v = lo;
+    m.meta.train_voltage_max_v = hi;
+  }
+  if (t["state_prior"]) m.meta.state_prior = read_state_prior(t["state_prior"], m.linear_state_count());
+}
+
+}  // namespace
+
 ModelPtr model_from_file_yaml(const YAML::Node& root, const std::string& where) {
   try {
     if (!root || !root.IsMap()) throw std::runtime_error("expected a YAML mapping at the top level");
-    auto top_err = [&](const std::string& key, const std::string& what) {
-      return std::runtime_error(key + ": " + what);
-    };
-    if (!root["format_version"]) throw top_err("format_version", "missing key");
+    if (!root["format_version"]) throw key_error("format_version", "missing key");
     int version = 0;
     try {
       version = root["format_version"].as<int>();
     } catch (const YAML::Exception&) {
-      throw top_err("format_version", "expected an integer");
+      throw key_error("format_version", "expected an integer");
     }
     if (version > kModelFormatVersion)
-      throw top_err("format_version", std::to_string(version) + " is newer than this program reads (" +
+      throw key_error("format_version", std::to_string(version) + " is newer than this program reads (" +
                                           std::to_string(kModelFormatVersion) + "); update piezo_compensation");
-    if (version < 1) throw top_err("format_version", "must be >= 1");
+    if (version < 1) throw key_error("format_version", "must be >= 1");
     for (const char* k : {"kind", "axis", "sample_rate_hz", "model"})
-      if (!root[k]) throw top_err(k, "missing key");
-    if (!root["kind"].IsScalar()) throw top_err("kind", "expected a string");
-    if (!root["axis"].IsScalar()) throw top_err("axis", "expected a string");
+      if (!root[k]) throw key_error(k, "missing key");
+    if (!root["kind"].IsScalar()) throw key_error("kind", "expected a string");
+    if (!root["axis"].IsScalar()) throw key_error("axis", "expected a string");
     const std::string kind = root["kind"].Scalar();
     const std::string axis = root["axis"].Scalar();
-    if (io::axis_index_or_none(axis) < 0) throw top_err("axis", "expected one of " + io::axis_names_list() + ", got '" + axis + "'");
+    if (io::axis_index_or_none(axis) < 0) throw key_error("axis", "expected one of " + io::axis_names_list() + ", got '" + axis + "'");
     double rate = 0;
     try {
       rate = root["sample_rate_hz"].as<double>();
     } catch (const YAML::Exception&) {
-      throw top_err("sample_rate_hz", "expected a number");
+      throw key_error("sample_rate_hz", "expected a number");
     }
     // Kinds size buffers and time constants from the rate: bounded so a file cannot ask for gigabytes.
-    if (!(rate > 0) || !(rate <= 1e6)) throw top_err("sample_rate_hz", "must be in (0, 1e6] Hz");
-    if (!root["model"].IsMap()) throw top_err("model", "expected a mapping");
+    if (!(rate > 0) || !(rate <= 1e6)) throw key_error("sample_rate_hz", "must be in (0, 1e6] Hz");
+    if (!root["model"].IsMap()) throw key_error("model", "expected a mapping");
     const ModelKind& mk = model_kind(kind);  // throws listing known kinds
-    if (!mk.load) throw top_err("kind", "'" + kind + "' cannot be loaded");
+    if (!mk.load) throw key_error("kind", "'" + kind + "' cannot be loaded");
     YAML::Node node = YAML::Clone(root["model"]);
     if (!node["sample_rate_hz"]) node["sample_rate_hz"] = rate;
     if (!node["axis"]) node["axis"] = axis;
     if (!node["kind"]) node["kind"] = kind;
     ModelPtr m = mk.load(node);
     if (!m) throw std::runtime_error("kind '" + kind + "' loader returned nothing");
-    if (m->kind() != kind) throw top_err("kind", "'" + kind + "' but the model node describes '" + m->kind() + "'");
+    if (m->kind() != kind) throw key_error("kind", "'" + kind + "' but the model node describes '" + m->kind() + "'");
     m->meta.axis = axis;
     m->meta.sample_rate_hz = rate;
     if (root["created_utc"] && root["created_utc"].IsScalar()) m->meta.created_utc = root["created_utc"].Scalar();
-    if (const YAML::Node t = root["training"]) {
-      if (!t.IsMap()) throw top_err("training", "expected a mapping");
-      if (t["fingerprint"]) m->meta.training_fingerprint = t["fingerprint"].as<std::string>();
-      if (t["source"]) m->meta.training_source = t["source"].as<std::string>();
-      if (const YAML::Node rs = t["recordings"]) {
-        if (!rs.IsSequence()) throw top_err("training.recordings", "expected a list");
-        for (const auto& r : rs) {
-          TrainingSpan sp;
-          try {
-            sp.source = r["source"].as<std::string>();
-            sp.begin_s = r["begin_s"].as<double>();
-            sp.end_s = r["end_s"].as<double>();
-            sp.rows = r["rows"].as<std::size_t>();
-            sp.fingerprint = r["fingerprint"].as<std::string>();
-          } catch (const YAML::Exception&) {
-            throw top_err("training.recordings", "each entry needs source, begin_s, end_s, rows and fingerprint");
-          }
-          m->meta.trained_on.push_back(sp);
-        }
-      }
-      if (const YAML::Node f = t["fitted_on"]) {
-        const std::string on = f.IsScalar() ? f.Scalar() : std::string();
-        if (on != kFittedOnSimulated && on != kFittedOnRecorded)
-          throw top_err("training.fitted_on", "expected simulated or recorded");
-        m->meta.fitted_on = on;
-      }
-      if (t["time_clock"]) m->meta.time_clock = t["time_clock"].as<std::string>();
-      if (t["voltage_min_v"] || t["voltage_max_v"]) {
-        double lo = NAN, hi = NAN;
-        try {
-          lo = t["voltage_min_v"].as<double>();
-          hi = t["voltage_max_v"].as<double>();
-        } catch (const YAML::Exception&) {
-        }
-        if (!(std::isfinite(lo) && std::isfinite(hi) && lo <= hi))
-          throw top_err("training.voltage_min_v/voltage_max_v", "expected two finite numbers, min <= max");
-        m->meta.train_voltage_min_v = lo;
-        m->meta.train_voltage_max_v = hi;
-      }
-      if (t["state_prior"]) m->meta.state_prior = read_state_prior(t["state_prior"], m->linear_state_count());
-    }
+    if (const YAML::Node t = root["training"]) read_training_meta(t, *m);
     if (const YAML::Node v = root["validation"]) {
-      if (!v.IsMap()) throw top_err("validation", "expected a mapping");
+      if (!v.IsMap()) throw key_error("validation", "expected a mapping");
       for (const auto& kv : v) {
         try {
           m->meta.validation[kv.first.as<std::string>()] = kv.second.as<double>();
         } catch (const YAML::Exception&) {
-          throw top_err("validation." + kv.first.as<std::string>(), "expected a number");
+          throw key_error("validation." + kv.first.as<std::string>(), "expected a number");
         }
       }
     }
     if (const YAML::Node s = root["selection"]) {
-      if (!s.IsMap()) throw top_err("selection", "expected a mapping");
+      if (!s.IsMap()) throw key_error("selection", "expected a mapping");
       m->meta.selection = YAML::Clone(s);
     }
     if (const YAML::Node s = root["estimator"]) {  // checked field by field where it is used (estimation/)
-      if (!s.IsMap()) throw top_err("estimator", "expected a mapping");
+      if (!s.IsMap()) throw key_error("estimator", "expected a mapping");
       m->meta.estimator = YAML::Clone(s);
     }
     return m;
