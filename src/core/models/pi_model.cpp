@@ -281,6 +281,60 @@ YAML::Node PiCreepModel::to_yaml() const {
   return n;
 }
 
+namespace {
+// The `creep:` block of a PI/Preisach model node (absent: no creep). Errors are named model.creep.<key>.
+CreepParams read_creep_block(const YAML::Node& c) {
+  CreepParams cp;
+  if (!c) return cp;
+  if (!c.IsMap()) throw std::runtime_error("model.creep: expected a mapping");
+  try {
+    if (c["input"]) {
+      const std::string in = yaml_string(c, "input");
+      if (in != "voltage" && in != "hysteresis") throw std::runtime_error("model.input: expected voltage or hysteresis");
+      cp.on_hysteresis = in == "hysteresis";
+    }
+    if (c["gamma_nm_per_v"]) {
+      cp.kind = CreepKind::kLog;
+      cp.gamma_nm_per_v = yaml_number(c, "gamma_nm_per_v");
+      cp.t1_s = yaml_number(c, "t1_s");
+      cp.decades = yaml_int(c, "decades");
+      cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+    } else if (c["alpha"]) {
+      cp.kind = CreepKind::kFractional;
+      cp.alpha = yaml_number(c, "alpha");
+      cp.b_nm_per_v = yaml_number(c, "b_nm_per_v");
+      cp.tau_min_s = yaml_number(c, "tau_min_s");
+      cp.tau_max_s = yaml_number(c, "tau_max_s");
+      cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+    } else if (c["mode_gains"]) {
+      cp.kind = CreepKind::kProny;
+      cp.tau_min_s = yaml_number(c, "tau_min_s");
+      cp.tau_max_s = yaml_number(c, "tau_max_s");
+      cp.modes_per_decade = yaml_int(c, "modes_per_decade");
+      const auto grid = log_tau_grid(cp.tau_min_s, cp.tau_max_s, cp.modes_per_decade);
+      if (grid.size() > static_cast<std::size_t>(kMaxCreepModes))
+        throw std::runtime_error("model.creep: the prony grid has " + std::to_string(grid.size()) +
+                                 " modes (at most " + std::to_string(kMaxCreepModes) + ")");
+      cp.gains_nm_per_v = yaml_numbers(c, "mode_gains", static_cast<long>(grid.size()));
+    } else if (c["taus_s"]) {
+      cp.kind = CreepKind::kLti;
+      cp.taus_s = yaml_numbers(c, "taus_s");
+      cp.gains_nm_per_v = yaml_numbers(c, "gains_nm_per_v", static_cast<long>(cp.taus_s.size()));
+    } else {
+      throw std::runtime_error(
+          "model.creep: expected gamma_nm_per_v (log), alpha (fractional), mode_gains (prony) or taus_s (lti)");
+    }
+    cp.check_sizes();
+  } catch (const std::runtime_error& e) {
+    std::string msg = e.what();
+    if (msg.rfind("model.", 0) == 0) msg = "model.creep." + msg.substr(6);
+    throw std::runtime_error(msg);
+  }
+  return cp;
+}
+
+}  // namespace
+
 ModelPtr PiCreepModel::load(const YAML::Node& node) {
   const double rate = yaml_number(node, "sample_rate_hz");
   const auto r = yaml_numbers(node, "thresholds_v");
@@ -333,54 +387,7 @@ ModelPtr PiCreepModel::load(const YAML::Node& node) {
   }
   const auto w = yaml_numbers(node, "weights_nm_per_v", static_cast<long>(pieces));
   const double b = yaml_number(node, "bias_nm");
-  CreepParams cp;
-  if (node["creep"]) {
-    const YAML::Node c = node["creep"];
-    if (!c.IsMap()) throw std::runtime_error("model.creep: expected a mapping");
-    try {
-      if (c["input"]) {
-        const std::string in = yaml_string(c, "input");
-        if (in != "voltage" && in != "hysteresis") throw std::runtime_error("model.input: expected voltage or hysteresis");
-        cp.on_hysteresis = in == "hysteresis";
-      }
-      if (c["gamma_nm_per_v"]) {
-        cp.kind = CreepKind::kLog;
-        cp.gamma_nm_per_v = yaml_number(c, "gamma_nm_per_v");
-        cp.t1_s = yaml_number(c, "t1_s");
-        cp.decades = yaml_int(c, "decades");
-        cp.modes_per_decade = yaml_int(c, "modes_per_decade");
-      } else if (c["alpha"]) {
-        cp.kind = CreepKind::kFractional;
-        cp.alpha = yaml_number(c, "alpha");
-        cp.b_nm_per_v = yaml_number(c, "b_nm_per_v");
-        cp.tau_min_s = yaml_number(c, "tau_min_s");
-        cp.tau_max_s = yaml_number(c, "tau_max_s");
-        cp.modes_per_decade = yaml_int(c, "modes_per_decade");
-      } else if (c["mode_gains"]) {
-        cp.kind = CreepKind::kProny;
-        cp.tau_min_s = yaml_number(c, "tau_min_s");
-        cp.tau_max_s = yaml_number(c, "tau_max_s");
-        cp.modes_per_decade = yaml_int(c, "modes_per_decade");
-        const auto grid = log_tau_grid(cp.tau_min_s, cp.tau_max_s, cp.modes_per_decade);
-        if (grid.size() > static_cast<std::size_t>(kMaxCreepModes))
-          throw std::runtime_error("model.creep: the prony grid has " + std::to_string(grid.size()) +
-                                   " modes (at most " + std::to_string(kMaxCreepModes) + ")");
-        cp.gains_nm_per_v = yaml_numbers(c, "mode_gains", static_cast<long>(grid.size()));
-      } else if (c["taus_s"]) {
-        cp.kind = CreepKind::kLti;
-        cp.taus_s = yaml_numbers(c, "taus_s");
-        cp.gains_nm_per_v = yaml_numbers(c, "gains_nm_per_v", static_cast<long>(cp.taus_s.size()));
-      } else {
-        throw std::runtime_error(
-            "model.creep: expected gamma_nm_per_v (log), alpha (fractional), mode_gains (prony) or taus_s (lti)");
-      }
-      cp.check_sizes();
-    } catch (const std::runtime_error& e) {
-      std::string msg = e.what();
-      if (msg.rfind("model.", 0) == 0) msg = "model.creep." + msg.substr(6);
-      throw std::runtime_error(msg);
-    }
-  }
+  const CreepParams cp = read_creep_block(node["creep"]);
   if (node["kind"] && cp.kind != expected)
     throw std::runtime_error("model.creep: kind " + creep_kind_name(expected, preisach) + " needs " +
                              (expected == CreepKind::kNone      ? std::string("no creep key")
