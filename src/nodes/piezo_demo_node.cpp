@@ -69,6 +69,51 @@ std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::
                                    model->meta.sample_rate_hz, lockstep);
 }
 
+// The other axes held at their voltages: latched, so the predictor gets the intent whenever it connects.
+std::vector<ros::Publisher> hold_other_axes(ros::NodeHandle& nh, const piezo::params::NodeInterface& iface,
+                                            const std::vector<std::pair<std::string, double>>& holds,
+                                            const char* name) {
+  using piezo_compensation::IntendedMotion;
+  std::vector<ros::Publisher> hold_pubs;
+  for (const auto& [ax, v] : holds) {
+    hold_pubs.push_back(nh.advertise<IntendedMotion>(iface.topic_name<IntendedMotion>("<axis>/intended", ax), 1, true));
+    IntendedMotion im;
+    im.header.stamp = ros::Time::now();
+    im.mode = IntendedMotion::VOLTAGE;
+    im.voltage = v;
+    hold_pubs.back().publish(im);
+    ROS_INFO("demo %s: axis %s held at %.1f V", name, ax.c_str(), v);
+  }
+  return hold_pubs;
+}
+
+// Runs the callbacks until the scenario is done, with a progress line every progress_s, then writes the CSV and
+// the JSON summary.
+void spin_and_write(DemoRun& run, double progress_s, const std::string& out_prefix, const char* name) {
+  const ros::WallTime start = ros::WallTime::now();
+  ros::WallTime next_progress = start + ros::WallDuration(progress_s);
+  while (ros::ok() && !run.done()) {
+    ros::getGlobalCallbackQueue()->callAvailable(ros::WallDuration(0.05));
+    const ros::WallTime now = ros::WallTime::now();
+    if (now >= next_progress) {
+      next_progress = now + ros::WallDuration(progress_s);
+      const double f = static_cast<double>(run.progress()) / static_cast<double>(run.steps());
+      const double el = (now - start).toSec();
+      ROS_INFO("demo %s: progress %.0f %% (%zu/%zu samples), %.0f s elapsed, ETA %.0f s", name, 100 * f,
+               run.progress(), run.steps(), el, f > 0 ? el * (1 - f) / f : NAN);
+    }
+  }
+  std::ofstream csv(out_prefix + ".csv"), js(out_prefix + ".json");
+  run.write_csv(csv);
+  run.write_json(js);
+  const auto& pc = run.pairing();
+  ROS_INFO("demo %s: wrote %s.csv and %s.json (%zu samples) in %.0f s; pairing: %llu lost voltages, %llu lost "
+           "readings, %llu lost truths, %llu dropped", name, out_prefix.c_str(), out_prefix.c_str(),
+           run.rows().size(), (ros::WallTime::now() - start).toSec(),
+           static_cast<unsigned long long>(pc.lost_voltages), static_cast<unsigned long long>(pc.lost_readings),
+           static_cast<unsigned long long>(pc.lost_truths), static_cast<unsigned long long>(pc.dropped_samples));
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -145,38 +190,8 @@ int main(int argc, char** argv) {
     if (run->switches_hold_trim() &&
         !ros::service::waitForService(nh.resolveName(set_hold_trim), ros::Duration(10)))
       throw std::runtime_error("predictor/set_hold_trim not available");
-    std::vector<ros::Publisher> hold_pubs;  // latched: the predictor gets the intent whenever it connects
-    for (const auto& [ax, v] : holds) {
-      hold_pubs.push_back(nh.advertise<IntendedMotion>(iface.topic_name<IntendedMotion>("<axis>/intended", ax), 1, true));
-      piezo_compensation::IntendedMotion im;
-      im.header.stamp = ros::Time::now();
-      im.mode = piezo_compensation::IntendedMotion::VOLTAGE;
-      im.voltage = v;
-      hold_pubs.back().publish(im);
-      ROS_INFO("demo %s: axis %s held at %.1f V", name, ax.c_str(), v);
-    }
-    const ros::WallTime start = ros::WallTime::now();
-    ros::WallTime next_progress = start + ros::WallDuration(progress_s);
-    while (ros::ok() && !run->done()) {
-      ros::getGlobalCallbackQueue()->callAvailable(ros::WallDuration(0.05));
-      const ros::WallTime now = ros::WallTime::now();
-      if (now >= next_progress) {
-        next_progress = now + ros::WallDuration(progress_s);
-        const double f = static_cast<double>(run->progress()) / static_cast<double>(run->steps());
-        const double el = (now - start).toSec();
-        ROS_INFO("demo %s: progress %.0f %% (%zu/%zu samples), %.0f s elapsed, ETA %.0f s", name, 100 * f,
-                 run->progress(), run->steps(), el, f > 0 ? el * (1 - f) / f : NAN);
-      }
-    }
-    std::ofstream csv(out_prefix + ".csv"), js(out_prefix + ".json");
-    run->write_csv(csv);
-    run->write_json(js);
-    const auto& pc = run->pairing();
-    ROS_INFO("demo %s: wrote %s.csv and %s.json (%zu samples) in %.0f s; pairing: %llu lost voltages, %llu lost "
-             "readings, %llu lost truths, %llu dropped", name, out_prefix.c_str(), out_prefix.c_str(),
-             run->rows().size(), (ros::WallTime::now() - start).toSec(),
-             static_cast<unsigned long long>(pc.lost_voltages), static_cast<unsigned long long>(pc.lost_readings),
-             static_cast<unsigned long long>(pc.lost_truths), static_cast<unsigned long long>(pc.dropped_samples));
+    const std::vector<ros::Publisher> hold_pubs = hold_other_axes(nh, iface, holds, name);
+    spin_and_write(*run, progress_s, out_prefix, name);
   } catch (const std::exception& e) {
     ROS_FATAL("piezo_demo: %s", e.what());
     return 1;
