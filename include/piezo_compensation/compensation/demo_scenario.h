@@ -121,6 +121,9 @@ class DemoRun {
   std::vector<HoldScore> hold_scores() const;
 
  private:
+  void write_sawtooth_json(std::ostream& js) const;
+  void write_hold_trim_json(std::ostream& js) const;
+  void write_creep_json(std::ostream& js) const;
   std::optional<Next> take(const std::vector<io::PairedSample>& samples);
   std::optional<Next> step(const io::PairedSample& sample);
   std::optional<Next> release();

@@ -256,64 +256,73 @@ std::vector<DemoRun::HoldScore> DemoRun::hold_scores() const {
 
 void DemoRun::write_json(std::ostream& js) const {
   js.precision(6);
-  if (scenario_ == "sawtooth") {
-    double mx[2] = {0, 0}, ss[2] = {0, 0}, lo = 1e300, hi = -1e300;
-    std::size_t n[2] = {0, 0};
-    for (const auto& r : rows_) {
-      if (r.step.phase != "saw") continue;
-      const double d = r.true_nm - r.ideal_nm;
-      mx[r.step.mode] = std::max(mx[r.step.mode], std::abs(d));
-      ss[r.step.mode] += d * d;
-      ++n[r.step.mode];
-      lo = std::min(lo, r.ideal_nm), hi = std::max(hi, r.ideal_nm);
-    }
-    const double stroke = hi - lo;
-    std::size_t moving = 0, late = 0;  // in-step check, as for the creep histories below
-    for (const auto& r : rows_)
-      if (r.step.mode == 0 && r.step.phase == "saw") ++moving, late += std::abs(r.applied_v - r.step.intent_v) > 5e-4;
-    js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", \"uncompensated_saw_samples\": " << moving
-       << ", \"uncompensated_late_samples\": " << late << ", \"stroke_nm\": " << stroke << ", \"uncompensated_max_pct\": " << 100 * mx[0] / stroke
-       << ", \"compensated_max_pct\": " << 100 * mx[1] / stroke
-       << ", \"uncompensated_rms_pct\": " << 100 * std::sqrt(ss[0] / std::max<std::size_t>(1, n[0])) / stroke
-       << ", \"compensated_rms_pct\": " << 100 * std::sqrt(ss[1] / std::max<std::size_t>(1, n[1])) / stroke << "}\n";
-    return;
+  if (scenario_ == "sawtooth") return write_sawtooth_json(js);
+  if (switches_hold_trim()) return write_hold_trim_json(js);
+  write_creep_json(js);
+}
+
+// The sawtooth scenario: |true − ideal| over the saw, max and RMS as % of the stroke, per mode.
+void DemoRun::write_sawtooth_json(std::ostream& js) const {
+  double mx[2] = {0, 0}, ss[2] = {0, 0}, lo = 1e300, hi = -1e300;
+  std::size_t n[2] = {0, 0};
+  for (const auto& r : rows_) {
+    if (r.step.phase != "saw") continue;
+    const double d = r.true_nm - r.ideal_nm;
+    mx[r.step.mode] = std::max(mx[r.step.mode], std::abs(d));
+    ss[r.step.mode] += d * d;
+    ++n[r.step.mode];
+    lo = std::min(lo, r.ideal_nm), hi = std::max(hi, r.ideal_nm);
   }
-  if (switches_hold_trim()) {
-    const auto scores = hold_scores();
-    double worst[2] = {0, 0}, mae[2] = {0, 0};
-    std::size_t n[2] = {0, 0};
-    for (const auto& h : scores) {
-      const int m = h.mode ? 1 : 0;
-      worst[m] = std::max(worst[m], h.worst_nm), mae[m] += h.mae_nm, ++n[m];
-    }
-    const auto list = [&](const char* name, int mode, auto value) {
-      js << ", \"" << name << "\": [";
-      bool first = true;
-      for (const auto& h : scores)
-        if (h.mode == mode) js << (first ? "" : ", ") << value(h), first = false;
-      js << "]";
-    };
-    js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", \"scenario\": \"hold_trim\""
-       << ", \"score_last_s\": " << creep_.score_last_s << ", \"history_s\": " << creep_.history_s
-       << ", \"hold_s\": " << creep_.hold_s << ", \"hold_trim_ff_worst_nm\": " << worst[0]
-       << ", \"hold_trim_trimmed_worst_nm\": " << worst[1]
-       << ", \"hold_trim_ff_mae_nm\": " << mae[0] / std::max<std::size_t>(1, n[0])
-       << ", \"hold_trim_trimmed_mae_nm\": " << mae[1] / std::max<std::size_t>(1, n[1]);
-    for (int mode = 0; mode < 2; ++mode) {
-      const std::string p = mode ? "trimmed_" : "ff_";
-      list((p + "worst_nm").c_str(), mode, [](const HoldScore& h) { return h.worst_nm; });
-      list((p + "mae_nm").c_str(), mode, [](const HoldScore& h) { return h.mae_nm; });
-      list((p + "start_error_nm").c_str(), mode, [](const HoldScore& h) { return h.start_error_nm; });
-      list((p + "scored_samples").c_str(), mode, [](const HoldScore& h) { return h.samples; });
-      list((p + "active_samples").c_str(), mode, [](const HoldScore& h) { return h.active_samples; });
-    }
-    list("hold_v", 0, [](const HoldScore& h) { return h.hold_v; });
-    list("intended_nm", 0, [](const HoldScore& h) { return h.intended_nm; });
-    js << ", \"creep_seed\": " << creep_.seed << ", \"creep_scenarios\": [";
-    for (std::size_t i = 0; i < creep_.scenarios.size(); ++i) js << (i ? ", " : "") << creep_.scenarios[i];
-    js << "]}\n";
-    return;
+  const double stroke = hi - lo;
+  std::size_t moving = 0, late = 0;  // in-step check, as for the creep histories below
+  for (const auto& r : rows_)
+    if (r.step.mode == 0 && r.step.phase == "saw") ++moving, late += std::abs(r.applied_v - r.step.intent_v) > 5e-4;
+  js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", \"uncompensated_saw_samples\": " << moving
+     << ", \"uncompensated_late_samples\": " << late << ", \"stroke_nm\": " << stroke << ", \"uncompensated_max_pct\": " << 100 * mx[0] / stroke
+     << ", \"compensated_max_pct\": " << 100 * mx[1] / stroke
+     << ", \"uncompensated_rms_pct\": " << 100 * std::sqrt(ss[0] / std::max<std::size_t>(1, n[0])) / stroke
+     << ", \"compensated_rms_pct\": " << 100 * std::sqrt(ss[1] / std::max<std::size_t>(1, n[1])) / stroke << "}\n";
+}
+
+// The hold-trim scenario: each hold's scores, feedforward against trimmed.
+void DemoRun::write_hold_trim_json(std::ostream& js) const {
+  const auto scores = hold_scores();
+  double worst[2] = {0, 0}, mae[2] = {0, 0};
+  std::size_t n[2] = {0, 0};
+  for (const auto& h : scores) {
+    const int m = h.mode ? 1 : 0;
+    worst[m] = std::max(worst[m], h.worst_nm), mae[m] += h.mae_nm, ++n[m];
   }
+  const auto list = [&](const char* name, int mode, auto value) {
+    js << ", \"" << name << "\": [";
+    bool first = true;
+    for (const auto& h : scores)
+      if (h.mode == mode) js << (first ? "" : ", ") << value(h), first = false;
+    js << "]";
+  };
+  js << "{\"lockstep\": " << (lockstep_ ? "true" : "false") << ", \"scenario\": \"hold_trim\""
+     << ", \"score_last_s\": " << creep_.score_last_s << ", \"history_s\": " << creep_.history_s
+     << ", \"hold_s\": " << creep_.hold_s << ", \"hold_trim_ff_worst_nm\": " << worst[0]
+     << ", \"hold_trim_trimmed_worst_nm\": " << worst[1]
+     << ", \"hold_trim_ff_mae_nm\": " << mae[0] / std::max<std::size_t>(1, n[0])
+     << ", \"hold_trim_trimmed_mae_nm\": " << mae[1] / std::max<std::size_t>(1, n[1]);
+  for (int mode = 0; mode < 2; ++mode) {
+    const std::string p = mode ? "trimmed_" : "ff_";
+    list((p + "worst_nm").c_str(), mode, [](const HoldScore& h) { return h.worst_nm; });
+    list((p + "mae_nm").c_str(), mode, [](const HoldScore& h) { return h.mae_nm; });
+    list((p + "start_error_nm").c_str(), mode, [](const HoldScore& h) { return h.start_error_nm; });
+    list((p + "scored_samples").c_str(), mode, [](const HoldScore& h) { return h.samples; });
+    list((p + "active_samples").c_str(), mode, [](const HoldScore& h) { return h.active_samples; });
+  }
+  list("hold_v", 0, [](const HoldScore& h) { return h.hold_v; });
+  list("intended_nm", 0, [](const HoldScore& h) { return h.intended_nm; });
+  js << ", \"creep_seed\": " << creep_.seed << ", \"creep_scenarios\": [";
+  for (std::size_t i = 0; i < creep_.scenarios.size(); ++i) js << (i ? ", " : "") << creep_.scenarios[i];
+  js << "]}\n";
+}
+
+// The creep scenario: the drift in each hold per mode, and the holds' start errors and command latency.
+void DemoRun::write_creep_json(std::ostream& js) const {
   // drift = |true position at the end of the hold − true position at its start|, per history.
   std::map<std::pair<int, int>, std::pair<double, double>> ends;
   for (const auto& r : rows_) {
