@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <utility>
 #include <sstream>
 
 namespace piezo::compensation {
@@ -13,6 +14,33 @@ std::string unreachable(double target_nm, double p_lo, double p_hi, const Invers
   s << "no inverse inside the voltage limits [" << o.voltage_min_v << ", " << o.voltage_max_v << "] V: target "
     << target_nm << " nm, reachable " << std::min(p_lo, p_hi) << " .. " << std::max(p_lo, p_hi) << " nm";
   return s.str();
+}
+
+// Bracketed Illinois (modified regula falsi) on f over [a, b], f(a) = fa and f(b) = fb of opposite signs: needs
+// only a sign change, converges superlinearly on the piecewise-smooth responses of hysteresis models, never leaves
+// the bracket. Returns the last point and f there (not finite: f was not finite there, the search stopped).
+template <class F>
+std::pair<double, double> illinois(F&& f, double a, double fa, double b, double fb, const InverseOptions& o,
+                                   double span) {
+  int side = 0;
+  double c = a, fc = fa;
+  for (int it = 0; it < o.max_iterations; ++it) {
+    c = (a * fb - b * fa) / (fb - fa);
+    if (!(c > std::min(a, b) && c < std::max(a, b))) c = 0.5 * (a + b);
+    fc = f(c);
+    if (!std::isfinite(fc)) break;
+    if (std::abs(fc) <= o.tolerance_nm || std::abs(b - a) < 1e-12 * span) break;
+    if (fc * fb > 0) {
+      b = c, fb = fc;
+      if (side == -1) fa *= 0.5;
+      side = -1;
+    } else {
+      a = c, fa = fc;
+      if (side == +1) fb *= 0.5;
+      side = +1;
+    }
+  }
+  return {c, fc};
 }
 
 }  // namespace
@@ -70,8 +98,7 @@ InverseResult invert(const models::Model& model, double target_nm, const Inverse
     return r;
   }
 
-  // Bracketed Illinois (modified regula falsi): needs only a sign change, converges superlinearly on the
-  // piecewise-smooth responses of hysteresis models, never leaves the limits.
+  // Bracketed search between the limits (illinois above).
   double a = lo, fa = p_lo - target_nm, b = hi, fb = p_hi - target_nm;
   if (std::abs(fa) <= o.tolerance_nm) {
     r.ok = true, r.voltage_v = a, r.predicted_nm = p_lo;
@@ -82,28 +109,12 @@ InverseResult invert(const models::Model& model, double target_nm, const Inverse
     return r;
   }
   if (fa * fb > 0) return nearest_limit();
-  int side = 0;
-  double c = a, fc = fa;
-  for (int it = 0; it < o.max_iterations; ++it) {
-    c = (a * fb - b * fa) / (fb - fa);
-    if (!(c > std::min(a, b) && c < std::max(a, b))) c = 0.5 * (a + b);
-    fc = eval(c) - target_nm;
-    if (!std::isfinite(fc)) {
-      r.error = "model prediction is not finite inside the voltage limits";
-      r.voltage_v = std::numeric_limits<double>::quiet_NaN();
-      r.predicted_nm = std::numeric_limits<double>::quiet_NaN();
-      return r;
-    }
-    if (std::abs(fc) <= o.tolerance_nm || std::abs(b - a) < 1e-12 * (hi - lo)) break;
-    if (fc * fb > 0) {
-      b = c, fb = fc;
-      if (side == -1) fa *= 0.5;
-      side = -1;
-    } else {
-      a = c, fa = fc;
-      if (side == +1) fb *= 0.5;
-      side = +1;
-    }
+  const auto [c, fc] = illinois([&](double v) { return eval(v) - target_nm; }, a, fa, b, fb, o, hi - lo);
+  if (!std::isfinite(fc)) {
+    r.error = "model prediction is not finite inside the voltage limits";
+    r.voltage_v = std::numeric_limits<double>::quiet_NaN();
+    r.predicted_nm = std::numeric_limits<double>::quiet_NaN();
+    return r;
   }
   r.voltage_v = c;
   r.predicted_nm = fc + target_nm;
