@@ -3,8 +3,8 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
-#include <utility>
 #include <sstream>
+#include <utility>
 
 namespace piezo::compensation {
 namespace {
