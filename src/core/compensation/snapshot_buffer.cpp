@@ -233,6 +233,34 @@ std::string describe_gaps(const Snapshot& s) {
   return os.str();
 }
 
+namespace {
+// The first row needs its report on every axis, and every axis a reading there (as take() cuts): readings and
+// voltages before it are dropped until every axis starts on a reading whose voltage report is there.
+void align_first_row(Snapshot& c, double tol, const Snapshot& s) {
+  for (bool changed = true; changed;) {
+    changed = false;
+    double first = -std::numeric_limits<double>::infinity();
+    for (const auto& [name, b] : c.axes) {
+      if (b.readings.empty())
+        throw std::runtime_error("axis " + name + ": no encoder reading with its voltage report in the stretch without "
+                                 "a missing sample (" + describe_gaps(s) + ")");
+      first = std::max(first, b.readings.front().stamp_s);
+    }
+    for (auto& [name, b] : c.axes) {
+      auto& r = b.readings;
+      auto& v = b.voltages;
+      const auto r_keep = std::find_if(r.begin(), r.end(), [&](const SnapshotReading& x) { return x.stamp_s >= first - tol; });
+      if (r_keep != r.begin()) r.erase(r.begin(), r_keep), changed = true;
+      if (r.empty()) continue;
+      const auto v_keep = std::find_if(v.begin(), v.end(), [&](const SnapshotVoltage& x) { return x.stamp_s >= r.front().stamp_s - tol; });
+      v.erase(v.begin(), v_keep);
+      if (v.empty() || v.front().sequence != r.front().sequence) r.erase(r.begin()), changed = true;
+    }
+  }
+}
+
+}  // namespace
+
 SnapshotStretch gap_free_stretch(const Snapshot& s, double prefer_recent_fraction, double min_fraction) {
   SnapshotStretch out;
   if (s.gaps.empty()) {
@@ -283,27 +311,7 @@ SnapshotStretch gap_free_stretch(const Snapshot& s, double prefer_recent_fractio
       if (within(v.stamp_s)) b.voltages.push_back(v);
     before += a.readings.size();
   }
-  // The first row needs its report on every axis, and every axis a reading there (as take() cuts).
-  for (bool changed = true; changed;) {
-    changed = false;
-    double first = -std::numeric_limits<double>::infinity();
-    for (const auto& [name, b] : c.axes) {
-      if (b.readings.empty())
-        throw std::runtime_error("axis " + name + ": no encoder reading with its voltage report in the stretch without "
-                                 "a missing sample (" + describe_gaps(s) + ")");
-      first = std::max(first, b.readings.front().stamp_s);
-    }
-    for (auto& [name, b] : c.axes) {
-      auto& r = b.readings;
-      auto& v = b.voltages;
-      const auto r_keep = std::find_if(r.begin(), r.end(), [&](const SnapshotReading& x) { return x.stamp_s >= first - tol; });
-      if (r_keep != r.begin()) r.erase(r.begin(), r_keep), changed = true;
-      if (r.empty()) continue;
-      const auto v_keep = std::find_if(v.begin(), v.end(), [&](const SnapshotVoltage& x) { return x.stamp_s >= r.front().stamp_s - tol; });
-      v.erase(v.begin(), v_keep);
-      if (v.empty() || v.front().sequence != r.front().sequence) r.erase(r.begin()), changed = true;
-    }
-  }
+  align_first_row(c, tol, s);
   c.begin_s = std::numeric_limits<double>::infinity();
   c.end_s = -std::numeric_limits<double>::infinity();
   for (auto& [name, b] : c.axes) {
