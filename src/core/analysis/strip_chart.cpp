@@ -205,6 +205,22 @@ ChartPrimitive lane_frames(const std::string& n, double x0, double W, std::pair<
   return frame;
 }
 
+// The ±1σ and ±2σ bands of the noise floor in the error lane (YE: error [nm] → lane height), with their labels.
+template <class F>
+void noise_bands(const std::string& n, double x0, double W, double sigma_nm, double lh, const F& YE,
+                 std::vector<ChartPrimitive>& out) {
+  for (int k : {2, 1}) {
+    auto b = prim(ChartPrimitive::Type::kLineList, n + "band" + std::to_string(k), k == 1 ? kBand1 : kBand2, 0.015);
+    for (double sgn : {-1.0, 1.0}) {
+      b.x.insert(b.x.end(), {x0, x0 + W});
+      b.y.insert(b.y.end(), {YE(sgn * k * sigma_nm), YE(sgn * k * sigma_nm)});
+    }
+    out.push_back(b);
+    out.push_back(text(n + "band_label" + std::to_string(k), x0 + W + 0.25, YE(k * sigma_nm),
+                       "±" + std::to_string(k) + "σ", lh, k == 1 ? kBand1 : kBand2));
+  }
+}
+
 }  // namespace
 
 std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
@@ -249,18 +265,7 @@ std::vector<ChartPrimitive> StripChart::draw(double x0, double y0) const {
   out.push_back(lane_frames(n, x0, W, {y_pos_top, y_pos_bot}, {y_err_top, y_err_bot}, y_err_mid));
 
   // Noise-floor bands in the error lane.
-  if (st.floor.sigma_nm > 0.0) {
-    for (int k : {2, 1}) {
-      auto b = prim(T::kLineList, n + "band" + std::to_string(k), k == 1 ? kBand1 : kBand2, 0.015);
-      for (double sgn : {-1.0, 1.0}) {
-        b.x.insert(b.x.end(), {x0, x0 + W});
-        b.y.insert(b.y.end(), {YE(sgn * k * st.floor.sigma_nm), YE(sgn * k * st.floor.sigma_nm)});
-      }
-      out.push_back(b);
-      out.push_back(text(n + "band_label" + std::to_string(k), x0 + W + 0.25, YE(k * st.floor.sigma_nm),
-                         "±" + std::to_string(k) + "σ", lh, k == 1 ? kBand1 : kBand2));
-    }
-  }
+  if (st.floor.sigma_nm > 0.0) noise_bands(n, x0, W, st.floor.sigma_nm, lh, YE, out);
 
   // Layers: measured dots at the bottom, the predicted line over them (wider than a dot is tall, so it stays
   // visible where the dots sit on it), the intended target thin on top.
