@@ -16,6 +16,7 @@
 
 #include "piezo_compensation/analysis/metrics.h"
 #include "piezo_compensation/io/dataset.h"
+#include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/models/registry.h"
 #include "piezo_compensation/training/fit_request.h"
 
@@ -93,12 +94,9 @@ struct SlowScoreOptions {
 constexpr double kMovesPerPart = 4.0;
 SlowScoreOptions fitted_to_part(const SlowScoreOptions& o, const io::Dataset& data, std::size_t from);
 
-// Holds of data[from, end) found from the voltage of `axis`: [begin, end) row ranges of at least hold_min_s, none
-// across the start of a recording.
-struct VoltageHold {
-  std::size_t begin = 0, end = 0;
-};
-std::vector<VoltageHold> voltage_holds(const io::Dataset& data, const std::string& axis, std::size_t from,
+// Holds of data[from, end) found from the voltage of `axis` (io::find_holds with the rule of `o`): [begin, end) row
+// ranges of at least hold_min_s, none across the start of a recording.
+std::vector<io::HoldRun> voltage_holds(const io::Dataset& data, const std::string& axis, std::size_t from,
                                        const SlowScoreOptions& o = {});
 
 // Per column, the |error| of each entry [nm] in time order (the same entries for every candidate scored on the same

@@ -117,15 +117,13 @@ ValidationScore score_validation(const models::Model& model, const io::Dataset& 
 
 // ---- the errors the use cares about ----
 
-std::vector<VoltageHold> voltage_holds(const io::Dataset& d, const std::string& axis, std::size_t from,
+std::vector<io::HoldRun> voltage_holds(const io::Dataset& d, const std::string& axis, std::size_t from,
                                        const SlowScoreOptions& o) {
   io::HoldRule rule;
   rule.min_duration_s = o.hold_min_s;
   rule.tolerance_v = o.hold_tolerance_v;
   rule.use_phase = false;
-  std::vector<VoltageHold> out;
-  for (const io::HoldRun& h : io::find_holds(d, axis, rule, from)) out.push_back({h.begin, h.end});
-  return out;
+  return io::find_holds(d, axis, rule, from);
 }
 
 namespace {
@@ -146,7 +144,7 @@ struct Windows {
   std::vector<char> walk;
 };
 Windows window_means(const std::vector<double>& p, const std::vector<double>& y, const std::vector<double>& t,
-                     std::size_t b, std::size_t e, const std::vector<VoltageHold>& holds, double mean_s, double rate) {
+                     std::size_t b, std::size_t e, const std::vector<io::HoldRun>& holds, double mean_s, double rate) {
   Windows w;
   const double min_rows = 0.5 * mean_s * rate;
   std::size_t h = 0;
