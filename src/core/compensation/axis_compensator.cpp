@@ -73,10 +73,12 @@ void AxisCompensator::step_tracking(const SampleUpdate& u, bool ok) {
   in.model_ok = ok && last_command_active_;
   in.sigma_nm = u.fused_sigma_nm;
   if (filter_) {
-    estimation::ForecastPath rest;
-    rest.steps = static_cast<std::size_t>(std::lround(0.5 * tracking_.options().period_s * config_.sample_rate_hz));
-    in.error_forecast_nm = estimation::forecast_error(filter_->noise_model(), 1.0 / config_.sample_rate_hz,
-                                                      filter_->state(), rest, false).mean_nm;
+    if (tracking_.enabled()) {  // the forecast is read only by an enabled trim; the encoder checks run regardless
+      estimation::ForecastPath rest;
+      rest.steps = static_cast<std::size_t>(std::lround(0.5 * tracking_.options().period_s * config_.sample_rate_hz));
+      in.error_forecast_nm = estimation::forecast_error(filter_->noise_model(), 1.0 / config_.sample_rate_hz,
+                                                        filter_->state(), rest, false).mean_nm;
+    }
     in.since_reading_samples = filter_->samples_since_reading();
     in.refused_readings = filter_->rejected_readings() + filter_->stale_readings();
   }
