@@ -32,5 +32,5 @@ piezo_test_costs(
   test_stage_matrix_lowvolt_pi_creep 11  test_models_prony 11  test_hold_trim 11  test_residual_gain 10
   test_stage_matrix_lowvolt_preisach_creep 8
   # rostests and the VM [s of wall]
-  vcan_vm 100  live_loop 48  hold_trim_thermal 33  hold_trim 31  hold_trim_a 26  recorder_protocols 26  recorder_lockstep 26
+  vcan_vm 100  tracking_trim 53  live_loop 48  hold_trim_thermal 33  hold_trim 31  hold_trim_a 26  recorder_protocols 26  recorder_lockstep 26
   predictor_replay 23  sim_launch 12  sim_launch_broken_model 12  predictor_inputs 11)

@@ -33,8 +33,12 @@ if(EXISTS ${CMAKE_CURRENT_SOURCE_DIR}/config/models/mm3e_foreign_c.yaml)
   piezo_add_rostest(test/rostest/hold_trim_thermal.test DEPENDENCIES hold_trim)
   # the same on a coarse-encoder axis (250 nm steps), fused through the quantiser (docs/estimation.md)
   piezo_add_rostest(test/rostest/hold_trim_a.test DEPENDENCIES hold_trim)
+  # the tracking trim in the closed loop on a stage whose hysteresis, creep and gain differ from the model's (~30 s)
+  piezo_rostest(test/rostest/tracking_trim.test test/rostest/tracking_trim_check.cpp
+                DEPENDS piezo_demo piezo_predictor mm3e_sim mm3e_driver)
+  target_link_libraries(tracking_trim yaml-cpp)
 else()
-  message(WARNING "config/models/mm3e_foreign_c.yaml missing: rostests hold_trim and hold_trim_thermal are not registered")
+  message(WARNING "config/models/mm3e_foreign_c.yaml missing: rostests hold_trim, hold_trim_thermal and tracking_trim are not registered")
 endif()
 if(CATKIN_ENABLE_TESTING)
   # `piezo track`: the files it writes, a model file without an estimator block refused with one line, and

@@ -1,7 +1,7 @@
 #!/usr/bin/python3
 """Table, plots and compensation.json from the demo runs (demo-output/{sawtooth,creep,hold_trim}.{csv,json};
-hold_trim is optional: its section and plot are added when its JSON is there). `demo_report.py OUT --hold-trim-only`
-prints the hold-trim table alone."""
+hold_trim and tracking_trim are optional: their sections are added when their JSON is there). `demo_report.py OUT
+--hold-trim-only` / `--tracking-trim-only` prints that table alone."""
 import csv
 import json
 import os
@@ -31,6 +31,20 @@ def print_hold_trim(ht):
         print("                    MAE   [nm] %13.2f %13.2f" % (ht["ff_mae_nm"][i], ht["trimmed_mae_nm"][i]))
 
 
+def print_tracking_trim(tt):
+    """Moves and holds against the true position, the tracking trim off and on (the hold trim on in both)."""
+    print("")
+    print("tracking trim, axis c on physics the model lacks (stroke +2 %%, wider loop, creep +20 %%), %d moves and"
+          " %.0f-s holds per pass, |true - intended| [nm]:" % (tt["moves"], tt["hold_s"]))
+    print("  | pass | moves max | moves mean | holds from %.0f s max | holds mean |" % tt["hold_score_from_s"])
+    print("  |---|---|---|---|---|")
+    for name, p in (("hold trim, tracking trim off", "tracking_off_"), ("hold trim + tracking trim", "tracking_on_")):
+        print("  | %s | %.1f | %.2f | %.2f | %.2f |" % (name, tt[p + "move_max_nm"], tt[p + "move_mean_nm"],
+                                                       tt[p + "hold_max_nm"], tt[p + "hold_mean_nm"]))
+    print("  applied voltages %.2f .. %.2f V" % (min(tt["tracking_off_applied_min_v"], tt["tracking_on_applied_min_v"]),
+                                                 max(tt["tracking_off_applied_max_v"], tt["tracking_on_applied_max_v"])))
+
+
 def main(out):
     saw = json.load(open(os.path.join(out, "sawtooth.json")))
     creep = json.load(open(os.path.join(out, "creep.json")))
@@ -47,6 +61,10 @@ def main(out):
             "hold_trim_ff_worst_nm", "hold_trim_trimmed_worst_nm", "hold_trim_ff_mae_nm", "hold_trim_trimmed_mae_nm",
             "ff_worst_nm", "trimmed_worst_nm", "ff_mae_nm", "trimmed_mae_nm", "hold_v", "intended_nm",
             "score_last_s", "history_s", "hold_s", "trimmed_active_samples", "trimmed_scored_samples")}
+    tt = None
+    if os.path.exists(os.path.join(out, "tracking_trim.json")):
+        tt = json.load(open(os.path.join(out, "tracking_trim.json")))
+        result["tracking_trim"] = {k: v for k, v in tt.items() if k.startswith("tracking_")}
     with open(os.path.join(out, "compensation.json"), "w") as f:
         json.dump(result, f, indent=2)
     h, c = result["hysteresis"], result["creep"]
@@ -70,6 +88,8 @@ def main(out):
               " one sample late)" % (creep["uncompensated_late_samples"], creep["uncompensated_history_samples"]))
     if ht:
         print_hold_trim(ht)
+    if tt:
+        print_tracking_trim(tt)
     print("wrote %s" % os.path.join(out, "compensation.json"))
 
     s = rows(os.path.join(out, "sawtooth.csv"))
@@ -169,5 +189,7 @@ def plot_hold_trim(out, ht):
 if __name__ == "__main__":
     if len(sys.argv) > 2 and sys.argv[2] == "--hold-trim-only":
         print_hold_trim(json.load(open(os.path.join(sys.argv[1], "hold_trim.json"))))
+    elif len(sys.argv) > 2 and sys.argv[2] == "--tracking-trim-only":
+        print_tracking_trim(json.load(open(os.path.join(sys.argv[1], "tracking_trim.json"))))
     else:
         main(sys.argv[1] if len(sys.argv) > 1 else "demo-output")

@@ -42,7 +42,12 @@ std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::
   if (scenario == "hold_trim") co = piezo::compensation::hold_trim_demo_defaults();  // the table's rule says so
   const std::vector<double> scen_default(co.scenarios.begin(), co.scenarios.end());
   co.score_last_s = r.number("score_last_s", co.score_last_s);
-  co.hold_s = r.number("hold_s", co.hold_s);
+  piezo::compensation::MovesDemoOptions mo;
+  co.hold_s = r.number("hold_s", scenario == "tracking_trim" ? mo.hold_s : co.hold_s);
+  mo.hold_s = co.hold_s;
+  mo.moves = r.integer("moves", mo.moves);
+  mo.seed = r.integer("moves_seed", mo.seed);
+  mo.hold_score_from_s = r.number("hold_score_from_s", mo.hold_score_from_s);
   co.history_s = r.number("creep_history_s", co.history_s);
   co.seed = r.integer("creep_seed", co.seed);
   co.scenarios.clear();
@@ -66,7 +71,7 @@ std::unique_ptr<DemoRun> make_run(ros::NodeHandle& pnh, std::string& axis, std::
   auto model = piezo::predictor::load_model_file(model_file, axis);
   o.sample_rate_hz = model->meta.sample_rate_hz;
   return std::make_unique<DemoRun>(scenario, co, piezo::compensation::ideal_line_from_model(*model, o),
-                                   model->meta.sample_rate_hz, lockstep);
+                                   model->meta.sample_rate_hz, lockstep, mo);
 }
 
 // The other axes held at their voltages: latched, so the predictor gets the intent whenever it connects.
@@ -132,9 +137,11 @@ int main(int argc, char** argv) {
     using piezo_compensation::IntendedMotion;
     auto intended = nh.advertise<IntendedMotion>(iface.topic_name<IntendedMotion>("<axis>/intended", axis), 5);
     const std::string set_compensation = iface.service_name<std_srvs::SetBool>("predictor/set_compensation"),
-                      set_hold_trim = iface.service_name<std_srvs::SetBool>("predictor/set_hold_trim");
+                      set_hold_trim = iface.service_name<std_srvs::SetBool>("predictor/set_hold_trim"),
+                      set_tracking_trim = iface.service_name<std_srvs::SetBool>("predictor/set_tracking_trim");
     auto sw = nh.serviceClient<std_srvs::SetBool>(set_compensation);
     auto sw_trim = nh.serviceClient<std_srvs::SetBool>(set_hold_trim);
+    auto sw_track = nh.serviceClient<std_srvs::SetBool>(set_tracking_trim);
     const auto call = [](ros::ServiceClient& c, bool on) {
       std_srvs::SetBool req;
       req.request.data = on;
@@ -149,6 +156,10 @@ int main(int argc, char** argv) {
           // lock-step: the switch is in before the pass's first intent, so before the device's next sample
           call(sw_trim, n->hold_trim);
           ROS_INFO("demo %s: %s run", name, n->hold_trim ? "hold-trimmed" : "feedforward-only");
+        } else if (run->switches_tracking_trim()) {
+          call(sw_trim, true);
+          call(sw_track, n->tracking_trim);
+          ROS_INFO("demo %s: tracking trim %s run", name, n->tracking_trim ? "on" : "off");
         } else {
           ROS_INFO("demo %s: %s run", name, n->compensated ? "compensated" : "uncompensated");
         }
@@ -182,14 +193,19 @@ int main(int argc, char** argv) {
       e.fused_sigma_nm = m->fused_position_sigma * 1e9;
       e.hold_trim_nm = m->hold_trim * 1e9;
       e.hold_trim_state = m->hold_trim_state;
+      e.tracking_trim_nm = m->tracking_trim * 1e9;
+      e.tracking_trim_state = m->tracking_trim_state;
       act(run->on_prediction(m->header.stamp.toSec(), m->commanded_voltage,
                              m->compensation_active ? m->corrected_voltage : m->commanded_voltage, m->fallback, e));
     }, ros::VoidConstPtr(), hints);
     if (!ros::service::waitForService(nh.resolveName(set_compensation), ros::Duration(60)))
       throw std::runtime_error("predictor/set_compensation not available after 60 s");
-    if (run->switches_hold_trim() &&
+    if (run->records_estimates() &&
         !ros::service::waitForService(nh.resolveName(set_hold_trim), ros::Duration(10)))
       throw std::runtime_error("predictor/set_hold_trim not available");
+    if (run->switches_tracking_trim() &&
+        !ros::service::waitForService(nh.resolveName(set_tracking_trim), ros::Duration(10)))
+      throw std::runtime_error("predictor/set_tracking_trim not available");
     const std::vector<ros::Publisher> hold_pubs = hold_other_axes(nh, iface, holds, name);
     spin_and_write(*run, progress_s, out_prefix, name);
   } catch (const std::exception& e) {

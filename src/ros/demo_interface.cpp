@@ -13,6 +13,7 @@ const params::NodeInterface& demo_interface() {
   using namespace params;
   static const NodeInterface t = [] {
     const compensation::CreepDemoOptions d, ht = compensation::hold_trim_demo_defaults();
+    const compensation::MovesDemoOptions mv;
     const std::vector<std::string> axes(io::kAxisNames.begin(), io::kAxisNames.end());
     const auto ht_default = [&](double v) {
       std::ostringstream os;
@@ -27,15 +28,20 @@ const params::NodeInterface& demo_interface() {
                 "scored against the true position";
     n.params = {
         text("scenario", "sawtooth",
-             "sawtooth (deviation from the ideal line), creep (drift while holding) or hold_trim (the held error "
-             "with the hold trim off, then on)",
-             {"sawtooth", "creep", "hold_trim"}),
+             "sawtooth (deviation from the ideal line), creep (drift while holding), hold_trim (the held error "
+             "with the hold trim off, then on) or tracking_trim (moves and holds with the tracking trim off, then on)",
+             {"sawtooth", "creep", "hold_trim", "tracking_trim"}),
         text("axis", "c", "the axis driven", axes),
         text("model_file", "", "the predictor's model of that axis (the same ideal line)").rule("required"),
         text("out_prefix", "demo", "writes <prefix>.csv (every sample) and <prefix>.json (the metrics)"),
         number("score_last_s", "s", d.score_last_s, 1e-3, 1e6, "hold_trim: each hold scored over its last this many seconds")
             .rule(ht_default(ht.score_last_s)),
-        number("hold_s", "s", d.hold_s, 1e-3, 1e6, "length of each hold").rule(ht_default(ht.hold_s)),
+        number("hold_s", "s", d.hold_s, 1e-3, 1e6, "length of each hold")
+            .rule(ht_default(ht.hold_s) + "; tracking_trim: default " + std::to_string(static_cast<int>(mv.hold_s))),
+        integer("moves", "", mv.moves, 1, 1000, "tracking_trim: moves to random targets per pass"),
+        integer("moves_seed", "", mv.seed, 0, 1 << 30, "tracking_trim: seed of the targets and rates"),
+        number("hold_score_from_s", "s", mv.hold_score_from_s, 0.0, 1e6,
+               "tracking_trim: each hold scored from this far into it").rule("< hold_s"),
         number("creep_history_s", "s", d.history_s, 1e-3, 1e6, "the history before each hold (the creep protocol's)")
             .rule(ht_default(ht.history_s)),
         integer("creep_seed", "", d.seed, 0, 1 << 30, "creep protocol seed").rule(ht_default(ht.seed)),
@@ -62,7 +68,10 @@ const params::NodeInterface& demo_interface() {
     };
     n.services = {
         {"predictor/set_compensation", "std_srvs/SetBool", "compensation off for the first pass, on for the second", true},
-        {"predictor/set_hold_trim", "std_srvs/SetBool", "hold_trim: the hold trim off for the first pass, on for the second", true},
+        {"predictor/set_hold_trim", "std_srvs/SetBool",
+         "hold_trim: the hold trim off for the first pass, on for the second (tracking_trim: on in both)", true},
+        {"predictor/set_tracking_trim", "std_srvs/SetBool",
+         "tracking_trim: the tracking trim off for the warm-up and the first pass, on for the second", true},
     };
     return n;
   }();

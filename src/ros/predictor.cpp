@@ -36,6 +36,7 @@ PredictorNode::PredictorNode(ros::NodeHandle nh, ros::NodeHandle pnh)
   tf_probe_ = nh_.advertise<tf2_msgs::TFMessage>(iface.topic_name<tf2_msgs::TFMessage>("/tf"), 100);
   srv_compensation_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_compensation"), &PredictorNode::on_set_compensation, this);
   srv_hold_trim_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_hold_trim"), &PredictorNode::on_set_hold_trim, this);
+  srv_tracking_trim_ = pnh_.advertiseService(iface.service_name<std_srvs::SetBool>("~set_tracking_trim"), &PredictorNode::on_set_tracking_trim, this);
   srv_reload_ = pnh_.advertiseService(iface.service_name<std_srvs::Trigger>("~reload_model"), &PredictorNode::on_reload, this);
   if (s_.snapshot_duration_s > 0.0) {
     setup_snapshot();
@@ -123,6 +124,19 @@ bool PredictorNode::on_set_hold_trim(std_srvs::SetBool::Request& req, std_srvs::
   res.message = std::string("hold trim ") + (req.data ? "on" : "off");
   for (auto& a : axes_) {
     a->logic->set_hold_trim(req.data);
+    const auto* f = a->logic->compensator().estimator();
+    if (req.data && !(f && f->fusing())) res.message += "; " + a->logic->axis() + " stays model-only (" +
+                                                        a->logic->compensator().estimator_status() + ")";
+  }
+  res.success = true;
+  ROS_INFO("%s", res.message.c_str());
+  return true;
+}
+
+bool PredictorNode::on_set_tracking_trim(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res) {
+  res.message = std::string("tracking trim ") + (req.data ? "on" : "off");
+  for (auto& a : axes_) {
+    a->logic->set_tracking_trim(req.data);
     const auto* f = a->logic->compensator().estimator();
     if (req.data && !(f && f->fusing())) res.message += "; " + a->logic->axis() + " stays model-only (" +
                                                         a->logic->compensator().estimator_status() + ")";

@@ -241,6 +241,7 @@ const params::NodeInterface& predictor_interface() {
     n.services = {
         {"~set_compensation", "std_srvs/SetBool", "feedforward compensation on or off"},
         {"~set_hold_trim", "std_srvs/SetBool", "hold trim on or off (every axis)"},
+        {"~set_tracking_trim", "std_srvs/SetBool", "tracking trim on or off (every axis)"},
         {"~reload_model", "std_srvs/Trigger", "read ~model_file again and swap every axis' model (all or nothing), warmed on the buffer"},
         {"~snapshot", "std_srvs/Trigger", "write the buffered last snapshot_duration_s as a bag (snapshot_duration_s > 0)"},
     };

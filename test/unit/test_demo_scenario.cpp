@@ -46,7 +46,9 @@ YAML::Node drive(DemoRun& run, const std::function<double(int mode, int hold_k, 
     }
     if (!n) continue;
     if (n->set_mode) {
-      const bool on = run.switches_hold_trim() ? n->hold_trim : n->compensated;
+      const bool on = run.switches_tracking_trim() ? n->tracking_trim
+                      : run.switches_hold_trim()   ? n->hold_trim
+                                                   : n->compensated;
       if (run.switches_hold_trim()) {
         EXPECT_TRUE(n->compensated) << "hold_trim: compensation stays on";
       }
@@ -200,6 +202,62 @@ TEST(DemoScenario, HoldTrimScoresTheEndOfEachHold) {
   DemoRun full("hold_trim", piezo::compensation::hold_trim_demo_defaults(), kLine, 11.0, true);
   EXPECT_GT(full.steps(), 2u * 1920u * 11u);
   EXPECT_LT(full.steps(), 2u * 1945u * 11u + 200u);
+}
+
+// tracking_trim: a warm-up pass, then the same moves with the tracking trim off and on, the hold trim on in both;
+// |true − intended| scored during the moves (ramps and each hold's first settle_s) and in the holds from
+// hold_score_from_s, the warm-up not at all.
+TEST(DemoScenario, TrackingTrimScoresMovesAndHoldsOfTheScoredPasses) {
+  piezo::compensation::MovesDemoOptions mo;
+  mo.moves = 2, mo.hold_s = 20.0, mo.hold_score_from_s = 10.0, mo.rest_s = 5.0;
+  DemoRun run("tracking_trim", CreepDemoOptions{}, kLine, 11.0, true, mo);
+  EXPECT_TRUE(run.switches_tracking_trim());
+  EXPECT_FALSE(run.switches_hold_trim());
+  // Moving and the first 30 samples of a hold: 4 nm off without the tracking trim, 1 nm with it; then 0.3 / 0.2 nm.
+  const auto physics = [](int mode, int k, double v) {
+    return kLine.position_nm(v) + (k < 30 ? (mode ? 1.0 : 4.0) : (mode ? 0.2 : 0.3));
+  };
+  const auto estimate = [](int mode, int k) {
+    DemoRun::Estimate e;
+    e.tracking_trim_nm = mode ? 2.0 : 0.0;
+    e.tracking_trim_state = mode == 0 ? "off" : k == 0 ? "active" : "handed_over";
+    e.hold_trim_state = "active";
+    return e;
+  };
+  std::vector<bool> modes;
+  const auto j = drive(run, physics, nullptr, &modes, estimate);
+  EXPECT_EQ(modes, (std::vector<bool>{false, true}));  // the warm-up and the first pass alike
+  EXPECT_EQ(j["scenario"].as<std::string>(), "tracking_trim");
+  EXPECT_NEAR(j["tracking_off_move_mean_nm"].as<double>(), 4.0, 1e-9);
+  EXPECT_NEAR(j["tracking_on_move_mean_nm"].as<double>(), 1.0, 1e-9);
+  EXPECT_NEAR(j["tracking_off_move_max_nm"].as<double>(), 4.0, 1e-9);
+  EXPECT_NEAR(j["tracking_off_hold_max_nm"].as<double>(), 0.3, 1e-9);
+  EXPECT_NEAR(j["tracking_on_hold_mean_nm"].as<double>(), 0.2, 1e-9);
+  // per pass: 2 holds × (220 − 110 + 1) samples from 10 s on; the moves' count equal in both passes
+  EXPECT_EQ(j["tracking_off_hold_samples"].as<int>(), 2 * 111);
+  EXPECT_EQ(j["tracking_on_hold_samples"].as<int>(), 2 * 111);
+  EXPECT_EQ(j["tracking_on_move_samples"].as<int>(), j["tracking_off_move_samples"].as<int>());
+  EXPECT_GT(j["tracking_off_move_samples"].as<int>(), 3 * 11);
+  EXPECT_EQ(j["tracking_off_active_samples"].as<int>(), 0);
+  EXPECT_GT(j["tracking_on_active_samples"].as<int>(), 0);
+  EXPECT_GE(j["tracking_off_applied_min_v"].as<double>(), mo.target_min_v);
+  EXPECT_LE(j["tracking_on_applied_max_v"].as<double>(), mo.target_max_v);
+  std::ostringstream csv;
+  run.write_csv(csv);
+  const std::string text = csv.str();
+  EXPECT_NE(text.substr(0, text.find('\n')).find(",hold_trim_state,tracking_trim_nm,tracking_trim_state"), std::string::npos);
+  EXPECT_NE(text.find(",2,active\n"), std::string::npos);
+  // the three passes run the same intents
+  const auto steps = piezo::compensation::moves_demo_steps(mo, 11.0);
+  ASSERT_EQ(steps.size() % 3, 0u);
+  const std::size_t n = steps.size() / 3;
+  for (std::size_t i = 0; i < n; ++i) {
+    ASSERT_EQ(steps[i].intent_v, steps[n + i].intent_v) << i;
+    ASSERT_EQ(steps[i].intent_v, steps[2 * n + i].intent_v) << i;
+  }
+  EXPECT_EQ(steps[n - 1].intent_v, 0.0);
+  mo.hold_score_from_s = 30.0;
+  EXPECT_THROW(DemoRun("tracking_trim", CreepDemoOptions{}, kLine, 11.0, true, mo), std::invalid_argument);
 }
 
 TEST(DemoScenario, BadSettingsNameTheParameter) {

@@ -6,7 +6,10 @@
 //   "creep": histories of the package's `creep` protocol, each followed by its hold → drift while holding,
 //   "hold_trim": a short history of the `creep` protocol (its random walk, then its approach) and a long hold, run
 //   with compensation on both times: the hold trim off (feedforward only), then on (compensation/hold_trim.h) →
-//   worst and mean |true − intended| over the hold's last minutes.
+//   worst and mean |true − intended| over the hold's last minutes,
+//   "tracking_trim": an operator's moves (ramps to random targets, each followed by a hold), once to warm the
+//   estimator and then twice with compensation and the hold trim on: the tracking trim off, then on
+//   (compensation/tracking_trim.h) → max and mean |true − intended| during the moves and in the holds.
 #pragma once
 
 #include <cstdint>
@@ -26,8 +29,9 @@ namespace piezo::compensation {
 struct DemoStep {
   int mode;           // 0 uncompensated, 1 compensated
   int segment;        // history index (creep) or 0
-  std::string phase;  // "rest", "history", "hold", "saw" (and "hold_wait" in rows: the hold not yet applied)
+  std::string phase;  // "rest", "history", "hold", "saw", "warmup", "move" (and "hold_wait" in rows: the hold not yet applied)
   double intent_v;
+  double held_s = 0.0;  // tracking_trim: time since the intent last changed (0 while it moves)
 };
 
 struct CreepDemoOptions {
@@ -40,6 +44,21 @@ struct CreepDemoOptions {
 // The hold_trim scenario's defaults: one short history (120 s: the walk's end, the protocol's pre-approach, dwell
 // and approach) before a 30-min hold, scored over its last 28 min.
 CreepDemoOptions hold_trim_demo_defaults();
+
+// The tracking_trim scenario: `moves` ramps from 0 V to random targets, each followed by a hold of hold_s, then a
+// ramp back to 0 V and a rest; run three times (a warm-up, then the two scored passes), so both passes start from
+// the same history.
+struct MovesDemoOptions {
+  int seed = 7;                     // the targets and rates
+  int moves = 5;                    // per pass
+  double hold_s = 300.0;            // after each move
+  double target_min_v = -60.0, target_max_v = 60.0;
+  double rate_min_v_per_s = 0.2, rate_max_v_per_s = 2.0;
+  double rest_s = 30.0;             // at 0 V at the end of each pass
+  double settle_s = 1.0;            // a hold's first this many seconds count as the move
+  double hold_score_from_s = 120.0; // a hold is scored from this far into it
+};
+std::vector<DemoStep> moves_demo_steps(const MovesDemoOptions& o, double rate_hz);
 
 // Both modes, one step per encoder sample at `rate_hz`.
 std::vector<DemoStep> sawtooth_demo_steps(double rate_hz);
@@ -54,14 +73,16 @@ class DemoRun {
   // commands only on an intent, so the demo paces the device: the next intent is given once the predictor has
   // published its prediction of the sample (it has then taken that sample into its model), and each hold starts
   // at its first sample.
-  DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep = false);
+  DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep = false,
+          const MovesDemoOptions& moves = MovesDemoOptions());
 
   // What to do after a complete sample: switch the mode first when `set_mode` (compensation on/off, or with
   // switches_hold_trim() the hold trim on/off with compensation on), then send `intent_v`.
   struct Next {
     bool set_mode = false;
     bool compensated = false;
-    bool hold_trim = false;   // hold_trim scenario: pass 1
+    bool hold_trim = false;   // hold_trim scenario: pass 1 (tracking_trim: always)
+    bool tracking_trim = false;  // tracking_trim scenario: pass 1
     double intent_v = 0.0;
   };
   // The predictor's fused estimate and hold trim of a sample (Prediction.fused_position …), for the CSV.
@@ -70,6 +91,8 @@ class DemoRun {
     double fused_sigma_nm = std::numeric_limits<double>::quiet_NaN();
     double hold_trim_nm = std::numeric_limits<double>::quiet_NaN();
     std::string hold_trim_state;
+    double tracking_trim_nm = std::numeric_limits<double>::quiet_NaN();
+    std::string tracking_trim_state;
   };
 
   // Device reports by sample sequence and stamp [s]; the one that completes a sample (truth, encoder, voltage)
@@ -97,6 +120,9 @@ class DemoRun {
   const std::string& scenario() const { return scenario_; }
   // hold_trim: the passes differ by ~set_hold_trim, compensation stays on.
   bool switches_hold_trim() const { return scenario_ == "hold_trim"; }
+  // tracking_trim: the passes differ by ~set_tracking_trim, compensation and the hold trim stay on.
+  bool switches_tracking_trim() const { return scenario_ == "tracking_trim"; }
+  bool records_estimates() const { return switches_hold_trim() || switches_tracking_trim(); }
 
   struct Row {
     DemoStep step;
@@ -105,7 +131,8 @@ class DemoRun {
   };
   const std::vector<Row>& rows() const { return rows_; }
 
-  // hold_trim: the CSV also has the predictor's fused_nm, fused_sigma_nm, hold_trim_nm, hold_trim_state.
+  // hold_trim, tracking_trim: the CSV also has the predictor's fused_nm, fused_sigma_nm, hold_trim_nm,
+  // hold_trim_state (tracking_trim: and tracking_trim_nm, tracking_trim_state).
   void write_csv(std::ostream& os) const;
   // The metrics: sawtooth deviation from the ideal line in % of the stroke, creep drift per hold, or the hold
   // error per hold (hold_trim).
@@ -120,16 +147,28 @@ class DemoRun {
   };
   std::vector<HoldScore> hold_scores() const;
 
+  // tracking_trim scoring per scored pass (0: the tracking trim off, 1: on): |true − intended| during the moves
+  // (ramps and each hold's first settle_s) and in the holds from hold_score_from_s; the applied voltages' range.
+  struct MoveScore {
+    double move_max_nm = 0.0, move_mean_nm = 0.0, hold_max_nm = 0.0, hold_mean_nm = 0.0;
+    std::size_t move_samples = 0, hold_samples = 0, tracking_active_samples = 0;
+    double applied_min_v = std::numeric_limits<double>::infinity();
+    double applied_max_v = -std::numeric_limits<double>::infinity();
+  };
+  std::vector<MoveScore> move_scores() const;
+
  private:
   void write_sawtooth_json(std::ostream& js) const;
   void write_hold_trim_json(std::ostream& js) const;
   void write_creep_json(std::ostream& js) const;
+  void write_tracking_trim_json(std::ostream& js) const;
   std::optional<Next> take(const std::vector<io::PairedSample>& samples);
   std::optional<Next> step(const io::PairedSample& sample);
   std::optional<Next> release();
 
   std::string scenario_;
   CreepDemoOptions creep_;
+  MovesDemoOptions moves_;
   IdealLine line_;
   double rate_hz_;
   bool lockstep_;

@@ -64,6 +64,7 @@ class PredictorNode {
   void setup_diagnostics_and_watch();
   bool on_set_compensation(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
   bool on_set_hold_trim(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
+  bool on_set_tracking_trim(std_srvs::SetBool::Request& req, std_srvs::SetBool::Response& res);
   bool on_reload(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
   bool on_snapshot(std_srvs::Trigger::Request& req, std_srvs::Trigger::Response& res);
   std::string reload_models(const std::map<std::string, std::string>& files, std::string& timing);
@@ -90,7 +91,7 @@ class PredictorNode {
   std::vector<std::unique_ptr<Axis>> axes_;
   compensation::LiveInputs live_;   // other axes' reports and readings, aux signals
   std::vector<ros::Subscriber> aux_subs_;
-  ros::ServiceServer srv_compensation_, srv_hold_trim_, srv_reload_, srv_snapshot_;
+  ros::ServiceServer srv_compensation_, srv_hold_trim_, srv_tracking_trim_, srv_reload_, srv_snapshot_;
   std::unique_ptr<compensation::SnapshotBuffer> snapshot_;  // null: ~snapshot_duration_s 0
   // ~resume_from, read when the node starts if it is ~resume_save_to's file (before this run's saves replace it), else
   // at the first axis' first sample (a ~snapshot of the run before may be written after the node started); every

@@ -81,6 +81,7 @@ class PredictorAxis {
   // `warm`: the model was streamed over the recent samples and keeps that state (else it starts at rest).
   void reload(const std::string& model_name, models::ModelPtr model, bool warm = false);
   void set_hold_trim(bool on) { comp_->set_hold_trim(on); }
+  void set_tracking_trim(bool on) { comp_->set_tracking_trim(on); }
   const std::string& model_error() const { return model_error_; }
 
   const std::string& axis() const { return axis_; }

@@ -92,14 +92,17 @@ io::PairerOptions demo_pairing() {
 }
 }  // namespace
 
-DemoRun::DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep)
-    : scenario_(std::move(scenario)), creep_(creep), line_(line), rate_hz_(rate_hz), lockstep_(lockstep),
-      pairer_(demo_pairing()) {
-  if (scenario_ != "sawtooth" && scenario_ != "creep" && scenario_ != "hold_trim")
-    throw std::invalid_argument("~scenario: sawtooth, creep or hold_trim, got '" + scenario_ + "'");
+DemoRun::DemoRun(std::string scenario, const CreepDemoOptions& creep, IdealLine line, double rate_hz, bool lockstep,
+                 const MovesDemoOptions& moves)
+    : scenario_(std::move(scenario)), creep_(creep), moves_(moves), line_(line), rate_hz_(rate_hz),
+      lockstep_(lockstep), pairer_(demo_pairing()) {
+  if (scenario_ != "sawtooth" && scenario_ != "creep" && scenario_ != "hold_trim" && scenario_ != "tracking_trim")
+    throw std::invalid_argument("~scenario: sawtooth, creep, hold_trim or tracking_trim, got '" + scenario_ + "'");
   if (!(rate_hz_ > 0.0)) throw std::invalid_argument("demo: sample rate must be > 0 Hz");
   if (!(creep_.score_last_s > 0.0)) throw std::invalid_argument("~score_last_s must be > 0 s");
-  steps_ = scenario_ == "sawtooth" ? sawtooth_demo_steps(rate_hz_) : creep_demo_steps(creep_, rate_hz_);
+  if (scenario_ == "sawtooth") steps_ = sawtooth_demo_steps(rate_hz_);
+  else if (scenario_ == "tracking_trim") steps_ = moves_demo_steps(moves_, rate_hz_);
+  else steps_ = creep_demo_steps(creep_, rate_hz_);
 }
 
 std::optional<DemoRun::Next> DemoRun::on_truth(std::uint32_t seq, double true_nm, double stamp_s) {
@@ -116,7 +119,7 @@ std::optional<DemoRun::Next> DemoRun::on_voltage(std::uint32_t seq, double appli
 std::optional<DemoRun::Next> DemoRun::on_prediction(double stamp_s, double commanded_v, double sent_v, bool fallback,
                                                     const Estimate& estimate) {
   newest_prediction_s_ = std::max(newest_prediction_s_, stamp_s);
-  if (switches_hold_trim()) estimates_.emplace_back(stamp_s, estimate);
+  if (records_estimates()) estimates_.emplace_back(stamp_s, estimate);
   if (next_ > 0 && next_ <= steps_.size()) {
     const DemoStep& s = steps_[next_ - 1];
     if (s.phase == "hold" && !fallback && std::abs(commanded_v - s.intent_v) <= 1e-6) hold_sent_v_.push_back(sent_v);
@@ -183,8 +186,9 @@ std::optional<DemoRun::Next> DemoRun::step(const io::PairedSample& sample) {
   const DemoStep& s = steps_[next_];
   Next n;
   n.set_mode = next_ == 0 || steps_[next_ - 1].mode != s.mode;
-  n.compensated = s.mode == 1 || switches_hold_trim();
-  n.hold_trim = switches_hold_trim() && s.mode == 1;
+  n.compensated = s.mode == 1 || records_estimates();
+  n.hold_trim = (switches_hold_trim() && s.mode == 1) || switches_tracking_trim();
+  n.tracking_trim = switches_tracking_trim() && s.mode == 1;
   n.intent_v = s.intent_v;
   ++next_;
   return n;
@@ -201,9 +205,10 @@ const DemoRun::Estimate* DemoRun::estimate_at(double stamp_s) const {
 }
 
 void DemoRun::write_csv(std::ostream& csv) const {
-  const bool est = switches_hold_trim();
+  const bool est = records_estimates(), track = switches_tracking_trim();
   csv << "mode,segment,phase,time_s,intent_v,applied_v,ideal_nm,true_nm,encoder_nm"
-      << (est ? ",fused_nm,fused_sigma_nm,hold_trim_nm,hold_trim_state" : "") << "\n";
+      << (est ? ",fused_nm,fused_sigma_nm,hold_trim_nm,hold_trim_state" : "")
+      << (track ? ",tracking_trim_nm,tracking_trim_state" : "") << "\n";
   csv.precision(10);
   const Estimate none;
   for (const auto& r : rows_) {
@@ -214,6 +219,8 @@ void DemoRun::write_csv(std::ostream& csv) const {
       if (!e) e = &none;
       csv << "," << e->fused_nm << "," << e->fused_sigma_nm << "," << e->hold_trim_nm << ","
           << (e->hold_trim_state.empty() ? "none" : e->hold_trim_state);
+      if (track)
+        csv << "," << e->tracking_trim_nm << "," << (e->tracking_trim_state.empty() ? "none" : e->tracking_trim_state);
     }
     csv << "\n";
   }
@@ -258,6 +265,7 @@ void DemoRun::write_json(std::ostream& js) const {
   js.precision(6);
   if (scenario_ == "sawtooth") return write_sawtooth_json(js);
   if (switches_hold_trim()) return write_hold_trim_json(js);
+  if (switches_tracking_trim()) return write_tracking_trim_json(js);
   write_creep_json(js);
 }
 
