@@ -112,6 +112,28 @@ TEST(Forecast, CalibrationOfAnHonestNoiseModelKeepsItsSigma) {
   }
 }
 
+// Given the holds, the scales come from the rows the forecast table scores only: one hold over the whole series,
+// scored from its start, leaves the held windows (the same hold scales as without holds) and no moving window
+// (the move scales left at 1).
+TEST(Forecast, CalibrationOnTheTablesRowsOnly) {
+  const Series s = make_series(20000, 7, known_model(), 600.0);
+  NoiseModel all = known_model(), table = known_model();
+  piezo::estimation::calibrate_forecast(all, kDt, s.p, s.y, s.v);
+  piezo::estimation::ForecastCalibrationOptions o;
+  o.holds = {{0, s.p.size()}};
+  o.hold_from_s = 0.0;
+  piezo::estimation::calibrate_forecast(table, kDt, s.p, s.y, s.v, o);
+  ASSERT_EQ(table.forecast_sigma_scale_hold.size(), all.forecast_sigma_scale_hold.size());
+  std::size_t moved = 0;  // horizons with enough moving windows to calibrate on every row
+  for (std::size_t k = 0; k < table.forecast_horizons_s.size(); ++k) {
+    EXPECT_DOUBLE_EQ(table.forecast_sigma_scale_hold[k], all.forecast_sigma_scale_hold[k]) << k;
+    EXPECT_DOUBLE_EQ(table.forecast_sigma_scale_move[k], 1.0) << k;
+    moved += all.forecast_sigma_scale_move[k] != 1.0;
+  }
+  EXPECT_GE(moved, 3u);
+  EXPECT_NE(table.method.find("on the table's rows"), std::string::npos) << table.method;
+}
+
 TEST(Forecast, ModelFileKeysRoundTripAndAreChecked) {
   NoiseModel m = known_model();
   m.forecast_horizons_s = {0.1, 60.0};

@@ -5,6 +5,7 @@
 #pragma once
 
 #include <cstddef>
+#include <utility>
 #include <vector>
 
 #include "piezo_compensation/estimation/error_filter.h"
@@ -87,6 +88,12 @@ struct ForecastCalibrationOptions {
   double reference_window_s = 5.0;  // the forecast is checked against the mean of the readings over this long
   double coverage = 0.95;           // the share of references the calibrated ±2σ should hold
   std::size_t min_samples = 200;    // fewer checked rows at a horizon: its scale is left at 1
+  // The holds of the run ([begin, end) rows, each at least 300 s of an unchanged voltage). Given, the scales are
+  // calibrated on the rows the forecast table scores (compensation/drift_forecast_table.h): those in the last
+  // walk_s before each hold and those from hold_from_s into it, each window in its regime (one entirely in a hold
+  // or one that contains motion); empty: on every row.
+  std::vector<std::pair<std::size_t, std::size_t>> holds;
+  double walk_s = 900.0, hold_from_s = 120.0;
 };
 
 // Calibrates m.forecast_* on a run of the model over data it was not fitted on (the identification's run): the

@@ -5,6 +5,7 @@
 #include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/analysis/noise_floor.h"
 #include "piezo_compensation/estimation/forecast.h"
+#include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/training/fitters.h"
 
@@ -28,7 +29,14 @@ estimation::NoiseModel identify_estimator(const models::Model& model, const io::
   o.step_nm = floor.quantisation_nm;
   estimation::NoiseModel nm = estimation::identify_noise_model(p, y, o);
   const std::vector<double> v(ax.voltage_v.begin() + first_row, ax.voltage_v.end());
-  estimation::calibrate_forecast(nm, o.dt_s, p, y, v);
+  estimation::ForecastCalibrationOptions co;
+  io::HoldRule rule;  // the forecast table's holds (piezo track): ≥ 300 s of an unchanged voltage
+  rule.min_duration_s = 300.0;
+  rule.use_phase = false;
+  rule.tolerance_v = 0.0;
+  for (const io::HoldRun& h : io::find_holds(data, axis, rule, first_row))
+    co.holds.emplace_back(h.begin - first_row, h.end - first_row);
+  estimation::calibrate_forecast(nm, o.dt_s, p, y, v, co);
   nm.method += "; reading σ from " + floor.method;
   return nm;
 }

@@ -85,6 +85,19 @@ double coverage_scale(const std::vector<CalibrationPoint>& pts, double coverage)
   return std::exp(hi);
 }
 
+// The rows the forecast table scores: 1 in the walk before a hold, 2 in a hold from hold_from_s; empty without holds.
+std::vector<char> table_rows(std::size_t n, double dt_s, const ForecastCalibrationOptions& o) {
+  if (o.holds.empty()) return {};
+  std::vector<char> rows(n, 0);
+  const std::size_t walk_n = static_cast<std::size_t>(std::lround(o.walk_s / dt_s));
+  const std::size_t skip_n = static_cast<std::size_t>(std::lround(o.hold_from_s / dt_s));
+  for (const auto& [b, e] : o.holds) {
+    for (std::size_t i = b > walk_n ? b - walk_n : 0; i < std::min(b, n); ++i) rows[i] = 1;
+    for (std::size_t i = b + skip_n; i < std::min(e, n); ++i) rows[i] = 2;
+  }
+  return rows;
+}
+
 }  // namespace
 
 std::vector<FilterState> filter_states(const NoiseModel& m, double dt_s, const std::vector<double>& p,
@@ -155,14 +168,18 @@ void calibrate_forecast(NoiseModel& m, double dt_s, const std::vector<double>& p
   if (!m.fuse || o.horizons_s.empty()) return;
   m.forecast_horizons_s.clear();  // the propagated σ, unscaled, is what is calibrated
   const RunForecaster run(m, dt_s, p, y, v, filter_states(m, dt_s, p, y), o.reference_window_s);
+  const std::vector<char> scored = table_rows(run.size(), dt_s, o);
   std::vector<double> hs, hold_k, move_k;
   std::ostringstream note;
-  note << std::setprecision(3) << "; forecast σ calibrated to " << 100.0 * o.coverage << " % (hold/move scale per horizon:";
+  note << std::setprecision(3) << "; forecast σ calibrated to " << 100.0 * o.coverage << " %"
+       << (scored.empty() ? "" : " on the table's rows") << " (hold/move scale per horizon:";
   for (double h : o.horizons_s) {
     std::vector<CalibrationPoint> hold, move;
     for (std::size_t i = 0; i < run.size(); ++i) {
+      const char row = scored.empty() ? 1 : scored[i];
+      if (!row) continue;
       const WindowForecast f = run.at(i, h);
-      if (!f.ok) continue;
+      if (!f.ok || (row == 2 && !f.held)) continue;  // the table scores a hold's windows inside it only
       const double e = f.forecast_nm - f.reference_nm;
       (f.held ? hold : move).push_back({e * e, f.var_nm2, f.reference_var_nm2});
     }
