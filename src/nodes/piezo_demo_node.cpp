@@ -119,6 +119,32 @@ void spin_and_write(DemoRun& run, double progress_s, const std::string& out_pref
            static_cast<unsigned long long>(pc.lost_truths), static_cast<unsigned long long>(pc.dropped_samples));
 }
 
+// The predictor's switches a pass sets before its first intent (lock-step: before the device's next sample).
+struct ModeSwitches {
+  ros::ServiceClient compensation, hold_trim, tracking_trim;
+};
+
+void call_switch(ros::ServiceClient& c, bool on) {
+  std_srvs::SetBool req;
+  req.request.data = on;
+  if (!c.call(req) || !req.response.success)
+    throw std::runtime_error(c.getService() + " failed" + (req.response.message.empty() ? "" : ": " + req.response.message));
+}
+
+void switch_mode(const DemoRun& run, const DemoRun::Next& n, ModeSwitches& sw, const char* name) {
+  call_switch(sw.compensation, n.compensated);
+  if (run.switches_hold_trim()) {
+    call_switch(sw.hold_trim, n.hold_trim);
+    ROS_INFO("demo %s: %s run", name, n.hold_trim ? "hold-trimmed" : "feedforward-only");
+  } else if (run.switches_tracking_trim()) {
+    call_switch(sw.hold_trim, true);
+    call_switch(sw.tracking_trim, n.tracking_trim);
+    ROS_INFO("demo %s: tracking trim %s run", name, n.tracking_trim ? "on" : "off");
+  } else {
+    ROS_INFO("demo %s: %s run", name, n.compensated ? "compensated" : "uncompensated");
+  }
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -139,31 +165,12 @@ int main(int argc, char** argv) {
     const std::string set_compensation = iface.service_name<std_srvs::SetBool>("predictor/set_compensation"),
                       set_hold_trim = iface.service_name<std_srvs::SetBool>("predictor/set_hold_trim"),
                       set_tracking_trim = iface.service_name<std_srvs::SetBool>("predictor/set_tracking_trim");
-    auto sw = nh.serviceClient<std_srvs::SetBool>(set_compensation);
-    auto sw_trim = nh.serviceClient<std_srvs::SetBool>(set_hold_trim);
-    auto sw_track = nh.serviceClient<std_srvs::SetBool>(set_tracking_trim);
-    const auto call = [](ros::ServiceClient& c, bool on) {
-      std_srvs::SetBool req;
-      req.request.data = on;
-      if (!c.call(req) || !req.response.success)
-        throw std::runtime_error(c.getService() + " failed" + (req.response.message.empty() ? "" : ": " + req.response.message));
-    };
+    ModeSwitches sw{nh.serviceClient<std_srvs::SetBool>(set_compensation),
+                    nh.serviceClient<std_srvs::SetBool>(set_hold_trim),
+                    nh.serviceClient<std_srvs::SetBool>(set_tracking_trim)};
     const auto act = [&](const std::optional<DemoRun::Next>& n) {
       if (!n) return;
-      if (n->set_mode) {
-        call(sw, n->compensated);
-        if (run->switches_hold_trim()) {
-          // lock-step: the switch is in before the pass's first intent, so before the device's next sample
-          call(sw_trim, n->hold_trim);
-          ROS_INFO("demo %s: %s run", name, n->hold_trim ? "hold-trimmed" : "feedforward-only");
-        } else if (run->switches_tracking_trim()) {
-          call(sw_trim, true);
-          call(sw_track, n->tracking_trim);
-          ROS_INFO("demo %s: tracking trim %s run", name, n->tracking_trim ? "on" : "off");
-        } else {
-          ROS_INFO("demo %s: %s run", name, n->compensated ? "compensated" : "uncompensated");
-        }
-      }
+      if (n->set_mode) switch_mode(*run, *n, sw, name);
       piezo_compensation::IntendedMotion im;
       // lock-step: the intent follows the sample just completed, so it carries that sample's stamp (what ROS time
       // says then, without waiting on /clock: this node needs no clock of its own in lock-step)
