@@ -22,15 +22,15 @@ endfunction()
 piezo_test_costs(
   # computing tests [s of CPU]; the reference fixtures first, as four tests each wait for one
   test_residual_refs_sim_clean 99  test_residual_refs_gain_base 98
-  test_residual_two_effects 32  test_residual_sim 27  test_stage_matrix_mm3e_preisach_creep 30
+  test_residual_two_effects 32  test_residual_sim 27  test_stage_matrix_mm3e_preisach_creep 31
   test_residual_gain_temperature 30  test_residual_sim_coupling 18  test_residual_sim_disturbance 25
-  test_residual_sim_periodic 25  test_residual_sensitivity 12  test_sensor_reading_model 10  test_stage_matrix_mm3e_pi_creep 25  test_residual_gain_other_axis 25
-  test_residual_gain_drift 25  test_stage_matrix_mm3e_preisach 24  test_stage_matrix_mm3e_pi 22
-  test_stage_matrix_stack150_pi 22  test_stage_matrix_stack150_preisach 21  test_models_preisach_preisach 20
-  test_stage_matrix_stack150_preisach_creep 19  test_residual_preisach 15  test_stage_matrix_stack150_pi_creep 15
-  test_residual_sim_clean 13  test_stage_matrix_lowvolt_pi 12  test_stage_matrix_lowvolt_preisach 11
-  test_stage_matrix_lowvolt_pi_creep 11  test_models_prony 11  test_hold_trim 11  test_residual_gain 10
-  test_stage_matrix_lowvolt_preisach_creep 8
+  test_residual_sim_periodic 25  test_residual_sensitivity 12  test_sensor_reading_model 10  test_stage_matrix_mm3e_pi_creep 21  test_residual_gain_other_axis 25
+  test_residual_gain_drift 25  test_stage_matrix_mm3e_preisach 21  test_stage_matrix_mm3e_pi 18
+  test_stage_matrix_stack150_pi 17  test_stage_matrix_stack150_preisach 17  test_models_preisach_preisach 20
+  test_stage_matrix_stack150_preisach_creep 16  test_residual_preisach 15  test_stage_matrix_stack150_pi_creep 16
+  test_residual_sim_clean 13  test_stage_matrix_lowvolt_pi 7  test_stage_matrix_lowvolt_preisach 10
+  test_stage_matrix_lowvolt_pi_creep 5  test_models_prony 11  test_hold_trim 11  test_residual_gain 10
+  test_stage_matrix_lowvolt_preisach_creep 6
   # rostests and the VM [s of wall]
   vcan_vm 100  tracking_trim 53  live_loop 48  hold_trim_thermal 33  hold_trim 31  hold_trim_a 26  recorder_protocols 26  recorder_lockstep 26
   predictor_replay 23  sim_launch 12  sim_launch_broken_model 12  predictor_inputs 11)

@@ -114,50 +114,39 @@ std::string piezo_binary() {
   return (fs::read_symlink("/proc/self/exe").parent_path() / "piezo").string();
 }
 
-}  // namespace
+// Wall seconds since the test started (for reading a slow run).
+struct WallClock {
+  std::chrono::steady_clock::time_point start = std::chrono::steady_clock::now();
+  double s() const { return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count(); }
+};
 
-TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
-  ros::NodeHandle pnh("~");
-  const std::string clean = pnh.param<std::string>("clean_model", "");
-  const std::string out_dir = pnh.param<std::string>("out_dir", "/tmp/piezo_live_loop/residual");
-  const double snapshot_after_s = pnh.param("snapshot_after_s", 1530.0);
-  const std::string families = pnh.param<std::string>("families", "");  // "" = every family, gains included
-  const double threshold_nm = 2.0 * 16.8;
-  const auto wall0 = std::chrono::steady_clock::now();
-  const auto wall = [&] { return std::chrono::duration<double>(std::chrono::steady_clock::now() - wall0).count(); };
+// The rolling MAE a model that matches the device stays under: twice the noise floor.
+constexpr double kThresholdNm = 2.0 * 16.8;
 
-  // The nodes start within seconds on an idle host; these return as soon as they are up.
-  constexpr double kPatienceS = 60.0;
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(kPatienceS)));
-  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(kPatienceS)));
-  ASSERT_TRUE(ros::service::waitForService("/mm1/mm3e_sim/set_thermal_drift", ros::Duration(kPatienceS)));
-  ASSERT_TRUE(ros::Time::waitForValid(ros::WallDuration(kPatienceS))) << "no /clock from the simulated device";
-  Loop loop;
-  fs::create_directories(fs::path(out_dir).parent_path());
-  loop.trace.open(fs::path(out_dir).parent_path() / "predictions_c.csv");
-  loop.trace << "time_s,measured_nm,predicted_nm,intended_nm,commanded_v,corrected_v,fallback,status,model\n";
-  ASSERT_TRUE(loop.wait_for([&] { return loop.readings > 20; }, 1e9, kPatienceS)) << "no encoder readings of axis c";
-
+void check_clean_model(Loop& loop, double t_start, const WallClock& wall) {
   // (1) compensated with the clean model: the rolling MAE is under the threshold
-  const double t_start = loop.now();
   ASSERT_TRUE(loop.spin_for(150.0));
   ASSERT_TRUE(std::isfinite(loop.mae_nm)) << "no residual_mae published after 150 s";
-  std::cout << "[live_loop] (1) clean model, " << loop.now() - t_start << " s simulated: rolling MAE " << loop.mae_nm
-            << " nm (threshold " << threshold_nm << " nm), diagnostics '" << loop.diag_message << "', wall "
-            << wall() << " s\n";
-  EXPECT_LT(loop.mae_nm, threshold_nm) << "the clean model does not match the device before any effect";
+  std::cout << "[live_loop] (1) clean model, " << loop.now() - t_start << " s simulated: rolling MAE "
+            << loop.mae_nm << " nm (threshold " << kThresholdNm << " nm), diagnostics '" << loop.diag_message
+            << "', wall " << wall.s() << " s\n";
+  EXPECT_LT(loop.mae_nm, kThresholdNm) << "the clean model does not match the device before any effect";
   EXPECT_FALSE(loop.watch_warned) << loop.diag_message;
+}
 
+void switch_drift_on_until_warn(Loop& loop, double* t_on, const WallClock& wall) {
   // (2) the thermal drift is switched on: the watch warns on /diagnostics
   std_srvs::SetBool on;
   on.request.data = true;
   ASSERT_TRUE(ros::service::call("/mm1/mm3e_sim/set_thermal_drift", on));
   std::cout << "[live_loop] (2) " << on.response.message << "\n";
-  const double t_on = loop.now();
+  *t_on = loop.now();
   ASSERT_TRUE(loop.wait_for([&] { return loop.watch_warned; }, 900.0)) << "no WARN within 900 s: " << loop.diag_message;
-  std::cout << "[live_loop] (2) watch WARN " << loop.now() - t_on << " s after the switch: '" << loop.diag_message
-            << "', wall " << wall() << " s\n";
+  std::cout << "[live_loop] (2) watch WARN " << loop.now() - *t_on << " s after the switch: '"
+            << loop.diag_message << "', wall " << wall.s() << " s\n";
+}
 
+void take_snapshot(Loop& loop, double t_on, double snapshot_after_s, std::string* bag) {
   // (3) snapshot of the last 20 min with the effect on; `piezo residual` on it, base = the model running
   ASSERT_TRUE(loop.spin_for(std::max(0.0, t_on + snapshot_after_s - loop.now())));
   std_srvs::Trigger snap;
@@ -166,7 +155,13 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   std::cout << "[live_loop] (3) snapshot: " << snap.response.message << "\n";
   // Lock-step (live_loop.test): the device waits for the predictor, so a stalled host costs no sample.
   EXPECT_EQ(snap.response.message.find(" gap"), std::string::npos) << "samples were lost in lock-step";
-  const std::string bag = snap.response.message.substr(0, snap.response.message.find(" ("));
+  *bag = snap.response.message.substr(0, snap.response.message.find(" ("));
+}
+
+// `piezo residual` on the snapshot, base = the model running: the effects it adds name the temperature.
+void residual_names_temperature(Loop& loop, const std::string& bag, const std::string& clean,
+                                const std::string& out_dir, const std::string& families,
+                                const WallClock& wall) {
   fs::remove_all(out_dir);
   // Every family, the gain families included: the additive thermal effect must win against aux_gain on the same
   // signal (ResidualOptions::gain_margin; docs/validation/residual-loop.md, "Live loop"). The snapshot starts ~500 s into
@@ -191,12 +186,14 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   ASSERT_TRUE(terms && terms.size() > 0) << "piezo residual added no effect";
   const std::string family = terms[0]["family"].as<std::string>(), signal = terms[0]["signal"].as<std::string>();
   std::cout << "[live_loop] (3) first effect: " << family << " on " << signal << " (" << terms.size()
-            << " term(s)), wall " << wall() << " s\n";
+            << " term(s)), wall " << wall.s() << " s\n";
   EXPECT_TRUE(family == "aux_signal" || family == "aux_gain") << family;
   EXPECT_EQ(signal, "temperature_c");
   for (std::size_t i = 0; i < terms.size(); ++i)
     EXPECT_EQ(terms[i]["signal"].as<std::string>(), "temperature_c") << "term " << i << " names another cause";
+}
 
+void reload_recovers(Loop& loop, const std::string& out_dir) {
   // (4) ~model_file → the augmented model, ~reload_model: the rolling MAE comes back under the threshold
   ros::param::set("/mm1/predictor/model_file/c", out_dir + "/model.yaml");
   std_srvs::Trigger reload;
@@ -207,12 +204,18 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   const double mae_before = loop.mae_nm;
   loop.mae_nm = std::nan("");
   // the watch starts again at a reload: the first figure comes after half a window; wait for a full one
-  ASSERT_TRUE(loop.wait_for([&] {
-    return loop.now() > t_reload + 60.0 && loop.mae_stamp > t_reload + 60.0 && loop.mae_nm < threshold_nm &&
-           loop.diag_level == diagnostic_msgs::DiagnosticStatus::OK;
-  }, 600.0)) << "rolling MAE " << loop.mae_nm << " nm, diagnostics '" << loop.diag_message << "'";
+  ASSERT_TRUE(loop.wait_for(
+      [&] {
+        return loop.now() > t_reload + 60.0 && loop.mae_stamp > t_reload + 60.0 &&
+               loop.mae_nm < kThresholdNm && loop.diag_level == diagnostic_msgs::DiagnosticStatus::OK;
+      },
+      600.0))
+      << "rolling MAE " << loop.mae_nm << " nm, diagnostics '" << loop.diag_message << "'";
   std::cout << "[live_loop] (4) reloaded; rolling MAE " << mae_before << " nm before, " << loop.mae_nm << " nm "
             << loop.now() - t_reload << " s after, diagnostics '" << loop.diag_message << "'\n";
+}
+
+void watch_stays_quiet(Loop& loop) {
   // and the watch stays quiet for another two windows (a WARN needs watch_hold_s above the threshold). Every
   // figure counts, in its callback: several that one spin delivers together (a loaded host) are several figures.
   double worst = loop.mae_nm, sum = 0.0;
@@ -233,11 +236,46 @@ TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
   std::cout << "[live_loop] (4) rolling MAE over the next 120 s: mean " << (n ? sum / n : std::nan("")) << " nm, worst "
             << worst << " nm (" << n << " figures)\n";
   EXPECT_GT(n, 50) << "too few rolling-MAE figures after the reload";
-  EXPECT_LT(worst, threshold_nm) << "the rolling MAE rose above the watch threshold again after the reload";
+  EXPECT_LT(worst, kThresholdNm) << "the rolling MAE rose above the watch threshold again after the reload";
   EXPECT_FALSE(loop.watch_warned) << loop.diag_message;
   std::cout << "[live_loop] snapshot buffer diagnostics: '" << loop.snapshot_diag << "'\n";
   EXPECT_FALSE(loop.snapshot_diag.empty()) << "no \"snapshot buffer\" status on /diagnostics";
-  std::cout << "[live_loop] total " << loop.now() - t_start << " s simulated, wall " << wall() << " s\n";
+}
+
+}  // namespace
+
+TEST(LiveLoop, WatchWarnsSnapshotResidualReloadRecovers) {
+  ros::NodeHandle pnh("~");
+  const std::string clean = pnh.param<std::string>("clean_model", "");
+  const std::string out_dir = pnh.param<std::string>("out_dir", "/tmp/piezo_live_loop/residual");
+  const double snapshot_after_s = pnh.param("snapshot_after_s", 1530.0);
+  const std::string families = pnh.param<std::string>("families", "");  // "" = every family, gains included
+  const WallClock wall;
+
+  // The nodes start within seconds on an idle host; these return as soon as they are up.
+  constexpr double kPatienceS = 60.0;
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/snapshot", ros::Duration(kPatienceS)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/predictor/reload_model", ros::Duration(kPatienceS)));
+  ASSERT_TRUE(ros::service::waitForService("/mm1/mm3e_sim/set_thermal_drift", ros::Duration(kPatienceS)));
+  ASSERT_TRUE(ros::Time::waitForValid(ros::WallDuration(kPatienceS)))
+      << "no /clock from the simulated device";
+  Loop loop;
+  fs::create_directories(fs::path(out_dir).parent_path());
+  loop.trace.open(fs::path(out_dir).parent_path() / "predictions_c.csv");
+  loop.trace << "time_s,measured_nm,predicted_nm,intended_nm,commanded_v,corrected_v,fallback,status,model\n";
+  ASSERT_TRUE(loop.wait_for([&] { return loop.readings > 20; }, 1e9, kPatienceS))
+      << "no encoder readings of axis c";
+
+  const double t_start = loop.now();
+  ASSERT_NO_FATAL_FAILURE(check_clean_model(loop, t_start, wall));
+  double t_on = 0.0;
+  ASSERT_NO_FATAL_FAILURE(switch_drift_on_until_warn(loop, &t_on, wall));
+  std::string bag;
+  ASSERT_NO_FATAL_FAILURE(take_snapshot(loop, t_on, snapshot_after_s, &bag));
+  ASSERT_NO_FATAL_FAILURE(residual_names_temperature(loop, bag, clean, out_dir, families, wall));
+  ASSERT_NO_FATAL_FAILURE(reload_recovers(loop, out_dir));
+  watch_stays_quiet(loop);
+  std::cout << "[live_loop] total " << loop.now() - t_start << " s simulated, wall " << wall.s() << " s\n";
 }
 
 int main(int argc, char** argv) {

@@ -28,13 +28,12 @@ std::string resume_model_path() {
   ros::param::get("/mm2/predictor/model_file", p);
   return p;
 }
-}  // namespace
 
-TEST(PredictorLive, CompensationOnOffAndTfFrames) {
-  tf2_ros::Buffer tf;
-  tf2_ros::TransformListener listener(tf);
-  piezo::test::FakeDriver drv;
-  ASSERT_TRUE(drv.wait_connected()) << "predictor topics not connected";
+using piezo::test::FakeDriver;
+
+// With compensation on the predictor sends the model-inverted voltage, with it off the intent itself, and on
+// again the inverted one; the prediction says which.
+void check_compensation_on_off(FakeDriver& drv) {
   drv.intend(30.0);
   for (int i = 0; i < 15; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   ASSERT_FALSE(drv.commands.empty());
@@ -67,7 +66,11 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   for (int i = 0; i < 3; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction and command for sample " << i;
   EXPECT_TRUE(drv.predictions.back().compensation_active);
   EXPECT_GT(std::abs(drv.commands.back().voltage - 30.0), 0.05);
+}
 
+// The tf frames of the measured, predicted and intended tip exist under the base frame; the measured one of
+// the last sample is where its reading says (axis c → z).
+void check_tf_frames(FakeDriver& drv, tf2_ros::Buffer& tf) {
   // The listener connects to /tf on its own schedule: samples keep coming until the three frames are there (on a
   // loaded host it once connected after the last sample of the steps above, and no frame ever came).
   const auto frames_known = [&] {
@@ -89,7 +92,9 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
       << err;
   const auto t = tf.lookupTransform("mm1/base", "mm1/tip_measured", last_stamp);
   EXPECT_NEAR(t.transform.translation.z, drv.predictions.back().measured_position, 1e-7);  // axis c → z
+}
 
+void check_snapshot_after_gap(FakeDriver& drv, piezo::io::Dataset* d) {
   // 3 samples lost, then 60 more: ~snapshot writes the 60 after the gap (over 60 % of the window) and says so;
   // the bag reads at a constant rate, as the offline tools require
   drv.lose(3);
@@ -104,9 +109,12 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   EXPECT_NE(snap.response.message.find("wrote the most recent stretch without one"), std::string::npos)
       << snap.response.message;
   const std::string path = snap.response.message.substr(0, snap.response.message.find(" ("));
-  const piezo::io::Dataset d = piezo::ros_io::read_bag(path);
-  EXPECT_NO_THROW(d.sample_period_s());
-  EXPECT_EQ(d.size(), 60u);
+  *d = piezo::ros_io::read_bag(path);
+  EXPECT_NO_THROW(d->sample_period_s());
+  EXPECT_EQ(d->size(), 60u);
+}
+
+void check_reload_warms_across_gap(FakeDriver& drv) {
   // the reload's warm-up keeps the whole window (the running model skipped the same samples) and says so; the
   // node has run about 1 s of the 1800 s ~snapshot_duration_s, so the window is every sample sent, and the reply
   // says it holds less than the window rather than reading as a short one
@@ -124,39 +132,48 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
   EXPECT_NE(reload.response.message.find("c: warm, on the buffered "), std::string::npos) << reload.response.message;
   EXPECT_NE(reload.response.message.find(warm.str()), std::string::npos)
       << "expected '" << warm.str() << "' in: " << reload.response.message;
+}
 
+void write_resume_bag(const piezo::io::Dataset& d, std::string* resume_path) {
   // ~resume_from: mm2 resumes at its first sample on that bag, held at its last voltage until then: its first
   // prediction is what resume_model and the compensator give offline for that stamp, not a start at rest (which
   // predicts the first reading itself).
-  std::string resume_path;
-  ASSERT_TRUE(ros::param::get("/mm2/predictor/resume_from", resume_path));
+  ASSERT_TRUE(ros::param::get("/mm2/predictor/resume_from", *resume_path));
   // mm1's bag as mm2's (the node reads only its own namespace: a bag of /mm1 is refused by /mm2)
   piezo::ros_io::BagOptions as_mm2;
   as_mm2.ns = "/mm2";
-  piezo::ros_io::write_bag(resume_path, d, as_mm2);
-  piezo::test::FakeDriver drv2("/mm2/c");
-  ASSERT_TRUE(drv2.wait_connected()) << "mm2 predictor topics not connected";
-  drv2.expect_commands = false;  // no intent on mm2
-  drv2.applied_v = d.axis("c").voltage_v.back();
-  ASSERT_TRUE(drv2.cycle()) << "no prediction from the resumed predictor";
-  const auto first = drv2.predictions.back();
+  piezo::ros_io::write_bag(*resume_path, d, as_mm2);
+}
+
+// mm2 resumes on the bag: its first prediction is the offline resume's, not a start at rest.
+void check_resumed_first_prediction(FakeDriver& drv, const piezo::io::Dataset& d,
+                                    const std::string& resume_path) {
+  piezo::ros_io::BagOptions as_mm2;
+  as_mm2.ns = "/mm2";
+  drv.expect_commands = false;  // no intent on mm2
+  drv.applied_v = d.axis("c").voltage_v.back();
+  ASSERT_TRUE(drv.cycle()) << "no prediction from the resumed predictor";
+  const auto first = drv.predictions.back();
   const piezo::models::ModelPtr model = piezo::models::load_model(resume_model_path());
   const piezo::compensation::Resume r = piezo::compensation::resume_model(
-      *model, piezo::ros_io::read_bag(resume_path, as_mm2), "c", first.header.stamp.toSec(), drv2.applied_v);
+      *model, piezo::ros_io::read_bag(resume_path, as_mm2), "c", first.header.stamp.toSec(), drv.applied_v);
   ASSERT_TRUE(r.resumed) << r.status;
   std::cout << "[predictor_live] " << r.status << "\n";
   piezo::compensation::AxisCompensator offline(model->clone(), piezo::compensation::IdealLine{14.0, 0.0}, {});
   offline.start_resumed(r.model->clone(), r.last_voltage_v, r.predicted_nm, r.status);
-  const double expected_nm = offline.on_sample(drv2.applied_v, first.measured_position * 1e9, true).predicted_nm;
+  const double expected_nm =
+      offline.on_sample(drv.applied_v, first.measured_position * 1e9, true).predicted_nm;
   EXPECT_NEAR(first.predicted_position * 1e9, expected_nm, 1e-6);
   EXPECT_GT(std::abs(first.predicted_position - first.measured_position) * 1e9, 1.0)
       << "a start at rest predicts the first reading itself";
+}
 
+void check_resume_saved_periodically(FakeDriver& drv) {
   // ~resume_save_to with a 0.2-s period: mm2's own buffer appears there while it runs, for the next start
   std::string saved;
   ASSERT_TRUE(ros::param::get("/mm2/predictor/resume_save_to", saved));
-  const std::size_t before = drv2.samples_sent;
-  for (int i = 0; i < 10; ++i) ASSERT_TRUE(drv2.cycle()) << "no prediction from the resumed predictor";
+  const std::size_t before = drv.samples_sent;
+  for (int i = 0; i < 10; ++i) ASSERT_TRUE(drv.cycle()) << "no prediction from the resumed predictor";
   std::size_t rows = 0;
   piezo::test::wall_wait([&] {
     try {
@@ -164,9 +181,29 @@ TEST(PredictorLive, CompensationOnOffAndTfFrames) {
     } catch (const std::exception&) {
       rows = 0;
     }
-    return rows >= before + 10 || !(drv2.cycle());
+    return rows >= before + 10 || !(drv.cycle());
   }, piezo::test::kPatienceS, 0.05);
   EXPECT_GE(rows, before + 10) << saved;
+}
+
+}  // namespace
+
+TEST(PredictorLive, CompensationOnOffAndTfFrames) {
+  tf2_ros::Buffer tf;
+  tf2_ros::TransformListener listener(tf);
+  FakeDriver drv;
+  ASSERT_TRUE(drv.wait_connected()) << "predictor topics not connected";
+  ASSERT_NO_FATAL_FAILURE(check_compensation_on_off(drv));
+  ASSERT_NO_FATAL_FAILURE(check_tf_frames(drv, tf));
+  piezo::io::Dataset d;
+  ASSERT_NO_FATAL_FAILURE(check_snapshot_after_gap(drv, &d));
+  ASSERT_NO_FATAL_FAILURE(check_reload_warms_across_gap(drv));
+  std::string resume_path;
+  ASSERT_NO_FATAL_FAILURE(write_resume_bag(d, &resume_path));
+  FakeDriver drv2("/mm2/c");
+  ASSERT_TRUE(drv2.wait_connected()) << "mm2 predictor topics not connected";
+  ASSERT_NO_FATAL_FAILURE(check_resumed_first_prediction(drv2, d, resume_path));
+  check_resume_saved_periodically(drv2);
 }
 
 // Without a period the history is written when the node shuts down (here: a PredictorNode in this process,

@@ -31,6 +31,22 @@ struct Counts {
   std::string last_status, model;
   std::vector<double> voltages;
   std::vector<double> encoder_stamps, voltage_stamps, prediction_stamps;
+
+  void on_prediction(const piezo_compensation::Prediction& m) {
+    ++prediction;
+    prediction_stamps.push_back(m.header.stamp.toSec());
+    fallback += m.fallback;
+    model_predicted += !m.fallback && std::isfinite(m.predicted_position);
+    fused += std::isfinite(m.fused_position) && std::isfinite(m.fused_position_sigma) &&
+             m.fused_position_sigma > 0.0;
+    model_only += m.hold_trim_state == "model_only";
+    last_sigma_nm = m.fused_position_sigma * 1e9;
+    last_fused_nm = m.fused_position * 1e9;
+    last_measured_nm = m.measured_position * 1e9;
+    last_predicted_nm = m.predicted_position * 1e9;
+    last_status = m.status;
+    model = m.model;
+  }
 };
 
 double median_interval_s(const std::vector<double>& stamps) {
@@ -55,48 +71,30 @@ void expect_rate(const std::vector<double>& stamps, double rate_hz, const char* 
   EXPECT_NEAR(mean_rate_hz(stamps), rate_hz, 0.2 * rate_hz) << what << ": messages per second of stamps";
 }
 
-TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
-  ros::NodeHandle nh, pnh("~");
-  const double rate_hz = pnh.param("encoder_rate_hz", 11.0);
-  const std::string fallback_axis = pnh.param<std::string>("fallback_axis", "");
-  const std::string fallback_file = pnh.param<std::string>("fallback_file", "");
-  std::map<std::string, Counts> c;
-  std::vector<ros::Subscriber> subs;
-  bool counting = false;
-  for (const std::string a : {"a", "b", "c"}) {
-    subs.push_back(nh.subscribe<piezo_compensation::EncoderPosition>(
-        "/mm1/" + a + "/encoder", 50, [&, a](const piezo_compensation::EncoderPosition::ConstPtr& m) {
-          if (!counting) return;
-          ++c[a].encoder;
-          c[a].encoder_stamps.push_back(m->header.stamp.toSec());
-        }));
-    subs.push_back(nh.subscribe<piezo_compensation::AxisVoltage>(
-        "/mm1/" + a + "/voltage", 50, [&, a](const piezo_compensation::AxisVoltage::ConstPtr& m) {
-          if (!counting) return;
-          ++c[a].voltage;
-          c[a].voltages.push_back(m->voltage);
-          c[a].voltage_stamps.push_back(m->header.stamp.toSec());
-        }));
-    subs.push_back(nh.subscribe<piezo_compensation::Prediction>(
-        "/mm1/" + a + "/prediction", 50, [&, a](const piezo_compensation::Prediction::ConstPtr& m) {
-          if (!counting) return;
-          auto& k = c[a];
-          ++k.prediction;
-          k.prediction_stamps.push_back(m->header.stamp.toSec());
-          k.fallback += m->fallback;
-          k.model_predicted += !m->fallback && std::isfinite(m->predicted_position);
-          k.fused += std::isfinite(m->fused_position) && std::isfinite(m->fused_position_sigma) &&
-                     m->fused_position_sigma > 0.0;
-          k.model_only += m->hold_trim_state == "model_only";
-          k.last_sigma_nm = m->fused_position_sigma * 1e9;
-          k.last_fused_nm = m->fused_position * 1e9;
-          k.last_measured_nm = m->measured_position * 1e9;
-          k.last_predicted_nm = m->predicted_position * 1e9;
-          k.last_status = m->status;
-          k.model = m->model;
-        }));
-  }
-  // Wait until every axis predicts (the nodes start and connect), then collect 8 s of messages (on their stamps).
+// The encoder, voltage and prediction topics of axis a, counted into c[a] while *counting.
+void subscribe_axis(ros::NodeHandle& nh, const std::string& a, std::map<std::string, Counts>& c,
+                    const bool& counting, std::vector<ros::Subscriber>& subs) {
+  subs.push_back(nh.subscribe<piezo_compensation::EncoderPosition>(
+      "/mm1/" + a + "/encoder", 50, [&, a](const piezo_compensation::EncoderPosition::ConstPtr& m) {
+        if (!counting) return;
+        ++c[a].encoder;
+        c[a].encoder_stamps.push_back(m->header.stamp.toSec());
+      }));
+  subs.push_back(nh.subscribe<piezo_compensation::AxisVoltage>(
+      "/mm1/" + a + "/voltage", 50, [&, a](const piezo_compensation::AxisVoltage::ConstPtr& m) {
+        if (!counting) return;
+        ++c[a].voltage;
+        c[a].voltages.push_back(m->voltage);
+        c[a].voltage_stamps.push_back(m->header.stamp.toSec());
+      }));
+  subs.push_back(nh.subscribe<piezo_compensation::Prediction>(
+      "/mm1/" + a + "/prediction", 50, [&, a](const piezo_compensation::Prediction::ConstPtr& m) {
+        if (counting) c[a].on_prediction(*m);
+      }));
+}
+
+// Waits until every axis predicts (the nodes start and connect).
+void wait_until_every_axis_predicts(ros::NodeHandle& nh) {
   const ros::WallTime give_up = ros::WallTime::now() + ros::WallDuration(kPatienceS);
   std::map<std::string, bool> seen;
   std::vector<ros::Subscriber> probes;
@@ -108,7 +106,45 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
     ros::WallDuration(0.02).sleep();
   }
   ASSERT_EQ(seen.size(), 3u) << "not every axis published a prediction within " << kPatienceS << " s";
-  probes.clear();
+}
+
+// The broken-model axis: every prediction a fallback naming the file, the voltage held.
+void check_fallback_axis(const Counts& k, const std::string& fallback_file) {
+  EXPECT_EQ(k.fallback, k.prediction) << "every prediction of the broken-model axis is a fallback";
+  EXPECT_NE(k.last_status.find(fallback_file), std::string::npos) << k.last_status;
+  // Held: no intent was sent, the driver keeps the start voltage.
+  ASSERT_FALSE(k.voltages.empty());
+  for (double v : k.voltages) EXPECT_EQ(v, k.voltages.front());
+}
+
+// An axis on its shipped model: model predictions, the encoder fused on every one, where the readings put it.
+void check_fused_axis(const std::string& a, const Counts& k) {
+  EXPECT_EQ(k.fallback, 0) << k.last_status;
+  EXPECT_EQ(k.model_predicted, k.prediction) << "predictions from the model";
+  EXPECT_NE(k.model.find("mm3e_sim_" + a), std::string::npos) << "shipped default model, got " << k.model;
+  EXPECT_EQ(k.fused, k.prediction) << "a fused position with a finite σ on every prediction";
+  EXPECT_EQ(k.model_only, 0) << "the shipped model's estimator fuses the encoder";
+  std::printf(
+      "axis %s: %d predictions fused, last: measured %.1f nm, predicted %.1f nm, fused %.1f nm, 1σ %.1f nm\n",
+      a.c_str(), k.fused, k.last_measured_nm, k.last_predicted_nm, k.last_fused_nm, k.last_sigma_nm);
+  // The fused position sits where the readings put it: within the reading's cell (half a 250 nm step on a and
+  // b) and 3σ of its own and of the noise before the quantiser.
+  const double half_cell_nm = a == "c" ? 0.0 : 125.0;
+  EXPECT_LE(std::abs(k.last_fused_nm - k.last_measured_nm), half_cell_nm + 3.0 * k.last_sigma_nm + 3.0 * 21.0)
+      << "fused far from the readings";
+}
+
+TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
+  ros::NodeHandle nh, pnh("~");
+  const double rate_hz = pnh.param("encoder_rate_hz", 11.0);
+  const std::string fallback_axis = pnh.param<std::string>("fallback_axis", "");
+  const std::string fallback_file = pnh.param<std::string>("fallback_file", "");
+  std::map<std::string, Counts> c;
+  std::vector<ros::Subscriber> subs;
+  bool counting = false;
+  for (const std::string a : {"a", "b", "c"}) subscribe_axis(nh, a, c, counting, subs);
+  // Once every axis predicts, collect 8 s of messages (on their stamps).
+  ASSERT_NO_FATAL_FAILURE(wait_until_every_axis_predicts(nh));
   ros::WallDuration(1.0).sleep();
   ros::spinOnce();
   counting = true;
@@ -134,26 +170,10 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
     expect_rate(k.encoder_stamps, rate_hz, "encoder");
     expect_rate(k.voltage_stamps, rate_hz, "voltage");
     expect_rate(k.prediction_stamps, rate_hz, "prediction");
-    if (a == fallback_axis) {
-      EXPECT_EQ(k.fallback, k.prediction) << "every prediction of the broken-model axis is a fallback";
-      EXPECT_NE(k.last_status.find(fallback_file), std::string::npos) << k.last_status;
-      // Held: no intent was sent, the driver keeps the start voltage.
-      ASSERT_FALSE(k.voltages.empty());
-      for (double v : k.voltages) EXPECT_EQ(v, k.voltages.front());
-    } else {
-      EXPECT_EQ(k.fallback, 0) << k.last_status;
-      EXPECT_EQ(k.model_predicted, k.prediction) << "predictions from the model";
-      EXPECT_NE(k.model.find("mm3e_sim_" + a), std::string::npos) << "shipped default model, got " << k.model;
-      EXPECT_EQ(k.fused, k.prediction) << "a fused position with a finite σ on every prediction";
-      EXPECT_EQ(k.model_only, 0) << "the shipped model's estimator fuses the encoder";
-      std::printf("axis %s: %d predictions fused, last: measured %.1f nm, predicted %.1f nm, fused %.1f nm, 1σ %.1f nm\n",
-                  a.c_str(), k.fused, k.last_measured_nm, k.last_predicted_nm, k.last_fused_nm, k.last_sigma_nm);
-      // The fused position sits where the readings put it: within the reading's cell (half a 250 nm step on a and
-      // b) and 3σ of its own and of the noise before the quantiser.
-      const double half_cell_nm = a == "c" ? 0.0 : 125.0;
-      EXPECT_LE(std::abs(k.last_fused_nm - k.last_measured_nm), half_cell_nm + 3.0 * k.last_sigma_nm + 3.0 * 21.0)
-          << "fused far from the readings";
-    }
+    if (a == fallback_axis)
+      ASSERT_NO_FATAL_FAILURE(check_fallback_axis(k, fallback_file));
+    else
+      check_fused_axis(a, k);
   }
 }
 

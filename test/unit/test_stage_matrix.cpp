@@ -147,7 +147,9 @@ struct SeparateMae {
   double estimate = INFINITY, rest = INFINITY, whole = INFINITY;
   double swept = 0;  // the fraction of the model's training voltage range the start window swept
 };
-SeparateMae separate_mae(const models::Model& model, const SeparateRecording& rec, double anchor_s) {
+// `bounds` false: the criterion alone (rest and whole stay infinite), for rows that print only it.
+SeparateMae separate_mae(const models::Model& model, const SeparateRecording& rec, double anchor_s,
+                         bool bounds = true) {
   const io::Dataset& d = rec.part;
   models::StreamOptions o;
   o.anchor_s = anchor_s;
@@ -159,6 +161,7 @@ SeparateMae separate_mae(const models::Model& model, const SeparateRecording& re
   const std::vector<char> mask = models::scored_mask(r, d.size());
   out.estimate = analysis::error_stats(r.prediction, y, mask).mae_nm;
   out.swept = r.start.swept_fraction();
+  if (!bounds) return out;
   o.anchor_s = 0.0;
   m = model.clone();
   out.rest = analysis::error_stats(models::stream_model(*m, d, "c", o).prediction, y, mask).mae_nm;
@@ -290,7 +293,7 @@ std::string separate_row(const std::string& name, const StageFit& f, const Separ
   for (std::size_t k = 0; k < sel.table.size(); ++k) {
     const auto& r = sel.table[k];
     if (output_map_row(r)) {  // auto's variant of its first choice: scored in the auto cell only
-      if (r.model) sep[k] = separate_mae(*r.model, rec, anchor_s).estimate;
+      if (r.model) sep[k] = separate_mae(*r.model, rec, anchor_s, false).estimate;
       continue;
     }
     if (!r.model) {

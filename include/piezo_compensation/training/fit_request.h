@@ -9,6 +9,10 @@
 
 #include "piezo_compensation/io/dataset.h"
 
+namespace piezo::models {
+class Model;
+}
+
 namespace piezo::training {
 
 class LassoFeatureCache;  // fit_common.h
@@ -29,6 +33,10 @@ struct FitRequest {
   // Optional: the lasso feature sets ("lasso", "voltage_lasso") of fits on the same data, resolved once for all of
   // them (model selection's candidates); null: each fit runs its own lasso. Not owned.
   LassoFeatureCache* lasso_cache = nullptr;
+  // Optional, for options that ask for the output map: the same kind fitted on the same data without it
+  // (model selection's plain candidate), cloned as the alternation's first fit instead of fitted again. Not
+  // owned.
+  const models::Model* plain_fit = nullptr;
 };
 
 }  // namespace piezo::training

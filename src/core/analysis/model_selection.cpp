@@ -568,6 +568,20 @@ std::string unidentified_model_warning(const models::Model& model, const std::st
 }
 
 namespace {
+// The plain fit an output-map variant starts from: the row before it when that is the same kind fitted
+// without options (default_candidates lists each kind, then its variant) and was kept; else null (the variant
+// fits it).
+const models::Model* plain_fit_of(const Selection& sel, const ModelCandidate& cand) {
+  const YAML::Node& o = cand.options;
+  if (sel.table.empty() || !o || !o.IsMap() || o.size() != 1 || !o["output_map"]) return nullptr;
+  const CandidateResult& prev = sel.table.back();
+  const YAML::Node& po = prev.candidate.options;
+  const bool plain = !po || po.IsNull() || (po.IsMap() && po.size() == 0);
+  if (prev.candidate.kind != cand.kind || !plain || prev.candidate.lasso_features || !prev.model)
+    return nullptr;
+  return prev.model.get();
+}
+
 // One candidate fitted on the training part and scored on the validation part (refused with the reason otherwise).
 CandidateResult fit_candidate(const SelectionRequest& rq, const ModelCandidate& cand, const Selection& sel,
                               training::LassoFeatureCache& lasso_cache) {
@@ -578,7 +592,9 @@ CandidateResult fit_candidate(const SelectionRequest& rq, const ModelCandidate& 
   try {
     if (!training::fitter(r.candidate.kind)) throw std::runtime_error("kind cannot be fitted on its own");
     if (r.candidate.lasso_features) r.candidate.options = lasso_linear_options(*rq.train, rq.axis, {});
-    m = training::fit_model(r.candidate.kind, fit_request(rq, r.candidate, *rq.train, rq.validation, &lasso_cache));
+    training::FitRequest fr = fit_request(rq, r.candidate, *rq.train, rq.validation, &lasso_cache);
+    fr.plain_fit = plain_fit_of(sel, r.candidate);
+    m = training::fit_model(r.candidate.kind, fr);
     if (!m) throw std::runtime_error("the fit returned no model");
     m->meta.axis = rq.axis;
     m->meta.sample_rate_hz = rq.train->sample_rate_hz();

@@ -297,11 +297,187 @@ struct Workspace {
 // batches.
 constexpr Index kProjectionColumns = 512;
 
+// One call of sequence_loss_grad: the shapes, the parameter blocks and the views into the workspace that its
+// forward and backward passes share. Storage, all H- or 4H-row matrices of B-column blocks: with the gradient
+// (keep) every scored step is kept, per layer the states h, c of slots 0 (after the warm-up) … T and the
+// gates and tanh(c) of steps 0 … T − 1; the warm-up (and without the gradient every step) updates slot 0 in
+// place.
+struct SequencePass {
+  SequencePass(const double* params, const std::vector<Index>& layer_offset, Index head_offset,
+               const double* gate_coef, const LstmShape& shape, Index T, Index B, int warmup, bool keep,
+               const Eigen::MatrixXd& x, Workspace& ws)
+      : P(params),
+        layer_offset(layer_offset),
+        head_offset(head_offset),
+        gate_coef(gate_coef),
+        inputs(shape.inputs),
+        H(shape.hidden),
+        H4(4 * H),
+        T(T),
+        B(B),
+        S(warmup + T),
+        TB(T * B),
+        L(shape.layers),
+        warmup(warmup),
+        keep(keep),
+        slots(keep ? T + 1 : 1),
+        x(x),
+        ws(ws) {}
+
+  const double* P;
+  const std::vector<Index>& layer_offset;
+  Index head_offset;
+  const double* gate_coef;
+  Index inputs, H, H4, T, B, S, TB;
+  int L, warmup;
+  bool keep;
+  Index slots;
+  const Eigen::MatrixXd& x;
+  Workspace& ws;
+
+  Index layer_inputs(int l) const { return l == 0 ? inputs : H; }
+  // 4H × inputs of layer l, then U (4H × H), then b (4H)
+  const double* W(int l) const { return P + layer_offset[l]; }
+  const double* U(int l) const { return P + layer_offset[l] + H4 * layer_inputs(l); }
+  Eigen::Map<const Eigen::VectorXd> bias(int l) const {
+    return Eigen::Map<const Eigen::VectorXd>(U(l) + H4 * H, H4);
+  }
+  const double* head_weights() const { return P + head_offset; }
+  double* hs(int l, Index s) const { return ws.h.data() + (l * slots + s) * B * H; }
+  double* cs(int l, Index s) const { return ws.c.data() + (l * slots + s) * B * H; }
+  double* gates(int l, Index t) const { return ws.gates.data() + (l * T + t) * B * H4; }
+  double* tanh_c(int l, Index t) const { return ws.tanh_c.data() + (l * T + t) * B * H; }
+
+  void allocate();
+  // Layer 0's input projections b + W x do not depend on the state: one product over a run of steps.
+  void project(Index tau0, Index n, double* dst) const;
+  // The gate block of layer 0 at step tau (its projection is computed here when due).
+  double* layer0_gates(Index tau, Index& proj_begin, Index& proj_end) const;
+  // All layers forward over the warm-up and the scored steps; returns Σ squared errors (ws.err per step).
+  double forward(const Eigen::MatrixXd& ys) const;
+  // The products with Uᵀ and Wᵀ take them transposed, padded with zero rows to Hp (a multiple of 4).
+  const double* transpose_padded(const double* m, Index Hp) const;
+  // Backward, layer by layer from the top; adds the gradient to *grad.
+  void backward(Eigen::VectorXd* grad) const;
+  void backward_layer(int l, Index Hp, Eigen::VectorXd* grad) const;
+};
+
+void SequencePass::allocate() {
+  ws.h.resize(H, L * slots * B);
+  ws.c.resize(H, L * slots * B);
+  if (keep) {
+    ws.gates.resize(H4, L * TB);
+    ws.tanh_c.resize(H, L * TB);
+  }
+  ws.gates_tmp.resize(H4, B);
+  ws.tanh_c_tmp.resize(H, B);
+  ws.err.resize(B, T);
+  for (int l = 0; l < L; ++l) {
+    Eigen::Map<Eigen::MatrixXd>(hs(l, 0), H, B).setZero();
+    Eigen::Map<Eigen::MatrixXd>(cs(l, 0), H, B).setZero();
+  }
+}
+
+void SequencePass::project(Index tau0, Index n, double* dst) const {
+  Eigen::Map<Eigen::MatrixXd>(dst, H4, n * B).colwise() = bias(0);
+  gemm_nn(H4, n * B, inputs, W(0), H4, x.data() + tau0 * B * inputs, 1, inputs, dst, H4);
+}
+
+double* SequencePass::layer0_gates(Index tau, Index& proj_begin, Index& proj_end) const {
+  if (keep && tau >= warmup) {
+    const Index t = tau - warmup;
+    if (tau == warmup) project(warmup, T, gates(0, 0));
+    return gates(0, t);
+  }
+  if (tau >= proj_end) {
+    const Index chunk = std::max<Index>(1, kProjectionColumns / B);
+    const Index n = std::min(chunk, (keep ? warmup : S) - tau);
+    ws.proj.resize(H4, n * B);
+    project(tau, n, ws.proj.data());
+    proj_begin = tau;
+    proj_end = tau + n;
+  }
+  return ws.proj.data() + (tau - proj_begin) * B * H4;
+}
+
+double SequencePass::forward(const Eigen::MatrixXd& ys) const {
+  Index proj_begin = 0, proj_end = 0;  // the steps whose projections are in ws.proj
+  for (Index tau = 0; tau < S; ++tau) {
+    const bool kept = keep && tau >= warmup;
+    const Index t = tau - warmup, si = kept ? t : 0, so = kept ? t + 1 : 0;
+    for (int l = 0; l < L; ++l) {
+      double* g;
+      if (l == 0) {
+        g = layer0_gates(tau, proj_begin, proj_end);
+      } else {
+        g = kept ? gates(l, t) : ws.gates_tmp.data();
+        Eigen::Map<Eigen::MatrixXd>(g, H4, B).colwise() = bias(l);
+        gemm_nn(H4, B, H, W(l), H4, hs(l - 1, so), 1, H, g, H4);
+      }
+      gemm_nn(H4, B, H, U(l), H4, hs(l, si), 1, H, g, H4);
+      activate(g, gate_coef, H4, B);
+      cell(g, cs(l, si), cs(l, so), kept ? tanh_c(l, t) : ws.tanh_c_tmp.data(), hs(l, so), H, B);
+    }
+    if (tau >= warmup)
+      for (Index j = 0; j < B; ++j) ws.err(j, t) = head(head_weights(), hs(L - 1, so) + j * H, H) - ys(t, j);
+  }
+  return ws.err.squaredNorm();
+}
+
+const double* SequencePass::transpose_padded(const double* m, Index Hp) const {  // 4H × H → Hp × 4H
+  ws.transposed.setZero(Hp, H4);
+  ws.transposed.topRows(H) = Eigen::Map<const Eigen::MatrixXd>(m, H4, H).transpose();
+  return ws.transposed.data();
+}
+
+// Within a layer only dh_next = Uᵀ dA is sequential; the weight gradients and what a layer passes down are
+// one product each over all steps. dA overwrites the gates. dh_next and from_above have Hp rows (the last Hp
+// − H zero).
+void SequencePass::backward(Eigen::VectorXd* grad) const {
+  using CMat = Eigen::Map<const Eigen::MatrixXd>;
+  const Index Hp = (H + 3) / 4 * 4;
+  ws.dy =
+      2.0 * Eigen::Map<const Eigen::RowVectorXd>(ws.err.data(), TB);  // column t·B + j: step t, sequence j
+  Eigen::Map<Eigen::VectorXd>(grad->data() + head_offset, H).noalias() +=
+      CMat(hs(L - 1, 1), H, TB) * ws.dy.transpose();
+  (*grad)[head_offset + H] += ws.dy.sum();
+  ws.from_above.setZero(Hp, TB);
+  ws.from_above.topRows(H).noalias() = Eigen::Map<const Eigen::VectorXd>(head_weights(), H) * ws.dy;
+  ws.dh_next.resize(Hp, B);
+  ws.dc_next.resize(H, B);
+  for (int l = L - 1; l >= 0; --l) backward_layer(l, Hp, grad);
+}
+
+void SequencePass::backward_layer(int l, Index Hp, Eigen::VectorXd* grad) const {
+  using CMat = Eigen::Map<const Eigen::MatrixXd>;
+  ws.dh_next.setZero();
+  ws.dc_next.setZero();
+  const double* ut = transpose_padded(U(l), Hp);
+  for (Index t = T - 1; t >= 0; --t) {
+    cell_backward(gates(l, t), tanh_c(l, t), cs(l, t), ws.from_above.data() + t * B * Hp, ws.dh_next.data(),
+                  Hp, ws.dc_next.data(), H, B);
+    if (t > 0) {
+      ws.dh_next.setZero();
+      gemm_nn(Hp, B, H4, ut, Hp, gates(l, t), 1, H4, ws.dh_next.data(), Hp);
+    }
+  }
+  const Index in = layer_inputs(l);
+  double* gp = grad->data() + layer_offset[l];
+  const double* input = l == 0 ? x.data() + warmup * B * in : hs(l - 1, 1);
+  gemm_nn(H4, in, TB, gates(l, 0), H4, input, in, 1, gp, H4);
+  gemm_nn(H4, H, TB, gates(l, 0), H4, hs(l, 0), H, 1, gp + H4 * in, H4);
+  Eigen::Map<Eigen::VectorXd>(gp + H4 * (in + H), H4) += CMat(gates(l, 0), H4, TB).rowwise().sum();
+  if (l > 0) {
+    ws.from_above.setZero();
+    gemm_nn(Hp, TB, H4, transpose_padded(W(l), Hp), Hp, gates(l, 0), 1, H4, ws.from_above.data(), Hp);
+  }
+}
+
 }  // namespace lstm_kernels
 }  // namespace
 
-double LstmNet::step(const double* params, const double* x, const double* h_in, const double* c_in, double* h_out,
-                     double* c_out) const {
+double LstmNet::step(const double* params, const double* x, const double* h_in, const double* c_in,
+                     double* h_out, double* c_out) const {
   using namespace lstm_kernels;
   const Index H = shape_.hidden, H4 = 4 * H;
   double g[4 * kMaxHidden], tc[kMaxHidden];
@@ -337,128 +513,17 @@ double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const std::vec
 double LstmNet::sequence_loss_grad(const Eigen::VectorXd& params, const Eigen::MatrixXd& x,
                                    const Eigen::MatrixXd& ys, int warmup, Eigen::VectorXd* grad) const {
   using namespace lstm_kernels;
-  using CMat = Eigen::Map<const Eigen::MatrixXd>;
-  const Index H = shape_.hidden, H4 = 4 * H, T = ys.rows(), B = ys.cols(), S = warmup + T, TB = T * B;
-  const int L = shape_.layers;
+  const Index T = ys.rows(), B = ys.cols(), S = warmup + T;
   if (warmup < 0 || x.rows() != shape_.inputs || x.cols() != S * B)
     throw std::runtime_error("lstm: sequence length mismatch");
   if (T == 0 || B == 0) return 0.0;
-  const double* P = params.data();
-  auto W = [&](int l) {
-    return P + layer_offset_[l];
-  };  // 4H × inputs of layer l, then U (4H × H), then b (4H)
-  auto U = [&](int l) { return P + layer_offset_[l] + H4 * layer_inputs(l); };
-  auto bias = [&](int l) { return Eigen::Map<const Eigen::VectorXd>(U(l) + H4 * H, H4); };
-  const double* wh = P + head_offset_;
-
-  // Storage, all H- or 4H-row matrices of B-column blocks. With the gradient every scored step is kept: per
-  // layer the states h, c of slots 0 (after the warm-up) … T, and the gates and tanh(c) of steps 0 … T − 1;
-  // the warm-up (and without the gradient every step) updates slot 0 in place.
   thread_local Workspace ws;
-  const bool keep = grad != nullptr;
-  const Index slots = keep ? T + 1 : 1;
-  ws.h.resize(H, L * slots * B);
-  ws.c.resize(H, L * slots * B);
-  if (keep) {
-    ws.gates.resize(H4, L * TB);
-    ws.tanh_c.resize(H, L * TB);
-  }
-  ws.gates_tmp.resize(H4, B);
-  ws.tanh_c_tmp.resize(H, B);
-  ws.err.resize(B, T);
-  auto hs = [&](int l, Index s) { return ws.h.data() + (l * slots + s) * B * H; };
-  auto cs = [&](int l, Index s) { return ws.c.data() + (l * slots + s) * B * H; };
-  auto gates = [&](int l, Index t) { return ws.gates.data() + (l * T + t) * B * H4; };
-  auto tanh_c = [&](int l, Index t) { return ws.tanh_c.data() + (l * T + t) * B * H; };
-  for (int l = 0; l < L; ++l) {
-    Eigen::Map<Eigen::MatrixXd>(hs(l, 0), H, B).setZero();
-    Eigen::Map<Eigen::MatrixXd>(cs(l, 0), H, B).setZero();
-  }
-
-  // Layer 0's input projections b + W x do not depend on the state: one product over a run of steps.
-  auto project = [&](Index tau0, Index n, double* dst) {
-    Eigen::Map<Eigen::MatrixXd>(dst, H4, n * B).colwise() = bias(0);
-    gemm_nn(H4, n * B, shape_.inputs, W(0), H4, x.data() + tau0 * B * shape_.inputs, 1, shape_.inputs, dst,
-            H4);
-  };
-  const Index chunk = std::max<Index>(1, kProjectionColumns / B);
-  Index proj_begin = 0, proj_end = 0;  // the steps whose projections are in ws.proj
-  for (Index tau = 0; tau < S; ++tau) {
-    const bool kept = keep && tau >= warmup;
-    const Index t = tau - warmup, si = kept ? t : 0, so = kept ? t + 1 : 0;
-    for (int l = 0; l < L; ++l) {
-      double* g;
-      if (l == 0) {
-        if (kept) {
-          if (tau == warmup) project(warmup, T, gates(0, 0));
-          g = gates(0, t);
-        } else {
-          if (tau >= proj_end) {
-            const Index n = std::min(chunk, (keep ? warmup : S) - tau);
-            ws.proj.resize(H4, n * B);
-            project(tau, n, ws.proj.data());
-            proj_begin = tau;
-            proj_end = tau + n;
-          }
-          g = ws.proj.data() + (tau - proj_begin) * B * H4;
-        }
-      } else {
-        g = kept ? gates(l, t) : ws.gates_tmp.data();
-        Eigen::Map<Eigen::MatrixXd>(g, H4, B).colwise() = bias(l);
-        gemm_nn(H4, B, H, W(l), H4, hs(l - 1, so), 1, H, g, H4);
-      }
-      gemm_nn(H4, B, H, U(l), H4, hs(l, si), 1, H, g, H4);
-      activate(g, gate_coef_.data(), H4, B);
-      cell(g, cs(l, si), cs(l, so), kept ? tanh_c(l, t) : ws.tanh_c_tmp.data(), hs(l, so), H, B);
-    }
-    if (tau >= warmup)
-      for (Index j = 0; j < B; ++j) ws.err(j, t) = head(wh, hs(L - 1, so) + j * H, H) - ys(t, j);
-  }
-  const double loss = ws.err.squaredNorm();
+  SequencePass pass(params.data(), layer_offset_, head_offset_, gate_coef_.data(), shape_, T, B, warmup,
+                    grad != nullptr, x, ws);
+  pass.allocate();
+  const double loss = pass.forward(ys);
   if (!grad) return loss;
-
-  // Backward, layer by layer from the top: within a layer only dh_next = Uᵀ dA is sequential; the weight
-  // gradients and what a layer passes down are one product each over all steps. dA overwrites the gates. The
-  // products with Uᵀ and Wᵀ take them transposed, padded with zero rows to Hp (a multiple of 4), so dh_next
-  // and from_above have Hp rows (the last Hp − H zero).
-  const Index Hp = (H + 3) / 4 * 4;
-  auto transpose_padded = [&](const double* m) {  // 4H × H → Hp × 4H
-    ws.transposed.setZero(Hp, H4);
-    ws.transposed.topRows(H) = CMat(m, H4, H).transpose();
-    return ws.transposed.data();
-  };
-  ws.dy =
-      2.0 * Eigen::Map<const Eigen::RowVectorXd>(ws.err.data(), TB);  // column t·B + j: step t, sequence j
-  Eigen::Map<Eigen::VectorXd>(grad->data() + head_offset_, H).noalias() +=
-      CMat(hs(L - 1, 1), H, TB) * ws.dy.transpose();
-  (*grad)[head_offset_ + H] += ws.dy.sum();
-  ws.from_above.setZero(Hp, TB);
-  ws.from_above.topRows(H).noalias() = Eigen::Map<const Eigen::VectorXd>(wh, H) * ws.dy;
-  ws.dh_next.resize(Hp, B);
-  ws.dc_next.resize(H, B);
-  for (int l = L - 1; l >= 0; --l) {
-    ws.dh_next.setZero();
-    ws.dc_next.setZero();
-    const double* ut = transpose_padded(U(l));
-    for (Index t = T - 1; t >= 0; --t) {
-      cell_backward(gates(l, t), tanh_c(l, t), cs(l, t), ws.from_above.data() + t * B * Hp, ws.dh_next.data(),
-                    Hp, ws.dc_next.data(), H, B);
-      if (t > 0) {
-        ws.dh_next.setZero();
-        gemm_nn(Hp, B, H4, ut, Hp, gates(l, t), 1, H4, ws.dh_next.data(), Hp);
-      }
-    }
-    const Index in = layer_inputs(l);
-    double* gp = grad->data() + layer_offset_[l];
-    const double* input = l == 0 ? x.data() + warmup * B * in : hs(l - 1, 1);
-    gemm_nn(H4, in, TB, gates(l, 0), H4, input, in, 1, gp, H4);
-    gemm_nn(H4, H, TB, gates(l, 0), H4, hs(l, 0), H, 1, gp + H4 * in, H4);
-    Eigen::Map<Eigen::VectorXd>(gp + H4 * (in + H), H4) += CMat(gates(l, 0), H4, TB).rowwise().sum();
-    if (l > 0) {
-      ws.from_above.setZero();
-      gemm_nn(Hp, TB, H4, transpose_padded(W(l)), Hp, gates(l, 0), 1, H4, ws.from_above.data(), Hp);
-    }
-  }
+  pass.backward(grad);
   return loss;
 }
 

@@ -128,6 +128,16 @@ YAML::Node same_structure(const PiCreepModel& m, const YAML::Node& options) {
   return o;
 }
 
+// The plain fit as the kind's own fit returns it: without what fit_model adds afterwards (the training spans,
+// the data's origin, the state prior, which the variant learns for itself).
+models::ModelPtr plain_fit_as_fitted(const models::Model& plain) {
+  models::ModelPtr m = plain.clone();
+  m->meta.trained_on.clear();
+  m->meta.fitted_on.clear();
+  m->meta.state_prior.clear();
+  return m;
+}
+
 }  // namespace
 
 std::string output_map_option(const YAML::Node& options) {
@@ -138,7 +148,7 @@ std::string output_map_option(const YAML::Node& options) {
 }
 
 models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const FitFn& fit) {
-  models::ModelPtr first = fit(req);
+  models::ModelPtr first = req.plain_fit ? plain_fit_as_fitted(*req.plain_fit) : fit(req);
   PiCreepModel* base = first->pi_family();
   if (!base) return first;
   const bool validate = req.validation && req.validation->has_axis(req.axis) && !always;
@@ -151,6 +161,7 @@ models::ModelPtr fit_with_output_map(const FitRequest& req, bool always, const F
   PiCreepModel* refit = base;
   FitRequest r = req;
   r.lasso_cache = nullptr;
+  r.plain_fit = nullptr;
   r.options.reset(same_structure(*base, req.options));  // reset: assignment would write into the caller's node
   io::Dataset shifted = *req.train;
   for (int pass = 0; pass < kMapPasses; ++pass) {

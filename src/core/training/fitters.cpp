@@ -94,6 +94,7 @@ models::ModelPtr fit_recordings(const FitFn& fit, const FitRequest& request) {
   r.train = &train;
   r.validation = request.validation ? &val : nullptr;
   r.lasso_cache = nullptr;  // the shifted positions are other data
+  r.plain_fit = nullptr;
   std::vector<double> offsets = fixed_effect_offsets(train, request.axis);
   shift_recordings(train, request.axis, offsets);
   if (r.validation) shift_recordings(val, request.axis, fixed_effect_offsets(val, request.axis));
