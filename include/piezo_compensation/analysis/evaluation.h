@@ -78,12 +78,16 @@ struct ZeroedHold {
   double creep_error_nm() const { return creep_predicted_nm - creep_measured_nm; }
 };
 
+// The identification check's limit (analysis::Identification, model selection): a carry-over ratio above it means
+// half the training recording did not predict its other half.
+constexpr double kCarryOverAdvised = 2.0;
+
 struct ModelEvaluation {
   std::string name, kind;
   std::size_t num_parameters = 0;
   bool uses_positions = false;
   // The model file's validation carry_over_ratio (`piezo fit`'s identification check; NaN when it has none): over
-  // 2 its training recording did not identify it, and errors on new data may come from that.
+  // kCarryOverAdvised its training recording did not identify it, and errors on new data may come from that.
   double carry_over_ratio = NAN;
   SetMetrics hysteresis;  // test data outside holds (random walk / sweeps), after the warm-up
   SetMetrics creep;       // hold samples of the creep data

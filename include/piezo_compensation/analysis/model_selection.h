@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "piezo_compensation/analysis/evaluation.h"
 #include "piezo_compensation/analysis/metrics.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/io/holds.h"
@@ -200,8 +201,8 @@ struct CandidateResult {
 // each with the noise added,
 //   ratio = (carry-over + noise) / (validation + noise).
 // Over kCarryOverAdvised, half the recording does not predict its other half: the recording is too short or too
-// narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part says.
-constexpr double kCarryOverAdvised = 2.0;
+// narrow to pin the kind's parameters, and a separate recording is likely to be worse than the validation part says
+// (kCarryOverAdvised is in evaluation.h: `piezo eval` reads the stored ratio against it too).
 struct Identification {
   double carry_nm = NAN, validation_nm = NAN, noise_nm = 0.0;
   std::string unchecked;  // why there is no ratio (empty when there is one)

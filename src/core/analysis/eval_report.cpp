@@ -6,7 +6,6 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/util/json_writer.h"
 
 namespace piezo::analysis {

@@ -5,7 +5,6 @@
 #include <cstdio>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/model_selection.h"
 #include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/models/model_file.h"
