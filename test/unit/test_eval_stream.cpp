@@ -5,7 +5,7 @@
 #include <cmath>
 #include <map>
 
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/compensation/drift_forecast.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"

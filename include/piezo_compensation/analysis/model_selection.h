@@ -14,8 +14,8 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/evaluation.h"
-#include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/metrics.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/models/registry.h"

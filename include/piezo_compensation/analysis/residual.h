@@ -12,7 +12,7 @@
 #include <utility>
 #include <vector>
 
-#include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/analysis/evaluation/metrics.h"
 #include "piezo_compensation/analysis/residual_acceptance.h"
 #include "piezo_compensation/analysis/residual_families.h"
 #include "piezo_compensation/io/dataset.h"
@@ -156,7 +156,7 @@ struct StepChange {
 // What is left after the last accepted effect, tested against the noise floor estimated from the data.
 struct Remainder {
   bool explained = true;       // false: structure above the floor remains ("not explained")
-  double noise_sigma_nm = 0;   // reading noise σ estimated from the data (analysis/noise_floor.h)
+  double noise_sigma_nm = 0;   // reading noise σ estimated from the data (analysis/evaluation/noise_floor.h)
   std::string noise_floor;     // how (NoiseFloor::describe())
   double structure_nm = 0;     // RMS of the slow part above what the noise alone gives [nm]
   double p_value = 1.0;        // block means against white noise of that σ

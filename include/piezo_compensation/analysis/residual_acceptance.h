@@ -3,7 +3,7 @@
 // (FamilyScore, analysis/residual.h): tested on hand-made score vectors (test_residual_acceptance).
 //
 // The size of an effect is judged against the measurement's own noise, not as a fixed share of the MAE. The
-// validation error's mean square is the reading noise's σ² (estimated from the data, analysis/noise_floor.h) plus
+// validation error's mean square is the reading noise's σ² (estimated from the data, analysis/evaluation/noise_floor.h) plus
 // the systematic error the model makes; a candidate must remove a real share of that systematic error, more than
 // a 30-s average of the readings can resolve, and be clearly better over paired 5-min blocks. (Equivalently: its
 // Gaussian log-likelihood gain with the estimated σ, n·ΔMSE/2σ², set against the model's own misfit.) A fixed

@@ -30,7 +30,7 @@ struct Context {
   // model (the live model has the true history).
   std::vector<double> transient_taus_s;
   std::vector<std::vector<double>> transient;
-  double noise_sigma_nm = 0.0;  // reading noise σ estimated from TRAIN (analysis/noise_floor.h)
+  double noise_sigma_nm = 0.0;  // reading noise σ estimated from TRAIN (analysis/evaluation/noise_floor.h)
   // Longest low-pass time constant a variant may have (0 = no limit): the loop sets Validator::max_time_constant_s,
   // half the validation part; a longer one is a time constant the validation rows cannot judge.
   double max_time_constant_s = 0.0;

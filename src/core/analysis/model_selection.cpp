@@ -6,8 +6,8 @@
 #include <iomanip>
 #include <sstream>
 
-#include "piezo_compensation/analysis/evaluation.h"
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/io/holds.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_stream.h"

@@ -13,8 +13,8 @@
 #include <stdexcept>
 
 #include "piezo_compensation/analysis/estimator_fit.h"
-#include "piezo_compensation/analysis/evaluation.h"
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/analysis/residual_backfit.h"
 #include "piezo_compensation/analysis/residual_context.h"
 #include "piezo_compensation/models/model_stream.h"

@@ -5,7 +5,7 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/util/stats.h"
 
@@ -172,7 +172,7 @@ Remainder assess_remainder(const std::vector<double>& residual, const std::vecto
     throw std::invalid_argument("assess_remainder: sizes differ");
   const std::size_t used = mask.empty() ? n : static_cast<std::size_t>(std::count(mask.begin(), mask.end(), 1));
   if (used < 20) return out;
-  // σ from the data (analysis/noise_floor.h: second differences in holds, else of this residual).
+  // σ from the data (analysis/evaluation/noise_floor.h: second differences in holds, else of this residual).
   const NoiseFloor nf = estimate_noise_floor(data, axis, &position);
   out.noise_sigma_nm = nf.sigma_nm;
   out.noise_floor = nf.describe();

@@ -6,7 +6,7 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/util/json_writer.h"

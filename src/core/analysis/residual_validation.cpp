@@ -5,7 +5,7 @@
 #include <cmath>
 #include <sstream>
 
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/training/fit_common.h"
 
 namespace piezo::analysis::detail {

@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/strip_chart.h"
+#include "piezo_compensation/analysis/evaluation/strip_chart.h"
 
 #include <algorithm>
 #include <cmath>

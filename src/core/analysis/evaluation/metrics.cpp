@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/analysis/evaluation/metrics.h"
 
 #include <stdexcept>
 #include <string>

@@ -12,7 +12,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 
 namespace piezo::analysis {
 

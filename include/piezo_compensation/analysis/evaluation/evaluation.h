@@ -8,7 +8,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/analysis/evaluation/metrics.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/model.h"
 #include "piezo_compensation/models/start_state.h"

@@ -6,7 +6,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 
 namespace piezo::analysis {
 

@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/recording_summary.h"
+#include "piezo_compensation/analysis/evaluation/recording_summary.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/eval_report.h"
+#include "piezo_compensation/analysis/evaluation/eval_report.h"
 
 #include <algorithm>
 #include <cstdio>

@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 
 #include <algorithm>
 #include <cmath>

@@ -1,11 +1,11 @@
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 
 #include <algorithm>
 #include <cmath>
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/metrics.h"
+#include "piezo_compensation/analysis/evaluation/metrics.h"
 #include "piezo_compensation/util/stats.h"
 
 namespace piezo::analysis {
