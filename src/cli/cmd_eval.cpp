@@ -10,7 +10,7 @@
 #include "training_rows.h"
 #include "plot_script.h"
 #include "piezo_compensation/analysis/evaluation/eval_report.h"
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"

@@ -12,7 +12,7 @@
 #include "command.h"
 #include "training_rows.h"
 #include "plot_script.h"
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/analysis/estimator_fit.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/analysis/residual_report.h"

@@ -13,7 +13,7 @@
 #include <map>
 #include <set>
 
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/analysis/evaluation/metrics.h"
 #include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/models/model_stream.h"

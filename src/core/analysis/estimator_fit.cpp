@@ -2,7 +2,7 @@
 
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/estimation/forecast.h"
 #include "piezo_compensation/models/model_stream.h"

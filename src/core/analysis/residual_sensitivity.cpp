@@ -12,7 +12,7 @@
 #include <stdexcept>
 
 #include "piezo_compensation/analysis/estimator_fit.h"
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/analysis/residual.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/protocols/protocol.h"

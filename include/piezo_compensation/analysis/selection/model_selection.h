@@ -43,8 +43,9 @@ struct ValidationScore {
   bool finite = true;                         // false: the model predicted NaN/inf (free_run then invalid)
   std::string failure;                        // why the prediction failed, when !finite
 };
+// `prediction` (optional) receives the predicted series, for the slow scores of the same run.
 ValidationScore score_validation(const models::Model& model, const io::Dataset& data, std::size_t score_from,
-                                 const std::string& axis);
+                                 const std::string& axis, SeriesPrediction* prediction = nullptr);
 // Writes the figures into model.meta.validation (free_run_mae_nm, one_step_mae_nm, ..._vs_truth_nm, hold_...).
 void store_validation(const ValidationScore& score, models::Model& model);
 
