@@ -11,7 +11,7 @@
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/models/model_stream.h"
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "test_residual_common.h"
 
 namespace pm = piezo::models;

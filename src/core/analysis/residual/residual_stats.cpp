@@ -6,7 +6,7 @@
 #include <numeric>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/util/stats.h"
 
 namespace piezo::analysis {

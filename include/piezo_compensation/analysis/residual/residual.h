@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "piezo_compensation/analysis/evaluation/metrics.h"
-#include "piezo_compensation/analysis/residual_acceptance.h"
-#include "piezo_compensation/analysis/residual_families.h"
+#include "piezo_compensation/analysis/residual/residual_acceptance.h"
+#include "piezo_compensation/analysis/residual/residual_families.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model.h"
@@ -22,7 +22,7 @@
 
 namespace piezo::analysis {
 
-// The effect families by name, read from the family table (analysis/residual_families.h), in report order.
+// The effect families by name, read from the family table (analysis/residual/residual_families.h), in report order.
 const std::vector<std::string>& residual_family_names();
 // Gain families scale the base output (or the voltage) by 1 + f(signal): time_gain, cross_axis_gain, aux_gain.
 bool is_gain_family(const std::string& family);
@@ -66,7 +66,7 @@ struct FamilyScore {
   double hold_validation_gain = 0.0;  // the same inside holds (0 without holds)
   std::pair<double, double> validation_gain_halves{0.0, 0.0};  // the same in the first and second half of validation
   bool half_clearly_worse = false;  // a half where the errors are clearly higher with it (paired 5-min blocks)
-  // The noise-aware size (analysis/residual_acceptance.h), on the validation part: the systematic error is the
+  // The noise-aware size (analysis/residual/residual_acceptance.h), on the validation part: the systematic error is the
   // validation MSE less the reading noise's σ² estimated from the data.
   double systematic_nm = 0.0;     // with it, √(MSE − σ²) [nm]
   double removed_fraction = 0.0;  // share of the systematic error (MSE − σ²) without it that it removes

@@ -1,5 +1,5 @@
 // Sensitivity of the residual loop: how often it names an effect of a given size, and how often it adds anything
-// to a stage without one. A harness around trace_residual (analysis/residual.h), which itself never reads
+// to a stage without one. A harness around trace_residual (analysis/residual/residual.h), which itself never reads
 // simulator settings: here the simulator builds the stages, each effect planted at a size in units of the reading
 // noise σ (the RMS of what it adds to the readings over σ), and the loop is run on them blind.
 #pragma once
@@ -9,7 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 
 namespace piezo::analysis {
 

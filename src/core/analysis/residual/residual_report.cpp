@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/residual_report.h"
+#include "piezo_compensation/analysis/residual/residual_report.h"
 
 #include <cmath>
 #include <fstream>

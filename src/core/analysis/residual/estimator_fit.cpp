@@ -1,4 +1,4 @@
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 
 #include <stdexcept>
 

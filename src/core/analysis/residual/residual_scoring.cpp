@@ -4,7 +4,7 @@
 #include <cmath>
 #include <sstream>
 
-#include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/analysis/residual/residual_context.h"
 
 namespace piezo::analysis::detail {
 

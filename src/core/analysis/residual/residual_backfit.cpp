@@ -1,5 +1,5 @@
 // Backfitting base and effect terms after an effect is added.
-#include "piezo_compensation/analysis/residual_backfit.h"
+#include "piezo_compensation/analysis/residual/residual_backfit.h"
 
 #include "piezo_compensation/training/fit_common.h"
 

@@ -1,11 +1,11 @@
 // The acceptance policy of the residual loop: named rules in order, each a verdict with its reason.
-#include "piezo_compensation/analysis/residual_acceptance.h"
+#include "piezo_compensation/analysis/residual/residual_acceptance.h"
 
 #include <cmath>
 #include <sstream>
 
-#include "piezo_compensation/analysis/residual.h"
-#include "piezo_compensation/analysis/residual_families.h"
+#include "piezo_compensation/analysis/residual/residual.h"
+#include "piezo_compensation/analysis/residual/residual_families.h"
 
 namespace piezo::analysis {
 

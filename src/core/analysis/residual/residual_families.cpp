@@ -1,5 +1,5 @@
 // The family table and each family's candidate generator (variants of lag, low-pass, signal, form).
-#include "piezo_compensation/analysis/residual_families.h"
+#include "piezo_compensation/analysis/residual/residual_families.h"
 
 #include <algorithm>
 #include <cmath>
@@ -7,7 +7,7 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/analysis/residual/residual_context.h"
 
 namespace piezo::analysis {
 
@@ -47,7 +47,7 @@ const FamilyTraits& traits_of(const std::string& name) {
   throw std::invalid_argument("unknown effect family '" + name + "'");
 }
 
-// The string interface of analysis/residual.h, read from the table.
+// The string interface of analysis/residual/residual.h, read from the table.
 const std::vector<std::string>& residual_family_names() {
   static const std::vector<std::string> names = [] {
     std::vector<std::string> v;

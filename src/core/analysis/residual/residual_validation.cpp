@@ -1,5 +1,5 @@
 // Validation of effect terms: fit on TRAIN's first part, score on the rest; a family's variant refined there.
-#include "piezo_compensation/analysis/residual_validation.h"
+#include "piezo_compensation/analysis/residual/residual_validation.h"
 
 #include <algorithm>
 #include <cmath>

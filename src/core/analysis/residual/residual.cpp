@@ -3,7 +3,7 @@
 // generators (residual_families.cpp), scoring (residual_scoring.cpp), validation (residual_validation.cpp), the
 // acceptance policy (residual_acceptance.cpp), the Backfitter (residual_backfit.cpp), the remainder assessment
 // (residual_remainder.cpp).
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 
 #include <algorithm>
 #include <cmath>
@@ -12,13 +12,13 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 #include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/analysis/evaluation/noise_floor.h"
-#include "piezo_compensation/analysis/residual_backfit.h"
-#include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/analysis/residual/residual_backfit.h"
+#include "piezo_compensation/analysis/residual/residual_context.h"
 #include "piezo_compensation/models/model_stream.h"
-#include "piezo_compensation/analysis/residual_validation.h"
+#include "piezo_compensation/analysis/residual/residual_validation.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/pi_model.h"
 #include "piezo_compensation/util/flush_subnormals.h"

@@ -1,6 +1,6 @@
 // Building blocks the residual loop's parts share (analysis/residual*.cpp): what the loop knows about TRAIN,
 // the fitted level of the residual, the streamed regressors of effect terms and their joint fit. Not a tool
-// interface: use trace_residual (analysis/residual.h).
+// interface: use trace_residual (analysis/residual/residual.h).
 #pragma once
 
 #include <cstddef>
@@ -8,8 +8,8 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/residual.h"
-#include "piezo_compensation/analysis/residual_families.h"
+#include "piezo_compensation/analysis/residual/residual.h"
+#include "piezo_compensation/analysis/residual/residual_families.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/augmented_model.h"
 

@@ -1,11 +1,11 @@
-// Writes the result of the residual loop (analysis/residual.h) to a directory: report.md, report.json (via
+// Writes the result of the residual loop (analysis/residual/residual.h) to a directory: report.md, report.json (via
 // util::JsonWriter), predictions.csv, explain.csv (residual per step and each effect's explaining variable, for
 // scripts/plotting/residual_plots.py) and model.yaml (the augmented model).
 #pragma once
 
 #include <string>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 
 namespace piezo::analysis {
 

@@ -1,6 +1,6 @@
 // Validation of effect terms in the residual loop: terms fitted on TRAIN's first part, scored on the rest
 // (overall, inside holds, in both halves, per paired block), and a family's best variant refined there (a gain's
-// form, a low-pass's τ). Fills the FamilyScore fields the acceptance rules read (analysis/residual_acceptance.h).
+// form, a low-pass's τ). Fills the FamilyScore fields the acceptance rules read (analysis/residual/residual_acceptance.h).
 #pragma once
 
 #include <cstddef>
@@ -8,7 +8,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/analysis/residual/residual_context.h"
 
 namespace piezo::analysis::detail {
 

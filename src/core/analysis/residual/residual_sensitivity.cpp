@@ -1,6 +1,6 @@
 // The residual loop's sensitivity harness: simulated stages with one planted effect of a known size, the loop
-// run blind on each (analysis/residual_sensitivity.h).
-#include "piezo_compensation/analysis/residual_sensitivity.h"
+// run blind on each (analysis/residual/residual_sensitivity.h).
+#include "piezo_compensation/analysis/residual/residual_sensitivity.h"
 
 #include <algorithm>
 #include <chrono>
@@ -11,9 +11,9 @@
 #include <sstream>
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 #include "piezo_compensation/analysis/selection/model_selection.h"
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"

@@ -1,6 +1,6 @@
 // The residual loop's acceptance policy: named rules applied in order to every family scored in a round, each
 // returning a verdict with its reason, and the choice of the one effect added. Pure functions of the scores
-// (FamilyScore, analysis/residual.h): tested on hand-made score vectors (test_residual_acceptance).
+// (FamilyScore, analysis/residual/residual.h): tested on hand-made score vectors (test_residual_acceptance).
 //
 // The size of an effect is judged against the measurement's own noise, not as a fixed share of the MAE. The
 // validation error's mean square is the reading noise's σ² (estimated from the data, analysis/evaluation/noise_floor.h) plus

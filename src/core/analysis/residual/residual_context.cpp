@@ -1,5 +1,5 @@
 // Shared building blocks of the residual loop: streamed regressors, the joint fit of effect terms, predictions.
-#include "piezo_compensation/analysis/residual_context.h"
+#include "piezo_compensation/analysis/residual/residual_context.h"
 #include "piezo_compensation/util/stats.h"
 
 #include <Eigen/Dense>

@@ -7,7 +7,7 @@
 #include <utility>
 #include <vector>
 
-#include "piezo_compensation/analysis/residual_validation.h"
+#include "piezo_compensation/analysis/residual/residual_validation.h"
 
 namespace piezo::analysis::detail {
 
