@@ -1,4 +1,4 @@
-# analysis/residual*: the residual loop, its augmented model kind, tests.
+# analysis/residual/: the residual loop, its augmented model kind, tests.
 piezo_unit_test(test_residual_stats test/unit/test_residual_stats.cpp)
 piezo_unit_test(test_residual_acceptance test/unit/test_residual_acceptance.cpp)
 piezo_unit_test(test_residual_validation test/unit/test_residual_validation.cpp)

@@ -9,9 +9,9 @@
 #include "command.h"
 #include "training_rows.h"
 #include "plot_script.h"
-#include "piezo_compensation/analysis/eval_report.h"
-#include "piezo_compensation/analysis/model_selection.h"
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/eval_report.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/util/progress_bar.h"
@@ -53,7 +53,7 @@ int run(int argc, char** argv) {
              "voltage unchanged for at least 60 s)", false)
       .option("axis", "a|b|c", "axis (default: the models' axis)")
       .option("noise-sigma-nm", "NM", "encoder noise σ for the floor and the Fig. 14 band (default: estimated from the\n"
-              "test data's holds, analysis/noise_floor.h)")
+              "test data's holds, analysis/evaluation/noise_floor.h)")
       .option("warmup-s", "T", "do not score the first T of the test data (seconds, or 30s, 10min)", "0")
       .option("anchor-s", "T", "the first T of measured position fix each model's start state and offset (docs/models.md,\n"
               "\"Start-up state estimate\"); scored after them", "0")

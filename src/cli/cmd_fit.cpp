@@ -4,8 +4,8 @@
 
 #include "args.h"
 #include "command.h"
-#include "piezo_compensation/analysis/estimator_fit.h"
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/models/registry.h"

@@ -18,7 +18,7 @@
 #include "args.h"
 #include "command.h"
 #include "plot_script.h"
-#include "piezo_compensation/analysis/recording_summary.h"
+#include "piezo_compensation/analysis/evaluation/recording_summary.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"

@@ -5,7 +5,7 @@
 
 #include "args.h"
 #include "command.h"
-#include "piezo_compensation/analysis/residual_sensitivity.h"
+#include "piezo_compensation/analysis/residual/residual_sensitivity.h"
 
 namespace piezo::cli {
 namespace {

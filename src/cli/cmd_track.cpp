@@ -11,7 +11,7 @@
 #include "command.h"
 #include "training_rows.h"
 #include "plot_script.h"
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 #include "piezo_compensation/compensation/track.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/ros/data_file.h"

@@ -2,7 +2,7 @@
 
 #include <stdexcept>
 
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/compensation/model_check.h"
 #include "piezo_compensation/ros/interfaces.h"
 #include "piezo_compensation/ros/params.h"

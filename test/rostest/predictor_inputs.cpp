@@ -46,7 +46,7 @@ piezo::models::EffectTerm linear_term(const std::string& signal, const std::stri
   return t;
 }
 
-// A stroke gain driven by the low-passed temperature, the form analysis/residual.cpp writes for aux_gain:
+// A stroke gain driven by the low-passed temperature, the form analysis/residual/residual.cpp writes for aux_gain:
 // the base output scaled by 1 + gain_per_c · (lowpass_τ(T) − T0).
 piezo::models::EffectTerm temperature_gain(double t0_c, double tau_s, double gain_per_c) {
   piezo::models::EffectTerm t;

@@ -11,7 +11,7 @@
 #include <functional>
 #include <string>
 
-#include "piezo_compensation/analysis/recording_summary.h"
+#include "piezo_compensation/analysis/evaluation/recording_summary.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/data_file.h"
 #include "piezo_compensation/ros/recorder.h"

@@ -177,7 +177,7 @@ TEST(SimLaunch, EveryAxisPublishesAtTheEncoderRate) {
   }
 }
 
-// The monitor's strip chart of each fused axis carries the fused ±1σ band (analysis/strip_chart.h: triangles
+// The monitor's strip chart of each fused axis carries the fused ±1σ band (analysis/evaluation/strip_chart.h: triangles
 // between consecutive samples that both have a σ).
 TEST(SimLaunch, TheMonitorDrawsTheFusedBand) {
   ros::NodeHandle nh, pnh("~");

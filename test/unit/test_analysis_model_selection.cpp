@@ -8,7 +8,7 @@
 #include <functional>
 #include <random>
 
-#include "piezo_compensation/analysis/model_selection.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/sim/stage.h"

@@ -3,7 +3,7 @@
 
 #include <cmath>
 
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/sim/stage.h"
 
 using namespace piezo;

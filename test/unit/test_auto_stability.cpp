@@ -7,8 +7,8 @@
 
 #include <cstdio>
 
-#include "piezo_compensation/analysis/model_selection.h"
-#include "piezo_compensation/analysis/residual_sensitivity.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
+#include "piezo_compensation/analysis/residual/residual_sensitivity.h"
 
 using namespace piezo;
 

@@ -3,8 +3,8 @@
 #include <filesystem>
 #include <fstream>
 
-#include "piezo_compensation/analysis/eval_report.h"
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/eval_report.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/features/feature_specs.h"
 #include "piezo_compensation/models/linear_model.h"
 #include "piezo_compensation/models/pi_model.h"

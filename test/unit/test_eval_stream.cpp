@@ -5,13 +5,13 @@
 #include <cmath>
 #include <map>
 
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/compensation/drift_forecast.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/models/model_stream.h"
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "test_residual_common.h"
 
 namespace pm = piezo::models;

@@ -9,7 +9,7 @@
 #include <cmath>
 #include <string>
 
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 #include "piezo_compensation/compensation/track.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/sim/stage.h"

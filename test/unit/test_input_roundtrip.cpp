@@ -11,7 +11,7 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/evaluation.h"
+#include "piezo_compensation/analysis/evaluation/evaluation.h"
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/io/dataset.h"
 #include "piezo_compensation/models/augmented_model.h"

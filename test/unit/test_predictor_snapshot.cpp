@@ -9,7 +9,7 @@
 #include <functional>
 #include <iostream>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/compensation/reload_warmup.h"
 #include "piezo_compensation/compensation/snapshot_buffer.h"

@@ -3,7 +3,7 @@
 #include <cmath>
 #include <random>
 
-#include "piezo_compensation/analysis/recording_summary.h"
+#include "piezo_compensation/analysis/evaluation/recording_summary.h"
 
 using piezo::analysis::analyze_sequences;
 using piezo::analysis::check_continuity;

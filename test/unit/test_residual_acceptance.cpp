@@ -4,9 +4,9 @@
 
 #include <random>
 
-#include "piezo_compensation/analysis/residual.h"
-#include "piezo_compensation/analysis/residual_acceptance.h"
-#include "piezo_compensation/analysis/residual_families.h"
+#include "piezo_compensation/analysis/residual/residual.h"
+#include "piezo_compensation/analysis/residual/residual_acceptance.h"
+#include "piezo_compensation/analysis/residual/residual_families.h"
 #include "piezo_compensation/training/fit_common.h"
 
 namespace pa = piezo::analysis;

@@ -7,7 +7,7 @@
 #include <fstream>
 #include <sstream>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/models/augmented_model.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/c_export.h"

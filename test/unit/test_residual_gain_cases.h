@@ -15,7 +15,7 @@
 #include <random>
 #include <string>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/training/fitters.h"

@@ -8,7 +8,7 @@
 #include <cmath>
 #include <iostream>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/models/model_file.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"

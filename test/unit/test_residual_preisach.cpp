@@ -6,7 +6,7 @@
 #include <cstdlib>
 #include <iostream>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "piezo_compensation/sim/stage.h"
 #include "piezo_compensation/training/fitters.h"
 

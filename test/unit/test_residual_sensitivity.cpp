@@ -1,4 +1,4 @@
-// The residual loop's sensitivity harness (analysis/residual_sensitivity.h), small: a periodic encoder error of
+// The residual loop's sensitivity harness (analysis/residual/residual_sensitivity.h), small: a periodic encoder error of
 // 1.5 σ (RMS over the reading noise) must be named on every stage, and nothing may be added to a stage without an
 // effect (the bound of 5 % false positives, on a handful of stages: none). The full table: docs/closing-the-loop.md,
 // "Sensitivity", `piezo residual-sensitivity`. Seeds other than the table's.
@@ -9,8 +9,8 @@
 #include <string>
 #include <vector>
 
-#include "piezo_compensation/analysis/estimator_fit.h"
-#include "piezo_compensation/analysis/residual_sensitivity.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/residual_sensitivity.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/sim/manipulator_simulator.h"
 #include "piezo_compensation/sim/stage.h"

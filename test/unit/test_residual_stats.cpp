@@ -4,7 +4,7 @@
 #include <cmath>
 #include <random>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 
 namespace pa = piezo::analysis;
 

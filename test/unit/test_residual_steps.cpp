@@ -8,7 +8,7 @@
 #include <cstdlib>
 #include <iostream>
 
-#include "piezo_compensation/analysis/residual.h"
+#include "piezo_compensation/analysis/residual/residual.h"
 #include "test_residual_common.h"
 
 namespace pa = piezo::analysis;

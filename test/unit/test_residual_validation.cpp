@@ -6,8 +6,8 @@
 #include <cmath>
 #include <random>
 
-#include "piezo_compensation/analysis/residual_context.h"
-#include "piezo_compensation/analysis/residual_validation.h"
+#include "piezo_compensation/analysis/residual/residual_context.h"
+#include "piezo_compensation/analysis/residual/residual_validation.h"
 
 namespace pd = piezo::analysis::detail;
 

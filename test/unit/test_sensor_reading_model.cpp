@@ -11,7 +11,7 @@
 #include <cstdio>
 #include <string>
 
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 #include "piezo_compensation/compensation/axis_compensator.h"
 #include "piezo_compensation/compensation/ideal_line.h"
 #include "piezo_compensation/models/augmented_model.h"

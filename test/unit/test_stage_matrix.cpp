@@ -13,9 +13,9 @@
 #include <map>
 #include <set>
 
-#include "piezo_compensation/analysis/model_selection.h"
-#include "piezo_compensation/analysis/metrics.h"
-#include "piezo_compensation/analysis/noise_floor.h"
+#include "piezo_compensation/analysis/selection/model_selection.h"
+#include "piezo_compensation/analysis/evaluation/metrics.h"
+#include "piezo_compensation/analysis/evaluation/noise_floor.h"
 #include "piezo_compensation/models/model_stream.h"
 #include "piezo_compensation/models/start_state.h"
 #include "piezo_compensation/sim/stage.h"

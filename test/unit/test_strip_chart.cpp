@@ -1,10 +1,10 @@
-// The strip chart's window, statistics and layout (analysis/strip_chart.h).
+// The strip chart's window, statistics and layout (analysis/evaluation/strip_chart.h).
 #include <gtest/gtest.h>
 
 #include <cmath>
 #include <random>
 
-#include "piezo_compensation/analysis/strip_chart.h"
+#include "piezo_compensation/analysis/evaluation/strip_chart.h"
 
 namespace {
 

@@ -175,7 +175,7 @@ class ErrorFilter {
 
 struct IdentifyOptions {
   double dt_s = 1.0 / 11.0;
-  // From the noise floor of the data (analysis/noise_floor.h), quantisation included; > 0. The σ before the
+  // From the noise floor of the data (analysis/evaluation/noise_floor.h), quantisation included; > 0. The σ before the
   // quantiser starts from √(σ² − q²/12) (a tenth of a step where rounding dominates the floor) and is then
   // identified with the variance rates by the same likelihood.
   double reading_sigma_nm = 0.0;

@@ -113,7 +113,7 @@ bool is_simulated(const Dataset& data);
 Dataset join_recordings(const std::vector<Dataset>& parts, std::vector<std::string>* notes = nullptr);
 
 // The voltage extremes, length and rate of one axis' recording: what data-placed features (features/
-// feature_specs.h, voltage_history) are placed on and what the fit gates (analysis/model_selection.h) scale by.
+// feature_specs.h, voltage_history) are placed on and what the fit gates (analysis/selection/model_selection.h) scale by.
 struct DataSpan {
   double voltage_min_v = 0, voltage_max_v = 0, duration_s = 0, sample_rate_hz = 0;
   double voltage_span_v() const { return voltage_max_v - voltage_min_v; }

@@ -1,4 +1,4 @@
-// A base model plus extra effect terms found by the residual tool (analysis/residual.h), kind "augmented".
+// A base model plus extra effect terms found by the residual tool (analysis/residual/residual.h), kind "augmented".
 //   prediction = base prediction + offset_nm + Σ_terms w · z_term(inputs, base prediction)
 // Each term is a small causal regressor generator (lag, low-pass, play, sin/cos, powers) on one signal: the own
 // voltage, the base model's predicted position, the data time, or a named data column (another axis' voltage,

@@ -1,6 +1,6 @@
 // piezo_monitor: the operator's strip chart in rviz (docs/predictor.md, "Monitor"). Subscribes to each axis'
 // <axis>/prediction (measured, predicted, intended, drift forecast, compensation state, model) and publishes
-// the charts of analysis/strip_chart.h as one MarkerArray in a fixed chart frame, so rviz needs no plugin.
+// the charts of analysis/evaluation/strip_chart.h as one MarkerArray in a fixed chart frame, so rviz needs no plugin.
 #pragma once
 
 #include <ros/ros.h>
@@ -11,7 +11,7 @@
 #include <vector>
 
 #include "piezo_compensation/Prediction.h"
-#include "piezo_compensation/analysis/strip_chart.h"
+#include "piezo_compensation/analysis/evaluation/strip_chart.h"
 
 namespace piezo::monitor {
 

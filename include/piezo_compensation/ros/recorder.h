@@ -17,7 +17,7 @@
 
 #include "piezo_compensation/AxisVoltage.h"
 #include "piezo_compensation/EncoderPosition.h"
-#include "piezo_compensation/analysis/recording_summary.h"
+#include "piezo_compensation/analysis/evaluation/recording_summary.h"
 #include "piezo_compensation/io/axes.h"
 #include "piezo_compensation/protocols/protocol.h"
 #include "piezo_compensation/ros/recorder_bag.h"
