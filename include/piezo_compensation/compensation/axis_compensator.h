@@ -88,6 +88,12 @@ class AxisCompensator {
   // `inputs`: values of model().aux_inputs() at this sample (required when the model reads any); the command
   // for the next sample uses them held, with time_s one period on.
   SampleUpdate on_sample(double applied_v, double measured_nm, bool measured_valid, const double* inputs = nullptr);
+  // The model advances one period of config.sample_rate_hz per sample (a kind with time constants in seconds runs
+  // at that rate whatever rate it was fitted at; a kind that steps once per sample of its training rate refuses
+  // another with its reason, std::invalid_argument). set_step_s(dt) makes the following samples advance dt
+  // instead (a jittered recording's own row step, compensation/track.h); the estimator and the trims keep the
+  // nominal period.
+  void set_step_s(double dt_s);
   // The inputs the next command and a drift forecast use (empty when the model reads none).
   std::vector<double> next_inputs() const;
 
@@ -130,6 +136,7 @@ class AxisCompensator {
 
  private:
   static void check_model(const models::Model& model);  // throws for models the compensator cannot feed
+  void set_period_for(models::Model& model) const;       // the nominal period (or throws why the kind refuses it)
   void set_estimator_for(const models::Model& model);    // the filter from the model file's noise model
   void track(double predicted_nm, double measured_nm, bool measured_valid, bool ok, SampleUpdate& u);
   double sensor_part(const models::ModelInput& in) const;  // 0 without sensor terms

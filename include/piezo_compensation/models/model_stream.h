@@ -59,6 +59,23 @@ class InputResolver {
   std::vector<double> row_;
 };
 
+// The step each row advances a model over (Model::set_step_s): the row's own step for a model that runs at any
+// rate on data without a sample clock (the first row, and a step beyond io::kMaxStepS, take the data's period),
+// the data's period on a sample clock, and nothing for a model that runs at its training rate only. stream_model
+// and the compensator's offline twin (compensation/track.h) step models through it. Keeps a reference to
+// data.time_s.
+class RowSteps {
+ public:
+  RowSteps(const Model& model, const io::Dataset& data);
+  double step_s(std::size_t i) const;             // row i's step; NaN: the model keeps its own
+  void apply(Model& model, std::size_t i) const;  // the model's step for row i, before its predict
+
+ private:
+  const std::vector<double>& t_;
+  double period_s_ = 0;
+  bool per_row_ = false;
+};
+
 struct StreamOptions {
   PredictionMode mode = PredictionMode::kFreeRun;
   // Initial state: reset (rest at the first voltage and measured position) at the first row streamed.

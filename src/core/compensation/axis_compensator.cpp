@@ -8,6 +8,7 @@
 
 #include "piezo_compensation/estimation/forecast.h"
 #include "piezo_compensation/models/model_stream.h"
+#include "piezo_compensation/util/format.h"
 
 namespace piezo::compensation {
 
@@ -21,6 +22,7 @@ AxisCompensator::AxisCompensator(models::ModelPtr model, const IdealLine& line, 
   if (!(config_.start_estimate_s >= 0.0) || !std::isfinite(config_.start_estimate_s))
     throw std::invalid_argument("AxisCompensator: start_estimate_s must be a finite time >= 0 s");
   check_model(*model_);
+  set_period_for(*model_);
   set_inputs_for(*model_);
   const double stroke_nm = std::abs(line_.position_nm(config_.voltage_max_v) - line_.position_nm(config_.voltage_min_v));
   if (config_.hold_trim.max_nm <= 0.0) trim_.set_max_nm(0.02 * stroke_nm);  // 2 % of the ideal stroke
@@ -97,6 +99,19 @@ void AxisCompensator::check_model(const models::Model& model) {
   const std::vector<std::string> names = model.aux_inputs();
   for (const auto& n : names)
     if (n.empty()) throw std::invalid_argument("model '" + model.kind() + "' reads an input without a name");
+}
+
+void AxisCompensator::set_period_for(models::Model& model) const {
+  try {
+    model.set_step_s(1.0 / config_.sample_rate_hz);
+  } catch (const std::invalid_argument& e) {
+    throw std::invalid_argument("AxisCompensator: sample_rate_hz " + util::fmt(config_.sample_rate_hz, 4) +
+                                " Hz: " + e.what());
+  }
+}
+
+void AxisCompensator::set_step_s(double dt_s) {
+  if (model_->runs_at_any_rate()) model_->set_step_s(dt_s);
 }
 
 void AxisCompensator::set_inputs_for(const models::Model& model) {
@@ -310,6 +325,7 @@ void AxisCompensator::start_resumed(models::ModelPtr model, double last_applied_
   if (!std::isfinite(last_applied_v) || !std::isfinite(predicted_nm))
     throw std::invalid_argument("AxisCompensator: start_resumed with a non-finite voltage or position");
   check_model(*model);
+  set_period_for(*model);
   model_ = std::move(model);
   set_inputs_for(*model_);
   set_estimator_for(*model_);
@@ -325,6 +341,7 @@ void AxisCompensator::start_resumed(models::ModelPtr model, double last_applied_
 void AxisCompensator::replace_model(models::ModelPtr model, const IdealLine& line, bool warm) {
   if (!model) throw std::invalid_argument("AxisCompensator: no model");
   check_model(*model);
+  set_period_for(*model);
   model_ = std::move(model);
   set_inputs_for(*model_);
   line_ = line;

@@ -183,8 +183,10 @@ TrackResult track_one(models::ModelPtr model, const io::Dataset& data, const std
   r.fused_nm.resize(n);
   r.fused_sigma_nm.resize(n);
   std::vector<estimation::FilterState> states(comp.estimator() ? n : 0);
+  const models::RowSteps steps(comp.model(), data);  // a jittered recording's own row steps, as stream_model
   for (std::size_t i = 0; i < n; ++i) {
     const double y = ax.position_nm[i];
+    if (const double dt = steps.step_s(i); std::isfinite(dt)) comp.set_step_s(dt);
     const SampleUpdate u = comp.on_sample(ax.voltage_v[i], y, std::isfinite(y), inputs.at(i));
     r.model_nm[i] = u.predicted_nm;
     r.fused_nm[i] = u.fused_nm;

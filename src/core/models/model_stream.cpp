@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 
 #include "piezo_compensation/util/flush_subnormals.h"
@@ -108,35 +109,28 @@ void Model::check_fixed_step(double dt_s) const {
                                 " Hz): " + fixed_rate_reason());
 }
 
-namespace {
-// The step each row advances a model over: the row's own step for a model that runs at any rate on data
-// without a sample clock (the first row, and a step beyond io::kMaxStepS, take the data's period), the
-// data's period on a sample clock, and nothing for a model that runs at its training rate only.
-class RowSteps {
- public:
-  RowSteps(const Model& model, const io::Dataset& data) : t_(data.time_s) {
-    if (!model.runs_at_any_rate() || data.size() < 2) return;
-    const io::TimeBase tb = io::time_base(data.time_s);
-    if (!(tb.period_s > 0)) return;
-    period_s_ = tb.period_s;
-    per_row_ = !tb.constant;
-  }
-  // Sets the model's step for row i (before its predict).
-  void apply(Model& model, std::size_t i) const {
-    if (!(period_s_ > 0)) return;
-    if (!per_row_) {
-      if (i == 0) model.set_step_s(period_s_);
-      return;
-    }
-    const double dt = i > 0 ? t_[i] - t_[i - 1] : period_s_;
-    model.set_step_s(dt > 0 && dt <= io::kMaxStepS ? dt : period_s_);
-  }
+RowSteps::RowSteps(const Model& model, const io::Dataset& data) : t_(data.time_s) {
+  if (!model.runs_at_any_rate() || data.size() < 2) return;
+  const io::TimeBase tb = io::time_base(data.time_s);
+  if (!(tb.period_s > 0)) return;
+  period_s_ = tb.period_s;
+  per_row_ = !tb.constant;
+}
 
- private:
-  const std::vector<double>& t_;
-  double period_s_ = 0;
-  bool per_row_ = false;
-};
+double RowSteps::step_s(std::size_t i) const {
+  if (!(period_s_ > 0)) return std::numeric_limits<double>::quiet_NaN();
+  if (!per_row_ || i == 0) return period_s_;
+  const double dt = t_[i] - t_[i - 1];
+  return dt > 0 && dt <= io::kMaxStepS ? dt : period_s_;
+}
+
+void RowSteps::apply(Model& model, std::size_t i) const {
+  if (!per_row_ && i > 0) return;  // on a sample clock the step is set once
+  const double dt = step_s(i);
+  if (std::isfinite(dt)) model.set_step_s(dt);
+}
+
+namespace {
 
 void stream_rows(Model& model, const io::Dataset& data, const std::string& axis, const StreamOptions& o,
                  std::vector<double>* pred) {
