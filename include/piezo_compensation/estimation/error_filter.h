@@ -93,6 +93,7 @@ struct FilterState {
   // the covariance of (slow, fast, drift), row by row, upper triangle: ss, sf, sd, ff, fd, dd
   std::array<double, 6> covariance{};
   double last_predicted_nm = 0.0;
+  double rate_scale = 1.0;  // the factor on the variance rates the innovations asked for (ErrorFilter::rate_scale)
   bool started = false;
 };
 

@@ -354,6 +354,7 @@ FilterState ErrorFilter::state() const {
   s.slow_nm = x_(0), s.fast_nm = x_(1), s.drift_nm_per_s = x_(2);
   s.covariance = {P_(0, 0), P_(0, 1), P_(0, 2), P_(1, 1), P_(1, 2), P_(2, 2)};
   s.last_predicted_nm = last_p_;
+  s.rate_scale = rate_scale_;
   s.started = started_;
   return s;
 }
@@ -371,6 +372,7 @@ void ErrorFilter::set_state(const FilterState& s) {
   x_ << s.slow_nm, s.fast_nm, s.drift_nm_per_s;
   P_ = P;
   last_p_ = s.last_predicted_nm;
+  rate_scale_ = std::isfinite(s.rate_scale) ? std::clamp(s.rate_scale, 1.0, kMaxRateScale) : 1.0;
   started_ = s.started;
   rejected_run_ = 0;
   have_level_ = false;
@@ -484,8 +486,11 @@ bool ErrorFilter::take_reading(double y_nm, double level_nm) {
 // The innovations' spread against the one the filter expects: for the moment-matched update E[ν²] = E[explained]
 // exactly (the law of total variance on y* ~ N(m, s²) given its cell), on every axis. Per block of readings,
 // z = (Σν² − Σe)/√(2Σe²); beyond adapt_k the rates are scaled up by the block's ratio Σν²/Σe (at most ×2 a block,
-// at most kMaxRateScale in all), below −adapt_k down again (never below the identified rates).
+// at most kMaxRateScale in all), below −adapt_k down again (never below the identified rates). Coarse steps only.
 void ErrorFilter::check_spread(double nu, double explained) {
+  // Dithered readings (c: 20 nm steps under 20 nm of noise) measure the error at every sample and are checked by the
+  // consistency test; the forecast's σ scales are calibrated on the filter as identified.
+  if (!(model_.step_nm > 2.0 * sigma_)) return;
   spread_.nu2 += nu * nu;
   spread_.e += explained;
   spread_.e2 += explained * explained;
