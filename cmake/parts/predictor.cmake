@@ -4,6 +4,8 @@ piezo_unit_test(test_estimation test/unit/test_estimation.cpp)
 piezo_unit_test(test_estimation_quantised test/unit/test_estimation_quantised.cpp)
 piezo_unit_test(test_estimation_forecast test/unit/test_estimation_forecast.cpp)
 piezo_unit_test(test_hold_trim test/unit/test_hold_trim.cpp)
+# the estimator identified on one coarse stage, tracking another (a fit and an identification: about a minute)
+piezo_unit_test(test_estimation_foreign test/unit/test_estimation_foreign.cpp)
 piezo_unit_test(test_tracking_trim test/unit/test_tracking_trim.cpp)
 piezo_unit_test(test_sensor_reading_model test/unit/test_sensor_reading_model.cpp)
 piezo_node(piezo_predictor src/nodes/piezo_predictor_node.cpp)
@@ -57,7 +59,7 @@ if(CATKIN_ENABLE_TESTING)
      rm -rf $d")
   piezo_test_budget(cli_track_smoke)
 endif()
-piezo_slow_tests(test_hold_trim)  # simulates 8 h of the foreign stage and runs the shipped Preisach model over it
+piezo_slow_tests(test_hold_trim test_estimation_foreign)  # test_hold_trim simulates 8 h of the foreign stage and runs the shipped Preisach model over it
 # Resuming a model on the run before's recorded history (compensation/resume.h, the predictor's ~resume_from).
 piezo_unit_test(test_compensation_resume test/unit/test_compensation_resume.cpp)
 # The model-file checks, the transport rule for a model fitted on simulated data, and the data origin it is decided from.

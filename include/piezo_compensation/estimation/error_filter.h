@@ -93,6 +93,7 @@ struct FilterState {
   // the covariance of (slow, fast, drift), row by row, upper triangle: ss, sf, sd, ff, fd, dd
   std::array<double, 6> covariance{};
   double last_predicted_nm = 0.0;
+  double rate_scale = 1.0;  // the factor on the variance rates the innovations asked for (ErrorFilter::rate_scale)
   bool started = false;
 };
 
@@ -134,9 +135,16 @@ class ErrorFilter {
   std::size_t rejected_readings() const { return rejections_; }  // readings outside the gate, not taken
   std::size_t widenings() const { return widenings_; }  // times the gate's alive test widened the slow error
   std::size_t stale_readings() const { return stale_; }  // readings of a level the model moved two steps away from
+  // The factor on the noise model's four variance rates the innovations' spread asks for (1: as identified; raised
+  // when the readings scatter more than the rates predict, as on physics the identification did not see; at most
+  // kMaxRateScale), and the times it was raised.
+  double rate_scale() const { return rate_scale_; }
+  std::size_t rate_scalings() const { return rate_scalings_; }
+  static constexpr double kMaxRateScale = 16.0;
 
  private:
   void check_consistency(double s);
+  void check_spread(double nu, double explained);
   void predict(double dp, Eigen::Vector3d& x, Eigen::Matrix3d& P) const;
   double var_error(const Eigen::Matrix3d& P) const { return P(0, 0) + 2.0 * P(0, 1) + P(1, 1); }
   // false: the reading was outside the gate and not taken (level_nm: the reading itself, whose changes say the
@@ -158,6 +166,13 @@ class ErrorFilter {
   };
   std::array<Window, 3> windows_;
   std::size_t adaptations_ = 0;
+  struct SpreadBlock {  // Σν², Σ explained, Σ explained² over the readings of one block (windows_[1]'s length)
+    double nu2 = 0.0, e = 0.0, e2 = 0.0;
+    std::size_t count = 0;
+  };
+  SpreadBlock spread_;
+  double rate_scale_ = 1.0;
+  std::size_t rate_scalings_ = 0;
   std::size_t rejected_run_ = 0, rejections_ = 0, widenings_ = 0;
   std::size_t taken_ = 0;        // readings taken since the last reset
   double taken_level_nm_ = 0.0;  // the level of the last reading taken

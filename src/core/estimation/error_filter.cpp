@@ -304,6 +304,8 @@ void ErrorFilter::reset(double slow_error_nm, double slow_sigma_nm) {
   taken_ = 0;
   have_level_ = false;
   for (auto& w : windows_) w.nu_bar = w.s_bar = 0.0, w.count = 0;
+  rate_scale_ = 1.0;
+  spread_ = SpreadBlock{};
 }
 
 double ErrorFilter::sigma_nm() const {
@@ -319,12 +321,12 @@ void ErrorFilter::predict(double dp, Eigen::Vector3d& x, Eigen::Matrix3d& P) con
   F << 1.0, 0.0, dt, 0.0, phi_, 0.0, 0.0, 0.0, 1.0;
   x = F * x;
   P = F * P * F.transpose();
-  const double qd = model_.q_drift_nm2_per_s3;
-  P(0, 0) += model_.q_rest_nm2_per_s * dt + model_.q_motion_nm * dp + qd * dt * dt * dt / 3.0;
+  const double k = rate_scale_, qd = k * model_.q_drift_nm2_per_s3;
+  P(0, 0) += k * (model_.q_rest_nm2_per_s * dt + model_.q_motion_nm * dp) + qd * dt * dt * dt / 3.0;
   P(0, 2) += qd * dt * dt / 2.0;
   P(2, 0) = P(0, 2);
   P(2, 2) += qd * dt;
-  P(1, 1) += model_.q_fast_nm * dp;
+  P(1, 1) += k * model_.q_fast_nm * dp;
 }
 
 bool ErrorFilter::zero_known() const {
@@ -334,12 +336,13 @@ bool ErrorFilter::zero_known() const {
 void ErrorFilter::hold(std::size_t samples) {
   if (!model_.fuse || samples == 0) return;
   // n samples at rest in closed form: F^n = [[1, 0, T], [0, φ^n, 0], [0, 0, 1]], the process noise summed over them
-  const double n = static_cast<double>(samples), T = n * dt_s_, phin = std::pow(phi_, n), qd = model_.q_drift_nm2_per_s3;
+  const double n = static_cast<double>(samples), T = n * dt_s_, phin = std::pow(phi_, n),
+               qd = rate_scale_ * model_.q_drift_nm2_per_s3;
   Eigen::Matrix3d F;
   F << 1.0, 0.0, T, 0.0, phin, 0.0, 0.0, 0.0, 1.0;
   x_ = F * x_;
   P_ = F * P_ * F.transpose();
-  P_(0, 0) += model_.q_rest_nm2_per_s * T + qd * T * T * T / 3.0;
+  P_(0, 0) += rate_scale_ * model_.q_rest_nm2_per_s * T + qd * T * T * T / 3.0;
   P_(0, 2) += qd * T * T / 2.0;
   P_(2, 0) = P_(0, 2);
   P_(2, 2) += qd * T;
@@ -351,6 +354,7 @@ FilterState ErrorFilter::state() const {
   s.slow_nm = x_(0), s.fast_nm = x_(1), s.drift_nm_per_s = x_(2);
   s.covariance = {P_(0, 0), P_(0, 1), P_(0, 2), P_(1, 1), P_(1, 2), P_(2, 2)};
   s.last_predicted_nm = last_p_;
+  s.rate_scale = rate_scale_;
   s.started = started_;
   return s;
 }
@@ -368,6 +372,7 @@ void ErrorFilter::set_state(const FilterState& s) {
   x_ << s.slow_nm, s.fast_nm, s.drift_nm_per_s;
   P_ = P;
   last_p_ = s.last_predicted_nm;
+  rate_scale_ = std::isfinite(s.rate_scale) ? std::clamp(s.rate_scale, 1.0, kMaxRateScale) : 1.0;
   started_ = s.started;
   rejected_run_ = 0;
   have_level_ = false;
@@ -478,8 +483,33 @@ bool ErrorFilter::take_reading(double y_nm, double level_nm) {
   return true;
 }
 
+// The innovations' spread against the one the filter expects: for the moment-matched update E[ν²] = E[explained]
+// exactly (the law of total variance on y* ~ N(m, s²) given its cell), on every axis. Per block of readings,
+// z = (Σν² − Σe)/√(2Σe²); beyond adapt_k the rates are scaled up by the block's ratio Σν²/Σe (at most ×2 a block,
+// at most kMaxRateScale in all), below −adapt_k down again (never below the identified rates). Coarse steps only.
+void ErrorFilter::check_spread(double nu, double explained) {
+  // Dithered readings (c: 20 nm steps under 20 nm of noise) measure the error at every sample and are checked by the
+  // consistency test; the forecast's σ scales are calibrated on the filter as identified.
+  if (!(model_.step_nm > 2.0 * sigma_)) return;
+  spread_.nu2 += nu * nu;
+  spread_.e += explained;
+  spread_.e2 += explained * explained;
+  if (++spread_.count < windows_[1].n) return;
+  const SpreadBlock b = spread_;
+  spread_ = SpreadBlock{};
+  if (!(b.e2 > 0.0)) return;
+  const double z = (b.nu2 - b.e) / std::sqrt(2.0 * b.e2);
+  if (z > model_.adapt_k) {
+    rate_scale_ = std::min(kMaxRateScale, rate_scale_ * std::min(2.0, b.nu2 / b.e));
+    ++rate_scalings_;
+  } else if (z < -model_.adapt_k && rate_scale_ > 1.0) {
+    rate_scale_ = std::max(1.0, rate_scale_ / std::min(2.0, b.e / std::max(b.nu2, 1e-300)));
+  }
+}
+
 void ErrorFilter::check_consistency(double s) {
   if (!(model_.adapt_k > 0.0)) return;
+  check_spread(innovation_, s);
   for (auto& w : windows_) {
     w.nu_bar += w.alpha * (innovation_ - w.nu_bar);
     w.s_bar += w.alpha * (s - w.s_bar);

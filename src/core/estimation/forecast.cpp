@@ -24,8 +24,8 @@ ErrorForecast forecast_error(const NoiseModel& m, double dt_s, const FilterState
   double var = 0.0;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) var += g[i] * P[i][j] * g[j];
-  var += m.q_rest_nm2_per_s * T + m.q_drift_nm2_per_s3 * T * T * T / 3.0 + m.q_motion_nm * path.path_nm +
-         m.q_fast_nm * path.fast_path_nm;
+  var += s.rate_scale * (m.q_rest_nm2_per_s * T + m.q_drift_nm2_per_s3 * T * T * T / 3.0 + m.q_motion_nm * path.path_nm +
+                         m.q_fast_nm * path.fast_path_nm);
   // The slow error's rate stays out of the mean (its uncertainty is in the variance): its identified random walk is
   // weak, so its estimate is mostly noise, and h·rate over minutes turns that noise into an error of its own.
   f.mean_nm = s.slow_nm + phin * s.fast_nm;
