@@ -11,7 +11,7 @@
 #include <cstdio>
 #include <string>
 
-#include "piezo_compensation/analysis/estimator_fit.h"
+#include "piezo_compensation/analysis/residual/estimator_fit.h"
 #include "piezo_compensation/compensation/track.h"
 #include "piezo_compensation/estimation/error_filter.h"
 #include "piezo_compensation/sim/stage.h"
